@@ -1,0 +1,2 @@
+# Workspace-wide pytest setup: per-session ROS domain, LOCALHOST discovery, rclpy fixtures.
+pytest_plugins = ["lsu_bringup.testing"]

@@ -1,0 +1,1 @@
+"""The scan_coordinator node, launch files and the lsu command (launch, run, graph introspection, doctor, bags)."""

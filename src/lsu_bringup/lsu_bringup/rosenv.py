@@ -1,0 +1,104 @@
+"""The ROS environment every LSU process runs in: localhost-only DDS and a chosen domain.
+
+No rclpy import here: this module must run before rclpy is loaded, because the DDS settings
+are read when the first context starts.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import pwd
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, MutableMapping, Optional
+
+DISCOVERY_VAR = "ROS_AUTOMATIC_DISCOVERY_RANGE"
+DOMAIN_VAR = "ROS_DOMAIN_ID"
+LOCALHOST = "LOCALHOST"
+#: Domain used by the `lsu` command when the user chose none. 0 is the ROS default, so the
+#: user's own robot software on this machine sees our topics without any setting.
+DEFAULT_DOMAIN_ID = 0
+#: Domains handed out to test sessions and demos; 0 stays free for interactive use.
+CLAIMABLE_DOMAINS = range(1, 102)
+_LOCK_DIR = Path(os.environ.get("LSU_DOMAIN_LOCK_DIR", "/tmp/lsu-ros-domains"))
+
+
+@dataclass
+class EnvReport:
+    """What `apply_defaults` found and did, for `lsu doctor`."""
+
+    discovery_range: str
+    discovery_set_by_lsu: bool
+    domain_id: str
+    domain_set_by_lsu: bool
+
+
+def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
+    """Make DDS localhost-only and pick a domain, unless the user explicitly chose them.
+
+    Modifies ``env`` (default: ``os.environ``) in place so child processes inherit it.
+    """
+    env = os.environ if env is None else env
+    if not env.get("HOME") and not env.get("ROS_LOG_DIR"):
+        # rcl's logging needs ~/.ros/log; from an empty environment (env -i, services) HOME is unset
+        env["HOME"] = pwd.getpwuid(os.getuid()).pw_dir
+    set_range = not env.get(DISCOVERY_VAR)
+    if set_range:
+        env[DISCOVERY_VAR] = LOCALHOST
+    set_domain = not env.get(DOMAIN_VAR)
+    if set_domain:
+        env[DOMAIN_VAR] = str(DEFAULT_DOMAIN_ID)
+    return EnvReport(env[DISCOVERY_VAR], set_range, env[DOMAIN_VAR], set_domain)
+
+
+class DomainClaim:
+    """A ROS domain id held exclusively by this process (a lock file per id).
+
+    Parallel test sessions and demos on one machine each claim a different id, so their
+    graphs never see each other. The claim ends with `release()` or when the process exits.
+    """
+
+    def __init__(self, domain_id: int, handle: IO[str]) -> None:
+        self.domain_id = domain_id
+        self._handle: Optional[IO[str]] = handle
+
+    def release(self) -> None:
+        """Give the domain back."""
+        if self._handle is not None:
+            self._handle.close()
+            self._handle = None
+
+
+def claim_domain(start_hint: Optional[int] = None) -> DomainClaim:
+    """Claim a free domain id from `CLAIMABLE_DOMAINS`.
+
+    The search starts at a pid-dependent offset so concurrent claimers rarely race for the
+    same lock file; the lock itself settles any race.
+    """
+    _LOCK_DIR.mkdir(parents=True, exist_ok=True)
+    ids = list(CLAIMABLE_DOMAINS)
+    offset = (os.getpid() if start_hint is None else start_hint) % len(ids)
+    for domain_id in ids[offset:] + ids[:offset]:
+        handle = open(_LOCK_DIR / f"{domain_id}.lock", "w")
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            handle.close()
+            continue
+        handle.write(str(os.getpid()))
+        handle.flush()
+        return DomainClaim(domain_id, handle)
+    raise RuntimeError(
+        f"all ROS domain ids {ids[0]}..{ids[-1]} are claimed by other LSU runs on this machine; "
+        f"wait for them to end or set {DOMAIN_VAR} yourself"
+    )
+
+
+def isolate(env: Optional[MutableMapping[str, str]] = None) -> DomainClaim:
+    """Localhost-only DDS plus a freshly claimed domain (tests, demos)."""
+    env = os.environ if env is None else env
+    claim = claim_domain()
+    env[DISCOVERY_VAR] = LOCALHOST
+    env[DOMAIN_VAR] = str(claim.domain_id)
+    return claim

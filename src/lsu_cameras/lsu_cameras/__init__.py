@@ -1,0 +1,1 @@
+"""Stereo camera sources (v4l2, image folders, simulated rig), stereo calibration and the stereo_camera node."""

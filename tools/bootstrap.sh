@@ -1,0 +1,121 @@
+#!/usr/bin/env bash
+# Bootstrap the LSU workspace on a bare Debian 12 + Python 3.11 machine (run by `make setup`).
+#
+# Steps (each skipped when its inputs did not change, so a second run takes seconds):
+#   1. system packages (apt, only what wheels cannot give: compiler, cmake, venv, libusb)
+#   2. .venv with the pinned requirements.lock
+#   3. path fixes in the ROS wheels' cmake files (they name the wheel builder's Python)
+#   4. colcon build of src/lsu_interfaces straight into .venv (no sourcing needed)
+#   5. editable installs of the ament_python packages (node executables in .venv/bin)
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+VENV="$ROOT/.venv"
+STAMPS="$VENV/.lsu-stamps"
+PYTHON="${PYTHON:-python3}"
+PY_PACKAGES=(lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup)
+
+step=""
+fail() {
+    echo "[setup] FAILED at step '$step': $1" >&2
+    echo "[setup] what to do: $2" >&2
+    exit 1
+}
+trap 'rc=$?; [ $rc -eq 0 ] || [ -z "$step" ] || echo "[setup] step \"$step\" exited with $rc; see the output above." >&2' EXIT
+say() { echo "[setup] $*"; }
+
+# hash of files (paths relative to ROOT), used as the stamp of a step's inputs
+inputs_hash() { (cd "$ROOT" && find "$@" -type f ! -name '*.pyc' ! -path '*/__pycache__/*' -print0 | sort -z | xargs -0 sha256sum | sha256sum | cut -c1-64); }
+stamp_ok() { [ -f "$STAMPS/$1" ] && [ "$(cat "$STAMPS/$1")" = "$2" ]; }
+stamp_set() { mkdir -p "$STAMPS"; echo "$2" > "$STAMPS/$1"; }
+
+# ---------------------------------------------------------------- 1. system packages
+step="system packages"
+command -v "$PYTHON" >/dev/null || fail "'$PYTHON' not found" "install Python 3.11 (Debian 12: apt-get install python3) or set PYTHON=/path/to/python3.11"
+pyver="$("$PYTHON" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
+[ "$pyver" = "3.11" ] || fail "$PYTHON is Python $pyver; the ROS 2 Jazzy wheels need 3.11" "run with PYTHON=/path/to/python3.11"
+missing=()
+command -v cmake >/dev/null || missing+=(cmake)
+command -v c++ >/dev/null || missing+=(g++)
+command -v make >/dev/null || missing+=(make)
+"$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+# open3d needs libusb-1.0.so.0 at import time; no wheel ships it
+if ! { ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }; then missing+=(libusb-1.0-0); fi
+if [ ${#missing[@]} -gt 0 ]; then
+    say "installing Debian packages: ${missing[*]}"
+    if [ "$(id -u)" != 0 ]; then
+        fail "missing Debian packages: ${missing[*]}" "run: sudo apt-get install -y ${missing[*]}   (then make setup again)"
+    fi
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq || fail "apt-get update failed" "check the network / apt sources, then make setup again"
+    apt-get install -y -qq "${missing[@]}" >/dev/null || fail "apt-get install ${missing[*]} failed" "install them by hand, then make setup again"
+fi
+
+# ---------------------------------------------------------------- 2. venv + pinned wheels
+step="python environment"
+if [ ! -x "$VENV/bin/python" ]; then
+    say "creating $VENV"
+    "$PYTHON" -m venv "$VENV" || fail "python -m venv failed" "apt-get install python3-venv, remove .venv, make setup again"
+fi
+lock_hash="$(inputs_hash requirements.lock)"
+if ! stamp_ok lock "$lock_hash"; then
+    say "installing pinned wheels from requirements.lock (first time: ~2 min)"
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r requirements.lock 2>&1 \
+        | grep -v -E "^WARNING: Location .* is ignored" || true
+    "$VENV/bin/python" -c 'import rclpy, numpy, scipy, cv2, serial, rosbags, yaml, pytest' \
+        || fail "the pinned wheels did not install (see pip output above)" "check network access to PyPI; remove .venv and make setup again"
+    rm -f "$STAMPS/pathfix" "$STAMPS/interfaces" "$STAMPS/packages"
+    stamp_set lock "$lock_hash"
+fi
+
+# ---------------------------------------------------------------- 3. path fixes
+step="cmake path fixes"
+if ! stamp_ok pathfix "$lock_hash"; then
+    py_inc="$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')"
+    np_inc="$("$VENV/bin/python" -c 'import numpy; print(numpy.get_include())')"
+    [ -f "$py_inc/Python.h" ] || fail "Python headers not found in $py_inc" "apt-get install python3-dev (or use a Python with headers), then make setup again"
+    n=0
+    while IFS= read -r -d '' f; do
+        sed -i -e "s#/opt/python/cp311-cp311/include/python3.11#$py_inc#g" \
+               -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$np_inc#g" "$f"
+        n=$((n + 1))
+    done < <(grep -rlZ --include='*.cmake' -e /opt/python/cp311-cp311 "$VENV" 2>/dev/null || true)
+    say "rewrote wheel-builder paths in $n cmake files"
+    stamp_set pathfix "$lock_hash"
+fi
+
+# ---------------------------------------------------------------- 4. lsu_interfaces
+step="build lsu_interfaces"
+if_hash="$(inputs_hash src/lsu_interfaces requirements.lock)"
+if ! stamp_ok interfaces "$if_hash" || ! "$VENV/bin/python" -c 'import lsu_interfaces.msg' 2>/dev/null; then
+    say "building lsu_interfaces with colcon into .venv (~45 s)"
+    mkdir -p "$ROOT/log"
+    if ! env -i HOME="${HOME:-/root}" PATH="$VENV/bin:/usr/local/bin:/usr/bin:/bin" LANG=C.UTF-8 \
+        VIRTUAL_ENV="$VENV" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" \
+        "$VENV/bin/colcon" --log-base "$ROOT/log" build --base-paths "$ROOT/src/lsu_interfaces" \
+        --build-base "$ROOT/build" --merge-install --install-base "$VENV" \
+        --packages-select lsu_interfaces --event-handlers console_cohesion- summary- > "$ROOT/log/interfaces-build.txt" 2>&1; then
+        tail -n 30 "$ROOT/log/interfaces-build.txt" >&2 || true
+        fail "colcon build of lsu_interfaces failed (full log: log/interfaces-build.txt)" \
+             "fix the .msg/.srv/.action named in the log, or remove build/ and .venv and make setup again"
+    fi
+    env -i "$VENV/bin/python" -c 'from lsu_interfaces.msg import LaserLine; from lsu_interfaces.action import Scan' \
+        || fail "lsu_interfaces built but does not import" "remove build/ and make setup again"
+    stamp_set interfaces "$if_hash"
+fi
+
+# ---------------------------------------------------------------- 5. ament_python packages
+step="install python packages"
+pkg_hash="$(inputs_hash $(for p in "${PY_PACKAGES[@]}"; do echo "src/$p/setup.py" "src/$p/setup.cfg" "src/$p/package.xml"; done) requirements.lock)"
+if ! stamp_ok packages "$pkg_hash"; then
+    say "installing ${PY_PACKAGES[*]} in editable mode"
+    args=()
+    for p in "${PY_PACKAGES[@]}"; do args+=(-e "src/$p"); done
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps "${args[@]}" 2>&1 \
+        | grep -v -E "^WARNING: Location .* is ignored" || true
+    [ -x "$VENV/bin/lsu" ] || fail "the lsu command was not installed" "see the pip output above"
+    stamp_set packages "$pkg_hash"
+fi
+step=""
+say "ready: $VENV (lsu, node executables and lsu_interfaces need no sourcing)"
