@@ -41,7 +41,7 @@ command -v c++ >/dev/null || missing+=(g++)
 command -v make >/dev/null || missing+=(make)
 "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 # open3d needs libusb-1.0.so.0 at import time; no wheel ships it
-if ! { ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; }; then missing+=(libusb-1.0-0); fi
+if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then missing+=(libusb-1.0-0); fi  # no -q: SIGPIPE + pipefail
 if [ ${#missing[@]} -gt 0 ]; then
     say "installing Debian packages: ${missing[*]}"
     if [ "$(id -u)" != 0 ]; then
