@@ -18,8 +18,16 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
-        "lsu.nodes": [],
-        "lsu.commands": [],
+        "console_scripts": [
+            "gp32_driver = lsu_driver.node:main",
+            "gp32_emulator = lsu_driver.emulator_node:main",
+        ],
+        "lsu.nodes": [
+            "gp32_driver = lsu_driver.node:Gp32DriverNode",
+            "gp32_emulator = lsu_driver.emulator_node:Gp32EmulatorNode",
+        ],
+        "lsu.commands": [
+            "gp32 = lsu_driver.cli:register",
+        ],
     },
 )

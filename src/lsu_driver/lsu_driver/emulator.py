@@ -1,0 +1,551 @@
+"""A GP32 behind a pseudo-terminal: protocol v1 with the unit's physics and faults on demand.
+
+Nobody else has the original board, so this is the unit for developers, CI, the demo and the
+simulated cameras. It models what the thesis observed (ch. 3.2.3-3.3):
+
+- real-time motion at the step rate, one pulse at a time, with beam-break sensors at both
+  ends of a 470-step track;
+- an open-loop step counter: above ~180 steps/s the carriage's momentum makes each pulse
+  travel a little more than one step, so a full track needs 467 pulses instead of 470 and the
+  counter drifts from the true position until the next homing;
+- residual vibration after each stop, decaying with a time constant (the reason for
+  stop-snap scanning), exposed with the true position for the simulated cameras;
+- homing that measures the track, sweep mode, the laser watchdog and ``!BOOT`` on reset;
+- faults: garbage bytes, dropped bytes, late replies, reset (also mid-motion), a stalled
+  motor and the port vanishing and coming back.
+
+No rclpy here: `emulator_node.py` publishes the truth on ROS.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import select
+import socket
+import threading
+import time
+import tty
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+from . import protocol as p
+
+# the thesis: 470 pulses at low speed, 467 at high speed for the same physical track
+_HIGH_SPEED_GAIN = 470.0 / 467.0 - 1.0
+
+
+@dataclass
+class EmulatorConfig:
+    """Physical and firmware parameters of the emulated unit."""
+
+    track_steps: int = 470                      # physical distance between the sensors [true steps]
+    rate_steps_per_s: int = 200                 # power-on step rate
+    watchdog_ms: int = 2000                     # power-on laser watchdog
+    start_position_steps: float = 123.0         # where the carriage sits at power-on
+    overstep_threshold_steps_per_s: float = 180.0   # above this rate momentum adds travel per pulse
+    overstep_gain_at_max: float = _HIGH_SPEED_GAIN  # extra travel per pulse at the maximum rate
+    vibration_amplitude_steps: float = 0.6      # residual displacement right after a stop at 200 steps/s
+    vibration_tau_s: float = 0.040              # decay time constant of the residual vibration
+    vibration_freq_hz: float = 22.0             # oscillation frequency of the carriage on its belt
+
+
+@dataclass
+class Faults:
+    """Fault injection settings (all off by default)."""
+
+    garbage_probability: float = 0.0   # chance per output line that random bytes are sent before it
+    drop_probability: float = 0.0      # chance that each output byte is lost
+    reply_delay_s: float = 0.0         # every output line is delayed by this much
+    stalled: bool = False              # pulses are counted but the carriage does not move
+    seed: int = 0                      # seeds the fault RNG, so runs are reproducible
+
+
+@dataclass
+class Truth:
+    """What really happens on the unit (SimTruth), for the simulated cameras and tests."""
+
+    stamp_s: float                 # wall-clock time of this sample [s since epoch]
+    position_steps: float          # true carriage position, vibration excluded
+    velocity_steps_per_s: float
+    counter_steps: int
+    moving: bool
+    laser_on: bool
+    homed: bool
+    stopped_at_s: float            # wall-clock time of the last stop; 0 while moving
+    vibration_amplitude_steps: float
+    vibration_tau_s: float
+    vibration_freq_hz: float
+    boot_count: int
+
+    def displacement_steps(self, t_s: float) -> float:
+        """Residual vibration displacement at wall-clock time ``t_s``."""
+        if self.moving or self.stopped_at_s <= 0.0 or t_s < self.stopped_at_s:
+            return 0.0
+        dt = t_s - self.stopped_at_s
+        return (self.vibration_amplitude_steps * math.exp(-dt / self.vibration_tau_s)
+                * math.cos(2.0 * math.pi * self.vibration_freq_hz * dt))
+
+
+@dataclass
+class _Motion:
+    kind: str                    # "goto", "move", "home", "sweep"
+    direction: int               # +1 away from the start sensor, -1 towards it
+    pulses: Optional[int]        # pulses to send; None = until a sensor (homing, sweep)
+    rate: float
+    started: float               # monotonic time of the phase start
+    sent: int = 0
+    phase: str = ""              # homing: "seek", "measure", "return"
+
+
+class Gp32Emulator:
+    """The emulated GP32. Use as a context manager, or `start()` / `close()`.
+
+    ``device_path`` is the pty a client opens; with ``link`` a stable symlink points at it
+    (it survives an emulated unplug/replug, while the pty itself changes, like a real USB
+    adapter coming back). ``control`` opens a UNIX socket for run-time faults (JSON lines,
+    see `handle_control`).
+    """
+
+    def __init__(self, config: Optional[EmulatorConfig] = None, faults: Optional[Faults] = None,
+                 link: Optional[str] = None, control: Optional[str] = None) -> None:
+        self.config = config or EmulatorConfig()
+        self.faults = faults or Faults()
+        self.link = Path(link) if link else None
+        self.control_path = Path(control) if control else None
+        self._lock = threading.RLock()
+        self._rng = random.Random(self.faults.seed)
+        self._running = False
+        self._thread: Optional[threading.Thread] = None
+        self._control_thread: Optional[threading.Thread] = None
+        self._control_sock: Optional[socket.socket] = None
+        self._master: Optional[int] = None
+        self._slave: Optional[int] = None
+        self.device_path = ""
+        self._inbuf = b""
+        self._outq: List[Tuple[float, bytes]] = []
+        self._unplugged_until: Optional[float] = None
+        self.log: List[str] = []          # every line in and out, for tests and debugging
+        self.boot_count = 0
+        self._true = float(self.config.start_position_steps)
+        self._power_on()
+
+    # ----------------------------------------------------------------------------- lifecycle
+    def _power_on(self) -> None:
+        self.counter = 0
+        self.homed = False
+        self.laser_on = False
+        self.rate = self.config.rate_steps_per_s
+        self.watchdog_ms = self.config.watchdog_ms
+        self.track_measured = 0
+        self._motion: Optional[_Motion] = None
+        self._last_command = time.monotonic()
+        self._stopped_at_wall = 0.0
+        self._vib_amp = 0.0
+        self._velocity = 0.0
+        self.boot_count += 1
+        self._at_start, self._at_end = self._sensors()
+
+    def start(self) -> "Gp32Emulator":
+        """Open the pty (and link, control socket) and start the firmware thread; sends ``!BOOT``."""
+        self._open_pty()
+        self._running = True
+        self._send(p.Boot(p.PROTOCOL_VERSION))
+        self._thread = threading.Thread(target=self._loop, name="gp32-emulator", daemon=True)
+        self._thread.start()
+        if self.control_path is not None:
+            self._start_control()
+        return self
+
+    def __enter__(self) -> "Gp32Emulator":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the firmware thread, close the pty, remove the link and control socket."""
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._control_sock is not None:
+            self._control_sock.close()
+        if self.control_path is not None and self.control_path.exists():
+            self.control_path.unlink()
+        self._close_pty()
+
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)  # bytes pass unchanged: no echo, no CR/LF translation
+        self._master, self._slave = master, slave
+        self.device_path = os.ttyname(slave)
+        if self.link is not None:
+            tmp = self.link.with_name(self.link.name + ".tmp")
+            if tmp.is_symlink() or tmp.exists():
+                tmp.unlink()
+            tmp.symlink_to(self.device_path)
+            os.replace(tmp, self.link)  # atomic: a client never sees a missing link during replug
+
+    def _close_pty(self) -> None:
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._master = self._slave = None
+        if self.link is not None and self.link.is_symlink() and os.readlink(self.link) == self.device_path:
+            self.link.unlink()
+
+    # ---------------------------------------------------------------------------- physics
+    def _sensors(self) -> Tuple[bool, bool]:
+        eps = 1e-6  # 467 pulses x (470/467) must trip the end sensor despite rounding
+        return self._true <= eps, self._true >= self.config.track_steps - eps
+
+    def _gain(self, rate: float) -> float:
+        span = p.RATE_MAX - self.config.overstep_threshold_steps_per_s
+        x = (rate - self.config.overstep_threshold_steps_per_s) / span if span > 0 else 0.0
+        return 1.0 + self.config.overstep_gain_at_max * min(1.0, max(0.0, x))
+
+    def _pulse(self, motion: _Motion) -> Optional[int]:
+        """One step pulse; returns the sensor (0/1) that tripped in the direction of travel."""
+        self.counter += motion.direction
+        motion.sent += 1
+        if not self.faults.stalled:
+            self._true += motion.direction * self._gain(motion.rate)
+            self._true = min(float(self.config.track_steps), max(0.0, self._true))  # the sensors are the stops
+        at_start, at_end = self._sensors()
+        tripped = None
+        if at_start and not self._at_start:
+            self._send(p.EndSensor(0))
+        if at_end and not self._at_end:
+            self._send(p.EndSensor(1))
+        self._at_start, self._at_end = at_start, at_end
+        if motion.direction < 0 and at_start:
+            tripped = 0
+        elif motion.direction > 0 and at_end:
+            tripped = 1
+        return tripped
+
+    def _finish_motion(self, done: bool = True) -> None:
+        motion = self._motion
+        self._motion = None
+        self._velocity = 0.0
+        if motion is not None:
+            self._stopped_at_wall = time.time()
+            self._vib_amp = self.config.vibration_amplitude_steps * motion.rate / 200.0
+        if done:
+            self._send(p.Done(self.counter))
+
+    def _advance(self, now: float) -> None:
+        motion = self._motion
+        if motion is None:
+            return
+        due = int((now - motion.started) * motion.rate) - motion.sent
+        for _ in range(max(0, due)):
+            if motion.pulses is not None and motion.sent >= motion.pulses:
+                break
+            tripped = self._pulse(motion)
+            if motion.kind == "home" and tripped is not None:
+                self._homing_phase(tripped, now)
+                return
+            if motion.kind == "sweep" and tripped is not None:
+                self._motion = _Motion("sweep", -motion.direction, None, motion.rate, now)
+                motion = self._motion
+                self._velocity = motion.direction * motion.rate
+                continue
+            if tripped is not None:  # a sensor ended a G/M early: the counter has drifted or the target is off-track
+                self._finish_motion()
+                return
+        if motion.pulses is not None and motion.sent >= motion.pulses:
+            self._finish_motion()
+
+    def _homing_phase(self, tripped: int, now: float) -> None:
+        motion = self._motion
+        assert motion is not None
+        if motion.phase in ("seek", "return") and tripped == 0:
+            self.counter = 0
+            if motion.phase == "return":
+                self.homed = True
+                self._finish_motion(done=False)
+                self._send(p.HomeDone(self.track_measured))
+                return
+            self._motion = _Motion("home", +1, None, motion.rate, now, phase="measure")
+        elif motion.phase == "measure" and tripped == 1:
+            self.track_measured = self.counter
+            self._motion = _Motion("home", -1, None, motion.rate, now, phase="return")
+        self._velocity = self._motion.direction * self._motion.rate if self._motion else 0.0
+
+    def _check_watchdog(self, now: float) -> None:
+        if self.laser_on and self.watchdog_ms > 0 and (now - self._last_command) * 1000.0 > self.watchdog_ms:
+            self.laser_on = False
+            self._send(p.WatchdogFired())
+
+    # ---------------------------------------------------------------------------- commands
+    def _start_motion(self, kind: str, direction: int, pulses: Optional[int], phase: str = "") -> None:
+        self._motion = _Motion(kind, direction, pulses, float(self.rate), time.monotonic(), phase=phase)
+        self._velocity = direction * self.rate
+        self._stopped_at_wall = 0.0
+
+    def _handle(self, raw: bytes) -> None:
+        self.log.append("< " + raw.decode("ascii", "replace").rstrip())
+        self._last_command = time.monotonic()
+        try:
+            cmd = p.parse_command(raw)
+        except p.CommandError as exc:
+            self._send(p.Err(exc.code, p.ERROR_TEXT[exc.code]))
+            return
+        busy = self._motion is not None
+        if isinstance(cmd, p.Identify):
+            self._send(p.Ok(p.format_identify(p.IdentifyInfo(p.PROTOCOL_VERSION, self.track_measured or
+                                                               self.config.track_steps, self.rate))))
+        elif isinstance(cmd, p.Status):
+            self._send(p.Ok(p.format_status(p.StatusInfo(self.counter, self.laser_on, busy, self._at_start,
+                                                           self._at_end, self.homed))))
+        elif isinstance(cmd, p.Laser):
+            self.laser_on = cmd.on
+            self._send(p.Ok("L1" if cmd.on else "L0"))
+        elif isinstance(cmd, p.SetRate):
+            self.rate = cmd.steps_per_s
+            self._send(p.Ok(f"S{cmd.steps_per_s}"))
+        elif isinstance(cmd, p.SetWatchdog):
+            self.watchdog_ms = cmd.ms
+            self._send(p.Ok(f"W{cmd.ms}"))
+        elif isinstance(cmd, p.Stop):
+            self._send(p.Ok())
+            self._finish_motion()
+        elif busy:
+            self._send(p.Err(p.ERR_BUSY, p.ERROR_TEXT[p.ERR_BUSY]))
+        elif isinstance(cmd, p.GoTo):
+            if not self.homed:
+                self._send(p.Err(p.ERR_NOT_HOMED, p.ERROR_TEXT[p.ERR_NOT_HOMED]))
+            elif cmd.position > self.track_measured:
+                self._send(p.Err(p.ERR_RANGE, p.ERROR_TEXT[p.ERR_RANGE]))
+            else:
+                self._send(p.Ok())
+                delta = cmd.position - self.counter
+                if delta == 0:
+                    self._finish_motion_now()
+                else:
+                    self._start_motion("goto", 1 if delta > 0 else -1, abs(delta))
+        elif isinstance(cmd, p.Move):
+            direction = 1 if cmd.steps > 0 else -1
+            target = self.counter + cmd.steps
+            if (direction < 0 and self._at_start) or (direction > 0 and self._at_end):
+                self._send(p.Err(p.ERR_END_SENSOR, p.ERROR_TEXT[p.ERR_END_SENSOR]))
+            elif self.homed and not 0 <= target <= self.track_measured:
+                self._send(p.Err(p.ERR_RANGE, p.ERROR_TEXT[p.ERR_RANGE]))
+            else:
+                self._send(p.Ok())
+                self._start_motion("move", direction, abs(cmd.steps))
+        elif isinstance(cmd, p.Home):
+            self._send(p.Ok())
+            self.homed = False
+            if self._at_start:  # already on the start sensor: go straight to measuring
+                self.counter = 0
+                self._start_motion("home", +1, None, phase="measure")
+            else:
+                self._start_motion("home", -1, None, phase="seek")
+        elif isinstance(cmd, p.Sweep):
+            self._send(p.Ok())
+            self._start_motion("sweep", -1 if self._at_end else 1, None)
+
+    def _finish_motion_now(self) -> None:
+        self._send(p.Done(self.counter))
+
+    # ---------------------------------------------------------------------------- output
+    def _send(self, line: p.Line) -> None:
+        data = p.encode_line(line)
+        self.log.append("> " + data.decode().rstrip())
+        if self.faults.garbage_probability and self._rng.random() < self.faults.garbage_probability:
+            data = self._garbage(self._rng.randint(1, 12)) + data
+        if self.faults.drop_probability:
+            data = bytes(b for b in data if self._rng.random() >= self.faults.drop_probability)
+        self._outq.append((time.monotonic() + self.faults.reply_delay_s, data))
+
+    def _garbage(self, n: int) -> bytes:
+        return bytes(self._rng.randrange(256) for _ in range(n))
+
+    def _flush(self, now: float) -> None:
+        while self._outq and self._outq[0][0] <= now:
+            _, data = self._outq.pop(0)
+            if self._master is not None and data:
+                try:
+                    os.write(self._master, data)
+                except OSError:
+                    pass  # nobody can hear us (unplugged); the bytes are lost like on a real line
+
+    # ---------------------------------------------------------------------------- loop
+    def _loop(self) -> None:
+        while self._running:
+            with self._lock:
+                master = self._master
+                unplugged_until = self._unplugged_until
+            now = time.monotonic()
+            if unplugged_until is not None:
+                if now >= unplugged_until:
+                    with self._lock:
+                        self._replug()
+                else:
+                    time.sleep(0.005)
+                continue
+            try:
+                readable, _, _ = select.select([master], [], [], 0.001)
+                data = os.read(master, 4096) if readable else b""
+            except (OSError, ValueError, TypeError):
+                data = b""
+            with self._lock:
+                if data:
+                    self._inbuf += data
+                    while b"\n" in self._inbuf:
+                        line, self._inbuf = self._inbuf.split(b"\n", 1)
+                        if line.strip(b"\r"):
+                            self._handle(line + b"\n")
+                    if len(self._inbuf) > 4 * p.MAX_LINE:  # no newline for too long: answer and resync
+                        self._inbuf = b""
+                        self._send(p.Err(p.ERR_TOO_LONG, p.ERROR_TEXT[p.ERR_TOO_LONG]))
+                now = time.monotonic()
+                self._advance(now)
+                self._check_watchdog(now)
+                self._flush(now)
+
+    # ---------------------------------------------------------------------------- truth / faults
+    def truth(self) -> Truth:
+        """The physical state right now."""
+        with self._lock:
+            moving = self._motion is not None
+            return Truth(
+                stamp_s=time.time(), position_steps=self._true,
+                velocity_steps_per_s=self._velocity if not self.faults.stalled else 0.0,
+                counter_steps=self.counter, moving=moving, laser_on=self.laser_on, homed=self.homed,
+                stopped_at_s=0.0 if moving else self._stopped_at_wall,
+                vibration_amplitude_steps=0.0 if moving else self._vib_amp,
+                vibration_tau_s=self.config.vibration_tau_s, vibration_freq_hz=self.config.vibration_freq_hz,
+                boot_count=self.boot_count)
+
+    def reset(self) -> None:
+        """Power-cycle the firmware: motion stops where it is, laser off, position lost, ``!BOOT``."""
+        with self._lock:
+            self._power_on()
+            self._send(p.Boot(p.PROTOCOL_VERSION))
+
+    def unplug(self, duration_s: float) -> None:
+        """The port vanishes for ``duration_s`` (pty closed, link removed), then a new one appears."""
+        with self._lock:
+            self._outq.clear()
+            self._close_pty()
+            self._motion = None
+            self.laser_on = False  # the adapter powered the board: it went down with it
+            self._unplugged_until = time.monotonic() + duration_s
+
+    def _replug(self) -> None:
+        self._unplugged_until = None
+        self._power_on()
+        self._open_pty()
+        self._send(p.Boot(p.PROTOCOL_VERSION))
+
+    def inject_garbage(self, n_bytes: int) -> None:
+        """Send ``n_bytes`` random bytes followed by a newline right now."""
+        with self._lock:
+            self._outq.append((time.monotonic(), self._garbage(n_bytes) + b"\n"))
+
+    def set_faults(self, **changes: object) -> None:
+        """Change fault settings at run time (names of `Faults`)."""
+        with self._lock:
+            for name, value in changes.items():
+                if not hasattr(self.faults, name):
+                    raise ValueError(f"unknown fault '{name}' (known: {', '.join(asdict(self.faults))})")
+                setattr(self.faults, name, type(getattr(self.faults, name))(value))
+
+    def clear_faults(self) -> None:
+        """All faults off."""
+        with self._lock:
+            self.faults = Faults(seed=self.faults.seed)
+
+    # ---------------------------------------------------------------------------- control channel
+    def handle_control(self, request: Dict[str, object]) -> Dict[str, object]:
+        """One control request (also what the UNIX socket speaks, one JSON object per line).
+
+        ``{"fault": "garbage", "bytes": 20}``, ``{"fault": "garbage_rate", "probability": 0.2}``,
+        ``{"fault": "drop", "probability": 0.1}``, ``{"fault": "late", "delay_ms": 800}``,
+        ``{"fault": "reset"}``, ``{"fault": "stall", "on": true}``,
+        ``{"fault": "unplug", "duration_s": 1.0}``, ``{"fault": "clear"}``, ``{"get": "truth"}``.
+        """
+        try:
+            if request.get("get") == "truth":
+                return {"ok": True, "truth": asdict(self.truth())}
+            fault = request.get("fault")
+            if fault == "garbage":
+                self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]
+            elif fault == "garbage_rate":
+                self.set_faults(garbage_probability=request.get("probability", 0.2))
+            elif fault == "drop":
+                self.set_faults(drop_probability=request.get("probability", 0.1))
+            elif fault == "late":
+                self.set_faults(reply_delay_s=float(request.get("delay_ms", 500)) / 1000.0)  # type: ignore[arg-type]
+            elif fault == "reset":
+                self.reset()
+            elif fault == "stall":
+                self.set_faults(stalled=bool(request.get("on", True)))
+            elif fault == "unplug":
+                self.unplug(float(request.get("duration_s", 1.0)))  # type: ignore[arg-type]
+            elif fault == "clear":
+                self.clear_faults()
+            else:
+                return {"ok": False, "error": f"unknown request {request!r}; see lsu gp32 fault --help"}
+        except (TypeError, ValueError) as exc:
+            return {"ok": False, "error": str(exc)}
+        return {"ok": True}
+
+    def _start_control(self) -> None:
+        assert self.control_path is not None
+        if self.control_path.exists() or self.control_path.is_symlink():
+            self.control_path.unlink()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.bind(str(self.control_path))
+        sock.listen(4)
+        sock.settimeout(0.2)
+        self._control_sock = sock
+        self._control_thread = threading.Thread(target=self._serve_control, name="gp32-control", daemon=True)
+        self._control_thread.start()
+
+    def _serve_control(self) -> None:
+        assert self._control_sock is not None
+        while self._running:
+            try:
+                conn, _ = self._control_sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            with conn, conn.makefile("rwb") as stream:
+                for raw in stream:
+                    try:
+                        request = json.loads(raw)
+                        answer = self.handle_control(request) if isinstance(request, dict) else \
+                            {"ok": False, "error": "send one JSON object per line"}
+                    except json.JSONDecodeError as exc:
+                        answer = {"ok": False, "error": f"not JSON: {exc}"}
+                    stream.write((json.dumps(answer) + "\n").encode())
+                    stream.flush()
+
+
+def send_control(path: str, request: Dict[str, object], timeout_s: float = 5.0) -> Dict[str, object]:
+    """Send one request to an emulator's control socket and return its answer."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(path)
+        sock.sendall((json.dumps(request) + "\n").encode())
+        data = b""
+        while not data.endswith(b"\n"):
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            data += chunk
+    return json.loads(data)
+
+
+__all__ = ["EmulatorConfig", "Faults", "Gp32Emulator", "Truth", "send_control"]

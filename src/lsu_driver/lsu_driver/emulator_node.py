@@ -1,0 +1,106 @@
+"""`gp32_emulator` node: the GP32 emulator plus its ground truth on ``sim/truth``.
+
+The serial side is the emulator's pty (a stable symlink at ``link``); the ROS side only
+publishes what really happens (true position, vibration, laser) for the simulated cameras,
+and accepts faults on its UNIX control socket (`lsu gp32 fault`).
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, List, Optional
+
+import rclpy
+from builtin_interfaces.msg import Time
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from lsu_interfaces.msg import SimTruth
+
+from .emulator import EmulatorConfig, Faults, Gp32Emulator, Truth
+
+
+def _stamp(seconds: float) -> Time:
+    sec = int(seconds)
+    return Time(sec=sec, nanosec=int(round((seconds - sec) * 1e9)) % 1_000_000_000)
+
+
+def truth_to_msg(truth: Truth) -> SimTruth:
+    """The emulator's `Truth` as a ``lsu_interfaces/SimTruth`` message."""
+    msg = SimTruth()
+    msg.header.stamp = _stamp(truth.stamp_s)
+    msg.position_steps = float(truth.position_steps)
+    msg.velocity_steps_per_s = float(truth.velocity_steps_per_s)
+    msg.counter_steps = int(truth.counter_steps)
+    msg.moving = truth.moving
+    msg.laser_on = truth.laser_on
+    msg.homed = truth.homed
+    if truth.stopped_at_s > 0:
+        msg.stopped_at = _stamp(truth.stopped_at_s)
+    msg.vibration_amplitude_steps = float(truth.vibration_amplitude_steps)
+    msg.vibration_tau_s = float(truth.vibration_tau_s)
+    msg.vibration_freq_hz = float(truth.vibration_freq_hz)
+    msg.boot_count = int(truth.boot_count)
+    return msg
+
+
+class Gp32EmulatorNode(Node):
+    """Runs a `Gp32Emulator` and publishes its truth."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("gp32_emulator", **{"namespace": "/lsu", **kwargs})
+
+        def declare(name: str, default: Any, description: str) -> Any:
+            return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+
+        link = declare("link", "/tmp/lsu-gp32", "stable symlink to the emulated serial port (what the driver opens)")
+        control = declare("control", "", "UNIX socket for run-time faults; empty = <link>.ctl")
+        defaults = EmulatorConfig()
+        config = EmulatorConfig(
+            track_steps=declare("track_steps", defaults.track_steps, "physical track between the sensors [steps]"),
+            rate_steps_per_s=declare("rate_steps_per_s", defaults.rate_steps_per_s, "power-on step rate [steps/s]"),
+            watchdog_ms=declare("watchdog_ms", defaults.watchdog_ms, "power-on laser watchdog [ms]"),
+            start_position_steps=declare("start_position_steps", defaults.start_position_steps,
+                                         "carriage position at power-on [steps]"),
+            vibration_amplitude_steps=declare("vibration_amplitude_steps", defaults.vibration_amplitude_steps,
+                                              "residual vibration right after a stop at 200 steps/s [steps]"),
+            vibration_tau_s=declare("vibration_tau_s", defaults.vibration_tau_s, "vibration decay constant [s]"),
+            vibration_freq_hz=declare("vibration_freq_hz", defaults.vibration_freq_hz, "vibration frequency [Hz]"),
+        )
+        faults = Faults(
+            garbage_probability=declare("fault_garbage_probability", 0.0, "chance of garbage before each line"),
+            drop_probability=declare("fault_drop_probability", 0.0, "chance that each sent byte is lost"),
+            reply_delay_s=declare("fault_reply_delay_ms", 0, "delay of every sent line [ms]") / 1000.0,
+            stalled=declare("fault_stalled", False, "the motor does not move (pulses are still counted)"),
+            seed=declare("fault_seed", 0, "seed of the fault random generator"),
+        )
+        rate_hz = declare("truth_rate_hz", 200.0, "publish rate of sim/truth [Hz]")
+        self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl").start()
+        self.truth_pub = self.create_publisher(SimTruth, "sim/truth",
+                                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.timer = self.create_timer(1.0 / rate_hz, self._publish)
+        self.get_logger().info(f"GP32 emulator on {self.emulator.device_path} (link {link}, control "
+                               f"{self.emulator.control_path})")
+
+    def _publish(self) -> None:
+        self.truth_pub.publish(truth_to_msg(self.emulator.truth()))
+
+    def destroy_node(self) -> None:
+        self.emulator.close()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``gp32_emulator``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = Gp32EmulatorNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,356 @@
+"""`gp32_driver` node: the GP32 on the ROS graph (services, state topic, diagnostics).
+
+A thin adapter around `Gp32Client`. Safety: the laser is switched off and motion stopped on
+shutdown; on ``!BOOT`` or a lost port the laser is considered off, the position unknown and
+a running move fails with the reason; moves are refused until the carriage is homed.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from typing import Any, List, Optional
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from std_srvs.srv import SetBool, Trigger
+
+from lsu_interfaces.msg import ScannerState
+from lsu_interfaces.srv import MoveTo, Step
+
+from . import protocol as p
+from .client import Gp32Client, Gp32Error, MotionResult, NotConnected
+
+
+class Gp32DriverNode(Node):
+    """Services ``laser/set``, ``carriage/{move_to,step,home,stop}``; topic ``driver/state``."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("gp32_driver", **{"namespace": "/lsu", **kwargs})
+
+        def declare(name: str, default: Any, description: str, **extra: Any) -> Any:
+            return self.declare_parameter(name, default, ParameterDescriptor(description=description,
+                                                                             **extra)).value
+
+        self.port = declare("port", "/tmp/lsu-gp32", "serial device of the GP32 (emulator: its --link path)")
+        baud = declare("baud", 115200, "serial baud rate (9600 for the original RS232 link)")
+        timeout = declare("command_timeout_s", 1.0, "reply timeout per command [s]")
+        retries = declare("retries", 2, "re-sends of an idempotent command after a timeout")
+        self.auto_home = declare("auto_home", False, "home the carriage once after the first connect")
+        self.rate = declare("step_rate_steps_per_s", 200, "stepper rate [steps/s]; above ~180 the counter drifts",
+                            integer_range=[IntegerRange(from_value=p.RATE_MIN, to_value=p.RATE_MAX, step=1)])
+        self.watchdog_ms = declare("watchdog_ms", 2000, "firmware laser watchdog [ms]; 0 disables it",
+                                   integer_range=[IntegerRange(from_value=0, to_value=p.WATCHDOG_MAX_MS, step=1)])
+        state_hz = declare("state_rate_hz", 10.0, "status poll and state publish rate [Hz] (>= 5)",
+                           floating_point_range=[FloatingPointRange(from_value=5.0, to_value=50.0)])
+
+        self.client = Gp32Client(self.port, baud, timeout, retries)
+        self.client.add_listener(self._on_event)
+        self.client.add_connection_listener(self._on_connection)
+        self.client.add_error_listener(lambda err: self._count("malformed"))
+        self._lock = threading.Lock()
+        self.laser_on = False
+        self.moving = False
+        self.target: Optional[int] = None
+        self.fault = ""
+        self.reconnects = 0
+        self.counts = {"malformed": 0}
+        self._last_state: Optional[tuple] = None
+        self._auto_homed = False
+
+        services = ReentrantCallbackGroup()  # a move may block while stop and state keep going
+        self.state_pub = self.create_publisher(ScannerState, "driver/state", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_service(SetBool, "laser/set", self._srv_laser, callback_group=services)
+        self.create_service(MoveTo, "carriage/move_to", self._srv_move_to, callback_group=services)
+        self.create_service(Step, "carriage/step", self._srv_step, callback_group=services)
+        self.create_service(Trigger, "carriage/home", self._srv_home, callback_group=services)
+        self.create_service(Trigger, "carriage/stop", self._srv_stop, callback_group=services)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_timer(1.0 / state_hz, self._poll, callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_timer(1.0, self._diagnostics, callback_group=MutuallyExclusiveCallbackGroup())
+        self._connect_timer = self.create_timer(1.0, self._try_connect,
+                                                callback_group=MutuallyExclusiveCallbackGroup())
+        self._try_connect()
+
+    # ------------------------------------------------------------------------------ connection
+    def _try_connect(self) -> None:
+        if self.client.connected:
+            return
+        try:
+            self.client.connect()
+        except Gp32Error as exc:
+            if self.fault != str(exc):
+                self.get_logger().error(f"{exc}; retrying every 1 s")
+            self.fault = str(exc)
+            self._publish_state(force=True)
+            return
+        self._connect_timer.cancel()
+        self._configure_device()
+        if self.auto_home and not self._auto_homed:
+            self._auto_homed = True
+            self._home()
+
+    def _configure_device(self) -> None:
+        try:
+            self.client.set_rate(int(self.rate))
+            self.client.set_watchdog(int(self.watchdog_ms))
+            self.client.laser(False)
+            self.laser_on = False
+        except Gp32Error as exc:
+            self.get_logger().error(f"configuring the GP32 failed: {exc}")
+        if not self.client.homed:
+            self.fault = "carriage not homed: call carriage/home before moving"
+        self.get_logger().info(f"connected to {p.DEVICE_NAME} on {self.port} "
+                               f"(track {self.client.identity.track_steps if self.client.identity else '?'}, "
+                               f"{self.rate} steps/s, watchdog {self.watchdog_ms} ms)")
+        self._publish_state(force=True)
+
+    def _on_connection(self, up: bool, reason: str) -> None:
+        if up:
+            if self._connect_timer.is_canceled():  # a reconnect (the first connect configures itself)
+                self.reconnects += 1
+                self.get_logger().warning(f"{reason}; the position is lost: call carriage/home")
+                threading.Thread(target=self._configure_device, daemon=True).start()
+            return
+        self.laser_on = False
+        self.moving = False
+        self.fault = f"{reason}; laser considered off, position unknown"
+        self.get_logger().error(self.fault)
+        self._publish_state(force=True)
+
+    def _on_event(self, event: p.Line) -> None:
+        if isinstance(event, p.Boot):
+            self.laser_on = False
+            self.moving = False
+            self.fault = "GP32 reset (!BOOT): position lost, laser off; call carriage/home"
+            self.get_logger().error(self.fault)
+            threading.Thread(target=self._configure_device, daemon=True).start()
+        elif isinstance(event, p.WatchdogFired):
+            self.laser_on = False
+            self.fault = f"laser watchdog switched the laser off (no command for {self.watchdog_ms} ms)"
+            self.get_logger().warning(self.fault)
+        elif isinstance(event, p.HomeDone) and self.fault.startswith(("carriage not homed", "GP32 reset",
+                                                                       "reconnected", "serial port")):
+            self.fault = ""
+        self._publish_state(force=True)
+
+    def _count(self, what: str) -> None:
+        self.counts[what] = self.counts.get(what, 0) + 1
+
+    # ------------------------------------------------------------------------------ state
+    def _poll(self) -> None:
+        if self.client.connected:
+            try:
+                status = self.client.status()  # also feeds the laser watchdog
+                self.laser_on = status.laser_on
+                self.moving = status.moving
+            except Gp32Error as exc:
+                self.get_logger().warning(f"status poll failed: {exc}", throttle_duration_sec=5.0)
+        self._publish_state(force=True)
+
+    def _publish_state(self, force: bool = False) -> None:
+        c = self.client
+        status = c.last_status
+        msg = ScannerState()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.connected = c.connected
+        msg.homed = c.connected and c.homed
+        msg.moving = self.moving
+        msg.laser_on = self.laser_on and c.connected
+        msg.at_start = bool(status and status.at_start and c.connected)
+        msg.at_end = bool(status and status.at_end and c.connected)
+        msg.position_steps = c.position if c.position is not None else 0
+        msg.target_steps = self.target if self.moving and self.target is not None else msg.position_steps
+        msg.track_steps = c.track_steps if c.homed else 0
+        msg.step_rate_steps_per_s = float(self.rate)
+        msg.watchdog_ms = int(self.watchdog_ms)
+        msg.port = self.port
+        msg.firmware = f"{p.DEVICE_NAME} v{c.identity.version}" if c.identity else ""
+        msg.fault = self.fault
+        key = (msg.connected, msg.homed, msg.moving, msg.laser_on, msg.at_start, msg.at_end, msg.position_steps,
+               msg.fault)
+        with self._lock:
+            changed = key != self._last_state
+            self._last_state = key
+        if (force or changed) and self.context.ok():  # reader-thread events may race with shutdown
+            self.state_pub.publish(msg)
+
+    def _diagnostics(self) -> None:
+        c = self.client
+        status = DiagnosticStatus(name="lsu: gp32_driver", hardware_id=self.port)
+        if not c.connected:
+            status.level = DiagnosticStatus.ERROR
+        elif self.fault:
+            status.level = DiagnosticStatus.WARN
+        else:
+            status.level = DiagnosticStatus.OK
+        status.message = self.fault or "ok"
+        values = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
+                  "track_steps": c.track_steps, "malformed_lines": c.malformed_lines,
+                  "stale_replies": c.stale_replies, "reconnects": self.reconnects}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.diag_pub.publish(array)
+
+    # ------------------------------------------------------------------------------ services
+    def _srv_laser(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
+        try:
+            self.client.laser(request.data)
+            self.laser_on = request.data
+            response.success = True
+            response.message = "laser on" if request.data else "laser off"
+        except Gp32Error as exc:
+            response.success = False
+            response.message = str(exc)
+        self._publish_state(force=True)
+        return response
+
+    def _refuse_motion(self) -> str:
+        if not self.client.connected:
+            return f"GP32 not connected ({self.fault or self.port}); check the port and power"
+        if not self.client.homed:
+            return ("carriage not homed: call carriage/home first (the position is unknown after power-on, "
+                    "a reset or a reconnect)")
+        return ""
+
+    def _motion(self, target: int, run: Any) -> tuple:
+        self.target = target
+        self.moving = True
+        self._publish_state(force=True)
+        try:
+            result: MotionResult = run()
+            position, error = result.position, ""
+            if not result.reached:
+                why = (f"end sensor {result.end_sensor} tripped" if result.end_sensor is not None
+                       else "stopped (carriage/stop or X)")
+                error = f"stopped at {result.position} before reaching {target}: {why}"
+                if result.end_sensor is not None:
+                    error += "; the step counter has drifted: call carriage/home"
+        except Gp32Error as exc:
+            position, error = (self.client.position or 0), str(exc)
+        finally:
+            self.moving = False
+            self._publish_state(force=True)
+        return position, error
+
+    def _srv_move_to(self, request: MoveTo.Request, response: MoveTo.Response) -> MoveTo.Response:
+        response.message = self._refuse_motion()
+        track = self.client.track_steps
+        if not response.message and not 0 <= request.position_steps <= track:
+            response.message = f"position {request.position_steps} outside the track 0..{track}"
+        if response.message:
+            response.success = False
+            response.position_steps = self.client.position or 0
+            return response
+        timeout = request.timeout_s or None
+        position, error = self._motion(request.position_steps,
+                                       lambda: self.client.move_to(request.position_steps, timeout))
+        response.success = not error
+        response.position_steps = int(position)
+        response.message = error
+        return response
+
+    def _srv_step(self, request: Step.Request, response: Step.Response) -> Step.Response:
+        response.message = self._refuse_motion()
+        if not response.message and request.steps == 0:
+            response.message = "a step of 0 steps does nothing; give a signed number of steps"
+        if response.message:
+            response.success = False
+            response.position_steps = self.client.position or 0
+            return response
+        start = self.client.position or 0
+        timeout = request.timeout_s or None
+        position, error = self._motion(start + request.steps, lambda: self.client.step(request.steps, timeout))
+        response.success = not error
+        response.position_steps = int(position)
+        response.message = error
+        return response
+
+    def _home(self) -> str:
+        """Home and return an error text ('' on success)."""
+        self.moving = True
+        self.target = 0
+        self._publish_state(force=True)
+        try:
+            track = self.client.home()
+        except Gp32Error as exc:
+            return f"homing failed: {exc}"
+        finally:
+            self.moving = False
+            self._publish_state(force=True)
+        self.get_logger().info(f"homed: track {track} steps")
+        if self.fault.startswith(("carriage not homed", "GP32 reset", "reconnected", "serial port")):
+            self.fault = ""
+        return ""
+
+    def _srv_home(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        if not self.client.connected:
+            response.success, response.message = False, self._refuse_motion()
+            return response
+        error = self._home()
+        response.success = not error
+        response.message = error or f"homed: track {self.client.track_steps} steps"
+        return response
+
+    def _srv_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            self.client.stop()
+            response.success, response.message = True, "stopped"
+        except Gp32Error as exc:
+            response.success, response.message = False, str(exc)
+        return response
+
+    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+        for param in params:
+            try:
+                if param.name == "step_rate_steps_per_s":
+                    if self.client.connected:
+                        self.client.set_rate(int(param.value))
+                    self.rate = int(param.value)
+                elif param.name == "watchdog_ms":
+                    if self.client.connected:
+                        self.client.set_watchdog(int(param.value))
+                    self.watchdog_ms = int(param.value)
+                elif param.name in ("port", "baud"):
+                    return SetParametersResult(successful=False,
+                                               reason=f"{param.name} is read at start-up; restart the node")
+            except NotConnected as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            except Gp32Error as exc:
+                return SetParametersResult(successful=False, reason=f"the GP32 refused {param.name}: {exc}")
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------------------ shutdown
+    def safe_shutdown(self) -> None:
+        """Motion stopped, laser off, port closed (runs on Ctrl-C and node destruction)."""
+        try:
+            self.client.close(safe=True)
+        finally:
+            self.laser_on = False
+
+    def destroy_node(self) -> None:
+        self.safe_shutdown()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``gp32_driver``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = Gp32DriverNode()
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
