@@ -89,7 +89,7 @@ def cmd_send(args: argparse.Namespace) -> int:
             got_reply = False
             buffer = b""
             while time.monotonic() < deadline:
-                buffer += ser.read(256)
+                buffer += ser.read(max(1, ser.in_waiting))
                 while b"\n" in buffer:
                     raw, buffer = buffer.split(b"\n", 1)
                     if not raw.strip():
@@ -119,7 +119,7 @@ def cmd_console(args: argparse.Namespace) -> int:
         buffer = b""
         while not stop.is_set():
             try:
-                buffer += ser.read(256)
+                buffer += ser.read(max(1, ser.in_waiting))
             except (serial.SerialException, OSError) as exc:
                 print(f"\n[port lost: {exc}]", flush=True)
                 stop.set()

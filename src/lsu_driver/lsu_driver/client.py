@@ -254,7 +254,9 @@ class Gp32Client:
         buffer = b""
         while True:
             try:
-                chunk = ser.read(256)
+                # read(n) waits for n bytes or the timeout: ask for what is there (at least 1) so a
+                # reply is handed over the moment its bytes arrive, not 50 ms later
+                chunk = ser.read(max(1, ser.in_waiting))
             except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
                 if self._serial is ser and not self._closing:
                     self._port_lost(f"serial port {self.port} vanished ({exc.__class__.__name__})")
@@ -374,10 +376,12 @@ class Gp32Client:
 
     def status(self) -> p.StatusInfo:
         """``P`` -> position, laser, moving, sensors, homed."""
+        seq = self._event_seq
         reply = self._command(p.Status(), accept=self._parses(p.parse_status))
         self.last_status = p.parse_status(reply.payload)
-        self.homed = self.last_status.homed
-        self.position = self.last_status.position
+        if self._event_seq == seq:  # an event after the reply (e.g. !HOME) is newer than this snapshot
+            self.homed = self.last_status.homed
+            self.position = self.last_status.position
         return self.last_status
 
     def laser(self, on: bool) -> None:

@@ -1,0 +1,156 @@
+"""gp32_driver through its ROS services and topics, with the emulator as the unit."""
+
+import threading
+import time
+
+import pytest
+from std_srvs.srv import SetBool, Trigger
+
+from lsu_interfaces.msg import ScannerState, SimTruth
+from lsu_interfaces.srv import MoveTo, Step
+from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator
+from lsu_driver.emulator_node import Gp32EmulatorNode
+from lsu_driver.node import Gp32DriverNode
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    emu = Gp32Emulator(EmulatorConfig(start_position_steps=10.0), Faults(seed=2), link=str(tmp_path / "gp32")).start()
+    yield emu
+    emu.close()
+
+
+@pytest.fixture
+def rig(ros_node, emulator):
+    """Driver node + a helper that records every state message and has service clients."""
+    driver = ros_node.add(Gp32DriverNode(context=ros_node.context, cli_args=[
+        "--ros-args", "-p", f"port:={emulator.link}", "-p", "command_timeout_s:=0.5", "-p", "state_rate_hz:=10.0"]))
+    node = ros_node.node
+    states = []
+    node.create_subscription(ScannerState, "/lsu/driver/state", lambda m: states.append((time.monotonic(), m)), 50)
+    clients = {
+        "move_to": node.create_client(MoveTo, "/lsu/carriage/move_to"),
+        "step": node.create_client(Step, "/lsu/carriage/step"),
+        "home": node.create_client(Trigger, "/lsu/carriage/home"),
+        "stop": node.create_client(Trigger, "/lsu/carriage/stop"),
+        "laser": node.create_client(SetBool, "/lsu/laser/set"),
+    }
+    assert ros_node.spin_until(lambda: states and states[-1][1].connected, 10.0)
+    return ros_node, driver, states, clients
+
+
+def test_services_home_move_step_and_laser(rig, emulator):
+    h, _, states, c = rig
+    refused = h.call(c["move_to"], MoveTo.Request(position_steps=100))
+    assert not refused.success and "not homed" in refused.message
+    home = h.call(c["home"], Trigger.Request(), timeout_s=20)
+    assert home.success and "470" in home.message
+    moved = h.call(c["move_to"], MoveTo.Request(position_steps=100), timeout_s=10)
+    assert moved.success and moved.position_steps == 100 and abs(emulator.truth().position_steps - 100) < 0.5
+    stepped = h.call(c["step"], Step.Request(steps=-30), timeout_s=10)
+    assert stepped.success and stepped.position_steps == 70
+    beyond = h.call(c["move_to"], MoveTo.Request(position_steps=900))
+    assert not beyond.success and "outside the track 0..470" in beyond.message
+    assert h.call(c["laser"], SetBool.Request(data=True)).success and emulator.truth().laser_on
+    assert h.spin_until(lambda: states[-1][1].laser_on, 2.0)
+    assert h.call(c["laser"], SetBool.Request(data=False)).success and not emulator.truth().laser_on
+    last = states[-1][1]
+    assert last.homed and last.position_steps == 70 and last.track_steps == 470 and last.firmware == "LSU-GP32 v1"
+
+
+def test_state_at_5hz_or_more_and_on_change(rig, emulator):
+    h, _, states, c = rig
+    start = len(states)
+    h.spin_until(lambda: False, 1.5)
+    window = [t for t, _ in states[start:]]
+    assert len(window) >= 7  # >= 5 Hz over 1.5 s
+    before = len(states)
+    t0 = time.monotonic()
+    assert h.call(c["laser"], SetBool.Request(data=True)).success
+    assert h.spin_until(lambda: any(m.laser_on for _, m in states[before:]), 2.0)
+    first_on = next(t for t, m in states[before:] if m.laser_on)
+    assert first_on - t0 < 0.09  # published on the change, not at the next 10 Hz tick + poll
+
+
+def test_stop_preempts_move_to(rig, emulator):
+    h, _, states, c = rig
+    h.call(c["home"], Trigger.Request(), timeout_s=20)
+    future = c["move_to"].call_async(MoveTo.Request(position_steps=400))
+    h.spin_until(lambda: emulator.truth().counter_steps > 40, 5.0)
+    assert h.call(c["stop"], Trigger.Request()).success
+    assert h.spin_until(future.done, 5.0)
+    result = future.result()
+    assert not result.success and 40 <= result.position_steps < 400 and "before reaching 400" in result.message
+
+
+def test_reset_mid_move_reports_not_homed_and_laser_off(rig, emulator):
+    h, _, states, c = rig
+    h.call(c["home"], Trigger.Request(), timeout_s=20)
+    h.call(c["laser"], SetBool.Request(data=True))
+    future = c["move_to"].call_async(MoveTo.Request(position_steps=400))
+    threading.Timer(0.3, emulator.reset).start()
+    assert h.spin_until(future.done, 10.0)
+    result = future.result()
+    assert not result.success and "reset" in result.message and "re-home" in result.message
+    assert not emulator.truth().laser_on
+    assert h.spin_until(lambda: not states[-1][1].homed and not states[-1][1].laser_on, 2.0)
+    assert "call carriage/home" in states[-1][1].fault
+    refused = h.call(c["move_to"], MoveTo.Request(position_steps=10))
+    assert not refused.success and "not homed" in refused.message
+
+
+def test_port_removed_and_recreated(rig, emulator):
+    h, _, states, c = rig
+    h.call(c["home"], Trigger.Request(), timeout_s=20)
+    emulator.unplug(0.5)
+    assert h.spin_until(lambda: not states[-1][1].connected, 2.0)
+    assert "vanished" in states[-1][1].fault
+    down = h.call(c["laser"], SetBool.Request(data=True))
+    assert not down.success and "not connected" in down.message
+    replug = time.monotonic() + 0.5
+    assert h.spin_until(lambda: states[-1][1].connected, 4.0)
+    assert time.monotonic() - replug < 2.0
+    assert h.spin_until(lambda: not states[-1][1].homed and "home" in states[-1][1].fault, 2.0)
+
+
+def test_garbage_and_late_replies_through_the_node(rig, emulator):
+    h, driver, states, c = rig
+    for _ in range(5):
+        emulator.inject_garbage(12)
+    assert h.call(c["laser"], SetBool.Request(data=True)).success
+    assert driver.client.malformed_lines >= 5
+    emulator.set_faults(reply_delay_s=2.0)
+    slow = h.call(c["laser"], SetBool.Request(data=False), timeout_s=15)
+    assert not slow.success and "did not answer 'L0'" in slow.message
+    emulator.clear_faults()
+
+
+def test_stalled_motor_fails_homing_with_stop_sent_and_laser_off(ros_node, tmp_path):
+    emu = Gp32Emulator(EmulatorConfig(start_position_steps=400.0), Faults(stalled=True), link=str(tmp_path / "s"))
+    emu.start()
+    try:
+        driver = ros_node.add(Gp32DriverNode(context=ros_node.context, cli_args=[
+            "--ros-args", "-p", f"port:={emu.link}", "-p", "step_rate_steps_per_s:=400"]))
+        home = ros_node.node.create_client(Trigger, "/lsu/carriage/home")
+        assert ros_node.spin_until(lambda: driver.client.connected, 5.0)
+        driver.client.laser(True)
+        # a stalled carriage never reaches the start sensor: the timeout is (3 x track) / rate x margin + 1 s
+        result = ros_node.call(home, Trigger.Request(), timeout_s=20)
+        assert not result.success and "stalled motor" in result.message and "stop sent" in result.message
+        assert "< X" in emu.log and not emu.truth().moving
+        driver.safe_shutdown()
+        assert not emu.truth().laser_on
+    finally:
+        emu.close()
+
+
+def test_emulator_node_publishes_truth(ros_node, tmp_path):
+    link = tmp_path / "e"
+    emu_node = ros_node.add(Gp32EmulatorNode(context=ros_node.context, cli_args=[
+        "--ros-args", "-p", f"link:={link}", "-p", "start_position_steps:=42.5"]))
+    truths = []
+    ros_node.node.create_subscription(SimTruth, "/lsu/sim/truth", truths.append, 10)
+    assert ros_node.spin_until(lambda: len(truths) >= 3, 5.0)
+    assert truths[-1].position_steps == pytest.approx(42.5) and not truths[-1].laser_on
+    assert truths[-1].vibration_tau_s == pytest.approx(0.04) and link.is_symlink()
+    assert emu_node.emulator.device_path.startswith("/dev/pts/")
