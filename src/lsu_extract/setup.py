@@ -18,8 +18,14 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
-        "lsu.nodes": [],
-        "lsu.commands": [],
+        "console_scripts": [
+            "laser_extractor = lsu_extract.node:main",
+        ],
+        "lsu.nodes": [
+            "laser_extractor = lsu_extract.node:LaserExtractorNode",
+        ],
+        "lsu.commands": [
+            "extract = lsu_extract.cli:register",
+        ],
     },
 )

@@ -18,8 +18,8 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
-        "lsu.nodes": [],
-        "lsu.commands": [],
+        "console_scripts": ["stereo_matcher = lsu_reconstruct.node:main"],
+        "lsu.nodes": ["stereo_matcher = lsu_reconstruct.node:StereoMatcherNode"],
+        "lsu.commands": ["reconstruct = lsu_reconstruct.cli:register"],
     },
 )

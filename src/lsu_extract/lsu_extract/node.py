@@ -1,0 +1,176 @@
+"""``laser_extractor``: camera images in, sub-pixel laser lines out (a thin adapter over extractor.py).
+
+Subscribes ``stereo/{left,right}/image_raw`` (sensor_msgs/Image), publishes
+``stereo/{left,right}/laser_line`` (lsu_interfaces/LaserLine) with the image's header, so
+the matcher pairs left and right by stamp. A frame it cannot read (unsupported encoding, a
+size different from the first frame of that camera, a short buffer) is dropped with one
+error line per distinct problem and an ERROR status on ``/diagnostics``; the node keeps running.
+"""
+
+from __future__ import annotations
+
+import array
+import sys
+from dataclasses import fields
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image
+
+from lsu_interfaces.msg import LaserLine
+
+from .detectors import METHODS
+from .extractor import ExtractorParams, LaserLineResult, extract_laser_line, param_problems
+from .image import ImageFormatError, decode_image
+
+SIDES = ("left", "right")
+# scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
+SCAN_DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)
+
+_DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
+    "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
+    "min_contrast": ("laser signal above the local background needed to accept a row [DN]", (1.0, 255.0)),
+    "ambiguity_ratio": ("a second peak at least this fraction of the first competes with it (reflection)",
+                        (0.05, 1.0)),
+    "min_width_px": ("smallest accepted laser FWHM [px]", (0.0, 64.0)),
+    "max_width_px": ("largest accepted laser FWHM [px]; wider peaks are texture, not laser", (2.0, 64.0)),
+    "window_px": ("tracking window half-width around the line of the neighbouring rows [px]; 0 = full rows",
+                  (0, 128)),
+    "coarse_step_rows": ("rows between the full-row searches that seed the tracking [rows]", (1, 64)),
+    "saturation_level": ("red value at which the sensor clips [DN]", (1, 255)),
+    "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
+    "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
+}
+
+
+def _descriptor(name: str, default: Any) -> ParameterDescriptor:
+    text, bounds = _DESCRIPTIONS[name]
+    descriptor = ParameterDescriptor(description=text)
+    if bounds is not None and isinstance(default, float):
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
+    elif bounds is not None:
+        descriptor.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
+    return descriptor
+
+
+def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
+    """A `LaserLineResult` as a LaserLine message; rows with any non-finite value are left out."""
+    finite = np.ones(len(result), bool)
+    for values in (result.u, result.v, result.peak, result.width, result.quality):
+        finite &= np.isfinite(values)
+
+    def f32(values: np.ndarray) -> "array.array[float]":
+        return array.array("f", np.ascontiguousarray(values[finite], dtype=np.float32).tobytes())
+
+    return LaserLine(header=header, image_width=result.image_width, image_height=result.image_height,
+                     method=result.method, u=f32(result.u), v=f32(result.v), peak=f32(result.peak),
+                     width=f32(result.width), quality=f32(np.clip(result.quality, 0.0, 1.0)),
+                     rows_searched=result.rows_searched, rows_ambiguous=result.rows_ambiguous,
+                     rows_saturated=result.rows_saturated)
+
+
+class LaserExtractorNode(Node):
+    """Extracts the laser line from both cameras' images."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("laser_extractor", **{"namespace": "/lsu", **kwargs})
+        defaults = ExtractorParams()
+        for spec in fields(ExtractorParams):
+            value = getattr(defaults, spec.name)
+            self.declare_parameter(spec.name, value, _descriptor(spec.name, value))
+        self.params = self._read_params({})
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+        self._sizes: Dict[str, Tuple[int, int]] = {}
+        self._reported: Dict[str, str] = {}  # side -> last problem reported (one log line per problem)
+        self.frames = {side: 0 for side in SIDES}
+        self.dropped = {side: 0 for side in SIDES}
+        self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.publishers_ = {side: self.create_publisher(LaserLine, f"stereo/{side}/laser_line", SCAN_DATA_QOS)
+                            for side in SIDES}
+        self.subscriptions_ = [
+            self.create_subscription(Image, f"stereo/{side}/image_raw",
+                                     lambda msg, side=side: self.on_image(side, msg), SCAN_DATA_QOS)
+            for side in SIDES]
+
+    def _read_params(self, overrides: Dict[str, Any]) -> ExtractorParams:
+        values = {spec.name: overrides.get(spec.name, self.get_parameter(spec.name).value)
+                  for spec in fields(ExtractorParams)}
+        return ExtractorParams(**values)
+
+    def _on_set_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+        names = {spec.name for spec in fields(ExtractorParams)}
+        current = {name: self.get_parameter(name).value for name in names}
+        current.update({p.name: p.value for p in changed if p.name in names})
+        problems = param_problems(current)
+        if problems:
+            return SetParametersResult(successful=False, reason="; ".join(problems))
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, changed: List[Parameter]) -> None:
+        self.params = self._read_params({})
+        self.get_logger().info(f"parameters now: method={self.params.method}, "
+                               f"min_contrast={self.params.min_contrast}, window_px={self.params.window_px}")
+
+    def on_image(self, side: str, msg: Image) -> None:
+        """Extract the line of one image and publish it; a bad image is reported, never raised."""
+        size = (int(msg.width), int(msg.height))
+        expected = self._sizes.setdefault(side, size)
+        try:
+            if size != expected:
+                raise ImageFormatError(
+                    f"image size changed from {expected[0]}x{expected[1]} to {size[0]}x{size[1]}; frames of the "
+                    "new size are dropped (the calibration is for the first size): restart the camera with "
+                    "the calibrated size or restart the extractor")
+            image = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
+            result = extract_laser_line(image, self.params)
+        except ImageFormatError as exc:
+            self.dropped[side] += 1
+            self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
+            return
+        self.frames[side] += 1
+        self.publishers_[side].publish(result_to_msg(result, msg.header))
+        if side in self._reported:
+            self._report(side, DiagnosticStatus.OK, f"{side} camera: extracting again")
+
+    def _report(self, side: str, level: bytes, message: str) -> None:
+        if self._reported.get(side) == message:
+            return  # one log line and one status per distinct problem, not one per frame
+        if level == DiagnosticStatus.OK:
+            self._reported.pop(side, None)
+            self.get_logger().info(message)
+        else:
+            self._reported[side] = message
+            self.get_logger().error(message)
+        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: {side}",
+                                  message=message, hardware_id=f"{side} camera",
+                                  values=[KeyValue(key="frames", value=str(self.frames[side])),
+                                          KeyValue(key="dropped", value=str(self.dropped[side]))])
+        array_msg = DiagnosticArray(status=[status])
+        array_msg.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics.publish(array_msg)
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``laser_extractor``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = LaserExtractorNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,180 @@
+"""The whole extractor on analytic laser lines (truth: lsu_extract.synthetic, the analytic centres)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lsu_extract.detectors import METHODS
+from lsu_extract.extractor import (DEFAULT_METHOD, ExtractorConfigError, ExtractorParams, LaserLineResult,
+                                   extract_laser_line)
+from lsu_extract.image import ImageFormatError
+from lsu_extract.synthetic import LineScene, render_line
+
+CLEAN = LineScene(textured=False, read_noise_dn=0.0, shot_gain=0.0)
+
+
+def errors(result: LaserLineResult, truth: np.ndarray) -> np.ndarray:
+    return result.u - truth[result.v.astype(int)]
+
+
+def assert_finite(result: LaserLineResult) -> None:
+    n = len(result)
+    for name in ("u", "v", "peak", "width", "quality"):
+        values = getattr(result, name)
+        assert values.shape == (n,) and np.all(np.isfinite(values)), name
+    assert np.all((result.quality >= 0) & (result.quality <= 1))
+
+
+@pytest.mark.parametrize("u0", [200.0, 200.25, 200.5, 200.73, 431.9])
+def test_default_method_recovers_slanted_curved_line_within_005_px(u0):
+    image, truth, _ = render_line(CLEAN.with_(u0_px=u0, slope_px_per_row=0.13, bow_px=9.0))
+    result = extract_laser_line(image)
+    assert result.method == DEFAULT_METHOD
+    assert len(result) == image.shape[0]
+    assert np.max(np.abs(errors(result, truth))) <= 0.05
+
+
+def test_default_method_beats_the_thesis_method_at_default_noise():
+    image, truth, _ = render_line(LineScene(textured=False, seed=3))
+    default = extract_laser_line(image)
+    thesis = extract_laser_line(image, ExtractorParams(method="thesis"))
+    rms_default = np.sqrt(np.mean(errors(default, truth) ** 2))
+    rms_thesis = np.sqrt(np.mean(errors(thesis, truth) ** 2))
+    assert len(default) == image.shape[0]
+    assert rms_default <= 0.05
+    assert 0.2 <= rms_thesis <= 0.45  # pixel quantisation: ~1/sqrt(12) px
+    assert np.all(thesis.u == np.round(thesis.u))
+
+
+def test_width_is_the_fwhm_of_the_drawn_profile():
+    image, _, _ = render_line(CLEAN.with_(fwhm_px=6.0))
+    result = extract_laser_line(image)
+    assert abs(float(np.median(result.width)) - 6.0) <= 0.3
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_finds_every_row_of_a_clean_line(method):
+    image, truth, _ = render_line(CLEAN)
+    result = extract_laser_line(image, ExtractorParams(method=method))
+    assert len(result) == image.shape[0]
+    assert np.max(np.abs(errors(result, truth))) <= (0.6 if method == "thesis" else 0.05)  # thesis: nearest pixel, ties
+    assert_finite(result)
+
+
+def test_tracking_window_gives_the_same_line_as_full_row_search():
+    image, _, _ = render_line(LineScene(seed=5))
+    tracked = extract_laser_line(image)
+    full = extract_laser_line(image, ExtractorParams(window_px=0))
+    assert tracked.rows_full_search < image.shape[0] // 4 and full.rows_full_search == image.shape[0]
+    np.testing.assert_array_equal(tracked.v, full.v)
+    np.testing.assert_allclose(tracked.u, full.u, atol=1e-4)
+
+
+def test_saturated_plateau_is_centred_between_its_flanks():
+    image, truth, _ = render_line(CLEAN.with_(amplitude_dn=700.0, fwhm_px=5.0, read_noise_dn=1.0, shot_gain=0.05))
+    assert (image[..., 2] == 255).sum(axis=1).min() >= 3  # really a plateau in every row
+    result = extract_laser_line(image)
+    assert result.rows_saturated == len(result) == image.shape[0]
+    assert np.sqrt(np.mean(errors(result, truth) ** 2)) <= 0.1
+
+
+def test_weaker_reflection_is_ignored():
+    image, truth, _ = render_line(LineScene(reflection=0.4, seed=2))
+    result = extract_laser_line(image)
+    assert len(result) == image.shape[0] and result.rows_ambiguous == 0
+    assert np.max(np.abs(errors(result, truth))) < 0.5
+
+
+@pytest.mark.parametrize("window", [12, 0])
+def test_competing_reflection_in_some_rows_is_resolved_by_continuity(window):
+    plain, truth, _ = render_line(LineScene(seed=4))
+    mirrored, _, _ = render_line(LineScene(seed=4, reflection=1.0))
+    image = plain.copy()
+    image[150:260] = mirrored[150:260]  # an equally bright reflection 70 px right, in 110 rows
+    result = extract_laser_line(image, ExtractorParams(window_px=window))
+    assert np.max(np.abs(errors(result, truth))) < 0.5  # never the reflection
+    assert len(result) + result.rows_ambiguous == image.shape[0]
+    assert len(result) >= image.shape[0] - 5
+
+
+def test_competing_reflection_everywhere_is_counted_not_guessed():
+    # a uniform background: the reflection is as bright as the laser in every row
+    image, truth, _ = render_line(LineScene(reflection=1.0, reflection_offset_px=60.0, textured=False, seed=6))
+    result = extract_laser_line(image)
+    assert result.rows_ambiguous > image.shape[0] // 2
+    assert len(result) + result.rows_ambiguous == image.shape[0]
+
+
+def test_partial_line_on_textured_background_at_50pct_ambient():
+    scene = LineScene(ambient=0.5, first_row=100, last_row=380, reflection=0.3, seed=8)
+    image, truth, visible = render_line(scene)
+    result = extract_laser_line(image)
+    rows = result.v.astype(int)
+    false = np.count_nonzero(~visible[rows])
+    missed = np.count_nonzero(visible) - np.count_nonzero(visible[rows])
+    assert false <= 0.005 * image.shape[0] and missed <= 0.01 * np.count_nonzero(visible)
+    assert np.max(np.abs(errors(result, truth)[visible[rows]])) < 1.0
+
+
+def test_texture_frame_cancels_a_red_background():
+    scene = LineScene(ambient=0.6, seed=9)
+    image, truth, _ = render_line(scene)
+    texture, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=10))  # same view, laser off, new noise
+    result = extract_laser_line(image, texture=texture)
+    assert len(result) == image.shape[0]
+    assert np.sqrt(np.mean(errors(result, truth) ** 2)) <= 0.1
+
+
+@pytest.mark.parametrize("method", ["blais_rioux8", "gaussian3", "com"])
+def test_line_running_off_the_border_keeps_only_observable_rows(method):
+    image, truth, _ = render_line(CLEAN.with_(u0_px=4.0, slope_px_per_row=-0.02, bow_px=0.0))  # 8.8 .. -0.8 px
+    result = extract_laser_line(image, ExtractorParams(method=method))
+    assert_finite(result)
+    kept = np.zeros(image.shape[0], bool)
+    kept[result.v.astype(int)] = True
+    assert kept[truth >= 6.5].all()  # well inside: every row found
+    assert not kept[truth < 0.5].any()  # peak pixel on column 0 or outside: centre not observable
+    assert np.max(np.abs(errors(result, truth))) <= 0.05
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("value", [0, 255])
+def test_empty_and_all_saturated_images_give_no_line(method, value):
+    image = np.full((48, 64, 3), value, np.uint8)
+    result = extract_laser_line(image, ExtractorParams(method=method))
+    assert_finite(result)
+    if method != "thesis":
+        assert len(result) == 0
+    assert result.rows_searched == 48
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), method=st.sampled_from(METHODS), mono=st.booleans(),
+       window=st.sampled_from([0, 3, 12]))
+def test_output_is_always_finite_on_random_images(seed, method, mono, window):
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(1, 40)), int(rng.integers(24, 80)))
+    image = rng.integers(0, 256, shape if mono else shape + (3,), dtype=np.uint8)
+    if rng.random() < 0.5:  # spiky images: mostly dark with a few hot pixels
+        image = np.where(rng.random(image.shape) < 0.05, image, 0).astype(np.uint8)
+    result = extract_laser_line(image, ExtractorParams(method=method, window_px=window, coarse_step_rows=3))
+    assert_finite(result)
+    assert np.all((result.u >= 0) & (result.u <= shape[1] - 1))
+    assert np.all((result.v >= 0) & (result.v <= shape[0] - 1))
+
+
+def test_bad_parameters_raise_a_readable_error():
+    with pytest.raises(ExtractorConfigError, match="method 'sobel' is unknown; must be one of: thesis"):
+        ExtractorParams(method="sobel")
+    with pytest.raises(ExtractorConfigError, match=r"min_contrast must be within \[1, 255\]"):
+        ExtractorParams(min_contrast=-3.0)
+    with pytest.raises(ExtractorConfigError, match="min_width_px .* smaller than max_width_px"):
+        ExtractorParams(min_width_px=10.0, max_width_px=5.0)
+
+
+def test_wrong_array_and_mismatched_texture_are_rejected():
+    with pytest.raises(ImageFormatError, match="uint8"):
+        extract_laser_line(np.zeros((10, 40, 3), np.float32))
+    with pytest.raises(ImageFormatError, match="texture frame"):
+        extract_laser_line(np.zeros((10, 40, 3), np.uint8), texture=np.zeros((10, 41, 3), np.uint8))

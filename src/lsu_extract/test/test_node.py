@@ -1,0 +1,78 @@
+"""The laser_extractor node in-process: image in, LaserLine out with the same header; bad input reported."""
+
+from typing import List
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from lsu_extract.node import SCAN_DATA_QOS, LaserExtractorNode
+from lsu_extract.synthetic import LineScene, render_line
+from lsu_interfaces.msg import LaserLine
+
+
+def image_msg(bgr: np.ndarray, sec: int, frame: str = "lsu_left_optical", encoding: str = "bgr8") -> Image:
+    msg = Image(height=bgr.shape[0], width=bgr.shape[1], encoding=encoding, step=bgr.shape[1] * 3,
+                data=bgr.tobytes())
+    msg.header.stamp.sec = sec
+    msg.header.stamp.nanosec = 12345
+    msg.header.frame_id = frame
+    return msg
+
+
+def test_image_in_laser_line_out_with_the_same_header(ros_node):
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    assert extractor.get_namespace() == "/lsu"
+    lines: List[LaserLine] = []
+    ros_node.node.create_subscription(LaserLine, "/lsu/stereo/right/laser_line", lines.append, SCAN_DATA_QOS)
+    pub = ros_node.node.create_publisher(Image, "/lsu/stereo/right/image_raw", SCAN_DATA_QOS)
+    assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and
+                               extractor.publishers_["right"].get_subscription_count() > 0, 10)
+    bgr, truth, _ = render_line(LineScene(textured=False, height=120, seed=1))
+    pub.publish(image_msg(bgr, 42, "lsu_right_optical"))
+    assert ros_node.spin_until(lambda: len(lines) >= 1, 10)
+    line = lines[0]
+    assert (line.header.stamp.sec, line.header.stamp.nanosec, line.header.frame_id) == (42, 12345, "lsu_right_optical")
+    assert (line.image_width, line.image_height, line.method) == (640, 120, "blais_rioux8")
+    u, v = np.asarray(line.u), np.asarray(line.v)
+    assert len(u) == len(v) == len(line.peak) == len(line.width) == len(line.quality) == 120
+    assert np.all(np.isfinite(u)) and np.sqrt(np.mean((u - truth[v.astype(int)]) ** 2)) < 0.1
+    assert line.rows_searched == 120
+
+
+def test_bad_encoding_and_size_change_are_reported_not_fatal(ros_node):
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    lines: List[LaserLine] = []
+    diags: List[DiagnosticArray] = []
+    ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
+    ros_node.node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
+    assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and
+                               extractor.diagnostics.get_subscription_count() > 0 and
+                               extractor.publishers_["left"].get_subscription_count() > 0, 10)
+    bgr, _, _ = render_line(LineScene(textured=False, height=64, width=160, u0_px=80.3, seed=2))
+    pub.publish(image_msg(bgr, 1, encoding="16UC1"))  # unsupported
+    assert ros_node.spin_until(lambda: len(diags) >= 1, 10)
+    status = diags[0].status[0]
+    assert status.level == DiagnosticStatus.ERROR and "unsupported image encoding '16UC1'" in status.message
+    pub.publish(image_msg(bgr, 2))  # good again: a line, then an OK status
+    assert ros_node.spin_until(lambda: len(lines) >= 1 and len(diags) >= 2, 10)
+    assert diags[1].status[0].level == DiagnosticStatus.OK and lines[0].header.stamp.sec == 2
+    pub.publish(image_msg(np.ascontiguousarray(bgr[:32]), 3))  # size change: dropped and reported
+    assert ros_node.spin_until(lambda: len(diags) >= 3, 10)
+    assert "image size changed from 160x64 to 160x32" in diags[2].status[0].message
+    pub.publish(image_msg(bgr, 4))
+    assert ros_node.spin_until(lambda: len(lines) >= 2, 10)
+    assert [m.header.stamp.sec for m in lines] == [2, 4] and extractor.dropped["left"] == 2
+
+
+def test_parameters_are_validated_with_a_readable_reason(ros_node):
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    bad = extractor.set_parameters([Parameter("method", value="sobel")])[0]
+    assert not bad.successful and "must be one of: thesis" in bad.reason
+    bad = extractor.set_parameters([Parameter("min_width_px", value=30.0)])[0]
+    assert not bad.successful and "smaller than max_width_px" in bad.reason
+    good = extractor.set_parameters([Parameter("method", value="thesis"), Parameter("min_contrast", value=20.0)])
+    assert all(r.successful for r in good)
+    assert extractor.params.method == "thesis" and extractor.params.min_contrast == 20.0

@@ -1,0 +1,333 @@
+"""Epipolar matching of a left laser line to the right laser polyline (thesis ch. 7.1, sub-pixel).
+
+For every left laser sample: undistort it, build its right epipolar line ``l2 = F x1`` and
+intersect that line with the right laser *polyline* (segments between right samples of
+neighbouring rows, in undistorted pixels). The crossing is found by a sign change of the
+signed point-line distance of the segment's end points and located by linear interpolation
+between them, so the match is sub-pixel along the line, not snapped to a right pixel.
+
+A whole line is matched at once: the distances of all right vertices to all left epipolar
+lines form one (N_left x N_right) matrix (~480 x 480, one BLAS product), sign changes are
+found with array comparisons, candidates with ``np.nonzero``.
+
+Ambiguity (several crossings for one left point, e.g. a reflection or a folded curve):
+1. depth range: a crossing must triangulate inside ``[depth_min_m, depth_max_m]``;
+2. ordering: along a continuous surface the right polyline position grows monotonically with
+   the left row, so a left point with several in-range crossings takes the one nearest to the
+   position interpolated from its unambiguous neighbours, if it is within ``max_order_dev``
+   segments and the runner-up is not;
+3. otherwise the left point is rejected.
+Occlusion (no crossing, or a crossing only across a gap in the right line) gives no point.
+
+``match_thesis`` is the thesis chain as a baseline: integer laser pixels, the right laser
+pixel nearest to the epipolar line (within half a pixel diagonal), no interpolation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Optional
+
+import numpy as np
+
+from .stereo import StereoModel
+
+__all__ = ["LineArrays", "MatchParams", "Matches", "LaserLineError", "match_line", "match_thesis", "smooth_line",
+           "ray_depths"]
+
+
+class LaserLineError(ValueError):
+    """A laser line cannot be used (arrays of different length, NaN, wrong image size)."""
+
+
+@dataclass
+class LineArrays:
+    """A LaserLine as numpy arrays (one entry per detected row); u, v raw distorted pixels."""
+
+    u: np.ndarray
+    v: np.ndarray
+    peak: Optional[np.ndarray] = None
+    width: Optional[np.ndarray] = None
+    quality: Optional[np.ndarray] = None
+    image_width: int = 0
+    image_height: int = 0
+
+    def __post_init__(self) -> None:
+        self.u = np.asarray(self.u, dtype=np.float64).reshape(-1)
+        self.v = np.asarray(self.v, dtype=np.float64).reshape(-1)
+        n = self.u.size
+        if self.v.size != n:
+            raise LaserLineError(f"laser line has {n} u values but {self.v.size} v values; every row needs both")
+        for name in ("peak", "width", "quality"):
+            value = getattr(self, name)
+            if value is not None:
+                arr = np.asarray(value, dtype=np.float64).reshape(-1)
+                if arr.size == 0:
+                    arr = None  # an extractor may leave optional arrays empty
+                elif arr.size != n:
+                    raise LaserLineError(f"laser line '{name}' has {arr.size} entries for {n} rows")
+                setattr(self, name, arr)
+
+    def __len__(self) -> int:
+        return int(self.u.size)
+
+    def valid(self, min_quality: float = 0.0) -> np.ndarray:
+        """Rows with finite u, v (NaN from an extractor must never reach a cloud) and enough quality."""
+        ok = np.isfinite(self.u) & np.isfinite(self.v)
+        if self.quality is not None and min_quality > 0.0:
+            ok &= np.nan_to_num(self.quality, nan=0.0) >= min_quality
+        return ok
+
+
+@dataclass(frozen=True)
+class MatchParams:
+    """Matching and rejection settings (node parameters of the same names)."""
+
+    depth_min_m: float = 0.12        # nearer crossings are not the subject (disparity range)
+    depth_max_m: float = 0.80        # farther ones are background or wrong crossings
+    max_gap_rows: float = 1.5        # right samples further apart in v are not joined (occlusion holes)
+    max_step_px: float = 4.0         # nor are samples whose u jumps more than this per row (depth edges, reflections)
+    max_order_dev: float = 3.0       # [segments] ordering tolerance for resolving ambiguous crossings
+    min_quality: float = 0.0         # drop rows whose extractor quality is below this
+    smooth_window_rows: int = 9      # odd >= 5: local quadratic fit of u(v) along each run; 0 = off
+    max_reproj_px: float = 0.5       # reject triangulated points whose reprojection error exceeds this
+    method: str = "midpoint"         # triangulation: midpoint | dlt | optimal
+
+
+@dataclass
+class Matches:
+    """Matched pairs of one snap: indices into the input left line, undistorted pixels of both sides."""
+
+    left_index: np.ndarray            # (K,) row indices into the left LineArrays
+    x1: np.ndarray                    # (K, 2) undistorted left pixels
+    x2: np.ndarray                    # (K, 2) undistorted right pixels (on the epipolar line)
+    depth_m: np.ndarray               # (K,) depth along the left optical axis from the candidate test
+    stats: dict = field(default_factory=dict)
+
+
+@lru_cache(maxsize=16)
+def _savgol_matrices(window: int) -> tuple:
+    """Savitzky-Golay (quadratic) weights: centre kernel and the fits for the first/last half-window rows."""
+    from scipy.signal import savgol_coeffs  # only needed when smoothing is on
+
+    half = window // 2
+    centre = savgol_coeffs(window, 2, use="dot")
+    head = np.stack([savgol_coeffs(window, 2, pos=k, use="dot") for k in range(half)])
+    tail = np.stack([savgol_coeffs(window, 2, pos=window - half + k, use="dot") for k in range(half)])
+    return centre, head, tail
+
+
+def smooth_line(u: np.ndarray, v: np.ndarray, window: int, linked: Optional[np.ndarray] = None) -> np.ndarray:
+    """Local quadratic (Savitzky-Golay) fit of u as a function of v along each run of consecutive rows.
+
+    The laser trace on a smooth surface is a smooth curve; a quadratic fit over ``window`` rows
+    cuts the extractor's per-row noise by ~sqrt(window / 2.3) and follows the curve (its bias
+    grows with the third derivative of u(v) times window^3: negligible on planes, spheres and
+    faces at 7-11 rows). Runs are split wherever rows are not consecutive (occlusions, missed
+    rows) or, when given, wherever ``linked`` (len(u) - 1 flags) is False; runs shorter than
+    ``window`` are left alone, so no curve is bridged across a gap or an edge. ``v`` must be sorted.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    if window < 5 or len(u) < window:
+        return u
+    if window % 2 == 0:
+        window += 1
+    centre, head, tail = _savgol_matrices(window)
+    half = window // 2
+    out = u.copy()
+    cut = np.abs(np.diff(v) - 1.0) > 1e-3
+    if linked is not None:
+        cut |= ~np.asarray(linked, dtype=bool)
+    breaks = np.nonzero(cut)[0] + 1
+    for start, stop in zip(np.r_[0, breaks], np.r_[breaks, len(u)]):  # a handful of runs per line
+        if stop - start < window:
+            continue
+        run = u[start:stop]
+        out[start + half:stop - half] = np.convolve(run, centre[::-1], mode="valid")
+        out[start:start + half] = head @ run[:window]
+        out[stop - half:stop] = tail @ run[-window:]
+    return out
+
+
+def ray_depths(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Depth (z in the left frame) of the midpoint triangulation of undistorted pixel pairs (N, 2)."""
+    r1 = np.hstack([x1, np.ones((len(x1), 1))]) @ np.linalg.inv(model.K1).T
+    r2 = (np.hstack([x2, np.ones((len(x2), 1))]) @ np.linalg.inv(model.K2).T) @ model.R  # R^T r in left frame
+    c = model.right_centre
+    # Closest points of lam*r1 and c + mu*r2: 2x2 normal equations, solved for all rows at once.
+    a = np.einsum("ij,ij->i", r1, r1)
+    b = np.einsum("ij,ij->i", r1, r2)
+    e = np.einsum("ij,ij->i", r2, r2)
+    d1 = r1 @ c
+    d2 = r2 @ c
+    den = a * e - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (d1 * e - b * d2) / den
+    return lam * r1[:, 2]
+
+
+def _links(u: np.ndarray, v: np.ndarray, params: MatchParams) -> tuple:
+    """Which consecutive samples (sorted by row) belong to one continuous piece of laser line.
+
+    Two samples are linked when they lie in neighbouring rows (0 < dv <= max_gap_rows) and the
+    column moves by at most ``max_step_px`` per row. Not linked: holes (occlusion), depth edges and
+    jumps to a reflection (joining them would invent points in between), and rows that hold
+    several samples (a LaserLine has one per row; several mean the extractor could not decide,
+    so none of them is trusted). Returns ``(linked, shared_rows_count)``.
+    """
+    dv, du = np.diff(v), np.abs(np.diff(u))
+    same_row = dv < 1e-6
+    shared = np.zeros(len(v), dtype=bool)
+    shared[:-1] |= same_row
+    shared[1:] |= same_row
+    linked = ~same_row & (dv <= params.max_gap_rows) & (du <= params.max_step_px * np.maximum(dv, 1.0))
+    linked &= ~shared[:-1] & ~shared[1:]
+    return linked, int(np.count_nonzero(shared))
+
+
+def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
+               params: MatchParams = MatchParams()) -> Matches:
+    """Match every left sample to the right polyline by sub-pixel epipolar intersection (vectorised)."""
+    stats = {"left_rows": len(left), "right_rows": len(right), "no_crossing": 0, "out_of_range": 0,
+             "ambiguous_resolved": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
+    lok = left.valid(params.min_quality)
+    stats["invalid_rows"] = int((~lok).sum() + (~right.valid(params.min_quality)).sum())
+    lidx = np.nonzero(lok)[0]
+    rok = right.valid(params.min_quality)
+    order = np.argsort(right.v[rok], kind="stable")
+    ur, vr = right.u[rok][order], right.v[rok][order]
+    joined, stats["right_shared_rows"] = _links(ur, vr, params)
+    empty = Matches(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), stats)
+    if lidx.size == 0 or ur.size < 2:
+        stats["no_crossing"] = int(lidx.size)
+        return empty
+    ul = left.u[lidx]
+    if params.smooth_window_rows:
+        order = np.argsort(left.v[lidx], kind="stable")
+        lidx, ul = lidx[order], ul[order]
+        ul = smooth_line(ul, left.v[lidx], params.smooth_window_rows, _links(ul, left.v[lidx], params)[0])
+        ur = smooth_line(ur, vr, params.smooth_window_rows, joined)
+    x1 = model.undistort_left(ul, left.v[lidx])
+    p = model.undistort_right(ur, vr)
+    lines = model.epipolar_lines(x1)
+    ii, jj, d0, d1 = _crossings(lines, p, joined)
+    if ii.size == 0:
+        stats["no_crossing"] = int(lidx.size)
+        return empty
+    t = d0 / (d0 - d1)
+    x2c = p[jj] + t[:, None] * (p[jj + 1] - p[jj])
+    depth = ray_depths(model, x1[ii], x2c)
+    inside = (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
+    crossings = np.bincount(ii, minlength=lidx.size)
+    stats["out_of_range"] = int(np.count_nonzero((crossings > 0) & (np.bincount(ii[inside], minlength=lidx.size) == 0)))
+    stats["no_crossing"] = int(np.count_nonzero(crossings == 0))
+    ii, jj, t, x2c, depth = ii[inside], jj[inside], t[inside], x2c[inside], depth[inside]
+    count = np.bincount(ii, minlength=lidx.size)
+    unique = count[ii] == 1
+    keep = unique.copy()
+    amb_rows = np.nonzero(count > 1)[0]
+    if amb_rows.size:
+        keep |= _resolve_by_order(ii, jj + t, unique, count, left.v[lidx], params, stats)
+    sel = np.nonzero(keep)[0]
+    return Matches(lidx[ii[sel]], x1[ii[sel]], x2c[sel], depth[sel], stats)
+
+
+def _crossings(lines: np.ndarray, p: np.ndarray, joined: np.ndarray) -> tuple:
+    """All (left i, segment j) pairs where epipolar line i crosses polyline segment j, with end distances.
+
+    Only a band of segments can cross a line: over the polyline's x extent a (near-horizontal)
+    epipolar line spans the rows [ylo, yhi]; vertices above ylo (resp. below yhi) lie on one side.
+    With running max/min of the vertex rows (the polyline is sorted by raw row, its undistorted
+    rows almost) ``searchsorted`` finds that band exactly, so the sign test runs on N x band
+    instead of N x M distances. Steep lines or wide bands fall back to the full matrix.
+    """
+    a, b, c = lines[:, 0:1], lines[:, 1:2], lines[:, 2:3]
+    x, y = p[:, 0], p[:, 1]
+    m = len(p)
+    if np.all(np.abs(b) > 0.2):
+        xs = np.array([x.min(), x.max()])
+        ys = -(a * xs + c) / b                                    # (N, 2) line rows at the x extremes
+        ylo, yhi = ys.min(axis=1), ys.max(axis=1)
+        first = np.searchsorted(np.maximum.accumulate(y), ylo, side="left") - 1
+        last = np.searchsorted(np.minimum.accumulate(y[::-1])[::-1], yhi, side="right")
+        start = np.clip(first, 0, m - 2)
+        stop = np.clip(last, 1, m - 1)                            # segments start..stop-1
+        width = int((stop - start).max(initial=0))
+        if 0 < width <= m // 3:
+            k = start[:, None] + np.arange(width + 1)             # vertex window (N, width + 1)
+            k = np.minimum(k, m - 1)
+            dist = a * x[k] + b * y[k] + c
+            seg = k[:, :-1]
+            valid = (np.arange(width)[None, :] < (stop - start)[:, None]) & joined[np.minimum(seg, m - 2)]
+            side = dist >= 0.0                                    # half-open: a vertex on the line counts once
+            cross = (side[:, :-1] != side[:, 1:]) & valid
+            ii, kk = np.nonzero(cross)
+            return ii, seg[ii, kk], dist[ii, kk], dist[ii, kk + 1]
+        if width == 0:
+            e = np.zeros(0, dtype=np.intp)
+            return e, e, np.zeros(0), np.zeros(0)
+    dist = a * x[None, :] + b * y[None, :] + c                    # (N, M) signed distances [px]
+    side = dist >= 0.0
+    cross = (side[:, :-1] != side[:, 1:]) & joined[None, :]
+    ii, jj = np.nonzero(cross)
+    return ii, jj, dist[ii, jj], dist[ii, jj + 1]
+
+
+def _resolve_by_order(ii: np.ndarray, pos: np.ndarray, unique: np.ndarray, count: np.ndarray, vl: np.ndarray,
+                      params: MatchParams, stats: dict) -> np.ndarray:
+    """Pick, for left points with several crossings, the one the ordering constraint allows (or none)."""
+    chosen = np.zeros(ii.size, dtype=bool)
+    amb = ~unique
+    n_amb = int(np.count_nonzero(count > 1))
+    if np.count_nonzero(unique) < 2:
+        stats["ambiguous_rejected"] += n_amb
+        return chosen
+    # Predict the right polyline position of each left row from the unambiguous rows (monotone map).
+    uv, upos = vl[ii[unique]], pos[unique]
+    order = np.argsort(uv, kind="stable")
+    pred = np.interp(vl[ii[amb]], uv[order], upos[order])
+    dev = np.abs(pos[amb] - pred)
+    cand = np.nonzero(amb)[0]
+    o = np.lexsort((dev, ii[cand]))  # group by left row, best deviation first
+    cand, dev = cand[o], dev[o]
+    first = np.r_[True, ii[cand][1:] != ii[cand][:-1]]
+    second_dev = np.full(cand.size, np.inf)
+    has_second = np.r_[~first[1:], False] & first
+    second_dev[has_second] = dev[np.nonzero(has_second)[0] + 1]
+    ok = first & (dev <= params.max_order_dev) & (second_dev > params.max_order_dev)
+    chosen[cand[ok]] = True
+    stats["ambiguous_resolved"] += int(np.count_nonzero(ok))
+    stats["ambiguous_rejected"] += n_amb - int(np.count_nonzero(ok))
+    return chosen
+
+
+def match_thesis(model: StereoModel, left: LineArrays, right: LineArrays,
+                 params: MatchParams = MatchParams()) -> Matches:
+    """The thesis chain (ch. 7.1.2): integer pixels, nearest right laser pixel on the epipolar line.
+
+    The thesis distorted the epipolar line into the raw right image and looked for a laser pixel
+    under it. Equivalently (and vectorised) we take, for each left pixel, the right laser pixel
+    whose undistorted position is nearest to the epipolar line, if the line passes through that
+    pixel (distance <= half the pixel diagonal); no interpolation between pixels. Ties in depth
+    range are broken by distance, as a linear search along the line would meet the first hit.
+    """
+    stats = {"left_rows": len(left), "right_rows": len(right), "no_crossing": 0, "out_of_range": 0,
+             "ambiguous_resolved": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
+    lok, rok = left.valid(params.min_quality), right.valid(params.min_quality)
+    lidx = np.nonzero(lok)[0]
+    if lidx.size == 0 or not rok.any():
+        return Matches(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), stats)
+    x1 = model.undistort_left(np.round(left.u[lidx]), np.round(left.v[lidx]))
+    p = model.undistort_right(np.round(right.u[rok]), np.round(right.v[rok]))
+    lines = model.epipolar_lines(x1)
+    dist = np.abs(lines[:, :2] @ p.T + lines[:, 2:3])
+    # Depth of every (left, right pixel) pair, to apply the same disparity range as the sub-pixel chain.
+    best = np.argmin(dist, axis=1)
+    bd = dist[np.arange(lidx.size), best]
+    hit = bd <= np.sqrt(0.5)
+    depth = ray_depths(model, x1, p[best])
+    inside = hit & (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
+    stats["no_crossing"] = int(np.count_nonzero(~hit))
+    stats["out_of_range"] = int(np.count_nonzero(hit & ~inside))
+    return Matches(lidx[inside], x1[inside], p[best[inside]], depth[inside], stats)

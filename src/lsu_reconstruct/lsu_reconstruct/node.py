@@ -1,0 +1,435 @@
+"""The ``stereo_matcher`` node: left/right laser lines -> ``points`` per snap, ``scan/cloud`` per scan.
+
+A thin adapter over :mod:`lsu_reconstruct.pipeline`:
+
+- pairs ``stereo/left/laser_line`` and ``stereo/right/laser_line`` by exact ``header.stamp``
+  (bounded buffers; lines that never find a partner are counted and reported on /diagnostics);
+- publishes every pair's points on ``points`` (PointCloud2: x y z rgb u v snap);
+- follows ``scan/events``: STARTED opens a scan, SNAP gives each stamp its snap index, TEXTURE
+  names the laser-off colour pair (its left ``stereo/left/image_raw`` colours the points), and
+  FINISHED / ABORTED publish the whole scan on ``scan/cloud`` (transient-local) once every
+  expected snap is in, or after ``scan_timeout_s`` as a partial cloud (logged as partial);
+- calibration from files (``calibration_source: file`` + ``calibration_dir``) or from the
+  camera node's ``stereo/{left,right}/camera_info`` and ``stereo/extrinsics`` (``topics``).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from sensor_msgs.msg import PointField as RosPointField
+from std_msgs.msg import Header
+
+from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
+
+from .matching import LineArrays, MatchParams
+from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
+from .pointcloud2 import Cloud, PointField, decode, encode
+from .stereo import CalibrationError, StereoModel
+from .triangulate import METHODS
+
+__all__ = ["StereoMatcherNode", "cloud_to_msg", "msg_to_cloud", "line_from_msg", "image_to_array", "decode_msg",
+           "main"]
+
+RELIABLE_DATA = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+# ---------------------------------------------------------------------------- message conversion
+def cloud_to_msg(cloud: Cloud, header: Header) -> PointCloud2:
+    """A codec :class:`Cloud` as sensor_msgs/PointCloud2 with ``header``."""
+    msg = PointCloud2()
+    msg.header = header
+    msg.height, msg.width = int(cloud.height), int(cloud.width)
+    msg.fields = [RosPointField(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in cloud.fields]
+    msg.is_bigendian = bool(cloud.is_bigendian)
+    msg.point_step, msg.row_step = int(cloud.point_step), int(cloud.row_step)
+    msg.data = cloud.data
+    msg.is_dense = bool(cloud.is_dense)
+    return msg
+
+
+def msg_to_cloud(msg: PointCloud2) -> Cloud:
+    """sensor_msgs/PointCloud2 -> codec :class:`Cloud` (header dropped)."""
+    return Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
+                 data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,
+                 row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
+
+
+def line_from_msg(msg: LaserLine) -> LineArrays:
+    """lsu_interfaces/LaserLine -> :class:`LineArrays`."""
+    def arr(values: Any) -> np.ndarray:
+        return np.frombuffer(values, dtype=np.float32).astype(np.float64) if len(values) else np.zeros(0)
+
+    return LineArrays(u=arr(msg.u), v=arr(msg.v), peak=arr(msg.peak), width=arr(msg.width),
+                      quality=arr(msg.quality), image_width=msg.image_width, image_height=msg.image_height)
+
+
+def image_to_array(msg: Image) -> np.ndarray:
+    """bgr8 / rgb8 / mono8 sensor_msgs/Image -> HxWx3 bgr uint8 array."""
+    channels = {"bgr8": 3, "rgb8": 3, "mono8": 1, "bgra8": 4, "rgba8": 4}
+    if msg.encoding not in channels:
+        raise ValueError(f"texture image encoding '{msg.encoding}' is not supported; publish bgr8 (or rgb8/mono8)")
+    c = channels[msg.encoding]
+    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    img = buf.reshape(msg.height, msg.step)[:, :msg.width * c].reshape(msg.height, msg.width, c)
+    if msg.encoding.startswith("rgb"):
+        img = img[:, :, 2::-1]
+    elif c == 1:
+        img = np.repeat(img, 3, axis=2)
+    return np.ascontiguousarray(img[:, :, :3])
+
+
+def _stamp_key(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+@dataclass
+class _Scan:
+    scan_id: str
+    expected: int
+    snaps: Dict[int, SnapPoints] = field(default_factory=dict)
+    texture_key: Optional[int] = None
+    texture: Optional[np.ndarray] = None
+    end_type: Optional[int] = None       # FINISHED or ABORTED once known
+    end_reason: str = ""
+    end_time_s: float = 0.0
+    published: bool = False
+
+
+class StereoMatcherNode(Node):
+    """Matches left/right laser lines along epipolar lines and publishes 3D points (see module doc)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("stereo_matcher", **{"namespace": "/lsu", **kwargs})
+        p = MatchParams()
+
+        def declare(name: str, default: Any, description: str) -> None:
+            self.declare_parameter(name, default, ParameterDescriptor(description=description))
+
+        declare("calibration_source", "topics", "where the stereo calibration comes from: 'file' (calibration_dir) "
+                "or 'topics' (stereo/{left,right}/camera_info + stereo/extrinsics)")
+        declare("calibration_dir", "", "folder with left.yaml, right.yaml, stereo.yaml (calibration_source: file)")
+        declare("depth_min_m", p.depth_min_m, "nearest accepted point along the left optical axis [m]")
+        declare("depth_max_m", p.depth_max_m, "farthest accepted point along the left optical axis [m]")
+        declare("max_gap_rows", p.max_gap_rows, "right laser samples further apart than this [rows] are not joined")
+        declare("max_step_px", p.max_step_px, "nor samples whose column jumps more than this per row [px] "
+                "(depth edges, reflections)")
+        declare("max_order_dev", p.max_order_dev, "ordering tolerance when a left point has several crossings [segments]")
+        declare("min_quality", p.min_quality, "drop laser rows whose extractor quality is below this (0..1)")
+        declare("smooth_window_rows", p.smooth_window_rows, "rows of the local quadratic fit along each laser line "
+                "(odd, >= 5; 0 = no smoothing)")
+        declare("max_reproj_px", p.max_reproj_px, "reject points whose reprojection error exceeds this [px]")
+        declare("triangulation", p.method, "triangulation method: midpoint, dlt or optimal")
+        declare("pair_buffer", 64, "laser lines kept while waiting for their partner (per side)")
+        declare("scan_timeout_s", 5.0, "after FINISHED/ABORTED, wait this long for missing snaps, then publish "
+                "the partial scan cloud")
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(lambda _: setattr(self, "params", self._match_params()))
+
+        self.model: Optional[StereoModel] = None
+        self.calibration_error = ""
+        self.params = self._match_params()
+        self.left: "OrderedDict[int, LaserLine]" = OrderedDict()
+        self.right: "OrderedDict[int, LaserLine]" = OrderedDict()
+        self.unmatched = {"left": 0, "right": 0}
+        self.pairs = 0
+        self.points_last = 0
+        self.errors = 0
+        self.last_error = ""
+        self.free_snap = 0
+        self.scan: Optional[_Scan] = None
+        self.snap_of_stamp: Dict[int, int] = {}
+        self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
+        self.images: "OrderedDict[int, Image]" = OrderedDict()       # recent left images (texture candidates)
+        self._camera_info: Dict[str, CameraInfo] = {}
+        self._extrinsics: Optional[StereoExtrinsics] = None
+
+        self.points_pub = self.create_publisher(PointCloud2, "points", 10)
+        self.cloud_pub = self.create_publisher(PointCloud2, "scan/cloud", LATCHED)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(LaserLine, "stereo/left/laser_line", lambda m: self.on_line("left", m), RELIABLE_DATA)
+        self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
+                                 RELIABLE_DATA)
+        self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)
+        self.create_subscription(Image, "stereo/left/image_raw", self.on_image, QoSProfile(
+            depth=4, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
+        if self.get_parameter("calibration_source").value == "topics":
+            self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), LATCHED)
+            self.create_subscription(CameraInfo, "stereo/right/camera_info", lambda m: self.on_info("right", m),
+                                     LATCHED)
+            self.create_subscription(StereoExtrinsics, "stereo/extrinsics", self.on_extrinsics, LATCHED)
+            self.calibration_error = "waiting for stereo/{left,right}/camera_info and stereo/extrinsics"
+            self.get_logger().info(self.calibration_error)
+        else:
+            self._load_calibration_file()
+        self.create_timer(0.1, self._check_scan_end)
+        self.create_timer(1.0, self.publish_diagnostics)
+
+    # ------------------------------------------------------------------ parameters and calibration
+    def _match_params(self) -> MatchParams:
+        g = lambda name: self.get_parameter(name).value  # noqa: E731
+        return MatchParams(depth_min_m=float(g("depth_min_m")), depth_max_m=float(g("depth_max_m")),
+                           max_gap_rows=float(g("max_gap_rows")), max_step_px=float(g("max_step_px")),
+                           max_order_dev=float(g("max_order_dev")),
+                           min_quality=float(g("min_quality")), smooth_window_rows=int(g("smooth_window_rows")),
+                           max_reproj_px=float(g("max_reproj_px")), method=str(g("triangulation")))
+
+    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+        for param in params:
+            if param.name == "triangulation" and param.value not in METHODS:
+                return SetParametersResult(successful=False, reason=f"triangulation must be one of {', '.join(METHODS)}")
+            if param.name == "calibration_source" and param.value not in ("file", "topics"):
+                return SetParametersResult(successful=False, reason="calibration_source must be 'file' or 'topics'")
+            if param.name == "smooth_window_rows" and not (param.value == 0 or (param.value >= 5 and param.value % 2)):
+                return SetParametersResult(successful=False, reason="smooth_window_rows must be 0 or an odd number >= 5")
+            if param.name in ("scan_timeout_s", "max_reproj_px", "max_gap_rows", "max_step_px", "depth_max_m") and param.value <= 0:
+                return SetParametersResult(successful=False, reason=f"{param.name} must be positive")
+            if param.name == "pair_buffer" and param.value < 1:
+                return SetParametersResult(successful=False, reason="pair_buffer must be at least 1")
+        return SetParametersResult(successful=True)
+
+    def _load_calibration_file(self) -> None:
+        folder = str(self.get_parameter("calibration_dir").value)
+        if not folder:
+            self.calibration_error = "calibration_source is 'file' but calibration_dir is empty; set it to a folder " \
+                                     "with left.yaml, right.yaml and stereo.yaml"
+            self.get_logger().error(self.calibration_error)
+            return
+        try:
+            self.model = StereoModel.from_folder(folder)
+        except CalibrationError as exc:
+            self.calibration_error = str(exc)
+            self.get_logger().error(f"cannot use the calibration: {exc}")
+            return
+        self.calibration_error = ""
+        self.get_logger().info(f"calibration {self.model.calibration_id} from {folder}: baseline "
+                               f"{self.model.baseline_m * 1000:.1f} mm")
+
+    def on_info(self, side: str, msg: CameraInfo) -> None:
+        """Latched camera_info of one side; builds the model when both and the extrinsics are in."""
+        self._camera_info[side] = msg
+        self._model_from_topics()
+
+    def on_extrinsics(self, msg: StereoExtrinsics) -> None:
+        """Latched stereo extrinsics."""
+        self._extrinsics = msg
+        self._model_from_topics()
+
+    def _model_from_topics(self) -> None:
+        left, right, ext = self._camera_info.get("left"), self._camera_info.get("right"), self._extrinsics
+        if left is None or right is None or ext is None:
+            return
+        try:
+            self.model = StereoModel.from_arrays(
+                np.asarray(left.k), np.asarray(left.d), np.asarray(right.k), np.asarray(right.d),
+                np.asarray(ext.rotation), np.asarray(ext.translation), (left.width, left.height),
+                E=np.asarray(ext.essential), F=np.asarray(ext.fundamental), right_image_size=(right.width, right.height),
+                source="camera_info + extrinsics topics", rms_px=float(ext.rms_px),
+                calibration_id=ext.calibration_id, left_frame_id=ext.header.frame_id or "lsu_left_optical",
+                right_frame_id=ext.right_frame_id or "lsu_right_optical")
+        except CalibrationError as exc:
+            self.model = None
+            self.calibration_error = str(exc)
+            self.get_logger().error(f"cannot use the calibration from the topics: {exc}")
+            return
+        self.calibration_error = ""
+        self.get_logger().info(f"calibration from topics: baseline {self.model.baseline_m * 1000:.1f} mm")
+
+    # ------------------------------------------------------------------ laser lines
+    def on_line(self, side: str, msg: LaserLine) -> None:
+        """Buffer one side's line; when its partner (same stamp) is in, reconstruct the pair."""
+        key = _stamp_key(msg.header.stamp)
+        other = self.right if side == "left" else self.left
+        mine = self.left if side == "left" else self.right
+        if key in other:
+            partner = other.pop(key)
+            left, right = (msg, partner) if side == "left" else (partner, msg)
+            self.pairs += 1
+            self.process_pair(key, left, right)
+            return
+        mine[key] = msg
+        while len(mine) > int(self.get_parameter("pair_buffer").value):
+            mine.popitem(last=False)
+            self.unmatched[side] += 1
+
+    def process_pair(self, key: int, left: LaserLine, right: LaserLine) -> None:
+        """Reconstruct one stereo pair and route it to ``points`` and the running scan."""
+        if self.model is None:
+            self._error(f"laser lines arrive but there is no calibration: {self.calibration_error}")
+            return
+        try:
+            snap = reconstruct_snap(self.model, line_from_msg(left), line_from_msg(right), self.params)
+        except (CalibrationError, ValueError) as exc:
+            self._error(f"cannot reconstruct the pair stamped {key / 1e9:.3f}: {exc}")
+            return
+        self.points_last = len(snap)
+        if self.scan is not None and not self.scan.published:
+            index = self.snap_of_stamp.get(key)
+            if index is None:
+                self.waiting[key] = snap  # its SNAP event is still on the way
+                while len(self.waiting) > int(self.get_parameter("pair_buffer").value):
+                    self.waiting.popitem(last=False)
+                return
+            self._file_snap(index, snap, left.header)
+        else:
+            self._publish_points(snap, self.free_snap, left.header)
+            self.free_snap += 1
+
+    def _file_snap(self, index: int, snap: SnapPoints, header: Header) -> None:
+        assert self.scan is not None
+        self._publish_points(snap, index, header)
+        self.scan.snaps[index] = snap
+
+    def _publish_points(self, snap: SnapPoints, index: int, header: Header) -> None:
+        snap.snap = np.full(len(snap), index, dtype=np.uint32)
+        if self.scan is not None and self.scan.texture is not None:
+            snap.rgb = colour_at(self.scan.texture, snap.u, snap.v)
+        out = Header(stamp=header.stamp, frame_id=self.model.left_frame_id if self.model else "lsu_left_optical")
+        self.points_pub.publish(cloud_to_msg(encode(snap.fields()), out))
+
+    def _error(self, text: str) -> None:
+        self.errors += 1
+        self.last_error = text
+        self.get_logger().error(text, throttle_duration_sec=5.0)
+
+    # ------------------------------------------------------------------ scan events and texture
+    def on_event(self, msg: ScanEvent) -> None:
+        """Scan bookkeeping: STARTED, TEXTURE, SNAP, FINISHED, ABORTED."""
+        if msg.type == ScanEvent.STARTED:
+            self.scan = _Scan(msg.scan_id, int(msg.expected_snaps))
+            self.snap_of_stamp.clear()
+            self.waiting.clear()
+            self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
+            return
+        if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
+            self.get_logger().warning(f"scan event {msg.type} for scan '{msg.scan_id}' without its STARTED; ignored",
+                                      throttle_duration_sec=5.0)
+            return
+        key = _stamp_key(msg.image_stamp)
+        if msg.type == ScanEvent.SNAP:
+            self.snap_of_stamp[key] = int(msg.index)
+            snap = self.waiting.pop(key, None)
+            if snap is not None:
+                self._file_snap(int(msg.index), snap, Header(stamp=msg.image_stamp))
+        elif msg.type == ScanEvent.TEXTURE:
+            self.scan.texture_key = key
+            if key in self.images:
+                self._take_texture(self.images[key])
+        elif msg.type in (ScanEvent.FINISHED, ScanEvent.ABORTED):
+            self.scan.end_type = msg.type
+            if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
+                self.scan.expected = int(msg.snaps_captured)
+            self.scan.end_reason = msg.reason
+            self.scan.end_time_s = self.get_clock().now().nanoseconds / 1e9
+            self._check_scan_end()
+
+    def on_image(self, msg: Image) -> None:
+        """Keep a few recent left images; the one named by TEXTURE colours the scan."""
+        key = _stamp_key(msg.header.stamp)
+        if self.scan is not None and self.scan.texture_key == key:
+            self._take_texture(msg)
+            return
+        self.images[key] = msg
+        while len(self.images) > 4:
+            self.images.popitem(last=False)
+
+    def _take_texture(self, msg: Image) -> None:
+        assert self.scan is not None
+        try:
+            self.scan.texture = image_to_array(msg)
+        except ValueError as exc:
+            self._error(str(exc))
+
+    def _check_scan_end(self) -> None:
+        scan = self.scan
+        if scan is None or scan.end_type is None or scan.published:
+            return
+        complete = len(scan.snaps) >= scan.expected and scan.end_type == ScanEvent.FINISHED
+        waited = self.get_clock().now().nanoseconds / 1e9 - scan.end_time_s
+        if not complete and waited < float(self.get_parameter("scan_timeout_s").value):
+            return
+        self.publish_scan(partial=not complete)
+
+    def publish_scan(self, partial: bool) -> None:
+        """Publish the scan's points (in snap order, coloured if the texture is in) on ``scan/cloud``."""
+        scan = self.scan
+        assert scan is not None
+        snaps = [scan.snaps[i] for i in sorted(scan.snaps)]
+        if scan.texture is not None:
+            for s in snaps:
+                s.rgb = colour_at(scan.texture, s.u, s.v)
+        cloud = merge_snaps(snaps)
+        header = Header(stamp=self.get_clock().now().to_msg(),
+                        frame_id=self.model.left_frame_id if self.model else "lsu_left_optical")
+        self.cloud_pub.publish(cloud_to_msg(encode(cloud.fields()), header))
+        scan.published = True
+        what = f"scan {scan.scan_id}: {len(cloud)} points from {len(snaps)} of {scan.expected} snaps"
+        if scan.texture is None:
+            what += " (no texture: uncoloured)"
+        if partial:
+            cause = "aborted: " + scan.end_reason if scan.end_type == ScanEvent.ABORTED else \
+                f"missing snaps after {self.get_parameter('scan_timeout_s').value} s"
+            self.get_logger().warning(f"{what}; PARTIAL cloud published ({cause})")
+        else:
+            self.get_logger().info(f"{what}; cloud published")
+
+    # ------------------------------------------------------------------ diagnostics
+    def publish_diagnostics(self) -> None:
+        """Pairing counts and calibration health on /diagnostics."""
+        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: stereo matching",
+                                  hardware_id="lsu_stereo")
+        if self.model is None:
+            status.level, status.message = DiagnosticStatus.ERROR, f"no calibration: {self.calibration_error}"
+        elif self.unmatched["left"] or self.unmatched["right"] or self.errors:
+            status.level = DiagnosticStatus.WARN
+            status.message = (f"{self.unmatched['left']} left / {self.unmatched['right']} right lines never paired, "
+                              f"{self.errors} errors")
+        else:
+            status.level, status.message = DiagnosticStatus.OK, f"{self.pairs} pairs matched"
+        values = {"pairs": self.pairs, "unmatched_left": self.unmatched["left"],
+                  "unmatched_right": self.unmatched["right"], "buffered_left": len(self.left),
+                  "buffered_right": len(self.right), "points_last_snap": self.points_last, "errors": self.errors,
+                  "last_error": self.last_error,
+                  "calibration": self.model.calibration_id or self.model.source if self.model else "none"}
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        diag = DiagnosticArray()
+        diag.header.stamp = self.get_clock().now().to_msg()
+        diag.status = [status]
+        self.diag_pub.publish(diag)
+
+
+def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str, np.ndarray]:
+    """Columns of a sensor_msgs/PointCloud2 (any layout) as numpy arrays."""
+    return decode(msg_to_cloud(msg), names)
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``stereo_matcher``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = StereoMatcherNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""One snap from two laser lines to 3D points, and a scan as the union of its snaps (no rclpy).
+
+``reconstruct_snap`` is what the ``stereo_matcher`` node and ``lsu reconstruct`` both run:
+match (sub-pixel epipolar intersection, or the thesis chain), triangulate, reject (non-finite,
+depth range, reprojection error). ``colour_at`` samples the laser-off texture image at the left
+pixels of the points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from .matching import LineArrays, MatchParams, match_line, match_thesis
+from .pointcloud2 import pack_rgb
+from .stereo import StereoModel
+from .triangulate import accept_points, triangulate
+
+__all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps"]
+
+
+@dataclass
+class SnapPoints:
+    """Points of one snap: xyz [m, left optical frame], left raw pixel (u, v), snap index, packed rgb."""
+
+    xyz: np.ndarray                        # (N, 3) float64
+    u: np.ndarray                          # (N,) raw left pixel column
+    v: np.ndarray                          # (N,) raw left pixel row
+    snap: np.ndarray                       # (N,) uint32
+    rgb: Optional[np.ndarray] = None       # (N,) float32 packed 0x00RRGGBB, None = not coloured
+    stats: Dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(len(self.xyz))
+
+    def fields(self) -> Dict[str, np.ndarray]:
+        """Columns for the PointCloud2 codec (x y z rgb u v snap)."""
+        rgb = self.rgb if self.rgb is not None else pack_rgb(np.full((len(self), 3), 255, dtype=np.uint8))
+        return {"x": self.xyz[:, 0], "y": self.xyz[:, 1], "z": self.xyz[:, 2], "rgb": rgb, "u": self.u,
+                "v": self.v, "snap": self.snap}
+
+
+def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, params: MatchParams = MatchParams(),
+                     snap: int = 0, chain: str = "subpixel") -> SnapPoints:
+    """Match ``left`` to ``right`` and triangulate; only finite, accepted points come out.
+
+    ``chain="thesis"`` runs the thesis baseline (integer pixels, nearest-pixel match).
+    """
+    for line, which in ((left, "left"), (right, "right")):
+        if line.image_width or line.image_height:
+            model.check_image_size(line.image_width, line.image_height, f"{which} laser line image")
+    if chain == "subpixel":
+        m = match_line(model, left, right, params)
+    elif chain == "thesis":
+        m = match_thesis(model, left, right, params)
+    else:
+        raise ValueError(f"unknown matching chain '{chain}'; use 'subpixel' or 'thesis'")
+    X = triangulate(model, m.x1, m.x2, params.method)
+    ok, rejected = accept_points(model, X, m.x1, m.x2, params.depth_min_m, params.depth_max_m, params.max_reproj_px)
+    stats = dict(m.stats)
+    stats.update(matched=int(len(X)), points=int(np.count_nonzero(ok)), rejected_non_finite=rejected.non_finite,
+                 rejected_depth=rejected.depth, rejected_reprojection=rejected.reprojection)
+    idx = m.left_index[ok]
+    order = np.argsort(left.v[idx], kind="stable")  # points ordered along the line, top to bottom
+    idx = idx[order]
+    return SnapPoints(xyz=X[ok][order], u=left.u[idx].copy(), v=left.v[idx].copy(),
+                      snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
+
+
+def colour_at(image_bgr: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Packed rgb (float32, 0x00RRGGBB) of a bgr8 (or mono8) image at raw pixels (nearest pixel, clamped)."""
+    img = np.asarray(image_bgr)
+    if img.ndim == 2:
+        img = np.repeat(img[:, :, None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] < 3:
+        raise ValueError(f"texture image has shape {img.shape}; expected HxWx3 bgr8 or HxW mono8")
+    h, w = img.shape[:2]
+    col = np.clip(np.rint(np.nan_to_num(u)), 0, w - 1).astype(np.intp)
+    row = np.clip(np.rint(np.nan_to_num(v)), 0, h - 1).astype(np.intp)
+    bgr = img[row, col, :3]
+    return pack_rgb(bgr[:, ::-1].astype(np.uint8))
+
+
+def merge_snaps(snaps: List[SnapPoints]) -> SnapPoints:
+    """Concatenate snaps (in the given order) into one scan cloud."""
+    if not snaps:
+        return SnapPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint32),
+                          np.zeros(0, dtype=np.float32))
+    rgb = [s.fields()["rgb"] for s in snaps]
+    return SnapPoints(xyz=np.concatenate([s.xyz for s in snaps]), u=np.concatenate([s.u for s in snaps]),
+                      v=np.concatenate([s.v for s in snaps]), snap=np.concatenate([s.snap for s in snaps]),
+                      rgb=np.concatenate(rgb).astype(np.float32))

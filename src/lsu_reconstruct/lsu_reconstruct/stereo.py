@@ -1,0 +1,377 @@
+"""Stereo camera model of the LSU: intrinsics, extrinsics, undistortion and epipolar lines (thesis ch. 4).
+
+Conventions (the thesis, Bouguet's toolbox and OpenCV's ``stereoCalibrate`` agree):
+
+- The left optical frame is the world frame (``lsu_left_optical``): x right, y down, z forward.
+- ``X_right = R @ X_left + T``. The right camera centre in the left frame is ``C = -R.T @ T``.
+  On the LSU the right camera sits ~122 mm to the *right* of the left one, so ``C_x > 0`` and,
+  for any sensible toe-in, ``T_x < 0`` (the thesis' calibration: ``T = [-121.7, ..., 14.5] mm``).
+  A calibration whose right centre lies to the *left* of the left camera means the two cameras (or
+  their files) were swapped; that is refused with :class:`CalibrationSwappedError`.
+- Pixels follow the OpenCV convention of ``LaserLine.msg``: (0, 0) is the centre of the top-left pixel.
+- "Undistorted pixels" are ideal pinhole pixels of the *same* camera matrix K (``undistortPoints``
+  with ``P = K``), so the fundamental matrix works in pixels: ``x_right^T F x_left = 0``,
+  ``F = K2^-T [T]x R K1^-1`` and the right epipolar line of a left point is ``l2 = F x1``.
+
+This module imports no rclpy: the node builds a :class:`StereoModel` from CameraInfo/extrinsics
+arrays with :meth:`StereoModel.from_arrays`, the offline tools from a calibration folder with
+:meth:`StereoModel.from_folder`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, Optional, Tuple
+
+import cv2
+import numpy as np
+import yaml
+
+__all__ = [
+    "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
+    "CalibrationSwappedError", "CalibrationInconsistentError", "StereoModel", "skew", "fundamental_from",
+]
+
+# Sub-millipixel undistortion: OpenCV's default (5 fixed iterations) leaves ~0.01-0.1 px near the
+# image corners with the LSU's barrel distortion, which is as large as the extractor's own noise.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+
+
+class CalibrationError(ValueError):
+    """A calibration cannot be used; the message says what is wrong and what to do."""
+
+
+class CalibrationFileError(CalibrationError, FileNotFoundError):
+    """A calibration file is missing."""
+
+
+class CalibrationParseError(CalibrationError):
+    """A calibration file does not parse or lacks a field."""
+
+
+class CalibrationSizeError(CalibrationError):
+    """Image sizes of the calibration files (or of the data) disagree."""
+
+
+class CalibrationSwappedError(CalibrationError):
+    """Left and right cameras are swapped (the baseline points the wrong way)."""
+
+
+class CalibrationInconsistentError(CalibrationError):
+    """Stored E/F disagree with R, T and the intrinsics, or a matrix is not what it claims to be."""
+
+
+def skew(t: np.ndarray) -> np.ndarray:
+    """The cross-product matrix ``[t]x`` with ``[t]x @ v == cross(t, v)``."""
+    tx, ty, tz = (float(x) for x in np.asarray(t, dtype=float).reshape(3))
+    return np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])
+
+
+def fundamental_from(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, T: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Essential ``E = [T]x R`` and fundamental ``F = K2^-T E K1^-1`` (F scaled to unit Frobenius norm)."""
+    E = skew(T) @ R
+    F = np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
+    return E, F / np.linalg.norm(F)
+
+
+def _same_up_to_scale(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    return min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol
+
+
+def _matrix(doc: Dict[str, Any], key: str, shape: Tuple[int, int], path: Path) -> np.ndarray:
+    """Read a ``{rows, cols, data}`` block (or a flat list) of the camera_calibration format."""
+    if key not in doc:
+        raise CalibrationParseError(f"{path}: missing '{key}'; write it as {{rows: {shape[0]}, cols: {shape[1]}, "
+                                    f"data: [...]}} (ROS camera_calibration format)")
+    block = doc[key]
+    data = block.get("data") if isinstance(block, dict) else block
+    try:
+        arr = np.asarray(data, dtype=float).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise CalibrationParseError(f"{path}: '{key}' must hold numbers ({exc})") from None
+    if arr.size != shape[0] * shape[1]:
+        raise CalibrationParseError(f"{path}: '{key}' has {arr.size} values, expected {shape[0] * shape[1]} "
+                                    f"({shape[0]}x{shape[1]})")
+    if not np.all(np.isfinite(arr)):
+        raise CalibrationParseError(f"{path}: '{key}' contains NaN or infinity")
+    return arr.reshape(shape)
+
+
+def _load_yaml(path: Path) -> Dict[str, Any]:
+    if not path.is_file():
+        raise CalibrationFileError(f"calibration file {path} not found; run `lsu calibrate` or point "
+                                   f"calibration_dir at a folder with left.yaml, right.yaml and stereo.yaml")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise CalibrationParseError(f"{path}:{where} YAML syntax error ({getattr(exc, 'problem', exc)})") from None
+    if not isinstance(doc, dict):
+        raise CalibrationParseError(f"{path}: expected a mapping of calibration fields, got {type(doc).__name__}")
+    return doc
+
+
+def _image_size(doc: Dict[str, Any], path: Path) -> Tuple[int, int]:
+    try:
+        w, h = int(doc["image_width"]), int(doc["image_height"])
+    except KeyError as exc:
+        raise CalibrationParseError(f"{path}: missing {exc.args[0]}") from None
+    except (TypeError, ValueError):
+        raise CalibrationParseError(f"{path}: image_width/image_height must be integers") from None
+    if w <= 0 or h <= 0:
+        raise CalibrationParseError(f"{path}: image size {w}x{h} must be positive")
+    return w, h
+
+
+def _camera_file(path: Path) -> Tuple[np.ndarray, np.ndarray, Tuple[int, int], Dict[str, Any]]:
+    doc = _load_yaml(path)
+    size = _image_size(doc, path)
+    K = _matrix(doc, "camera_matrix", (3, 3), path)
+    model = str(doc.get("distortion_model", "plumb_bob"))
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise CalibrationParseError(f"{path}: distortion_model '{model}' is not supported; use plumb_bob "
+                                    f"([k1, k2, p1, p2, k3])")
+    dist = doc.get("distortion_coefficients", {"data": []})
+    data = dist.get("data") if isinstance(dist, dict) else dist
+    try:
+        D = np.asarray(data if data is not None else [], dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise CalibrationParseError(f"{path}: distortion_coefficients must hold numbers") from None
+    return K, D, size, doc
+
+
+@dataclass(frozen=True)
+class StereoModel:
+    """Calibrated stereo pair: intrinsics (K, D) of both cameras and the right-from-left pose (R, T).
+
+    Build it with :meth:`from_folder` or :meth:`from_arrays`; both validate and derive E and F.
+    """
+
+    K1: np.ndarray
+    D1: np.ndarray
+    K2: np.ndarray
+    D2: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    image_size: Tuple[int, int]  # (width, height) [px], equal for both cameras
+    E: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    F: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    left_frame_id: str = "lsu_left_optical"
+    right_frame_id: str = "lsu_right_optical"
+    rms_px: float = 0.0
+    calibration_id: str = ""
+    source: str = "arrays"
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_arrays(cls, K1: Any, D1: Any, K2: Any, D2: Any, R: Any, T: Any,
+                    image_size: Tuple[int, int], E: Optional[Any] = None, F: Optional[Any] = None,
+                    right_image_size: Optional[Tuple[int, int]] = None, source: str = "arrays",
+                    **meta: Any) -> "StereoModel":
+        """Validate arrays (CameraInfo-like: K row-major 3x3, D plumb_bob, R 3x3, T [m]) into a model.
+
+        E and F are derived from R, T and the intrinsics; when given, they must agree with them
+        (up to scale and sign), else :class:`CalibrationInconsistentError` names the mismatch.
+        """
+        def arr(name: str, value: Any, shape: Optional[Tuple[int, ...]] = None) -> np.ndarray:
+            try:
+                a = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                raise CalibrationParseError(f"{source}: {name} must be numeric") from None
+            if shape is not None:
+                if a.size != int(np.prod(shape)):
+                    raise CalibrationParseError(f"{source}: {name} has {a.size} values, expected {int(np.prod(shape))}")
+                a = a.reshape(shape)
+            if not np.all(np.isfinite(a)):
+                raise CalibrationParseError(f"{source}: {name} contains NaN or infinity")
+            return a
+
+        K1a, K2a = arr("K1", K1, (3, 3)), arr("K2", K2, (3, 3))
+        D1a, D2a = arr("D1", D1).reshape(-1), arr("D2", D2).reshape(-1)
+        Ra, Ta = arr("R", R, (3, 3)), arr("T", T, (3,))
+        for name, K in (("K1", K1a), ("K2", K2a)):
+            if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or np.any(K[1:, 0] != 0) or K[2, 1] != 0:
+                raise CalibrationParseError(f"{source}: {name} is not a camera matrix [[fx, s, cx], [0, fy, cy], "
+                                            f"[0, 0, 1]] with positive focal lengths: {K.tolist()}")
+        for name, D in (("D1", D1a), ("D2", D2a)):
+            if D.size not in (0, 4, 5, 8, 12, 14):
+                raise CalibrationParseError(f"{source}: {name} has {D.size} coefficients; plumb_bob needs 5 "
+                                            f"[k1, k2, p1, p2, k3]")
+        w, h = (int(image_size[0]), int(image_size[1]))
+        if w <= 0 or h <= 0:
+            raise CalibrationSizeError(f"{source}: image size {w}x{h} must be positive")
+        if right_image_size is not None and tuple(int(x) for x in right_image_size) != (w, h):
+            raise CalibrationSizeError(f"{source}: left camera is {w}x{h} but right camera is "
+                                       f"{right_image_size[0]}x{right_image_size[1]}; calibrate both at the same size")
+        if not np.allclose(Ra @ Ra.T, np.eye(3), atol=1e-5) or np.linalg.det(Ra) < 0.99:
+            raise CalibrationInconsistentError(f"{source}: R is not a rotation matrix (R R^T != I or det != 1); "
+                                               f"check that 'rotation' holds the 3x3 matrix row-major, not a Rodrigues vector")
+        baseline = float(np.linalg.norm(Ta))
+        if baseline < 1e-6:
+            raise CalibrationInconsistentError(f"{source}: baseline |T| = {baseline} m; the cameras cannot coincide")
+        centre = -Ra.T @ Ta
+        if centre[0] <= 0.0:
+            raise CalibrationSwappedError(
+                f"{source}: left/right cameras look swapped: the right camera centre -R^T T = "
+                f"{np.round(centre * 1000, 1).tolist()} mm lies at x <= 0 (left of the left camera; T_x = "
+                f"{Ta[0] * 1000:.1f} mm should be negative for X_right = R X_left + T). Exchange left.yaml and "
+                f"right.yaml (or the camera devices) and recalibrate the extrinsics")
+        if baseline > 5.0:
+            raise CalibrationInconsistentError(f"{source}: baseline {baseline:.3f} m is implausible; T must be in "
+                                               f"metres (the LSU's is ~0.122 m)")
+        Ed, Fd = fundamental_from(K1a, K2a, Ra, Ta)
+        if E is not None and np.any(np.asarray(E, dtype=float) != 0):
+            if not _same_up_to_scale(arr("E", E, (3, 3)), Ed, 1e-3):
+                raise CalibrationInconsistentError(f"{source}: the stored essential matrix does not equal [T]x R; "
+                                                   f"re-export the stereo calibration")
+        if F is not None and np.any(np.asarray(F, dtype=float) != 0):
+            if not _same_up_to_scale(arr("F", F, (3, 3)), Fd, 1e-3):
+                raise CalibrationInconsistentError(f"{source}: the stored fundamental matrix does not equal "
+                                                   f"K2^-T [T]x R K1^-1 (for undistorted pixels); re-export the "
+                                                   f"stereo calibration")
+        return cls(K1=K1a, D1=D1a, K2=K2a, D2=D2a, R=Ra, T=Ta, image_size=(w, h), E=Ed, F=Fd, source=source, **meta)
+
+    @classmethod
+    def from_folder(cls, folder: "str | Path") -> "StereoModel":
+        """Load ``left.yaml``, ``right.yaml`` and ``stereo.yaml`` (CONTRIBUTING.md format) from ``folder``."""
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise CalibrationFileError(f"calibration folder {folder} not found; it must hold left.yaml, right.yaml "
+                                       f"and stereo.yaml (run `lsu calibrate`)")
+        K1, D1, size1, left_doc = _camera_file(folder / "left.yaml")
+        K2, D2, size2, right_doc = _camera_file(folder / "right.yaml")
+        stereo_path = folder / "stereo.yaml"
+        sdoc = _load_yaml(stereo_path)
+        R = _matrix(sdoc, "rotation", (3, 3), stereo_path)
+        T = _matrix(sdoc, "translation", (3, 1), stereo_path).reshape(3)
+        E = _matrix(sdoc, "essential", (3, 3), stereo_path) if "essential" in sdoc else None
+        F = _matrix(sdoc, "fundamental", (3, 3), stereo_path) if "fundamental" in sdoc else None
+        if size1 != size2:
+            raise CalibrationSizeError(f"{folder}: left.yaml is {size1[0]}x{size1[1]} but right.yaml is "
+                                       f"{size2[0]}x{size2[1]}; calibrate both cameras at the same resolution")
+        if "image_width" in sdoc or "image_height" in sdoc:
+            ssize = _image_size(sdoc, stereo_path)
+            if ssize != size1:
+                raise CalibrationSizeError(f"{stereo_path}: image size {ssize[0]}x{ssize[1]} differs from the "
+                                           f"cameras' {size1[0]}x{size1[1]}")
+        # The camera_calibration files say which camera they describe: a right projection matrix
+        # carries -fx*B in P[0,3], a left one 0. A non-zero P[0,3] in left.yaml means swapped files.
+        for doc, path, expect_left in ((left_doc, folder / "left.yaml", True), (right_doc, folder / "right.yaml", False)):
+            name = str(doc.get("camera_name", "")).lower()
+            other = "right" if expect_left else "left"
+            if name and other in name and ("left" if expect_left else "right") not in name:
+                raise CalibrationSwappedError(f"{path}: camera_name '{doc['camera_name']}' says this is the {other} "
+                                              f"camera; left.yaml and right.yaml look swapped")
+            if "projection_matrix" in doc:
+                P = _matrix(doc, "projection_matrix", (3, 4), path)
+                if expect_left and P[0, 3] < -1e-9:
+                    raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {P[0, 3]:.3f} (a left "
+                                                  f"camera has 0, a right one -fx*baseline); left.yaml and right.yaml "
+                                                  f"look swapped")
+                if not expect_left and P[0, 3] > 1e-9:
+                    raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {P[0, 3]:.3f} > 0, i.e. this "
+                                                  f"camera sits left of the other; left/right look swapped")
+        digest = hashlib.sha1()
+        for name in ("left.yaml", "right.yaml", "stereo.yaml"):
+            digest.update((folder / name).read_bytes())
+        meta = {
+            "left_frame_id": str(sdoc.get("left_frame_id", "lsu_left_optical")),
+            "right_frame_id": str(sdoc.get("right_frame_id", "lsu_right_optical")),
+            "rms_px": float(sdoc.get("rms_px", 0.0) or 0.0),
+            "calibration_id": digest.hexdigest()[:12],
+        }
+        return cls.from_arrays(K1, D1, K2, D2, R, T, size1, E=E, F=F, source=str(folder), **meta)
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def baseline_m(self) -> float:
+        """|T| [m]."""
+        return float(np.linalg.norm(self.T))
+
+    @property
+    def right_centre(self) -> np.ndarray:
+        """Right optical centre in the left frame, ``-R^T T`` [m]."""
+        return -self.R.T @ self.T
+
+    @property
+    def P1(self) -> np.ndarray:
+        """Left projection matrix ``K1 [I | 0]`` for undistorted pixels."""
+        return self.K1 @ np.hstack([np.eye(3), np.zeros((3, 1))])
+
+    @property
+    def P2(self) -> np.ndarray:
+        """Right projection matrix ``K2 [R | T]`` for undistorted pixels."""
+        return self.K2 @ np.hstack([self.R, self.T.reshape(3, 1)])
+
+    def check_image_size(self, width: int, height: int, which: str = "image") -> None:
+        """Raise :class:`CalibrationSizeError` when data of ``width`` x ``height`` does not fit this calibration."""
+        if (int(width), int(height)) != self.image_size and (width, height) != (0, 0):
+            raise CalibrationSizeError(
+                f"{which} is {width}x{height} px but the calibration ({self.source}) is "
+                f"{self.image_size[0]}x{self.image_size[1]}; recalibrate at this resolution or set the cameras back")
+
+    @staticmethod
+    def _undistort(u: np.ndarray, v: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+        # Normalise with the full K^-1 ourselves (OpenCV's undistortPoints ignores skew K[0,1]),
+        # let OpenCV invert the distortion in normalised coordinates, and map back with K.
+        pts = np.stack([np.asarray(u, dtype=np.float64).reshape(-1), np.asarray(v, dtype=np.float64).reshape(-1)], 1)
+        if pts.shape[0] == 0:
+            return np.zeros((0, 2))
+        Kinv = np.linalg.inv(K)
+        xd = pts @ Kinv[:2, :2].T + Kinv[:2, 2]
+        if D.size and np.any(D != 0):
+            xu = cv2.undistortPoints(xd.reshape(-1, 1, 2), np.eye(3), D, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+        else:
+            xu = xd
+        return xu @ K[:2, :2].T + K[:2, 2]
+
+    def undistort_left(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Raw left pixels -> undistorted left pixels, (N, 2)."""
+        return self._undistort(u, v, self.K1, self.D1)
+
+    def undistort_right(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Raw right pixels -> undistorted right pixels, (N, 2)."""
+        return self._undistort(u, v, self.K2, self.D2)
+
+    def distort_right(self, pts: np.ndarray) -> np.ndarray:
+        """Undistorted right pixels (N, 2) -> raw right pixels (N, 2), via ``cv2.projectPoints``."""
+        rays = np.hstack([(pts - self.K2[:2, 2]) @ np.linalg.inv(self.K2[:2, :2]).T, np.ones((len(pts), 1))])
+        return self._project(rays, np.eye(3), np.zeros(3), self.K2, self.D2)
+
+    @staticmethod
+    def _project(X: np.ndarray, R: np.ndarray, T: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+        if len(X) == 0:
+            return np.zeros((0, 2))
+        Kz = K.copy()
+        Kz[0, 1] = 0.0  # projectPoints ignores skew; add it back below
+        rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
+        out, _ = cv2.projectPoints(np.asarray(X, dtype=np.float64).reshape(-1, 1, 3), rvec,
+                                   np.asarray(T, dtype=np.float64).reshape(3, 1), Kz, D)
+        out = out.reshape(-1, 2)
+        if K[0, 1] != 0.0:
+            out[:, 0] += K[0, 1] * (out[:, 1] - K[1, 2]) / K[1, 1]
+        return out
+
+    def project_left(self, X: np.ndarray) -> np.ndarray:
+        """3D points in the left frame [m] (N, 3) -> raw (distorted) left pixels (N, 2)."""
+        return self._project(X, np.eye(3), np.zeros(3), self.K1, self.D1)
+
+    def project_right(self, X: np.ndarray) -> np.ndarray:
+        """3D points in the left frame [m] (N, 3) -> raw (distorted) right pixels (N, 2)."""
+        return self._project(X, self.R, self.T, self.K2, self.D2)
+
+    def epipolar_lines(self, x1: np.ndarray) -> np.ndarray:
+        """Right epipolar lines ``l2 = F x1`` of undistorted left pixels (N, 2), as (N, 3) with a^2 + b^2 = 1.
+
+        With that normalisation ``l2 . (x, y, 1)`` is the signed distance in right pixels.
+        """
+        x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
+        lines = x1 @ self.F[:, :2].T + self.F[:, 2]
+        norm = np.hypot(lines[:, 0], lines[:, 1])
+        return lines / norm[:, None]
+

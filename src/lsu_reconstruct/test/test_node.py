@@ -1,0 +1,180 @@
+"""stereo_matcher node round trips through the ros_node fixture (in-process, no subprocess)."""
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
+
+from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics  # noqa: E402
+from lsu_reconstruct import synthetic as S  # noqa: E402
+from lsu_reconstruct.node import LATCHED, StereoMatcherNode, decode_msg  # noqa: E402
+from lsu_reconstruct.pointcloud2 import unpack_rgb  # noqa: E402
+
+PLANE = S.Plane.facing(0.30)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return S.default_rig()
+
+
+def line_msg(samples, stamp, nan_every=0):
+    msg = LaserLine()
+    msg.header.stamp = stamp
+    msg.header.frame_id = "cam"
+    msg.image_width, msg.image_height = 640, 480
+    u = samples.u.astype(np.float32)
+    if nan_every:
+        u[::nan_every] = np.nan
+    msg.u = u.tolist()
+    msg.v = samples.v.astype(np.float32).tolist()
+    msg.quality = [1.0] * len(u)
+    return msg
+
+
+def snap_lines(rig, x_m):
+    laser = S.Laser.at(x_m)
+    return S.laser_samples(rig, [PLANE], laser, "left"), S.laser_samples(rig, [PLANE], laser, "right")
+
+
+def start(ros_node, ns, **params):
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    node = ros_node.add(StereoMatcherNode(context=ros_node.context, namespace=ns, parameter_overrides=overrides))
+    return node
+
+
+def publishers(ros_node, ns):
+    h = ros_node.node
+    return {"left": h.create_publisher(LaserLine, f"{ns}/stereo/left/laser_line", 50),
+            "right": h.create_publisher(LaserLine, f"{ns}/stereo/right/laser_line", 50),
+            "events": h.create_publisher(ScanEvent, f"{ns}/scan/events", 100),
+            "image": h.create_publisher(Image, f"{ns}/stereo/left/image_raw", 4)}
+
+
+def wait_matched(ros_node, pub, node_sub_count=1):
+    assert ros_node.spin_until(lambda: all(p.get_subscription_count() >= node_sub_count for p in pub.values()), 10)
+
+
+def test_pair_with_equal_stamps_gives_points_and_no_nan(ros_node, rig, tmp_path):
+    ns = "/lsu_rt_pair"
+    start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
+    pub = publishers(ros_node, ns)
+    got = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/points", got.append, 10)
+    wait_matched(ros_node, pub)
+    left, right = snap_lines(rig, 0.0)
+    stamp = Time(sec=100, nanosec=5)
+    pub["left"].publish(line_msg(left, stamp, nan_every=9))
+    pub["right"].publish(line_msg(right, stamp))
+    assert ros_node.spin_until(lambda: got, 10), "no PointCloud2 on points"
+    msg = got[0]
+    assert msg.header.frame_id == "lsu_left_optical" and msg.header.stamp == stamp
+    cols = decode_msg(msg)
+    xyz = np.c_[cols["x"], cols["y"], cols["z"]].astype(np.float64)
+    assert 350 < len(xyz) < 480  # every 9th left row was NaN
+    assert np.all(np.isfinite(xyz))
+    assert np.abs(xyz @ PLANE.normal - PLANE.offset).max() < 2e-5  # float32 metres on the wire
+    assert set(cols["snap"].tolist()) == {0}
+
+
+def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path):
+    ns = "/lsu_rt_scan"
+    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
+    pub = publishers(ros_node, ns)
+    clouds = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
+    wait_matched(ros_node, pub)
+    ev = lambda **kw: ScanEvent(scan_id="s1", **kw)  # noqa: E731
+    pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=2))
+    assert ros_node.spin_until(lambda: node.scan is not None, 10)  # events and lines travel on different topics
+    tex_stamp = Time(sec=200)
+    image = Image(encoding="bgr8", width=640, height=480, step=640 * 3)
+    image.header.stamp = tex_stamp
+    image.data = np.tile(np.array([30, 200, 10], np.uint8), 640 * 480).tobytes()  # bgr
+    pub["image"].publish(image)
+    pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=tex_stamp))
+    for index, x in enumerate((-0.02, 0.03)):
+        stamp = Time(sec=201 + index)
+        pub["events"].publish(ev(type=ScanEvent.SNAP, index=index, position_steps=10 * index, image_stamp=stamp))
+        left, right = snap_lines(rig, x)
+        pub["left"].publish(line_msg(left, stamp))
+        pub["right"].publish(line_msg(right, stamp))
+    assert ros_node.spin_until(lambda: len(node.scan.snaps) == 2 if node.scan else False, 10)
+    assert not clouds  # not before FINISHED
+    pub["events"].publish(ev(type=ScanEvent.FINISHED, expected_snaps=2, snaps_captured=2))
+    assert ros_node.spin_until(lambda: clouds, 10), "no scan/cloud after FINISHED"
+    cols = decode_msg(clouds[0])
+    assert set(cols["snap"].tolist()) == {0, 1}
+    assert len(cols["x"]) > 800
+    xyz = np.c_[cols["x"], cols["y"], cols["z"]].astype(np.float64)
+    assert np.abs(xyz @ PLANE.normal - PLANE.offset).max() < 2e-5
+    assert np.all(unpack_rgb(cols["rgb"]) == [10, 200, 30])
+
+
+def test_missing_snap_gives_a_partial_cloud_after_the_timeout(ros_node, rig, tmp_path):
+    ns = "/lsu_rt_partial"
+    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")),
+                 scan_timeout_s=0.5)
+    pub = publishers(ros_node, ns)
+    clouds = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
+    wait_matched(ros_node, pub)
+    pub["events"].publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s2", expected_snaps=3))
+    assert ros_node.spin_until(lambda: node.scan is not None, 10)
+    stamp = Time(sec=300)
+    left, right = snap_lines(rig, 0.0)
+    pub["left"].publish(line_msg(left, stamp))  # lines before their SNAP event: held until it comes
+    pub["right"].publish(line_msg(right, stamp))
+    assert ros_node.spin_until(lambda: node.waiting, 10)
+    pub["events"].publish(ScanEvent(type=ScanEvent.SNAP, scan_id="s2", index=1, image_stamp=stamp))
+    pub["events"].publish(ScanEvent(type=ScanEvent.FINISHED, scan_id="s2", expected_snaps=3))
+    assert ros_node.spin_until(lambda: clouds, 10)
+    cols = decode_msg(clouds[0])
+    assert set(cols["snap"].tolist()) == {1} and len(cols["x"]) > 400
+
+
+def test_calibration_from_topics_and_unpaired_lines_on_diagnostics(ros_node, rig):
+    ns = "/lsu_rt_topics"
+    node = start(ros_node, ns, calibration_source="topics", pair_buffer=1)
+    h = ros_node.node
+    info_l = CameraInfo(width=640, height=480, distortion_model="plumb_bob", k=rig.K1.reshape(-1).tolist(),
+                        d=rig.D1.tolist())
+    info_r = CameraInfo(width=640, height=480, distortion_model="plumb_bob", k=rig.K2.reshape(-1).tolist(),
+                        d=rig.D2.tolist())
+    ext = StereoExtrinsics(rotation=rig.R.reshape(-1).tolist(), translation=rig.T.tolist(),
+                           image_width=640, image_height=480, right_frame_id="lsu_right_optical")
+    ext.header.frame_id = "lsu_left_optical"
+    h.create_publisher(CameraInfo, f"{ns}/stereo/left/camera_info", LATCHED).publish(info_l)
+    h.create_publisher(CameraInfo, f"{ns}/stereo/right/camera_info", LATCHED).publish(info_r)
+    h.create_publisher(StereoExtrinsics, f"{ns}/stereo/extrinsics", LATCHED).publish(ext)
+    assert ros_node.spin_until(lambda: node.model is not None, 10), node.calibration_error
+    assert node.model.baseline_m == pytest.approx(np.linalg.norm(rig.T))
+    diags = []
+    h.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    pub = publishers(ros_node, ns)
+    wait_matched(ros_node, pub)
+    left, _ = snap_lines(rig, 0.0)
+    pub["left"].publish(line_msg(left, Time(sec=1)))
+    pub["left"].publish(line_msg(left, Time(sec=2)))  # pushes the first out of a buffer of one
+
+    def unmatched_reported():
+        for d in diags:
+            for s in d.status:
+                values = {kv.key: kv.value for kv in s.values}
+                if s.name.endswith("stereo matching") and ns in s.name and values.get("unmatched_left") == "1":
+                    return True
+        return False
+
+    assert ros_node.spin_until(unmatched_reported, 10)
+
+
+def test_swapped_calibration_is_reported_not_used(ros_node, rig, tmp_path):
+    ns = "/lsu_rt_swapped"
+    node = start(ros_node, ns, calibration_source="file",
+                 calibration_dir=str(rig.write_calibration(tmp_path / "c", swap=True)))
+    assert node.model is None and "swapped" in node.calibration_error
