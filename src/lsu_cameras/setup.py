@@ -18,8 +18,8 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
-        "lsu.nodes": [],
-        "lsu.commands": [],
+        "console_scripts": ["stereo_camera = lsu_cameras.node:main"],
+        "lsu.nodes": ["stereo_camera = lsu_cameras.node:StereoCameraNode"],
+        "lsu.commands": ["cameras = lsu_cameras.cli:register"],
     },
 )

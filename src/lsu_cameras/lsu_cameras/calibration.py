@@ -1,0 +1,243 @@
+"""Stereo calibration from chessboard image pairs (OpenCV), the way the thesis did it with Bouguet's toolbox.
+
+`find_board` detects the inner corners (findChessboardCorners + cornerSubPix); `calibrate_stereo`
+calibrates each camera (calibrateCamera), reports per-view reprojection errors, drops outlier views
+and recalibrates, then estimates R, T with the intrinsics fixed (stereoCalibrate). k3 is fixed to 0
+by default, as the thesis' toolbox did (its default model estimates k1, k2, p1, p2 only).
+Everything that makes a calibration impossible raises `CalibrationError` with a sentence the user
+can act on; nothing is written by this module (see `calib_io.write_calibration_dir`).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
+
+import cv2
+import numpy as np
+
+from .calib_io import CameraCalibration, StereoCalibration
+
+
+class CalibrationError(RuntimeError):
+    """Calibration is impossible with the given images or settings."""
+
+
+@dataclass
+class BoardSpec:
+    """Chessboard: inner corners (cols x rows) and square size in metres."""
+
+    cols: int = 9
+    rows: int = 6
+    square_m: float = 0.025
+
+    @classmethod
+    def parse(cls, text: str, square_mm: float) -> "BoardSpec":
+        """From ``"9x6"`` and a square size in millimetres."""
+        match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+        if not match:
+            raise CalibrationError(f"board '{text}' is not COLSxROWS of inner corners, e.g. 9x6")
+        cols, rows = int(match.group(1)), int(match.group(2))
+        if cols < 3 or rows < 3 or cols == rows:
+            raise CalibrationError(f"board {cols}x{rows}: need at least 3x3 inner corners and cols != rows "
+                                   "(a square board has no unique orientation)")
+        if not square_mm > 0:
+            raise CalibrationError(f"square size {square_mm} mm must be positive")
+        return cls(cols, rows, square_mm / 1000.0)
+
+    @property
+    def object_points(self) -> np.ndarray:
+        """Corner coordinates on the board (metres, z = 0), row-major like OpenCV's detections."""
+        j, i = np.mgrid[0:self.rows, 0:self.cols]
+        return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1).astype(np.float32) * self.square_m
+
+
+@dataclass
+class ViewResult:
+    """One accepted or rejected image pair."""
+
+    name: str
+    left_error_px: float = float("nan")
+    right_error_px: float = float("nan")
+    used: bool = False
+    reason: str = ""
+
+
+@dataclass
+class StereoCalibrationResult:
+    """Both cameras, the extrinsics and the per-view report."""
+
+    left: CameraCalibration
+    right: CameraCalibration
+    stereo: StereoCalibration
+    left_rms_px: float
+    right_rms_px: float
+    views: List[ViewResult] = field(default_factory=list)
+    coverage: Tuple[float, float] = (0.0, 0.0)   # fraction of the image area covered by corners (left, right)
+
+    def summary(self) -> str:
+        """Human-readable report (one line per view)."""
+        used = sum(v.used for v in self.views)
+        lines = [f"views used: {used} of {len(self.views)}; RMS left {self.left_rms_px:.3f} px, right "
+                 f"{self.right_rms_px:.3f} px, stereo {self.stereo.rms_px:.3f} px; baseline "
+                 f"{self.stereo.baseline_m * 1000:.2f} mm; corner coverage left {self.coverage[0]:.0%}, "
+                 f"right {self.coverage[1]:.0%}"]
+        for v in self.views:
+            state = "used" if v.used else f"dropped ({v.reason})"
+            lines.append(f"  {v.name}: left {v.left_error_px:.3f} px, right {v.right_error_px:.3f} px  {state}")
+        return "\n".join(lines)
+
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """8-bit grayscale of a BGR or gray image."""
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+def find_board(image: np.ndarray, board: BoardSpec) -> Optional[np.ndarray]:
+    """Sub-pixel inner corners (N,1,2 float32) of ``board`` in ``image``, or None when not found."""
+    gray = to_gray(image)
+    found, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows),
+                                               cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if not found:
+        return None
+    # window ~ a third of the smallest square side, so it never reaches the next corner
+    side = np.min(np.linalg.norm(np.diff(corners.reshape(board.rows, board.cols, 2), axis=1), axis=2))
+    half = int(np.clip(side / 3.0, 2, 11))
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    return cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), criteria)
+
+
+def _view_errors(obj: List[np.ndarray], img: List[np.ndarray], K: np.ndarray, D: np.ndarray,
+                 rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> np.ndarray:
+    errs = []
+    for o, i, r, t in zip(obj, img, rvecs, tvecs):
+        proj, _ = cv2.projectPoints(o, r, t, K, D)
+        errs.append(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=1)))))
+    return np.array(errs)
+
+
+def _calibrate_mono(obj: List[np.ndarray], img: List[np.ndarray], size: Tuple[int, int], flags: int):
+    rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+    return rms, K, D.reshape(-1)[:5], _view_errors(obj, img, K, D, rvecs, tvecs)
+
+
+def _calibrate_extrinsics(obj: List[np.ndarray], img_l: List[np.ndarray], img_r: List[np.ndarray], K_l: np.ndarray,
+                          D_l: np.ndarray, K_r: np.ndarray, D_r: np.ndarray, size: Tuple[int, int]):
+    """R, T, E, F with the intrinsics fixed, and each view's stereo RMS error (worst of its two images)."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-10)
+    out = cv2.stereoCalibrateExtended(obj, img_l, img_r, K_l, D_l, K_r, D_r, size, None, None,
+                                      flags=cv2.CALIB_FIX_INTRINSIC, criteria=criteria)
+    per_view = np.asarray(out[11]).reshape(len(obj), -1).max(axis=1)
+    return float(out[0]), out[5], out[6], out[7], out[8], per_view
+
+
+def _coverage(points: List[np.ndarray], size: Tuple[int, int]) -> float:
+    """Fraction of a 8x6 grid over the image that holds at least one detected corner."""
+    grid = np.zeros((6, 8), bool)
+    for p in points:
+        q = p.reshape(-1, 2)
+        gx = np.clip((q[:, 0] / size[0] * 8).astype(int), 0, 7)
+        gy = np.clip((q[:, 1] / size[1] * 6).astype(int), 0, 5)
+        grid[gy, gx] = True
+    return float(grid.mean())
+
+
+def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board: BoardSpec, min_views: int = 8,
+                     outlier_factor: float = 3.0, fix_k3: bool = True) -> StereoCalibrationResult:
+    """Calibrate both cameras and their extrinsics from ``(name, left_image, right_image)`` pairs.
+
+    A view is an outlier when its reprojection error exceeds ``outlier_factor`` times the median
+    (and 0.5 px); outliers are dropped and the cameras recalibrated once.
+    """
+    if not pairs:
+        raise CalibrationError("no image pairs given")
+    sizes = {}
+    for name, left, right in pairs:
+        for side, image in (("left", left), ("right", right)):
+            sizes.setdefault((image.shape[1], image.shape[0]), []).append(f"{name} ({side})")
+    if len(sizes) > 1:
+        detail = "; ".join(f"{w}x{h}: {', '.join(names[:3])}{' ...' if len(names) > 3 else ''}"
+                           for (w, h), names in sizes.items())
+        raise CalibrationError(f"images of different sizes cannot be calibrated together ({detail})")
+    size = next(iter(sizes))
+    views: List[ViewResult] = []
+    obj, img_l, img_r, kept = [], [], [], []
+    for name, left, right in pairs:
+        cl, cr = find_board(left, board), find_board(right, board)
+        view = ViewResult(name)
+        if cl is None or cr is None:
+            missing = " and ".join(s for s, c in (("left", cl), ("right", cr)) if c is None)
+            view.reason = f"no {board.cols}x{board.rows} board found in the {missing} image"
+        else:
+            obj.append(board.object_points)
+            img_l.append(cl)
+            img_r.append(cr)
+            kept.append(view)
+        views.append(view)
+    if len(obj) < min_views:
+        hint = (f" (no board at all: is the board really {board.cols}x{board.rows} inner corners?)"
+                if not obj else "")
+        raise CalibrationError(f"board found in both images of only {len(obj)} of {len(pairs)} pairs; need at "
+                               f"least {min_views}{hint}. Capture more views at different angles and distances.")
+    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    active = list(range(len(obj)))
+    # Two passes: calibrate, then drop views whose mono *or* stereo reprojection error is an outlier
+    # (a view can fit each camera alone and still be inconsistent between them, e.g. a swapped or
+    # re-timed image), and calibrate again without them.
+    for attempt in range(2):
+        o = [obj[k] for k in active]
+        pl, pr = [img_l[k] for k in active], [img_r[k] for k in active]
+        rms_l, K_l, D_l, err_l = _calibrate_mono(o, pl, size, flags)
+        rms_r, K_r, D_r, err_r = _calibrate_mono(o, pr, size, flags)
+        rms_s, R, T, E, F, err_s = _calibrate_extrinsics(o, pl, pr, K_l, D_l, K_r, D_r, size)
+        for k, el, er in zip(active, err_l, err_r):
+            kept[k].left_error_px, kept[k].right_error_px = float(el), float(er)
+        worst = np.maximum(np.maximum(err_l, err_r), err_s)
+        limit = max(outlier_factor * float(np.median(worst)), 0.5)
+        bad = worst > limit
+        if attempt == 1 or not np.any(bad):
+            break
+        for k, w in zip(active, worst):
+            if w > limit:
+                kept[k].reason = f"reprojection error {w:.2f} px > {limit:.2f} px (outlier)"
+        active = [k for k, b in zip(active, bad) if not b]
+        if len(active) < min_views:
+            raise CalibrationError(f"only {len(active)} views are consistent (others exceed {limit:.2f} px); "
+                                   f"need {min_views}. Check focus, that the board is flat and the pairs match.")
+    for k in active:
+        kept[k].used = True
+        kept[k].reason = ""
+    img_l, img_r = [img_l[k] for k in active], [img_r[k] for k in active]
+    date = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    left = CameraCalibration(size[0], size[1], K_l, D_l, "lsu_left")
+    right = CameraCalibration(size[0], size[1], K_r, D_r, "lsu_right")
+    stereo = StereoCalibration(size[0], size[1], R, T.reshape(3), E, F / np.linalg.norm(F), rms_s, date)
+    return StereoCalibrationResult(left, right, stereo, float(rms_l), float(rms_r), views,
+                                   (_coverage(img_l, size), _coverage(img_r, size)))
+
+
+def load_pairs(directory: os.PathLike | str) -> List[Tuple[str, np.ndarray, np.ndarray]]:
+    """Read ``left_*.png`` / ``right_*.png`` pairs (matched by suffix) from ``directory``."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise CalibrationError(f"{directory}: image folder not found")
+    lefts = {p.name[len("left_"):]: p for p in directory.glob("left_*") if p.suffix.lower() in (".png", ".jpg", ".bmp")}
+    rights = {p.name[len("right_"):]: p for p in directory.glob("right_*") if p.suffix.lower() in (".png", ".jpg", ".bmp")}
+    common = sorted(set(lefts) & set(rights))
+    if not common:
+        raise CalibrationError(f"{directory}: no left_*.png / right_*.png pairs (found {len(lefts)} left and "
+                               f"{len(rights)} right images)")
+    pairs = []
+    for key in common:
+        left, right = cv2.imread(str(lefts[key]), cv2.IMREAD_COLOR), cv2.imread(str(rights[key]), cv2.IMREAD_COLOR)
+        for path, image in ((lefts[key], left), (rights[key], right)):
+            if image is None:
+                raise CalibrationError(f"{path}: cannot be read as an image")
+        pairs.append((Path(key).stem, left, right))
+    return pairs

@@ -1,0 +1,315 @@
+"""The ``stereo_camera`` node: a camera source on the ROS graph.
+
+Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair), ``stereo/{left,right}/camera_info``
+and ``stereo/extrinsics`` (transient-local), serves ``stereo/capture`` (a fresh pair, published and/or
+returned) and optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth``
+(the GP32 emulator) and falls back to the ``carriage_position_steps`` parameter without it.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any, List, Optional
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image
+
+from lsu_interfaces.msg import SimTruth, StereoExtrinsics
+from lsu_interfaces.srv import CaptureStereo
+
+from .calib_io import CalibrationFileError, CalibrationSet, CameraCalibration, read_calibration_dir, read_camera_yaml
+from .paths import config_dir
+from .profiles import ProfileError, load_profile
+from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
+
+SOURCES = ("sim", "v4l2", "folder")
+
+
+def image_msg(image: np.ndarray, stamp: Time, frame_id: str) -> Image:
+    """A bgr8 sensor_msgs/Image of an HxWx3 uint8 array."""
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
+    msg.encoding = "bgr8"
+    msg.is_bigendian = 0
+    msg.step = int(image.shape[1] * 3)
+    msg.data = np.ascontiguousarray(image, dtype=np.uint8).tobytes()
+    return msg
+
+
+def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
+    """sensor_msgs/CameraInfo of a calibration (plumb_bob)."""
+    msg = CameraInfo()
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = cal.image_size
+    msg.distortion_model = "plumb_bob"
+    msg.d = [float(x) for x in cal.distortion_coefficients]
+    msg.k = [float(x) for x in cal.camera_matrix.reshape(-1)]
+    msg.r = [float(x) for x in cal.rectification_matrix.reshape(-1)]
+    msg.p = [float(x) for x in cal.projection_matrix.reshape(-1)]
+    return msg
+
+
+def _url_to_path(url: str) -> Path:
+    return Path(url[len("file://"):]) if url.startswith("file://") else Path(url)
+
+
+class StereoCameraNode(Node):
+    """Stereo camera pair (v4l2 | folder | sim) with synchronized capture."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("stereo_camera", **{"namespace": "/lsu", **kwargs})
+        d = self.declare_parameter
+        d("source", "sim", ParameterDescriptor(description="camera source: sim | v4l2 | folder"))
+        d("devices", ["/dev/video0", "/dev/video1"], ParameterDescriptor(description="v4l2: left and right devices"))
+        d("folder", "", ParameterDescriptor(description="folder: directory of left_*.png/right_*.png pairs"))
+        d("image_width", 640, ParameterDescriptor(description="v4l2: requested width [px]"))
+        d("image_height", 480, ParameterDescriptor(description="v4l2: requested height [px]"))
+        d("profile", "dark", ParameterDescriptor(description="v4l2: camera property profile (config/profiles)"))
+        d("calibration_dir", "", ParameterDescriptor(
+            description="left.yaml/right.yaml/stereo.yaml; empty: config/calibration/sim for sim, none otherwise"))
+        d("left_camera_info_url", "", ParameterDescriptor(description="overrides left.yaml (file:// URL or path)"))
+        d("right_camera_info_url", "", ParameterDescriptor(description="overrides right.yaml (file:// URL or path)"))
+        d("left_frame_id", "lsu_left_optical", ParameterDescriptor(description="frame of the left images"))
+        d("right_frame_id", "lsu_right_optical", ParameterDescriptor(description="frame of the right images"))
+        d("preview_rate_hz", 0.0, ParameterDescriptor(description="free-running publish rate; 0 = capture only"))
+        d("capture_timeout_s", 2.0, ParameterDescriptor(description="default capture timeout [s]"))
+        d("sim_scene", "head", ParameterDescriptor(description="sim: plane | sphere | board | head | head:SEED | mesh file"))
+        d("sim_rig", "", ParameterDescriptor(description="sim: rig geometry YAML (default config/sim_rig.yaml)"))
+        d("sim_seed", 0, ParameterDescriptor(description="sim: sensor noise seed"))
+        d("carriage_position_steps", 235.0, ParameterDescriptor(
+            description="sim: carriage position used until /lsu/sim/truth arrives [steps]"))
+        d("laser_on", True, ParameterDescriptor(description="sim: laser state used until /lsu/sim/truth arrives"))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self._lock = threading.Lock()
+        self._truth: Optional[SimTruth] = None
+        self.source: Optional[StereoSource] = None
+        self.calibration: Optional[CalibrationSet] = None
+        self.status_level = DiagnosticStatus.OK
+        self.status_message = "ok"
+
+        sensor_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_left = self.create_publisher(Image, "stereo/left/image_raw", sensor_qos)
+        self.pub_right = self.create_publisher(Image, "stereo/right/image_raw", sensor_qos)
+        self.pub_info_left = self.create_publisher(CameraInfo, "stereo/left/camera_info", latched)
+        self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", latched)
+        self.pub_extrinsics = self.create_publisher(StereoExtrinsics, "stereo/extrinsics", latched)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        self._open_source()
+        self._load_calibration()
+        self._publish_calibration()
+
+        truth_group = MutuallyExclusiveCallbackGroup()  # truth keeps flowing while a capture renders
+        self.create_subscription(SimTruth, "sim/truth", self._on_truth, 10, callback_group=truth_group)
+        self.srv = self.create_service(CaptureStereo, "stereo/capture", self._on_capture)
+        rate = float(self.get_parameter("preview_rate_hz").value)
+        self.preview = self.create_timer(1.0 / rate, self._on_preview) if rate > 0 else None
+        self.create_timer(1.0, self._publish_diagnostics, callback_group=truth_group)
+
+    # ------------------------------------------------------------------ set-up
+    def _fail(self, message: str) -> None:
+        self.status_level, self.status_message = DiagnosticStatus.ERROR, message
+        self.get_logger().error(message)
+
+    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+        for p in params:
+            if p.name == "source" and p.value not in SOURCES:
+                return SetParametersResult(successful=False, reason=f"source must be one of {', '.join(SOURCES)}")
+            if p.name == "source" and p.value != self.get_parameter("source").value:
+                return SetParametersResult(successful=False, reason="source is fixed at start-up; restart the node")
+        return SetParametersResult(successful=True)
+
+    def _sim_carriage(self, t: float) -> "CarriageState":  # noqa: F821
+        from .sim import CarriageState
+
+        truth = self._truth
+        if truth is None:
+            return CarriageState(float(self.get_parameter("carriage_position_steps").value),
+                                 bool(self.get_parameter("laser_on").value))
+        stamp = truth.header.stamp.sec + truth.header.stamp.nanosec * 1e-9
+        position = truth.position_steps
+        if truth.moving:  # extrapolate to the exposure time: the carriage keeps going between samples
+            position += truth.velocity_steps_per_s * max(0.0, t - stamp)
+        stopped = truth.stopped_at.sec + truth.stopped_at.nanosec * 1e-9
+        return CarriageState(position, truth.laser_on, stopped if (stopped > 0 and not truth.moving) else None,
+                             truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
+
+    def _open_source(self) -> None:
+        kind = str(self.get_parameter("source").value)
+        try:
+            if kind == "sim":
+                from .sim import SimulatedRig, build_scene, load_rig
+
+                rig_path = str(self.get_parameter("sim_rig").value) or None
+                geometry = load_rig(rig_path)
+                scene = build_scene(str(self.get_parameter("sim_scene").value), geometry)
+                rig = SimulatedRig(geometry, scene, seed=int(self.get_parameter("sim_seed").value))
+                self.source = SimSource(rig, self._sim_carriage, clock=lambda: self.get_clock().now().nanoseconds * 1e-9)
+            elif kind == "v4l2":
+                profile_name = str(self.get_parameter("profile").value)
+                profile = load_profile(profile_name) if profile_name else None
+                size = (int(self.get_parameter("image_width").value), int(self.get_parameter("image_height").value))
+                self.source = V4l2Source(list(self.get_parameter("devices").value), size, profile)
+            elif kind == "folder":
+                self.source = FolderSource(str(self.get_parameter("folder").value))
+            else:
+                raise CameraError(f"unknown source '{kind}': use one of {', '.join(SOURCES)}")
+        except (CameraError, ProfileError, ValueError, OSError) as exc:
+            self.source = None
+            self._fail(f"camera source '{kind}' not available: {exc}")
+            return
+        for problem in self.source.report():
+            self.get_logger().warning(f"camera setting: {problem}")
+        self.get_logger().info(f"source '{kind}' open, images {self.source.image_size[0]}x{self.source.image_size[1]}")
+
+    def _load_calibration(self) -> None:
+        kind = str(self.get_parameter("source").value)
+        directory = str(self.get_parameter("calibration_dir").value)
+        if not directory and kind == "sim":
+            directory = str(config_dir() / "calibration" / "sim")
+        if not directory:
+            self.get_logger().warning("no calibration_dir: camera_info and extrinsics are not published; "
+                                      "run `lsu calibrate` and set calibration_dir")
+            return
+        try:
+            cal = read_calibration_dir(directory)
+            for side in ("left", "right"):
+                url = str(self.get_parameter(f"{side}_camera_info_url").value)
+                if url:
+                    setattr(cal, side, read_camera_yaml(_url_to_path(url)))
+            if cal.left.image_size != cal.right.image_size:
+                raise CalibrationFileError(f"left camera_info is {cal.left.image_size} but right is {cal.right.image_size}")
+            if self.source is not None and cal.left.image_size != tuple(self.source.image_size):
+                w, h = cal.left.image_size
+                sw, sh = self.source.image_size
+                raise CalibrationFileError(f"calibration '{directory}' is for {w}x{h} images but the cameras give "
+                                           f"{sw}x{sh}: recalibrate at this size or change the image size")
+        except CalibrationFileError as exc:
+            self._fail(f"calibration not published: {exc}")
+            return
+        self.calibration = cal
+
+    def _publish_calibration(self) -> None:
+        cal = self.calibration
+        if cal is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        left_id, right_id = str(self.get_parameter("left_frame_id").value), str(self.get_parameter("right_frame_id").value)
+        for pub, cam, frame in ((self.pub_info_left, cal.left, left_id), (self.pub_info_right, cal.right, right_id)):
+            msg = camera_info_msg(cam, frame)
+            msg.header.stamp = stamp
+            pub.publish(msg)
+        ext = StereoExtrinsics()
+        ext.header.stamp = stamp
+        ext.header.frame_id = left_id
+        ext.right_frame_id = right_id
+        s = cal.stereo
+        ext.rotation = [float(x) for x in s.rotation.reshape(-1)]
+        ext.translation = [float(x) for x in s.translation]
+        ext.essential = [float(x) for x in s.essential.reshape(-1)]
+        ext.fundamental = [float(x) for x in s.fundamental.reshape(-1)]
+        ext.rms_px = float(s.rms_px)
+        ext.image_width, ext.image_height = cal.image_size
+        ext.calibration_id = cal.calibration_id
+        self.pub_extrinsics.publish(ext)
+
+    # ------------------------------------------------------------------ runtime
+    def _on_truth(self, msg: SimTruth) -> None:
+        self._truth = msg
+
+    def grab(self, timeout_s: float) -> StereoPair:
+        """A fresh pair from the source (raises CameraError)."""
+        if self.source is None:
+            raise CameraError(self.status_message)
+        with self._lock:
+            return self.source.grab_pair(timeout_s)
+
+    def _stamp(self, pair: StereoPair) -> Time:
+        if isinstance(self.source, SimSource):  # sim time is already the node's clock
+            sec = pair.time_s
+        else:  # device sources report wall time; stamp with the node clock at the same instant
+            sec = self.get_clock().now().nanoseconds * 1e-9
+        t = Time()
+        t.sec = int(sec)
+        t.nanosec = int(round((sec - int(sec)) * 1e9)) % 1_000_000_000
+        return t
+
+    def _publish_pair(self, left: Image, right: Image) -> None:
+        self.pub_left.publish(left)
+        self.pub_right.publish(right)
+
+    def _on_capture(self, request: CaptureStereo.Request, response: CaptureStereo.Response) -> CaptureStereo.Response:
+        timeout = float(request.timeout_s) if request.timeout_s > 0 else float(self.get_parameter("capture_timeout_s").value)
+        try:
+            pair = self.grab(timeout)
+        except CameraError as exc:
+            response.success = False
+            response.message = f"capture failed: {exc}"
+            self.get_logger().error(response.message)
+            return response
+        stamp = self._stamp(pair)
+        left = image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value))
+        right = image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value))
+        if request.publish:
+            self._publish_pair(left, right)
+        if request.return_images:
+            response.left, response.right = left, right
+        response.success = True
+        response.stamp = stamp
+        response.skew_s = float(pair.skew_s)
+        return response
+
+    def _on_preview(self) -> None:
+        try:
+            pair = self.grab(float(self.get_parameter("capture_timeout_s").value))
+        except CameraError as exc:
+            self.get_logger().error(f"preview: {exc}", throttle_duration_sec=5.0)
+            return
+        stamp = self._stamp(pair)
+        self._publish_pair(image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value)),
+                           image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)))
+
+    def _publish_diagnostics(self) -> None:
+        status = DiagnosticStatus()
+        status.level = self.status_level
+        status.name = f"{self.get_name()}: cameras"
+        status.hardware_id = str(self.get_parameter("source").value)
+        status.message = self.status_message
+        status.values = [KeyValue(key="calibration_id", value=self.calibration.calibration_id if self.calibration else ""),
+                         KeyValue(key="sim_truth", value="received" if self._truth is not None else "none")]
+        array = DiagnosticArray()
+        array.header.stamp = self.get_clock().now().to_msg()
+        array.status = [status]
+        self.pub_diag.publish(array)
+
+    def destroy_node(self) -> None:
+        """Release the cameras."""
+        if self.source is not None:
+            self.source.close()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> None:
+    """Console script ``stereo_camera``."""
+    rclpy.init(args=args)
+    node = StereoCameraNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,59 @@
+"""The simulated LSU rig (pure: numpy, OpenCV, open3d; no rclpy).
+
+- `geometry`: cameras, extrinsics, track and laser sheet from ``config/sim_rig.yaml`` (`load_rig`).
+- `scenes`: plane, sphere, calibration chessboard, mesh files; `head`: procedural synthetic heads.
+- `rig`: `SimulatedRig.render(carriage, capture_time_s)` -> `StereoFrame` (+ exact `LaserTruth`).
+
+``build_scene(name, geometry)`` makes the named scenes of `lsu render --scene` and the node's
+``sim_scene`` parameter: ``plane``, ``sphere``, ``board``, ``head`` (``head:SEED``) or a mesh file path.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List
+
+import numpy as np
+
+from .geometry import CameraModel, RigConfigError, RigGeometry, load_rig, rig_from_dict, write_true_calibration
+from .head import Head, HeadIdentity, head_object, make_head
+from .rig import CameraTruth, CarriageState, LaserTruth, SimulatedRig, StereoFrame
+from .scenes import SceneError, SceneObject, load_mesh_file, make_board, make_plane, make_sphere
+
+__all__ = ["CameraModel", "RigConfigError", "RigGeometry", "load_rig", "rig_from_dict", "write_true_calibration",
+           "Head", "HeadIdentity", "head_object", "make_head", "CameraTruth", "CarriageState", "LaserTruth",
+           "SimulatedRig", "StereoFrame", "SceneError", "SceneObject", "load_mesh_file", "make_board", "make_plane",
+           "make_sphere", "build_scene", "SCENE_NAMES"]
+
+SCENE_NAMES = ("plane", "sphere", "board", "head")
+
+
+def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = None, yaw_deg: float = 0.0,
+                pitch_deg: float = 0.0) -> List[SceneObject]:
+    """A named scene centred on the rig's subject point (``distance_m`` overrides the subject distance).
+
+    ``plane``: a textured plane facing the rig; ``sphere``: a 6 cm ball; ``board``: a 9x6, 20 mm
+    chessboard facing the rig; ``head`` / ``head:SEED``: a synthetic head (yaw/pitch applied);
+    anything else is read as a PLY/OBJ/STL file (metres) centred on the subject point.
+    """
+    axes = geometry.rig_axes
+    dist = geometry.subject_distance_m if distance_m is None else float(distance_m)
+    center = geometry.rig_center + dist * axes[2]
+    if name == "plane":
+        return [make_plane(center, -axes[2])]
+    if name == "sphere":
+        return [make_sphere(center, 0.06)]
+    if name == "board":
+        square = 0.020
+        R = axes.T  # board x along the baseline, y down, facing the rig
+        first = center - R @ np.array([4 * square, 2.5 * square, 0.0])
+        return [make_board(R, first, (9, 6), square)]
+    if name == "head" or name.startswith("head:"):
+        seed = int(name.split(":", 1)[1]) if ":" in name else 0
+        head = make_head(seed, yaw_deg=yaw_deg, pitch_deg=pitch_deg)
+        # head centre behind the subject point so that the cheeks are at about the subject distance
+        return [head_object(head, center + 0.09 * axes[2])]
+    path = Path(name)
+    if path.suffix.lower() in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb") or path.exists():
+        return [load_mesh_file(path, center=center)]
+    raise SceneError(f"unknown scene '{name}': use one of {', '.join(SCENE_NAMES)}, head:SEED or a PLY/OBJ file")

@@ -1,0 +1,397 @@
+"""The simulated stereo rig: ray-cast images of a scene lit by the laser sheet, with exact ground truth.
+
+Per camera, every pixel's ray is cast once per scene (open3d ``RaycastingScene``) and everything
+that does not depend on the carriage is cached: hit points, smooth normals, albedo, the ambient +
+lamp + highlight image, and the hit points' signed distance to the sheet's normal direction. The
+light sheet keeps its orientation along the track, so a new carriage position only changes the
+sheet's offset ``c``: the laser term is a Gaussian of ``n . P - c`` evaluated on the few pixels
+near the sheet. A capture integrates that term over the exposure (``sub_exposures`` offsets
+following the post-stop vibration), then adds lens blur, shot + read noise, 8-bit quantisation
+and saturation.
+
+Pixel integration: the laser sheet is only ~2.5 px thick, so sampling it at pixel centres would
+alias. Over one pixel ``n . P`` is close to linear (slope g per pixel), and the box average of a
+Gaussian over such a ramp is, to second order, a Gaussian of variance ``sigma^2 + g^2/12`` with
+the same integral: the rendered line keeps the exact centre and energy of the real one.
+
+Ground truth (`laser_truth`): for every image row and every crossing of the sheet along it, the
+column where the pixel's ray meets the surface exactly on the sheet's centre plane is found by
+regula falsi on real ray casts (float32 ray casting: ~3e-8 m), giving the 3D point (left frame),
+its pixel in this camera (OpenCV ``projectPoints``) and its pixel/visibility in the other camera.
+The truth describes the sheet at the carriage's rest position: vibration is an error source.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Union
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from .geometry import CameraModel, RigGeometry
+from .scenes import SceneObject
+
+
+@dataclass
+class CarriageState:
+    """Where the laser carriage really is (mirrors ``lsu_interfaces/msg/SimTruth``; times in seconds).
+
+    Post-stop vibration: ``displacement(t) = A exp(-(t - t0) / tau) cos(2 pi f (t - t0))`` for
+    ``t >= t0 = stopped_at_s``; ``stopped_at_s = None`` means settled long ago.
+    """
+
+    position_steps: float
+    laser_on: bool = True
+    stopped_at_s: Optional[float] = None
+    vibration_amplitude_steps: float = 0.0
+    vibration_tau_s: float = 0.05
+    vibration_freq_hz: float = 30.0
+
+    def displacement_steps(self, t_s: np.ndarray) -> np.ndarray:
+        """Vibration displacement [steps] at times ``t_s``."""
+        t = np.asarray(t_s, dtype=np.float64)
+        if self.stopped_at_s is None or self.vibration_amplitude_steps == 0.0 or self.vibration_tau_s <= 0.0:
+            return np.zeros_like(t)
+        dt = np.maximum(t - self.stopped_at_s, 0.0)
+        return (self.vibration_amplitude_steps * np.exp(-dt / self.vibration_tau_s)
+                * np.cos(2.0 * np.pi * self.vibration_freq_hz * dt))
+
+
+@dataclass
+class CameraTruth:
+    """Exact laser-line samples seen by one camera: one per (row, crossing)."""
+
+    points_m: np.ndarray          # (N,3) on surface and sheet centre plane, left optical frame
+    pixels: np.ndarray            # (N,2) distorted (u, v) in this camera; v is the integer row
+    other_pixels: np.ndarray      # (N,2) the same points in the other camera
+    other_visible: np.ndarray     # (N,) bool: the other camera sees the point (inside the image, not occluded)
+
+
+@dataclass
+class LaserTruth:
+    """Ground truth of one laser position for both cameras."""
+
+    position_steps: float
+    plane_normal: np.ndarray      # n, with the sheet centre plane n . X = plane_offset_m (left frame)
+    plane_offset_m: float
+    left: CameraTruth
+    right: CameraTruth
+
+    def to_npz(self, path: Union[str, os.PathLike]) -> None:
+        """Save as an .npz (keys: position_steps, plane_normal, plane_offset_m, {left,right}_{points_m,...})."""
+        arrays: Dict[str, np.ndarray] = {"position_steps": np.array(self.position_steps),
+                                         "plane_normal": self.plane_normal, "plane_offset_m": np.array(self.plane_offset_m)}
+        for side in ("left", "right"):
+            cam = getattr(self, side)
+            for key in ("points_m", "pixels", "other_pixels", "other_visible"):
+                arrays[f"{side}_{key}"] = getattr(cam, key)
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def from_npz(cls, path: Union[str, os.PathLike]) -> "LaserTruth":
+        """Load what `to_npz` wrote."""
+        with np.load(path) as z:
+            cams = [CameraTruth(*(z[f"{side}_{k}"] for k in ("points_m", "pixels", "other_pixels", "other_visible")))
+                    for side in ("left", "right")]
+            return cls(float(z["position_steps"]), z["plane_normal"], float(z["plane_offset_m"]), *cams)
+
+
+@dataclass
+class StereoFrame:
+    """One rendered pair (BGR uint8) and what produced it."""
+
+    left: np.ndarray
+    right: np.ndarray
+    position_steps: float
+    laser_on: bool
+    capture_time_s: Optional[float]
+    laser_offset_steps: float = 0.0           # mean vibration displacement over the exposure
+    truth: Optional[LaserTruth] = None
+
+
+@dataclass
+class _View:
+    """What one camera sees of the scene, cached between carriage positions."""
+
+    camera: CameraModel
+    origin: np.ndarray
+    dirs: np.ndarray                          # (H*W,3) unit rays, left frame
+    hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    geom: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    red_albedo: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    base: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    pn: np.ndarray = field(default_factory=lambda: np.zeros(0))          # n . P per pixel
+    sigma2: np.ndarray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
+
+
+def _footprints(points: np.ndarray, ok: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:
+    """dP per pixel along ``axis`` (0 rows, 1 cols): central differences, one-sided at edges and depth jumps."""
+    H, W = ok.shape
+    fwd = np.zeros_like(points)
+    ok_pair = np.zeros((H, W), bool)
+    if axis == 1:
+        fwd[:, :-1] = points[:, 1:] - points[:, :-1]
+        ok_pair[:, :-1] = ok[:, 1:] & ok[:, :-1]
+    else:
+        fwd[:-1] = points[1:] - points[:-1]
+        ok_pair[:-1] = ok[1:] & ok[:-1]
+    # a neighbour more than 5 % of the depth away is across a depth jump, not on the same surface
+    ok_pair &= np.linalg.norm(fwd, axis=2) < 0.05 * np.maximum(depth, 1e-6)
+    bwd = np.zeros_like(points)
+    ok_b = np.zeros((H, W), bool)
+    if axis == 1:
+        bwd[:, 1:], ok_b[:, 1:] = fwd[:, :-1], ok_pair[:, :-1]
+    else:
+        bwd[1:], ok_b[1:] = fwd[:-1], ok_pair[:-1]
+    both = ok_pair & ok_b
+    out = np.where(both[..., None], 0.5 * (fwd + bwd), np.where(ok_pair[..., None], fwd, np.where(ok_b[..., None], bwd, 0.0)))
+    return out
+
+
+_RAY_CACHE: Dict[bytes, np.ndarray] = {}
+
+
+def _grid_rays(camera: CameraModel) -> np.ndarray:
+    """Rays of every pixel centre; cached per camera model because converged undistortion costs ~0.3 s."""
+    key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
+                   for a in (camera.K, camera.D, camera.R, camera.t, np.array([camera.width, camera.height])))
+    if key not in _RAY_CACHE:
+        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+        if len(_RAY_CACHE) > 8:
+            _RAY_CACHE.clear()
+        _RAY_CACHE[key] = camera.pixel_rays(np.stack([u.ravel(), v.ravel()], axis=1))
+        _RAY_CACHE[key].setflags(write=False)
+    return _RAY_CACHE[key]
+
+
+class SimulatedRig:
+    """The virtual LSU: a `RigGeometry`, a scene of `SceneObject`s, and a seeded sensor noise source."""
+
+    def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0) -> None:
+        self.geometry = geometry
+        self.rng = np.random.default_rng(seed)
+        self._views = [_View(cam, cam.center, _grid_rays(cam)) for cam in (geometry.left, geometry.right)]
+        self.objects: List[SceneObject] = []
+        self.set_scene(objects)
+
+    # ------------------------------------------------------------------ scene
+    def set_scene(self, objects: Sequence[SceneObject]) -> None:
+        """Replace the scene and recompute every per-camera cache."""
+        if not objects:
+            raise ValueError("the scene needs at least one object")
+        self.objects = list(objects)
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._tris: List[np.ndarray] = []
+        self._vnormals: List[np.ndarray] = []
+        for obj in self.objects:
+            mesh = obj.mesh
+            if not mesh.has_vertex_normals():
+                mesh.compute_vertex_normals()
+            self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+            self._tris.append(np.asarray(mesh.triangles))
+            self._vnormals.append(np.asarray(mesh.vertex_normals))
+        for view in self._views:
+            self._cache_view(view)
+
+    def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
+        rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
+        result = self._scene.cast_rays(o3d.core.Tensor(rays))
+        return {k: v.numpy() for k, v in result.items()}
+
+    def _smooth_normals(self, geom: np.ndarray, prim: np.ndarray, uvs: np.ndarray, hit: np.ndarray) -> np.ndarray:
+        normals = np.zeros((len(geom), 3))
+        for gid in range(len(self.objects)):
+            sel = hit & (geom == gid)
+            if not np.any(sel):
+                continue
+            tri = self._tris[gid][prim[sel]]
+            vn = self._vnormals[gid]
+            uv = uvs[sel].astype(np.float64)
+            normals[sel] = ((1.0 - uv[:, :1] - uv[:, 1:]) * vn[tri[:, 0]] + uv[:, :1] * vn[tri[:, 1]]
+                            + uv[:, 1:] * vn[tri[:, 2]])
+        norm = np.linalg.norm(normals, axis=1, keepdims=True)
+        return normals / np.where(norm > 0, norm, 1.0)
+
+    def _cache_view(self, view: _View) -> None:
+        g = self.geometry
+        W, H = g.image_size
+        cast = self._cast(view.origin, view.dirs)
+        t = cast["t_hit"].astype(np.float64)
+        hit = np.isfinite(t)
+        geom = np.where(hit, cast["geometry_ids"].astype(np.int64), -1)
+        t = np.where(hit, t, 0.0)
+        points = view.origin + view.dirs * t[:, None]
+        normals = self._smooth_normals(geom, cast["primitive_ids"].astype(np.int64), cast["primitive_uvs"], hit)
+        flip = np.einsum("ij,ij->i", normals, view.dirs) > 0  # face the camera: both sides of a mesh are visible
+        normals[flip] *= -1.0
+        ok = hit.reshape(H, W)
+        depth = t.reshape(H, W)
+        pts = points.reshape(H, W, 3)
+        du = _footprints(pts, ok, depth, 1).reshape(-1, 3)
+        dv = _footprints(pts, ok, depth, 0).reshape(-1, 3)
+        albedo = np.zeros((H * W, 3))
+        spec = np.zeros(H * W)
+        for gid, obj in enumerate(self.objects):
+            sel = geom == gid
+            if np.any(sel):
+                albedo[sel] = obj.albedo(points[sel], du[sel], dv[sel])
+                spec[sel] = obj.specularity
+        light = g.lighting
+        to_lamp = light.key_light_m - points
+        to_lamp /= np.maximum(np.linalg.norm(to_lamp, axis=1, keepdims=True), 1e-12)
+        diffuse = np.clip(np.einsum("ij,ij->i", normals, to_lamp), 0.0, None)
+        half = to_lamp - view.dirs
+        half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-12)
+        highlight = light.specular * spec * np.clip(np.einsum("ij,ij->i", normals, half), 0.0, None) ** light.shininess
+        radiance = albedo * (light.ambient + light.key * diffuse)[:, None] + highlight[:, None]
+        radiance[~hit] = light.background
+        n = g.laser_normal
+        slope2 = (du @ n) ** 2 + (dv @ n) ** 2
+        # grazing pixels have huge footprints along n: cap so they stay in the band test but contribute ~0
+        sigma2 = g.laser.sheet_sigma_m ** 2 + np.minimum(slope2, (50.0 * g.laser.sheet_sigma_m) ** 2) / 12.0
+        view.hit, view.t, view.geom, view.points, view.normals = hit, t, geom, points, normals
+        view.red_albedo = albedo[:, 2]
+        view.base = radiance.reshape(H, W, 3).astype(np.float32)
+        view.pn = np.where(hit, points @ n, np.nan)
+        view.sigma2 = sigma2
+
+    # ------------------------------------------------------------------ laser
+    def _lit(self, origin: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """True where the laser at ``origin`` reaches ``points`` unshadowed."""
+        if len(points) == 0:
+            return np.zeros(0, bool)
+        to = points - origin
+        dist = np.linalg.norm(to, axis=1)
+        cast = self._cast(origin, to / dist[:, None])
+        return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
+
+    def _laser_radiance(self, view: _View, offsets_m: np.ndarray, origin: np.ndarray):
+        """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``."""
+        g = self.geometry
+        lo, hi = float(offsets_m.min()), float(offsets_m.max())
+        reach = 5.0 * np.sqrt(view.sigma2)
+        with np.errstate(invalid="ignore"):
+            band = (view.pn > lo - reach) & (view.pn < hi + reach)
+        idx = np.flatnonzero(band)
+        if len(idx) == 0:
+            return idx, np.zeros((0, 3))
+        s2 = view.sigma2[idx]
+        d = view.pn[idx][None, :] - offsets_m[:, None]
+        profile = (np.exp(-0.5 * d * d / s2) * np.sqrt(g.laser.sheet_sigma_m ** 2 / s2)).mean(axis=0)
+        pts = view.points[idx]
+        to_laser = origin - pts
+        dist = np.linalg.norm(to_laser, axis=1)
+        incidence = np.clip(np.einsum("ij,ij->i", view.normals[idx], to_laser) / dist, 0.0, None)
+        # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
+        power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts)
+        value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
+        return idx, value
+
+    # ------------------------------------------------------------------ render
+    def render(self, carriage: Union[CarriageState, float], capture_time_s: Optional[float] = None,
+               seed: Optional[int] = None, with_truth: bool = False) -> StereoFrame:
+        """Render a stereo pair exposed from ``capture_time_s`` for ``sensor.exposure_s``.
+
+        ``carriage`` is a `CarriageState` or a plain position in steps (laser on, settled).
+        ``seed`` fixes the sensor noise of this pair (default: the rig's own generator).
+        """
+        state = carriage if isinstance(carriage, CarriageState) else CarriageState(float(carriage))
+        g = self.geometry
+        rng = np.random.default_rng(seed) if seed is not None else self.rng
+        sensor = g.sensor
+        mean_offset = 0.0
+        images = []
+        if state.laser_on:
+            if capture_time_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
+                disp = np.zeros(1)
+            else:
+                times = capture_time_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
+                disp = state.displacement_steps(times)
+            mean_offset = float(disp.mean())
+            n = g.laser_normal
+            offsets = np.array([n.dot(g.laser_origin(state.position_steps + d)) for d in disp])
+            origin = g.laser_origin(state.position_steps + mean_offset)
+        W, H = g.image_size
+        for view in self._views:
+            img = view.base.copy()
+            if state.laser_on:
+                idx, value = self._laser_radiance(view, offsets, origin)
+                img.reshape(-1, 3)[idx] += value.astype(np.float32)
+            if sensor.psf_sigma_px > 0:
+                img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
+            shot = np.sqrt(np.clip(img, 0.0, None) / sensor.full_well_e)
+            noise = rng.standard_normal(img.shape, dtype=np.float32)
+            img = img + noise * np.sqrt(shot * shot + (sensor.read_noise_dn / 255.0) ** 2).astype(np.float32)
+            images.append(np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8))
+        truth = self.laser_truth(state.position_steps) if with_truth and state.laser_on else None
+        return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, mean_offset, truth)
+
+    # ------------------------------------------------------------------ ground truth
+    def _cast_pixels(self, view: _View, u: np.ndarray, v: np.ndarray):
+        dirs = view.camera.pixel_rays(np.stack([u, v], axis=1))
+        cast = self._cast(view.origin, dirs)
+        t = cast["t_hit"].astype(np.float64)
+        hit = np.isfinite(t)
+        pts = view.origin + dirs * np.where(hit, t, 0.0)[:, None]
+        return pts, hit, cast["geometry_ids"].astype(np.int64)
+
+    def _camera_truth(self, view: _View, other: _View, n: np.ndarray, c: float, origin: np.ndarray,
+                      iterations: int = 30) -> CameraTruth:
+        W, H = self.geometry.image_size
+        f = (view.pn - c).reshape(H, W)
+        geom = view.geom.reshape(H, W)
+        pts = view.points.reshape(H, W, 3)
+        depth = view.t.reshape(H, W)
+        f0, f1 = f[:, :-1], f[:, 1:]
+        with np.errstate(invalid="ignore"):
+            cross = ((f0 <= 0) & (f1 > 0)) | ((f0 > 0) & (f1 <= 0))
+        cross &= (geom[:, :-1] >= 0) & (geom[:, :-1] == geom[:, 1:])
+        cross &= np.linalg.norm(pts[:, 1:] - pts[:, :-1], axis=2) < 0.05 * depth[:, :-1]
+        rows, cols = np.nonzero(cross)
+        ua, ub = cols.astype(np.float64), cols + 1.0
+        fa, fb = f0[rows, cols].astype(np.float64), f1[rows, cols].astype(np.float64)
+        gid = geom[rows, cols]
+        v = rows.astype(np.float64)
+        ok = np.ones(len(rows), bool)
+        P = pts[rows, cols].copy()
+        fc = fa.copy()
+        for _ in range(iterations):  # Illinois regula falsi: bracketing, superlinear, robust to curvature
+            if not np.any(ok & (np.abs(fc) > 1e-12)):
+                break
+            uc = np.clip(ub - fb * (ub - ua) / np.where(fb != fa, fb - fa, 1.0), np.minimum(ua, ub), np.maximum(ua, ub))
+            Pc, hit, g = self._cast_pixels(view, uc, v)
+            ok &= hit & (g == gid)
+            fc = Pc @ n - c
+            P = np.where(ok[:, None], Pc, P)
+            same_as_b = np.sign(fc) == np.sign(fb)
+            # keep the bracket [a, c]; when b's side repeats, halve f(a) so a stale end cannot stall it
+            fa = np.where(same_as_b, fa * 0.5, fb)
+            ua = np.where(same_as_b, ua, ub)
+            ub, fb = uc, fc
+        ok &= np.abs(P @ n - c) < 1e-6
+        ok &= self._lit(origin, P) if len(P) else ok
+        P = P[ok]
+        pixels = view.camera.project(P)
+        other_pixels = other.camera.project(P)
+        visible = ((other_pixels[:, 0] >= -0.5) & (other_pixels[:, 0] <= W - 0.5)
+                   & (other_pixels[:, 1] >= -0.5) & (other_pixels[:, 1] <= H - 0.5))
+        if len(P):
+            to = P - other.origin
+            dist = np.linalg.norm(to, axis=1)
+            t = self._cast(other.origin, to / dist[:, None])["t_hit"].astype(np.float64)
+            visible &= t >= dist * (1.0 - 1e-5) - 1e-5
+        return CameraTruth(P, pixels, other_pixels, visible)
+
+    def laser_truth(self, position_steps: float) -> LaserTruth:
+        """Exact laser-line ground truth for both cameras with the carriage at rest at ``position_steps``."""
+        n, c = self.geometry.laser_plane(position_steps)
+        origin = self.geometry.laser_origin(position_steps)
+        left, right = self._views
+        return LaserTruth(float(position_steps), n.copy(), c, self._camera_truth(left, right, n, c, origin),
+                          self._camera_truth(right, left, n, c, origin))

@@ -1,0 +1,204 @@
+"""Stereo camera sources behind one interface: ``v4l2`` (OpenCV), ``folder`` (recorded pairs), ``sim``.
+
+A source returns a `StereoPair`: two BGR images exposed *after* the request, the capture time and
+the measured left/right skew. Pure module (no rclpy): the node maps it onto topics and services.
+"""
+
+from __future__ import annotations
+
+import abc
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence, Tuple, Union
+
+import cv2
+import numpy as np
+
+from .profiles import Profile, apply_profile
+
+
+class CameraError(RuntimeError):
+    """A camera cannot be opened or read (missing device/folder/file, unreadable image, size mismatch)."""
+
+
+@dataclass
+class StereoPair:
+    """One synchronized pair."""
+
+    left: np.ndarray            # HxWx3 uint8 BGR
+    right: np.ndarray
+    time_s: float               # capture time (source clock: wall or sim time) given to both images
+    skew_s: float = 0.0         # right - left exposure time difference
+    label: str = ""             # e.g. the folder pair's file suffix
+
+
+class StereoSource(abc.ABC):
+    """A pair of cameras."""
+
+    @property
+    @abc.abstractmethod
+    def image_size(self) -> Tuple[int, int]:
+        """(width, height) of both images."""
+
+    @abc.abstractmethod
+    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
+        """A fresh pair exposed after this call started."""
+
+    def close(self) -> None:
+        """Release devices."""
+
+    def report(self) -> List[str]:
+        """Problems found while opening (e.g. profile read-back mismatches)."""
+        return []
+
+
+class FolderSource(StereoSource):
+    """Replays ``left_*.png`` / ``right_*.png`` pairs in name order, looping."""
+
+    def __init__(self, folder: Union[str, Path], loop: bool = True) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise CameraError(f"image folder '{self.folder}' not found (parameter 'folder')")
+        lefts = {p.name[5:]: p for p in self.folder.glob("left_*.png")}
+        rights = {p.name[6:]: p for p in self.folder.glob("right_*.png")}
+        self.keys = sorted(set(lefts) & set(rights))
+        if not self.keys:
+            raise CameraError(f"'{self.folder}' holds no left_*.png/right_*.png pairs "
+                              f"({len(lefts)} left, {len(rights)} right images)")
+        self._paths = [(lefts[k], rights[k]) for k in self.keys]
+        self.loop = loop
+        self.index = 0
+        first = self._read(*self._paths[0])
+        self._size = (first[0].shape[1], first[0].shape[0])
+
+    def _read(self, left: Path, right: Path) -> Tuple[np.ndarray, np.ndarray]:
+        images = []
+        for path in (left, right):
+            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if image is None:
+                raise CameraError(f"{path}: cannot be read as an image")
+            images.append(image)
+        if images[0].shape != images[1].shape:
+            raise CameraError(f"{left.name} is {images[0].shape[1]}x{images[0].shape[0]} but {right.name} is "
+                              f"{images[1].shape[1]}x{images[1].shape[0]}: a pair must have one size")
+        return images[0], images[1]
+
+    @property
+    def image_size(self) -> Tuple[int, int]:
+        return self._size
+
+    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
+        if self.index >= len(self._paths):
+            if not self.loop:
+                raise CameraError(f"'{self.folder}': all {len(self._paths)} pairs replayed")
+            self.index = 0
+        left_path, right_path = self._paths[self.index]
+        label = self.keys[self.index]
+        self.index += 1
+        left, right = self._read(left_path, right_path)
+        if (left.shape[1], left.shape[0]) != self._size:
+            raise CameraError(f"{left_path.name} is {left.shape[1]}x{left.shape[0]}, the folder's first pair "
+                              f"{self._size[0]}x{self._size[1]}")
+        return StereoPair(left, right, time.time(), 0.0, Path(label).stem)
+
+
+class V4l2Source(StereoSource):
+    """Two UVC/V4L2 cameras through OpenCV (``cv2.CAP_V4L2``).
+
+    To minimise skew both cameras are *grabbed* first (the exposure is latched) and only then
+    *retrieved* (decoded); buffered frames that predate the request are flushed by grabbing and
+    discarding ``flush_frames`` frames first. The skew is measured from the drivers' frame
+    timestamps when they exist, else from the host time of each grab.
+    """
+
+    def __init__(self, devices: Sequence[Union[str, int]], size: Tuple[int, int] = (640, 480),
+                 profile: Optional[Profile] = None, flush_frames: int = 2,
+                 opener: Callable[..., "cv2.VideoCapture"] = cv2.VideoCapture) -> None:
+        if len(devices) != 2:
+            raise CameraError(f"need exactly two devices (left, right), got {list(devices)}")
+        self.devices = list(devices)
+        self.flush_frames = flush_frames
+        self._problems: List[str] = []
+        self._caps = []
+        try:
+            for side, dev in zip(("left", "right"), self.devices):
+                target = int(dev) if isinstance(dev, int) or str(dev).isdigit() else str(dev)
+                cap = opener(target, cv2.CAP_V4L2)
+                if cap is None or not cap.isOpened():
+                    raise CameraError(f"cannot open the {side} camera '{dev}' with V4L2: check that it is plugged "
+                                      f"in, that `ls /dev/video*` lists it and that you may read it (group video)")
+                self._caps.append(cap)
+                cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+                cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+                cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+                if profile is not None:
+                    self._problems += [f"{side} camera: {p}" for p in apply_profile(cap, profile)]
+            self._size = (int(self._caps[0].get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._caps[0].get(cv2.CAP_PROP_FRAME_HEIGHT)))
+            other = (int(self._caps[1].get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._caps[1].get(cv2.CAP_PROP_FRAME_HEIGHT)))
+            if other != self._size:
+                raise CameraError(f"left camera gives {self._size[0]}x{self._size[1]} but right gives "
+                                  f"{other[0]}x{other[1]}: set both to one size")
+            if self._size != tuple(size):
+                self._problems.append(f"requested {size[0]}x{size[1]}, cameras give {self._size[0]}x{self._size[1]}")
+        except Exception:
+            self.close()
+            raise
+
+    @property
+    def image_size(self) -> Tuple[int, int]:
+        return self._size
+
+    def report(self) -> List[str]:
+        return list(self._problems)
+
+    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
+        deadline = time.monotonic() + timeout_s
+        for _ in range(self.flush_frames):
+            for cap in self._caps:
+                cap.grab()
+        stamps = []
+        for side, cap in zip(("left", "right"), self._caps):
+            if not cap.grab():
+                raise CameraError(f"{side} camera '{self.devices[len(stamps)]}' returned no frame (unplugged?)")
+            host = time.time()
+            driver_ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+            stamps.append((host, driver_ms))
+            if time.monotonic() > deadline:
+                raise CameraError(f"grabbing the pair took longer than {timeout_s} s")
+        images = []
+        for side, cap in zip(("left", "right"), self._caps):
+            ok, image = cap.retrieve()
+            if not ok or image is None:
+                raise CameraError(f"{side} camera: frame could not be decoded")
+            images.append(image)
+        if stamps[0][1] > 0 and stamps[1][1] > 0:
+            skew = (stamps[1][1] - stamps[0][1]) / 1000.0
+        else:
+            skew = stamps[1][0] - stamps[0][0]
+        return StereoPair(images[0], images[1], stamps[0][0], float(skew))
+
+    def close(self) -> None:
+        for cap in self._caps:
+            cap.release()
+        self._caps = []
+
+
+class SimSource(StereoSource):
+    """The simulated rig; ``carriage(t)`` says where the carriage is at time t (from /lsu/sim/truth or a parameter)."""
+
+    def __init__(self, rig: "SimulatedRig", carriage: Callable[[float], "CarriageState"],  # noqa: F821
+                 clock: Callable[[], float] = time.time) -> None:
+        self.rig = rig
+        self.carriage = carriage
+        self.clock = clock
+
+    @property
+    def image_size(self) -> Tuple[int, int]:
+        return self.rig.geometry.image_size
+
+    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
+        t = self.clock()
+        # simulated cameras are perfectly synchronized: both exposures start at t
+        frame = self.rig.render(self.carriage(t), capture_time_s=t)
+        return StereoPair(frame.left, frame.right, t, 0.0)
