@@ -22,11 +22,13 @@ setup(
             "lsu = lsu_bringup.cli:main",
             "selftest_talker = lsu_bringup.selftest:talker_main",
             "selftest_listener = lsu_bringup.selftest:listener_main",
+            "scan_coordinator = lsu_bringup.coordinator:main",
         ],
         # node classes for `lsu run` (all nodes in one process); name = executable name
         "lsu.nodes": [
             "selftest_talker = lsu_bringup.selftest:SelftestTalker",
             "selftest_listener = lsu_bringup.selftest:SelftestListener",
+            "scan_coordinator = lsu_bringup.coordinator:ScanCoordinatorNode",
         ],
     },
 )

@@ -82,7 +82,7 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
 
 def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.ArgumentParser:
     """The full `lsu` argument parser, plugins included."""
-    from . import demo, doctor, graph
+    from . import demo, doctor, graph, scanner
     from .nodes_index import command_plugins
 
     parser = argparse.ArgumentParser(
@@ -93,6 +93,7 @@ def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.Argu
     graph.register(sub)
     doctor.register(sub, lambda: env_report)
     demo.register(sub)
+    scanner.register(sub)
     for entry in command_plugins():
         try:
             entry.load()(sub)
@@ -110,10 +111,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     from .graph import GraphError
     from .launch_file import LaunchError
     from .rosmsg import InterfaceError
+    from .scanner import ScannerError
 
     try:
         return int(args.func(args) or 0)
-    except (LaunchError, GraphError, InterfaceError, LookupError, FileNotFoundError, ValueError) as exc:
+    except (LaunchError, GraphError, InterfaceError, ScannerError, LookupError, FileNotFoundError,
+            ValueError) as exc:
         print(f"lsu {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

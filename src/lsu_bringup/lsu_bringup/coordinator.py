@@ -1,0 +1,366 @@
+"""`scan_coordinator` node: stop-snap scans through the `/lsu/scan` action (thesis ch. 3.3).
+
+laser off -> texture pair -> laser on -> for each position: move, settle, capture, SNAP event,
+matcher acknowledgement (its per-snap `points`) -> laser off -> FINISHED -> scan cloud on disk.
+
+Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
+fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
+marked partial with the reason.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import SetBool
+
+from lsu_interfaces.action import Scan
+from lsu_interfaces.msg import ScanEvent, ScannerState
+from lsu_interfaces.srv import CaptureStereo, MoveTo
+
+from .scan_plan import (ScanGoalError, ScanRecord, calibration_checksum, mechanical_lower_bound_s, new_scan_id,
+                        plan_positions)
+
+EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class ScanAborted(Exception):
+    """The scan cannot go on; the message is the reason given to the user."""
+
+
+class ScanCanceled(ScanAborted):
+    """The user canceled the goal."""
+
+
+def _key(stamp: Any) -> tuple:
+    return (int(stamp.sec), int(stamp.nanosec))
+
+
+class ScanCoordinatorNode(Node):
+    """Serves the ``scan`` action; publishes ``scan/events``; writes one folder per scan."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("scan_coordinator", **{"namespace": "/lsu", **kwargs})
+
+        def declare(name: str, default: Any, description: str) -> Any:
+            return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
+
+        from .cli import workspace_root
+
+        self.output_dir = Path(declare("output_dir", "", "parent folder of scans/<id>/; empty = <workspace>/scans")
+                               or workspace_root() / "scans")
+        self.capture_timeout_s = declare("capture_timeout_s", 3.0, "a stereo/capture call longer than this aborts")
+        self.ack_timeout_s = declare("ack_timeout_s", 5.0, "a snap the matcher does not acknowledge within this "
+                                                           "aborts the scan [s]")
+        self.move_timeout_s = declare("move_timeout_s", 0.0, "carriage/move_to timeout [s]; 0 = the driver's own")
+        self.cloud_timeout_s = declare("cloud_timeout_s", 15.0, "wait for the matcher's scan/cloud after the scan [s]")
+        self.exposure_s = declare("exposure_s", 0.033, "camera exposure, for the mechanical lower bound [s]")
+        self.calibration_dir = declare("calibration_dir", "", "calibration folder used (its checksum goes in scan.json)")
+        group = ReentrantCallbackGroup()
+        self.laser = self.create_client(SetBool, "laser/set", callback_group=group)
+        self.move = self.create_client(MoveTo, "carriage/move_to", callback_group=group)
+        self.capture = self.create_client(CaptureStereo, "stereo/capture", callback_group=group)
+        self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
+        self.state: Optional[ScannerState] = None
+        self._acks: Dict[tuple, int] = {}
+        self._cloud: Optional[PointCloud2] = None
+        self._cloud_serial = 0
+        self._cond = threading.Condition()
+        self.create_subscription(ScannerState, "driver/state", self._on_state, 10, callback_group=group)
+        self.create_subscription(PointCloud2, "points", self._on_points, QoSProfile(
+            depth=50, reliability=ReliabilityPolicy.RELIABLE), callback_group=group)
+        self.create_subscription(PointCloud2, "scan/cloud", self._on_cloud, LATCHED, callback_group=group)
+        self._busy = threading.Lock()
+        self._counter = 0
+        self._server = ActionServer(self, Scan, "scan", execute_callback=self._execute,
+                                    goal_callback=self._on_goal, cancel_callback=lambda _h: CancelResponse.ACCEPT,
+                                    callback_group=group)
+
+    # ------------------------------------------------------------------------------ inputs
+    def _on_state(self, msg: ScannerState) -> None:
+        self.state = msg
+
+    def _on_points(self, msg: PointCloud2) -> None:
+        with self._cond:
+            self._acks[_key(msg.header.stamp)] = int(msg.width) * int(msg.height)
+            self._cond.notify_all()
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._cond:
+            self._cloud = msg
+            self._cloud_serial += 1
+            self._cond.notify_all()
+
+    def _on_goal(self, _goal: Scan.Goal) -> GoalResponse:
+        if self._busy.locked():
+            self.get_logger().warning("scan goal rejected: a scan is already running")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    # ------------------------------------------------------------------------------ helpers
+    def _call(self, client: Any, request: Any, timeout_s: float, what: str) -> Any:
+        if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
+            raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
+        done = threading.Event()
+        future = client.call_async(request)
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(timeout_s):
+            client.remove_pending_request(future)
+            raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
+        return future.result()
+
+    def _set_laser(self, on: bool) -> None:
+        response = self._call(self.laser, SetBool.Request(data=on), 3.0, f"laser {'on' if on else 'off'}")
+        if not response.success:
+            raise ScanAborted(f"laser {'on' if on else 'off'} failed: {response.message}")
+
+    def _laser_off_safely(self) -> str:
+        try:
+            self._set_laser(False)
+            return ""
+        except ScanAborted as exc:
+            self.get_logger().error(f"could not switch the laser off: {exc} (the firmware watchdog will)")
+            return str(exc)
+
+    def _capture(self) -> Any:
+        response = self._call(self.capture, CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
+                              float(self.capture_timeout_s) + 1.0, "capture")
+        if not response.success:
+            raise ScanAborted(f"capture failed: {response.message}")
+        return response
+
+    def _event(self, kind: int, scan_id: str, folder: Path, **fields: Any) -> None:
+        msg = ScanEvent(type=kind, scan_id=scan_id, output_dir=str(folder))
+        msg.header.stamp = self.get_clock().now().to_msg()
+        for name, value in fields.items():
+            setattr(msg, name, value)
+        self.events.publish(msg)
+
+    def _wait(self, predicate: Callable[[], bool], timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate():
+                remaining = end - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._cond.wait(min(remaining, 0.05))
+        return True
+
+    @staticmethod
+    def _check_cancel(goal_handle: Any) -> None:
+        if goal_handle.is_cancel_requested:
+            raise ScanCanceled("canceled by the user")
+
+    def _sleep(self, goal_handle: Any, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self._check_cancel(goal_handle)
+            time.sleep(min(0.005, max(0.0, end - time.monotonic())))
+
+    # ------------------------------------------------------------------------------ the scan
+    def _execute(self, goal_handle: Any) -> Scan.Result:
+        with self._busy:
+            return self._scan(goal_handle)
+
+    def _scan(self, goal_handle: Any) -> Scan.Result:
+        goal: Scan.Goal = goal_handle.request
+        t0 = time.monotonic()
+        self._counter += 1
+        scan_id = new_scan_id(counter=self._counter)
+        parent = Path(goal.output_dir) if goal.output_dir else self.output_dir
+        folder = parent / scan_id
+        calib = Path(self.calibration_dir) if self.calibration_dir else None
+        record = ScanRecord(scan_id=scan_id, started=_dt.datetime.now().isoformat(timespec="seconds"),
+                            goal={k: getattr(goal, k) for k in goal.get_fields_and_field_types()},
+                            parameters={"capture_timeout_s": self.capture_timeout_s, "ack_timeout_s": self.ack_timeout_s,
+                                        "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s},
+                            calibration=calibration_checksum(calib))
+        result = Scan.Result(scan_id=scan_id, output_dir=str(folder))
+        state = self.state
+        try:
+            if state is None or not state.connected:
+                raise ScanAborted("no state from gp32_driver (driver/state): is the driver running and connected?")
+            if not state.homed:
+                raise ScanAborted("the carriage is not homed: call carriage/home (or `lsu service call "
+                                  "/lsu/carriage/home`) before scanning")
+            try:
+                plan = plan_positions(goal.start_steps, goal.end_steps, goal.step_steps, state.track_steps,
+                                      goal.settle_s, goal.texture)
+            except ScanGoalError as exc:
+                raise ScanAborted(f"bad goal: {exc}") from None
+        except ScanAborted as exc:
+            result.status = str(exc)
+            self.get_logger().error(f"scan {scan_id} refused: {exc}")
+            goal_handle.abort()
+            return result
+        record.snaps_expected = len(plan.positions)
+        record.timings_s["mechanical_lower_bound"] = mechanical_lower_bound_s(
+            plan, state.position_steps, max(1.0, state.step_rate_steps_per_s), float(self.exposure_s))
+        folder.mkdir(parents=True, exist_ok=True)
+        recorder = None
+        if goal.record_bag:
+            try:
+                recorder = self._start_bag(folder)
+            except Exception as exc:  # no bag is no reason to lose the scan: say so and go on
+                self.get_logger().error(f"bag recording could not start ({exc.__class__.__name__}: {exc}); "
+                                        "scanning without a bag")
+        self.get_logger().info(f"scan {scan_id}: {len(plan.positions)} snaps {plan.positions[0]}..{plan.positions[-1]}"
+                               f" step {goal.step_steps}, settle {plan.settle_s:g} s -> {folder}")
+        self._event(ScanEvent.STARTED, scan_id, folder, expected_snaps=len(plan.positions))
+        cloud_serial_before = self._cloud_serial
+        captured: List[Dict[str, Any]] = []
+        points_total = 0
+        abort_reason = ""
+        canceled = False
+        try:
+            self._set_laser(False)
+            if plan.texture:
+                response = self._capture()
+                self._event(ScanEvent.TEXTURE, scan_id, folder, image_stamp=response.stamp)
+            self._set_laser(True)
+            snap_times: List[float] = []
+            for index, position in enumerate(plan.positions):
+                t_snap = time.monotonic()
+                self._check_cancel(goal_handle)
+                self._feedback(goal_handle, "moving", index, len(plan.positions), position, points_total, snap_times)
+                moved = self._call(self.move, MoveTo.Request(position_steps=position,
+                                                             timeout_s=float(self.move_timeout_s)),
+                                   float(self.move_timeout_s) or 60.0, f"move to {position}")
+                if not moved.success:
+                    raise ScanAborted(f"move to {position} failed: {moved.message}")
+                self._sleep(goal_handle, plan.settle_s)
+                response = self._capture()
+                key = _key(response.stamp)
+                self._event(ScanEvent.SNAP, scan_id, folder, index=index, position_steps=moved.position_steps,
+                            image_stamp=response.stamp, expected_snaps=len(plan.positions))
+                captured.append({"index": index, "position_steps": int(moved.position_steps),
+                                 "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s)})
+                if not self._wait(lambda: key in self._acks, float(self.ack_timeout_s)):
+                    raise ScanAborted(f"snap {index} (position {position}) was not acknowledged by stereo_matcher "
+                                      f"within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
+                captured[-1]["points"] = self._acks.pop(key)
+                points_total += captured[-1]["points"]
+                snap_times.append(time.monotonic() - t_snap)
+            self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
+                           points_total, snap_times)
+        except ScanCanceled as exc:
+            abort_reason, canceled = str(exc), True
+        except ScanAborted as exc:
+            abort_reason = str(exc)
+        except Exception as exc:  # a bug must still leave the laser off and the data on disk
+            abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
+            self.get_logger().error(abort_reason)
+        finally:
+            laser_error = self._laser_off_safely()
+        if laser_error and not abort_reason:
+            abort_reason = f"laser off failed at the end of the scan: {laser_error}"
+        partial = bool(abort_reason)
+        kind = ScanEvent.ABORTED if partial else ScanEvent.FINISHED
+        self._event(kind, scan_id, folder, expected_snaps=len(plan.positions), snaps_captured=len(captured),
+                    partial=partial, reason=abort_reason)
+        record.timings_s["scan"] = time.monotonic() - t0
+        cloud_points = self._save_cloud(folder, cloud_serial_before, record) if captured else 0
+        if recorder is not None:
+            record.files.append(self._stop_bag(recorder))
+        record.snaps = captured
+        record.snaps_captured = len(captured)
+        record.snaps_acknowledged = sum(1 for s in captured if "points" in s)
+        record.points = cloud_points or points_total
+        record.partial = partial
+        record.status = (f"partial: {abort_reason}" if partial else
+                         f"finished: {len(captured)} snaps, {record.points} points")
+        record.timings_s["total"] = time.monotonic() - t0
+        record.files.append(str(record.write(folder)))
+        result.success = not partial
+        result.partial = partial
+        result.snaps = len(captured)
+        result.points = int(record.points)
+        result.seconds = float(record.timings_s["scan"])
+        result.files = [str(f) for f in record.files]
+        result.status = record.status
+        log = self.get_logger().warning if partial else self.get_logger().info
+        log(f"scan {scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}")
+        if canceled:
+            goal_handle.canceled()
+        elif partial:
+            goal_handle.abort()
+        else:
+            goal_handle.succeed()
+        return result
+
+    def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
+                  snap_times: List[float]) -> None:
+        fb = Scan.Feedback(stage=stage, snap_index=index, snaps_total=total, position_steps=int(position),
+                           points_so_far=int(points))
+        if snap_times:
+            fb.eta_s = float(sum(snap_times) / len(snap_times) * (total - index))
+        goal_handle.publish_feedback(fb)
+
+    def _save_cloud(self, folder: Path, serial_before: int, record: ScanRecord) -> int:
+        """Wait for the matcher's scan cloud and write cloud.ply; returns its point count (0 if none came)."""
+        if not self._wait(lambda: self._cloud_serial > serial_before, float(self.cloud_timeout_s)):
+            self.get_logger().warning(f"no scan/cloud from stereo_matcher within {self.cloud_timeout_s:g} s; "
+                                      "the per-snap data is in the bag if one was recorded")
+            return 0
+        import numpy as np
+        from lsu_reconstruct.cli import write_ply
+        from lsu_reconstruct.node import msg_to_cloud
+        from lsu_reconstruct.pipeline import SnapPoints
+        from lsu_reconstruct.pointcloud2 import decode
+
+        assert self._cloud is not None
+        c = decode(msg_to_cloud(self._cloud))
+        points = SnapPoints(xyz=np.stack([c["x"], c["y"], c["z"]], axis=1), u=c["u"], v=c["v"], snap=c["snap"],
+                            rgb=c.get("rgb"))
+        record.files.append(str(write_ply(folder / "cloud.ply", points)))
+        return len(points)
+
+    def _start_bag(self, folder: Path) -> Any:
+        from .bags import BagRecorder
+
+        topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
+                  "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
+                  "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
+                  "/lsu/driver/state", "/lsu/sim/truth"]
+        return BagRecorder(self, topics, folder / "bag")
+
+    @staticmethod
+    def _stop_bag(recorder: Any) -> str:
+        recorder.close()
+        return str(recorder.path)
+
+    def destroy_node(self) -> None:
+        if self._busy.locked():
+            self._laser_off_safely()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``scan_coordinator``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = ScanCoordinatorNode()
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

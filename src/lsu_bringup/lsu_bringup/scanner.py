@@ -1,0 +1,238 @@
+"""`LsuScanner`: script the scanner like prose (after nav2_simple_commander), and `lsu scan`.
+
+    scanner = LsuScanner()
+    scanner.home()
+    result = scanner.scan(start=0, end=470, step=2)
+    print(result.points, result.output_dir)
+
+or non-blocking: ``scanner.start_scan(...)``, ``while not scanner.is_task_complete():
+fb = scanner.get_feedback()``, ``scanner.cancel_task()``, ``scanner.get_result()``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from typing import Any, Callable, Optional
+
+from . import rosenv
+
+
+class ScannerError(RuntimeError):
+    """The scanner graph is not there or did not answer; one line for the user."""
+
+
+class LsuScanner:
+    """A client of the LSU graph in its own rclpy context (safe to use beside other nodes)."""
+
+    def __init__(self, namespace: str = "/lsu", wait_s: float = 15.0) -> None:
+        rosenv.apply_defaults()
+        import rclpy
+        from rclpy.action import ActionClient
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+        from std_srvs.srv import SetBool, Trigger
+
+        from lsu_interfaces.action import Scan
+        from lsu_interfaces.msg import ScannerState
+        from lsu_interfaces.srv import MoveTo
+
+        self._rclpy = rclpy
+        self._Scan = Scan
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(f"lsu_scanner_{id(self) & 0xFFFF:x}", namespace=namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
+        self._spin.start()
+        self.wait_s = wait_s
+        self._home = self.node.create_client(Trigger, "carriage/home")
+        self._laser = self.node.create_client(SetBool, "laser/set")
+        self._move = self.node.create_client(MoveTo, "carriage/move_to")
+        self._action = ActionClient(self.node, Scan, "scan")
+        self._latest_state: Optional[Any] = None
+        self.node.create_subscription(ScannerState, "driver/state", self._on_state, 10)
+        self._goal_handle: Optional[Any] = None
+        self._result_future: Optional[Any] = None
+        self._feedback: Optional[Any] = None
+
+    def _spin_loop(self) -> None:
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # the context went down under us during close()
+                if self.context.ok():
+                    raise
+                return
+
+    def _on_state(self, msg: Any) -> None:
+        self._latest_state = msg
+
+    def close(self) -> None:
+        """Leave the graph."""
+        self.executor.shutdown(timeout_sec=1.0)
+        self._rclpy.try_shutdown(context=self.context)
+        self._spin.join(timeout=2.0)
+        self.node.destroy_node()
+
+    def __enter__(self) -> "LsuScanner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------ plain calls
+    def _wait_future(self, future: Any, timeout_s: float, what: str) -> Any:
+        end = time.monotonic() + timeout_s
+        while not future.done():
+            if time.monotonic() > end:
+                raise ScannerError(f"{what}: no answer within {timeout_s:g} s")
+            time.sleep(0.005)
+        return future.result()
+
+    def _call(self, client: Any, request: Any, timeout_s: float, what: str) -> Any:
+        if not client.wait_for_service(timeout_sec=self.wait_s):
+            raise ScannerError(f"{what}: service {client.srv_name} not available; is the LSU graph running "
+                               f"(lsu launch sim) in ROS_DOMAIN_ID={__import__('os').environ.get('ROS_DOMAIN_ID')}?")
+        return self._wait_future(client.call_async(request), timeout_s, what)
+
+    def state(self, timeout_s: float = 5.0) -> Any:
+        """The latest ``ScannerState`` from the driver (waits for the first one)."""
+        end = time.monotonic() + timeout_s
+        while self._latest_state is None and time.monotonic() < end:
+            time.sleep(0.01)
+        if self._latest_state is None:
+            raise ScannerError("no /lsu/driver/state received: is gp32_driver running?")
+        return self._latest_state
+
+    def home(self, timeout_s: float = 60.0) -> str:
+        """Home the carriage; returns the driver's message. Raises ScannerError on failure."""
+        from std_srvs.srv import Trigger
+
+        response = self._call(self._home, Trigger.Request(), timeout_s, "home")
+        if not response.success:
+            raise ScannerError(response.message)
+        return response.message
+
+    def laser(self, on: bool) -> None:
+        """Switch the laser."""
+        from std_srvs.srv import SetBool
+
+        response = self._call(self._laser, SetBool.Request(data=on), 5.0, "laser")
+        if not response.success:
+            raise ScannerError(response.message)
+
+    def move_to(self, position_steps: int, timeout_s: float = 30.0) -> int:
+        """Move the carriage; returns the reached position."""
+        from lsu_interfaces.srv import MoveTo
+
+        response = self._call(self._move, MoveTo.Request(position_steps=position_steps), timeout_s, "move_to")
+        if not response.success:
+            raise ScannerError(response.message)
+        return int(response.position_steps)
+
+    # ------------------------------------------------------------------------------ scans
+    def start_scan(self, start: int = 0, end: int = 470, step: int = 2, settle_s: float = 0.1, texture: bool = True,
+                   record_bag: bool = False, output_dir: str = "", label: str = "") -> None:
+        """Send a scan goal and return at once (see `is_task_complete`)."""
+        if not self._action.wait_for_server(timeout_sec=self.wait_s):
+            raise ScannerError("the /lsu/scan action server (scan_coordinator) is not available; is the graph "
+                               "running (lsu launch sim)?")
+        goal = self._Scan.Goal(start_steps=start, end_steps=end, step_steps=step, settle_s=float(settle_s),
+                               texture=texture, record_bag=record_bag, output_dir=output_dir, label=label)
+        handle = self._wait_future(self._action.send_goal_async(goal, feedback_callback=self._on_feedback),
+                                   self.wait_s, "scan goal")
+        if not handle.accepted:
+            raise ScannerError("scan goal rejected: another scan is running")
+        self._goal_handle = handle
+        self._result_future = handle.get_result_async()
+
+    def _on_feedback(self, message: Any) -> None:
+        self._feedback = message.feedback
+
+    def is_task_complete(self) -> bool:
+        """True when the running scan has a result."""
+        return self._result_future is None or self._result_future.done()
+
+    def get_feedback(self) -> Optional[Any]:
+        """The latest ``Scan.Feedback`` (or None)."""
+        return self._feedback
+
+    def cancel_task(self, timeout_s: float = 10.0) -> None:
+        """Cancel the running scan (the coordinator switches the laser off and keeps the data)."""
+        if self._goal_handle is not None and not self.is_task_complete():
+            self._wait_future(self._goal_handle.cancel_goal_async(), timeout_s, "cancel")
+
+    def get_result(self, timeout_s: float = 3600.0) -> Any:
+        """Wait for and return the ``Scan.Result``."""
+        if self._result_future is None:
+            raise ScannerError("no scan was started")
+        return self._wait_future(self._result_future, timeout_s, "scan result").result
+
+    def scan(self, feedback: Optional[Callable[[Any], None]] = None, **goal: Any) -> Any:
+        """Run a scan to the end (keyword arguments of `start_scan`); returns the ``Scan.Result``."""
+        self.start_scan(**goal)
+        while not self.is_task_complete():
+            if feedback is not None and self._feedback is not None:
+                feedback(self._feedback)
+            time.sleep(0.05)
+        return self.get_result()
+
+
+def _progress(fb: Any) -> None:
+    total = max(1, fb.snaps_total)
+    done = min(fb.snap_index, total)
+    bar = "#" * int(30 * done / total)
+    sys.stderr.write(f"\r[{bar:<30}] snap {done}/{total} pos {fb.position_steps:4d} points {fb.points_so_far:8,d} "
+                     f"ETA {fb.eta_s:5.1f} s ({fb.stage})   ")
+    sys.stderr.flush()
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    scanner = LsuScanner(wait_s=args.wait)
+    try:
+        if args.home or not scanner.state().homed:
+            print(f"homing: {scanner.home()}")
+        scanner.start_scan(start=args.start, end=args.end, step=args.step, settle_s=args.settle,
+                           texture=not args.no_texture, record_bag=args.record, output_dir=args.out or "",
+                           label=args.label)
+        try:
+            shown = None
+            while not scanner.is_task_complete():
+                fb = scanner.get_feedback()
+                if fb is not None and fb is not shown:
+                    _progress(fb)
+                    shown = fb
+                time.sleep(0.1)
+        except KeyboardInterrupt:
+            sys.stderr.write("\ncanceling the scan (the laser goes off, captured data is kept)...\n")
+            scanner.cancel_task()
+        result = scanner.get_result()
+    finally:
+        scanner.close()
+    sys.stderr.write("\n")
+    print(result.status)
+    print(f"scan {result.scan_id}: {result.snaps} snaps, {result.points} points, {result.seconds:.1f} s")
+    print(f"files in {result.output_dir}:")
+    for path in result.files:
+        print(f"  {path}")
+    return 0 if result.success else 1
+
+
+def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """Add `lsu scan`."""
+    p = sub.add_parser("scan", help="run a stop-snap scan on the running graph (Ctrl-C cancels, laser off)")
+    p.add_argument("--start", type=int, default=0, help="first position [steps] (default 0)")
+    p.add_argument("--end", type=int, default=470, help="last position [steps] (default 470)")
+    p.add_argument("--step", type=int, default=2, help="spacing [steps] (default 2)")
+    p.add_argument("--settle", type=float, default=0.1, help="wait after each stop [s] (default 0.1)")
+    p.add_argument("--no-texture", action="store_true", help="skip the laser-off colour pair")
+    p.add_argument("--record", action="store_true", help="record the scan's topics into a bag in the scan folder")
+    p.add_argument("--out", default="", help="parent folder for the scan folder (default: the node's output_dir)")
+    p.add_argument("--label", default="", help="free text stored in scan.json")
+    p.add_argument("--home", action="store_true", help="home first even if the carriage is homed")
+    p.add_argument("--wait", type=float, default=15.0, help="seconds to wait for the graph (default 15)")
+    p.set_defaults(func=cmd_scan)
