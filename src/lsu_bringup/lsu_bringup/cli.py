@@ -82,7 +82,7 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
 
 def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.ArgumentParser:
     """The full `lsu` argument parser, plugins included."""
-    from . import demo, doctor, graph, scanner
+    from . import bag_cli, demo, doctor, graph, scanner
     from .nodes_index import command_plugins
 
     parser = argparse.ArgumentParser(
@@ -93,6 +93,7 @@ def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.Argu
     graph.register(sub)
     doctor.register(sub, lambda: env_report)
     demo.register(sub)
+    bag_cli.register(sub)
     scanner.register(sub)
     for entry in command_plugins():
         try:

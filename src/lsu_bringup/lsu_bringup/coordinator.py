@@ -246,6 +246,7 @@ class ScanCoordinatorNode(Node):
                 self._sleep(goal_handle, plan.settle_s)
                 response = self._capture()
                 key = _key(response.stamp)
+                t_captured = time.monotonic()
                 self._event(ScanEvent.SNAP, scan_id, folder, index=index, position_steps=moved.position_steps,
                             image_stamp=response.stamp, expected_snaps=len(plan.positions))
                 captured.append({"index": index, "position_steps": int(moved.position_steps),
@@ -254,6 +255,8 @@ class ScanCoordinatorNode(Node):
                     raise ScanAborted(f"snap {index} (position {position}) was not acknowledged by stereo_matcher "
                                       f"within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
                 captured[-1]["points"] = self._acks.pop(key)
+                captured[-1]["ack_s"] = round(time.monotonic() - t_captured, 4)
+                captured[-1]["snap_s"] = round(time.monotonic() - t_snap, 4)
                 points_total += captured[-1]["points"]
                 snap_times.append(time.monotonic() - t_snap)
             self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
@@ -293,8 +296,11 @@ class ScanCoordinatorNode(Node):
         result.seconds = float(record.timings_s["scan"])
         result.files = [str(f) for f in record.files]
         result.status = record.status
-        log = self.get_logger().warning if partial else self.get_logger().info
-        log(f"scan {scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}")
+        summary = f"scan {scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}"
+        if partial:  # rclpy refuses one call site logging at two severities
+            self.get_logger().warning(summary)
+        else:
+            self.get_logger().info(summary)
         if canceled:
             goal_handle.canceled()
         elif partial:

@@ -138,7 +138,7 @@ class _Reader:
     def __init__(self, path: Path, arguments: Dict[str, str], resolve_exec: Optional[ExecResolver],
                  depth: int = 0) -> None:
         self.path = path
-        self.dir = path.parent
+        self.dir = path.parent.resolve()  # $(dirname) must not be re-joined to a relative base
         self.given = dict(arguments)
         self.arguments: Dict[str, str] = {}
         self.resolve_exec = resolve_exec

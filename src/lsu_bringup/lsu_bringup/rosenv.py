@@ -43,6 +43,7 @@ def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
     if not env.get("HOME") and not env.get("ROS_LOG_DIR"):
         # rcl's logging needs ~/.ros/log; from an empty environment (env -i, services) HOME is unset
         env["HOME"] = pwd.getpwuid(os.getuid()).pw_dir
+    use_profiles(env)
     set_range = not env.get(DISCOVERY_VAR)
     if set_range:
         env[DISCOVERY_VAR] = LOCALHOST
@@ -50,6 +51,18 @@ def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
     if set_domain:
         env[DOMAIN_VAR] = str(DEFAULT_DOMAIN_ID)
     return EnvReport(env[DISCOVERY_VAR], set_range, env[DOMAIN_VAR], set_domain)
+
+
+FASTDDS_PROFILES = Path(__file__).resolve().parents[3] / "config" / "dds" / "fastdds.xml"
+_PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def use_profiles(env: MutableMapping[str, str]) -> None:
+    """Point Fast DDS at our profile file (short heartbeats: a lost image fragment is repaired in
+    50 ms instead of 3 s), unless the user chose a file of their own."""
+    if FASTDDS_PROFILES.is_file() and not any(env.get(v) for v in _PROFILE_VARS):
+        for var in _PROFILE_VARS:
+            env[var] = str(FASTDDS_PROFILES)
 
 
 class DomainClaim:
@@ -99,6 +112,7 @@ def isolate(env: Optional[MutableMapping[str, str]] = None) -> DomainClaim:
     """Localhost-only DDS plus a freshly claimed domain (tests, demos)."""
     env = os.environ if env is None else env
     claim = claim_domain()
+    use_profiles(env)
     env[DISCOVERY_VAR] = LOCALHOST
     env[DOMAIN_VAR] = str(claim.domain_id)
     return claim

@@ -141,6 +141,7 @@ class LsuScanner:
         if not self._action.wait_for_server(timeout_sec=self.wait_s):
             raise ScannerError("the /lsu/scan action server (scan_coordinator) is not available; is the graph "
                                "running (lsu launch sim)?")
+        self._feedback = None  # feedback of an earlier scan must not pass for this one's
         goal = self._Scan.Goal(start_steps=start, end_steps=end, step_steps=step, settle_s=float(settle_s),
                                texture=texture, record_bag=record_bag, output_dir=output_dir, label=label)
         handle = self._wait_future(self._action.send_goal_async(goal, feedback_callback=self._on_feedback),

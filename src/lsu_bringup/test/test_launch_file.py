@@ -133,3 +133,13 @@ def test_cli_arguments():
     assert parse_cli_arguments(["a:=1", "b:=x:=y"]) == {"a": "1", "b": "x:=y"}
     with pytest.raises(ValueError, match="name:=value"):
         parse_cli_arguments(["a=1"])
+
+
+def test_dirname_is_absolute_when_the_file_is_given_relative(tmp_path, monkeypatch):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "p.yaml").write_text("{}\n")
+    write(tmp_path / "sub", "launch:\n- node:\n    pkg: lsu_bringup\n    exec: selftest_talker\n"
+                            "    param:\n    - from: $(dirname)/../p.yaml\n")
+    monkeypatch.chdir(tmp_path)
+    desc = load_launch("sub/t.launch.yaml", {}, resolve_executable)
+    assert desc.nodes[0].param_files == [(tmp_path / "p.yaml").resolve()]

@@ -92,9 +92,11 @@ def register(subparsers: Any) -> None:
 
 def _guard(func: Any) -> Any:
     """Turn this package's expected errors into the one-line errors `lsu` prints (ValueError family)."""
-    from .sim import RigConfigError, SceneError
 
     def run(args: argparse.Namespace) -> int:
+        # imported here, not at registration: the simulator pulls in open3d (~1.3 s on every `lsu` call)
+        from .sim import RigConfigError, SceneError
+
         try:
             return func(args)
         except (CalibrationError, RigConfigError, SceneError) as exc:

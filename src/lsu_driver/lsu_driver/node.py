@@ -23,7 +23,7 @@ from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import MoveTo, Step
 
 from . import protocol as p
-from .client import Gp32Client, Gp32Error, MotionResult, NotConnected
+from .client import DeviceError, Gp32Client, Gp32Error, MotionResult, NotConnected
 
 
 class Gp32DriverNode(Node):
@@ -233,6 +233,10 @@ class Gp32DriverNode(Node):
                 error = f"stopped at {result.position} before reaching {target}: {why}"
                 if result.end_sensor is not None:
                     error += "; the step counter has drifted: call carriage/home"
+        except DeviceError as exc:
+            position, error = (self.client.position or 0), str(exc)
+            if exc.code == p.ERR_NOT_HOMED:  # we believed it homed: the unit restarted under us
+                error += "; the unit lost its position (reset or power cycle), laser off: call carriage/home"
         except Gp32Error as exc:
             position, error = (self.client.position or 0), str(exc)
         finally:
