@@ -337,13 +337,13 @@ class ScanCoordinatorNode(Node):
         return len(points)
 
     def _start_bag(self, folder: Path) -> Any:
-        from .bags import BagRecorder
+        from .bag_cli import BagRecorder
 
         topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
                   "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
                   "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
                   "/lsu/driver/state", "/lsu/sim/truth"]
-        return BagRecorder(self, topics, folder / "bag")
+        return BagRecorder(self, topics, folder / "bag", "mcap", compress=True)
 
     @staticmethod
     def _stop_bag(recorder: Any) -> str:

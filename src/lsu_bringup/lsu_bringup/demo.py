@@ -1,65 +1,126 @@
-"""`lsu demo` (what `make demo` runs): start a graph, show it working, stop it, say what happened.
+"""`lsu demo` (what `make demo` runs): the whole graph on the emulated unit, one full scan, a report.
 
-Today the graph is the selftest pair: the hardware nodes (driver, cameras, extraction,
-matching, faces) and the scan coordinator arrive with their issues, and the demo grows
-into a full scan of a synthetic head on the emulated unit.
+1. claims a ROS domain of its own (localhost only) and starts `lsu launch sim` (GP32 emulator,
+   driver, simulated cameras looking at a synthetic head, extractor, matcher, face processor,
+   scan coordinator) as separate processes;
+2. runs a full stop-snap scan through the `/lsu/scan` action with a bag recorded;
+3. measures the cloud against the renderer's geometry (distance of every point to the true
+   head surface: truth from the simulator, not from the code under test);
+4. stops everything and prints where the files are.
 """
 
 from __future__ import annotations
 
 import argparse
-import signal
-import subprocess
-import sys
+import json
+import tempfile
 import time
 from pathlib import Path
+from typing import Dict, List
 
 from . import rosenv
 
 
-def _lsu(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
-    return subprocess.run([str(Path(sys.executable).parent / "lsu"), *args], capture_output=True, text=True,
-                          timeout=timeout)
+def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
+    """Point-to-surface distances [mm] between a cloud and the simulated scene's meshes."""
+    import numpy as np
+    import open3d as o3d
+    from lsu_cameras.sim import build_scene, load_rig
+
+    cloud = o3d.io.read_point_cloud(str(cloud_ply))
+    points = np.asarray(cloud.points, dtype=np.float32)
+    if len(points) == 0:
+        return {}
+    raycast = o3d.t.geometry.RaycastingScene()
+    for obj in build_scene(scene, load_rig()):
+        raycast.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj.mesh))
+    distance_mm = raycast.compute_distance(o3d.core.Tensor(points)).numpy() * 1000.0
+    return {"points": float(len(points)), "median_mm": float(np.median(distance_mm)),
+            "rms_mm": float(np.sqrt(np.mean(distance_mm ** 2))), "p95_mm": float(np.percentile(distance_mm, 95)),
+            "within_0.1mm_pct": float(100.0 * np.mean(distance_mm <= 0.1))}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from .cli import workspace_root
+    from .scanner import LsuScanner, ScannerError
+    from .testing import LaunchedProcess
+
     claim = rosenv.isolate()
+    out = Path(args.out or workspace_root() / "scans").resolve()
     print(f"[demo] DDS: localhost only, ROS_DOMAIN_ID={claim.domain_id} (claimed for this run)")
-    launch = subprocess.Popen([str(Path(sys.executable).parent / "lsu"), "launch", "selftest"],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    steps = []
-    try:
-        time.sleep(1.0)
-        echo = _lsu("topic", "echo", "/lsu/selftest/echo", "--once", "--timeout", "15")
-        steps.append(("topic echo /lsu/selftest/echo (ScannerState through the listener)", echo))
-        call = _lsu("service", "call", "/lsu/selftest/step", "{steps: 5}", "--timeout", "15")
-        steps.append(("service call /lsu/selftest/step {steps: 5} (lsu_interfaces/srv/Step)", call))
-        nodes = _lsu("node", "list")
-        steps.append(("node list", nodes))
-    finally:
-        launch.send_signal(signal.SIGINT)
+    with tempfile.TemporaryDirectory(prefix="lsu-demo-") as tmp:
+        port = str(Path(tmp) / "gp32")
+        graph = LaunchedProcess(["launch", "sim", f"port:={port}", f"scene:={args.scene}", f"output_dir:={out}"])
+        print(f"[demo] starting the sim graph (lsu launch sim scene:={args.scene}); node logs: {Path(tmp) / 'graph.log'}")
+        scanner = None
         try:
-            output, _ = launch.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            launch.kill()
-            output, _ = launch.communicate()
-        claim.release()
-    ok = True
-    for title, result in steps:
-        ok &= result.returncode == 0
-        print(f"[demo] $ lsu {title}: {'ok' if result.returncode == 0 else 'FAILED'}")
-        for line in (result.stdout or result.stderr).strip().splitlines()[:12]:
-            print(f"         {line}")
-    print(f"[demo] lsu launch ended with exit code {launch.returncode} after SIGINT")
-    print("[demo] what ran: the selftest graph (two nodes exchanging lsu_interfaces messages over DDS).")
-    print("[demo] not yet: GP32 emulator, simulated cameras, extraction, triangulation, meshing and the scan "
-          "action arrive with their issues; then this demo runs a full scan and writes cloud, mesh, renders "
-          "and a bag.")
-    return 0 if ok and launch.returncode == 0 else 1
+            scanner = LsuScanner(wait_s=60)
+            t0 = time.monotonic()
+            while True:
+                try:
+                    if scanner.state(timeout_s=1.0).homed:
+                        break
+                except ScannerError:
+                    pass  # the driver is still starting
+                if graph.process.poll() is not None or time.monotonic() - t0 > 90:
+                    raise ScannerError("the graph did not come up (driver not homed within 90 s); see the log above")
+            print(f"[demo] graph up and carriage homed after {time.monotonic() - t0:.1f} s; scanning "
+                  f"{args.start}..{args.end} step {args.step} (settle {args.settle} s), recording a bag")
+            last = [-1]
+
+            def progress(fb) -> None:
+                if fb.snap_index // 25 != last[0]:
+                    last[0] = fb.snap_index // 25
+                    print(f"[demo]   snap {fb.snap_index}/{fb.snaps_total} at {fb.position_steps} steps, "
+                          f"{fb.points_so_far} points, ETA {fb.eta_s:.0f} s", flush=True)
+
+            result = scanner.scan(feedback=progress, start=args.start, end=args.end, step=args.step,
+                                  settle_s=args.settle, record_bag=True, label="make demo")
+        except ScannerError as exc:
+            print(f"[demo] FAILED: {exc}")
+            print("\n".join(graph.lines[-40:]))
+            return 1
+        finally:
+            if scanner is not None:
+                scanner.close()
+            code = graph.interrupt(timeout_s=20)
+            graph.kill()
+            (Path(tmp) / "graph.log").write_text(graph.output)
+            claim.release()
+    folder = Path(result.output_dir)
+    print(f"[demo] scan {result.scan_id}: {result.status}")
+    print(f"[demo]   {result.snaps} snaps, {result.points} points in {result.seconds:.1f} s")
+    record = json.loads((folder / "scan.json").read_text()) if (folder / "scan.json").is_file() else {}
+    bound = record.get("timings_s", {}).get("mechanical_lower_bound")
+    if bound:
+        print(f"[demo]   mechanical lower bound {bound:.1f} s (moves + settle + exposure): "
+              f"wall/mechanical = {result.seconds / bound:.2f}")
+    cloud = folder / "cloud.ply"
+    if cloud.is_file():
+        acc = accuracy_against_scene(cloud, args.scene)
+        if acc:
+            print(f"[demo]   accuracy against the simulator's true surface: median {acc['median_mm']:.3f} mm, "
+                  f"RMS {acc['rms_mm']:.3f} mm, 95 % within {acc['p95_mm']:.3f} mm, "
+                  f"{acc['within_0.1mm_pct']:.1f} % of points within 0.1 mm")
+            record.setdefault("demo", {})["accuracy_vs_truth"] = acc
+            (folder / "scan.json").write_text(json.dumps(record, indent=2) + "\n")
+    files: List[str] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+    print(f"[demo] files in {folder}:")
+    for name in files:
+        print(f"[demo]   {name}")
+    print(f"[demo] graph stopped (lsu launch exit code {code}); the laser is off (driver shutdown + watchdog).")
+    return 0 if result.success and code == 0 else 1
 
 
 def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
     """Add `demo` to the `lsu` parser."""
-    p = sub.add_parser("demo", help="run the demo graph on this machine and report what it did")
+    p = sub.add_parser("demo", help="start the sim graph, run a full scan, report accuracy and files (make demo)")
+    p.add_argument("--scene", default="head:7", help="sim scene (default head:7, a synthetic head)")
+    p.add_argument("--start", type=int, default=0)
+    p.add_argument("--end", type=int, default=470)
+    p.add_argument("--step", type=int, default=2)
+    p.add_argument("--settle", type=float, default=0.1)
+    p.add_argument("--out", default="", help="parent folder of the scan folder (default <workspace>/scans)")
     p.set_defaults(func=cmd_demo)
+
 
