@@ -116,9 +116,19 @@ class ScanCoordinatorNode(Node):
     def _call(self, client: Any, request: Any, timeout_s: float, what: str) -> Any:
         if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
             raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
+        return self._finish_call(client, self._start_call(client, request), timeout_s, what)
+
+    @staticmethod
+    def _start_call(client: Any, request: Any) -> tuple:
+        """Send a request now; wait for it later with `_finish_call` (lets a move overlap an ack wait)."""
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _f: done.set())
+        return future, done
+
+    @staticmethod
+    def _finish_call(client: Any, call: tuple, timeout_s: float, what: str) -> Any:
+        future, done = call
         if not done.wait(timeout_s):
             client.remove_pending_request(future)
             raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
@@ -234,31 +244,32 @@ class ScanCoordinatorNode(Node):
                 self._event(ScanEvent.TEXTURE, scan_id, folder, image_stamp=response.stamp)
             self._set_laser(True)
             snap_times: List[float] = []
+            pending: Optional[Dict[str, Any]] = None  # the last snap, until the matcher acknowledges it
             for index, position in enumerate(plan.positions):
                 t_snap = time.monotonic()
                 self._check_cancel(goal_handle)
                 self._feedback(goal_handle, "moving", index, len(plan.positions), position, points_total, snap_times)
-                moved = self._call(self.move, MoveTo.Request(position_steps=position,
-                                                             timeout_s=float(self.move_timeout_s)),
-                                   float(self.move_timeout_s) or 60.0, f"move to {position}")
+                if not self.move.wait_for_service(timeout_sec=5.0):
+                    raise ScanAborted(f"move to {position}: service {self.move.srv_name} is not available")
+                move_call = self._start_call(self.move, MoveTo.Request(position_steps=position,
+                                                                      timeout_s=float(self.move_timeout_s)))
+                if pending is not None:  # the previous snap is processed while the carriage moves
+                    points_total += self._await_ack(pending)
+                moved = self._finish_call(self.move, move_call, float(self.move_timeout_s) or 60.0,
+                                          f"move to {position}")
                 if not moved.success:
                     raise ScanAborted(f"move to {position} failed: {moved.message}")
                 self._sleep(goal_handle, plan.settle_s)
                 response = self._capture()
                 key = _key(response.stamp)
-                t_captured = time.monotonic()
                 self._event(ScanEvent.SNAP, scan_id, folder, index=index, position_steps=moved.position_steps,
                             image_stamp=response.stamp, expected_snaps=len(plan.positions))
                 captured.append({"index": index, "position_steps": int(moved.position_steps),
                                  "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s)})
-                if not self._wait(lambda: key in self._acks, float(self.ack_timeout_s)):
-                    raise ScanAborted(f"snap {index} (position {position}) was not acknowledged by stereo_matcher "
-                                      f"within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
-                captured[-1]["points"] = self._acks.pop(key)
-                captured[-1]["ack_s"] = round(time.monotonic() - t_captured, 4)
-                captured[-1]["snap_s"] = round(time.monotonic() - t_snap, 4)
-                points_total += captured[-1]["points"]
+                pending = {"entry": captured[-1], "key": key, "t_captured": time.monotonic(), "t_snap": t_snap}
                 snap_times.append(time.monotonic() - t_snap)
+            if pending is not None:
+                points_total += self._await_ack(pending)
             self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
                            points_total, snap_times)
         except ScanCanceled as exc:
@@ -308,6 +319,17 @@ class ScanCoordinatorNode(Node):
         else:
             goal_handle.succeed()
         return result
+
+    def _await_ack(self, pending: Dict[str, Any]) -> int:
+        """Wait until stereo_matcher published the snap's points; returns their count."""
+        entry, key = pending["entry"], pending["key"]
+        if not self._wait(lambda: key in self._acks, float(self.ack_timeout_s)):
+            raise ScanAborted(f"snap {entry['index']} (position {entry['position_steps']}) was not acknowledged by "
+                              f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
+        entry["points"] = self._acks.pop(key)
+        entry["ack_s"] = round(time.monotonic() - pending["t_captured"], 4)
+        entry["snap_s"] = round(time.monotonic() - pending["t_snap"], 4)
+        return int(entry["points"])
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
                   snap_times: List[float]) -> None:

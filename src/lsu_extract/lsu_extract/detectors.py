@@ -19,11 +19,12 @@ A pure module: numpy only, no ROS.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Dict, Tuple
+from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
 
 THESIS = "thesis"
+_TINY = 1e-6
 
 
 def clamp(values: np.ndarray, low: float, high: float) -> np.ndarray:
@@ -71,30 +72,53 @@ def com_offset(profile: np.ndarray) -> np.ndarray:
     return off
 
 
-def _blais_rioux(profile: np.ndarray, order: int) -> np.ndarray:
-    half = order // 2
-    r = profile.shape[1] // 2
+def _blais_rioux_kernel(half: int) -> np.ndarray:
+    """(2 * half + 3, 3) matrix whose columns give the filter g at the centre column -1, 0, +1.
+
+    ``g(i) = sum_k f(i - k) - f(i + k)`` for k = 1..half, over the 2 * half + 3 samples centred on
+    the peak: one small matrix product instead of a cumulative sum and six gathers.
+    """
+    kernel = np.zeros((2 * half + 3, 3), np.float32)
+    for column, centre in enumerate(range(half, half + 3)):  # 3 columns x half taps: setup, not per pixel
+        kernel[centre - half:centre, column] = 1.0
+        kernel[centre + 1:centre + half + 1, column] = -1.0
+    kernel.setflags(write=False)
+    return kernel
+
+
+_BR_KERNELS: Dict[int, np.ndarray] = {half: _blais_rioux_kernel(half) for half in (2, 4)}
+
+
+def blais_rioux_kernel(order: int, size: int) -> np.ndarray:
+    """The Blais-Rioux filter of ``order`` (4 or 8) at the centre column -1, 0, +1 of a ``size``-sample profile.
+
+    ``profile @ blais_rioux_kernel(order, size)`` gives (g(r - 1), g(r), g(r + 1)), r = size // 2,
+    for `blais_rioux_zero_crossing`: one small matrix product instead of cumulative sums and gathers.
+    """
+    half, r = order // 2, size // 2
     if r < half + 1:
         raise ValueError(f"blais_rioux{order} needs a window of at least +-{half + 1} px, got +-{r}")
-    # g at the columns r-1, r, r+1
-    cs = np.zeros((profile.shape[0], profile.shape[1] + 1), profile.dtype)
-    np.cumsum(profile, axis=1, out=cs[:, 1:])
+    kernel = np.zeros((size, 3), np.float32)
+    kernel[r - half - 1:r + half + 2] = _BR_KERNELS[half]
+    return kernel
 
-    def g(i: int) -> np.ndarray:
-        left = cs[:, i] - cs[:, i - half]           # f(i-half) .. f(i-1)
-        right = cs[:, i + half + 1] - cs[:, i + 1]  # f(i+1) .. f(i+half)
-        return left - right
 
-    gm, g0, gp = g(r - 1), g(r), g(r + 1)
+def blais_rioux_zero_crossing(gm: np.ndarray, g0: np.ndarray, gp: np.ndarray) -> np.ndarray:
+    """Offset of the zero crossing of g next to the peak from g at the columns -1, 0, +1 (in [-1, 1])."""
     # g < 0 left of the peak and > 0 right of it; interpolate its zero crossing next to the peak
     right_side = g0 <= 0.0
     lo = np.where(right_side, g0, gm)
     hi = np.where(right_side, gp, g0)
-    base = np.where(right_side, 0.0, -1.0)
     den = hi - lo
     frac = np.full_like(g0, 0.5)
     np.divide(-lo, den, out=frac, where=den > 0)
-    return clamp(base + clamp(frac, 0.0, 1.0), -1.0, 1.0).astype(profile.dtype)
+    # the crossing lies in [0, 1] right of the peak, or in [-1, 0] left of it
+    return clamp(frac, 0.0, 1.0) - (~right_side)
+
+
+def _blais_rioux(profile: np.ndarray, order: int) -> np.ndarray:
+    g = profile @ blais_rioux_kernel(order, profile.shape[1]).astype(profile.dtype, copy=False)
+    return blais_rioux_zero_crossing(g[:, 0], g[:, 1], g[:, 2]).astype(profile.dtype, copy=False)
 
 
 def blais_rioux4_offset(profile: np.ndarray) -> np.ndarray:
@@ -117,41 +141,44 @@ SUBPIXEL_METHODS: Dict[str, Callable[[np.ndarray], np.ndarray]] = {
 METHODS: Tuple[str, ...] = (THESIS, *SUBPIXEL_METHODS)
 # How many pixels each side of the peak an estimator reads (rows nearer the border are dropped).
 METHOD_SUPPORT_PX: Dict[str, int] = {"gaussian3": 1, "parabola": 1, "com": 1, "blais_rioux4": 3, "blais_rioux8": 5}
+# Methods that are a linear filter of the profile followed by a zero crossing: the filter ignores a
+# constant background, so the extractor applies it to the raw profile in the same product as the
+# background estimate.
+BLAIS_RIOUX_ORDER: Dict[str, int] = {"blais_rioux4": 4, "blais_rioux8": 8}
 
 
-def half_max_crossings(profile: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def half_max_crossings(profile: np.ndarray, base: Optional[np.ndarray] = None
+                       ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel positions (relative to the centre column) where the peak falls to half its height.
 
     Walks out from the centre on each side to the first sample below half the centre value
-    and interpolates linearly. Returns (left, right, found) where ``found`` is False for rows
-    whose profile does not drop to half within the window on both sides.
+    (half way between the centre and ``base`` per row, when the profile still holds its
+    background) and interpolates linearly. Returns (left, right, found) where ``found`` is
+    False for rows whose profile does not drop to half within the window on both sides (or
+    whose centre is not above the level, i.e. not a positive peak); their positions are finite
+    but meaningless.
     """
+    profile = np.ascontiguousarray(profile)
     n, m = profile.shape
     r = m // 2
-    level = 0.5 * profile[:, r:r + 1]
-    below = profile < level
-    rows = np.arange(n)
-    # first sample below the level going right / left from the centre
-    right_below = below[:, r:]
-    jr = np.argmax(right_below, axis=1)
-    found_r = right_below[rows, jr]
-    left_below = below[:, r::-1]
-    jl = np.argmax(left_below, axis=1)
-    found_l = left_below[rows, jl]
-    lvl = level[:, 0]
-
-    def cross(outer: np.ndarray, inner: np.ndarray) -> np.ndarray:
-        fo, fi = profile[rows, outer], profile[rows, inner]
-        den = fi - fo
-        t = np.full(n, 0.5, dtype=profile.dtype)
-        np.divide(lvl - fo, den, out=t, where=den > 0)
-        return clamp(t, 0.0, 1.0)
-
-    ir = clamp(r + jr, 0, m - 1)
-    il = clamp(r - jl, 0, m - 1)
-    right = (ir - r) - cross(ir, np.maximum(ir - 1, 0))
-    left = (il - r) + cross(il, np.minimum(il + 1, m - 1))
-    return left.astype(profile.dtype), right.astype(profile.dtype), found_l & found_r & (jl > 0) & (jr > 0)
+    if r < 1:
+        raise ValueError(f"half_max_crossings needs at least 3 samples per row, got {m}")
+    level = 0.5 * profile[:, r] if base is None else 0.5 * (profile[:, r] + base)
+    below = profile < level[:, None]
+    # index of the first sample below the level going right / left from the centre; argmax gives
+    # 0 both when there is none and when the centre itself is below: neither is a peak
+    jr = below[:, r:].argmax(axis=1)
+    jl = below[:, r::-1].argmax(axis=1)
+    found = (jr > 0) & (jl > 0)
+    flat = profile.ravel()
+    outer = np.arange(r, n * m, m) + jr
+    low, high = flat[outer], flat[outer - 1]
+    # high >= level > low on found rows; the floor only keeps the others finite
+    right = jr - (level - low) / np.maximum(high - low, _TINY)
+    outer -= jr + jl
+    low, high = flat[outer], flat[outer + 1]
+    left = (level - low) / np.maximum(high - low, _TINY) - jl
+    return left.astype(profile.dtype, copy=False), right.astype(profile.dtype, copy=False), found
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from lsu_extract.cli import main
+from lsu_extract.extractor import DEFAULT_METHOD
 from lsu_extract.synthetic import LineScene, render_line
 
 
@@ -22,7 +23,7 @@ def test_json_output_has_one_centre_per_row(line_png, capsys):
     path, truth = line_png
     assert main([str(path), "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
-    assert record["rows_detected"] == 96 and record["method"] == "blais_rioux8"
+    assert record["rows_detected"] == 96 and record["method"] == DEFAULT_METHOD
     u, v = np.array(record["u"]), np.array(record["v"]).astype(int)
     assert np.max(np.abs(u - truth[v])) < 0.2
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from lsu_extract.detectors import SUBPIXEL_METHODS, half_max_crossings, thesis_detector
+from lsu_extract.detectors import SUBPIXEL_METHODS, blais_rioux_kernel, half_max_crossings, thesis_detector
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
@@ -71,3 +71,24 @@ def test_thesis_detector_takes_the_reddest_pixel_passing_both_thresholds():
     assert line.u.tolist() == [4.0, 5.0]
     assert line.peak.tolist() == [200.0, 255.0]
     assert line.width.tolist() == [1.0, 2.0]
+
+
+def test_half_max_crossings_on_a_profile_that_keeps_its_background():
+    profile = integrated_gaussian(np.array([-0.3, 0.0, 0.27]), 5.0)
+    background = np.array([12.0, -7.0, 30.0], np.float32)
+    left, right, found = half_max_crossings(profile + background[:, None], background)
+    left0, right0, found0 = half_max_crossings(profile)
+    assert found.all() and found0.all()
+    np.testing.assert_allclose(left, left0, atol=1e-4)
+    np.testing.assert_allclose(right, right0, atol=1e-4)
+
+
+@pytest.mark.parametrize("order", [4, 8])
+def test_blais_rioux_filter_matches_its_definition(order):
+    rng = np.random.default_rng(order)
+    profile = rng.normal(size=(5, 23)).astype(np.float32)
+    g = profile @ blais_rioux_kernel(order, 23)
+    half, r = order // 2, 11
+    for i, col in enumerate((r - 1, r, r + 1)):  # g(i) = sum_k f(i - k) - f(i + k), k = 1..order/2
+        expected = sum(profile[:, col - k] - profile[:, col + k] for k in range(1, half + 1))
+        np.testing.assert_allclose(g[:, i], expected, atol=1e-5)

@@ -126,7 +126,7 @@ def test_texture_frame_cancels_a_red_background():
     assert np.sqrt(np.mean(errors(result, truth) ** 2)) <= 0.1
 
 
-@pytest.mark.parametrize("method", ["blais_rioux8", "gaussian3", "com"])
+@pytest.mark.parametrize("method", ["blais_rioux4", "blais_rioux8", "gaussian3", "com"])
 def test_line_running_off_the_border_keeps_only_observable_rows(method):
     image, truth, _ = render_line(CLEAN.with_(u0_px=4.0, slope_px_per_row=-0.02, bow_px=0.0))  # 8.8 .. -0.8 px
     result = extract_laser_line(image, ExtractorParams(method=method))
@@ -178,3 +178,25 @@ def test_wrong_array_and_mismatched_texture_are_rejected():
         extract_laser_line(np.zeros((10, 40, 3), np.float32))
     with pytest.raises(ImageFormatError, match="texture frame"):
         extract_laser_line(np.zeros((10, 40, 3), np.uint8), texture=np.zeros((10, 41, 3), np.uint8))
+
+
+def test_dark_rows_without_laser_are_skipped_and_the_line_is_kept():
+    # a line in the middle rows of a dark frame (a face on a black background, in miniature)
+    scene = LineScene(ambient=0.0, textured=False, first_row=150, last_row=330, seed=11)
+    image, truth, visible = render_line(scene)
+    result = extract_laser_line(image)
+    rows = result.v.astype(int)
+    np.testing.assert_array_equal(rows, np.flatnonzero(visible))
+    assert np.max(np.abs(errors(result, truth))) <= 0.1
+    # the rows far from the line were dark: none of them cost a full-row search
+    assert result.rows_full_search < 60 + 2 * 8 * 2
+
+
+def test_tracking_and_full_search_refine_the_same_peaks_on_a_bright_textured_frame():
+    image, _, _ = render_line(LineScene(seed=12, ambient=0.3, slope_px_per_row=-0.11, bow_px=14.0))
+    tracked = extract_laser_line(image)
+    full = extract_laser_line(image, ExtractorParams(window_px=0))
+    np.testing.assert_array_equal(tracked.v, full.v)
+    np.testing.assert_allclose(tracked.u, full.u, atol=1e-4)
+    np.testing.assert_allclose(tracked.width, full.width, atol=1e-4)
+    np.testing.assert_allclose(tracked.peak, full.peak, atol=1e-3)

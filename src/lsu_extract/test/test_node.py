@@ -7,6 +7,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
+from lsu_extract.extractor import DEFAULT_METHOD
 from lsu_extract.node import SCAN_DATA_QOS, LaserExtractorNode
 from lsu_extract.synthetic import LineScene, render_line
 from lsu_interfaces.msg import LaserLine
@@ -34,7 +35,7 @@ def test_image_in_laser_line_out_with_the_same_header(ros_node):
     assert ros_node.spin_until(lambda: len(lines) >= 1, 10)
     line = lines[0]
     assert (line.header.stamp.sec, line.header.stamp.nanosec, line.header.frame_id) == (42, 12345, "lsu_right_optical")
-    assert (line.image_width, line.image_height, line.method) == (640, 120, "blais_rioux8")
+    assert (line.image_width, line.image_height, line.method) == (640, 120, DEFAULT_METHOD)
     u, v = np.asarray(line.u), np.asarray(line.v)
     assert len(u) == len(v) == len(line.peak) == len(line.width) == len(line.quality) == 120
     assert np.all(np.isfinite(u)) and np.sqrt(np.mean((u - truth[v.astype(int)]) ** 2)) < 0.1

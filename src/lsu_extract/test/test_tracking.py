@@ -1,0 +1,62 @@
+"""The fast paths of the tracking search against their straightforward forms (independent numpy)."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lsu_extract.signal import LaserSignal
+from lsu_extract.tracking import coarse_track, interpolate_track, row_candidates
+
+
+@settings(max_examples=60, deadline=None)
+@given(height=st.integers(1, 120), step=st.integers(1, 16), seed=st.integers(0, 2 ** 32 - 1))
+def test_coarse_track_covers_the_rows_near_found_coarse_rows_like_the_general_rule(height, step, seed):
+    rng = np.random.default_rng(seed)
+    coarse_rows = np.arange(min(step // 2, height - 1), height, step)
+    column = np.where(rng.random(coarse_rows.size) < 0.6, rng.integers(0, 500, coarse_rows.size), -1)
+    rows, guess = coarse_track(height, coarse_rows, column, step)
+    ok = column >= 0
+    # the rule spelled out: a row is tracked when a found coarse row lies within `step` rows of it
+    all_rows = np.arange(height)
+    near = (np.abs(all_rows[:, None] - coarse_rows[ok][None, :]) <= step).any(axis=1)
+    np.testing.assert_array_equal(rows, all_rows[near])
+    expected = interpolate_track(all_rows.astype(float), coarse_rows[ok].astype(float), column[ok].astype(float), step)
+    np.testing.assert_allclose(guess, expected[near])
+
+
+def test_clipped_row_signal_is_red_minus_the_brighter_other_channel_floored_at_zero():
+    rng = np.random.default_rng(3)
+    image = rng.integers(0, 256, (20, 50, 3), dtype=np.uint8)
+    sig = LaserSignal(image)
+    b, g, r = (image[..., k].astype(int) for k in range(3))
+    expected = np.clip(r - np.maximum(g, b), 0, 255)
+    np.testing.assert_array_equal(sig.rows_clipped(slice(1, 20, 4)), expected[1::4])
+    np.testing.assert_array_equal(sig.rows(np.array([2, 7])), (r - np.maximum(g, b))[[2, 7]])
+    texture = rng.integers(0, 256, image.shape, dtype=np.uint8)
+    with_texture = LaserSignal(image, texture)
+    np.testing.assert_array_equal(with_texture.rows_clipped(slice(None)), np.clip(r - texture[..., 2].astype(int), 0, 255))
+
+
+def test_rows_dark_in_every_channel_cannot_hold_the_laser():
+    image = np.zeros((4, 30, 3), np.uint8)
+    image[1, 5] = (0, 0, 40)   # a red pixel above the contrast
+    image[2, 9] = (35, 0, 0)   # bright, but not red: the cheap test keeps it (weaker, never wrong)
+    image[3, 3] = (0, 0, 29)   # red, below the contrast
+    sig = LaserSignal(image)
+    assert sig.may_hold_laser(np.arange(4), 30.0).tolist() == [False, True, True, False]
+
+
+def test_row_candidates_agree_on_float_and_clipped_signals_where_the_signal_is_positive():
+    rng = np.random.default_rng(5)
+    rows = rng.integers(0, 20, (12, 200)).astype(np.float32)
+    rows[np.arange(12), rng.integers(0, 200, 12)] += 120.0  # a laser peak per row
+    rows[:6, 150] += 90.0                                  # and a reflection in half of them
+    a = row_candidates(rows, np.arange(12), 5, 30.0)
+    b = row_candidates(rows.astype(np.uint8), np.arange(12), 5, 30.0)
+    np.testing.assert_array_equal(a.first, b.first)
+    np.testing.assert_array_equal(a.second, b.second)
+    np.testing.assert_allclose(a.first_contrast, b.first_contrast, rtol=1e-5)
+    # second peaks: the brightest value outside +-5 px of the first, found by brute force
+    for i in range(12):
+        outside = np.abs(np.arange(200) - a.first[i]) > 5
+        assert rows[i, a.second[i]] == rows[i][outside].max()
