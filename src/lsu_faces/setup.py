@@ -18,8 +18,8 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
-        "lsu.nodes": [],
-        "lsu.commands": [],
+        "console_scripts": ["face_processor = lsu_faces.node:main"],
+        "lsu.nodes": ["face_processor = lsu_faces.node:FaceProcessorNode"],
+        "lsu.commands": ["face = lsu_faces.cli:register"],
     },
 )

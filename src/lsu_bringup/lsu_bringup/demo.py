@@ -76,6 +76,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
             result = scanner.scan(feedback=progress, start=args.start, end=args.end, step=args.step,
                                   settle_s=args.settle, record_bag=True, label="make demo")
+            mesh = Path(result.output_dir) / "mesh.ply"
+            deadline = time.monotonic() + 60.0  # face_processor meshes and renders the cloud after the scan
+            while result.points and not mesh.is_file() and time.monotonic() < deadline:
+                time.sleep(0.2)
+            seen, stable_since = -1, time.monotonic()
+            while mesh.is_file() and time.monotonic() - stable_since < 3.0 and time.monotonic() < deadline:
+                count = sum(1 for _ in mesh.parent.glob("*"))  # renders follow the mesh: wait until files settle
+                if count != seen:
+                    seen, stable_since = count, time.monotonic()
+                time.sleep(0.2)
+            if not mesh.is_file():
+                print("[demo]   no mesh.ply from face_processor within 60 s (see the graph log)")
         except ScannerError as exc:
             print(f"[demo] FAILED: {exc}")
             print("\n".join(graph.lines[-40:]))

@@ -1,0 +1,390 @@
+"""Face geometry (thesis ch. 11): crop, nose tip, radial vector, spherical embedding, parametric map.
+
+Nose tip, two methods:
+
+- ``svd`` (thesis ch. 11.1.2): centroid of the facial surface, the points within a sphere around it,
+  their principal directions by SVD; the direction of least spread is the normal of the facial plane
+  through the centroid and the point farthest in front of that plane is the tip. (The thesis text
+  says "maximally weighted principal direction"; only the least-spread direction makes the nose the
+  farthest point from the plane, which is what its Figure 51 shows.)
+- ``protrusion`` (ours, the default because it measures better, see bench/bench_faces.py): the nose is
+  the point that stands out most from its *own* surroundings, whatever the pose. For candidates on a
+  coarse voxel grid, a plane is fitted to the ring of surface 15-35 mm around each one and the height
+  of the candidate above it is its protrusion; the best candidates are then re-scored against a
+  quadric fitted to the ring (so the curvature of a round head, or of a ball, does not count as a
+  nose), weighted by how squarely the bump faces the scanner (an ear of a turned head is seen
+  edge-on), and the tip is refined on the full-resolution points along the ring's normal. A nose must
+  protrude ``min_prominence_m`` above the quadric: a plane or a ball is reported as "no face".
+
+Face frame (`embed_face`): the ring normal, then `symmetric_frame` (mirror-symmetry plane by ICP of
+the mirrored face, which removes the bias of a turned head's hidden cheek) and the profile line
+(forehead to chin) for the nod; the tip is moved onto the symmetry plane.
+
+Radial vector (ch. 11.2.1): the normal of the plane fitted to the points within ``radial_radius_m``
+of the tip, pointing out of the face (towards the camera). Spherical embedding (ch. 11.2.2): the
+sphere of radius ``sphere_radius_m`` whose surface touches the nose tip, centred behind it on the
+radial vector; each point gets its unit direction from the centre and its radial distance. The 2D
+parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial vector) and azimuth
+(angle about it) and stores the mean radial height above the sphere.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+__all__ = ["FaceError", "NotAFaceError", "FaceParams", "NoseResult", "FaceFrame", "depth_window", "nose_tip_svd",
+           "nose_tip_protrusion", "nose_tip", "radial_vector", "face_frame", "crop_face", "spherical_embedding",
+           "parametric_map", "NOSE_METHODS"]
+
+NOSE_METHODS = ("protrusion", "svd")
+
+
+class FaceError(ValueError):
+    """The face cannot be processed (too few points, bad parameters); the message says what to do."""
+
+
+class NotAFaceError(FaceError):
+    """The cloud holds no face: nothing protrudes like a nose (a plane, a ball, a box...)."""
+
+
+@dataclass(frozen=True)
+class FaceParams:
+    """Settings of the face geometry (node parameters of the same names)."""
+
+    nose_method: str = "protrusion"
+    depth_window_m: float = 0.20       # keep points within this depth of the nearest surface (drops background)
+    svd_sphere_m: float = 0.07         # thesis: radius of the reduced cloud around the centroid
+    ring_inner_m: float = 0.015        # protrusion ring around a candidate: inner radius
+    ring_outer_m: float = 0.035        # and outer radius
+    candidate_voxel_m: float = 0.005   # nose candidates: one per voxel of this size
+    sample_voxel_m: float = 0.003      # surface samples for the ring statistics
+    min_prominence_m: float = 0.006    # a nose protrudes at least this above its quadric ring
+    radial_radius_m: float = 0.04      # plane fit around the tip for the radial vector
+    crop_radius_m: float = 0.085       # face region: points within this of the nose tip
+    sphere_radius_m: float = 0.09      # spherical embedding radius (about a head's half depth)
+    max_symmetry_shift_m: float = 0.003  # the symmetry plane may move the nose tip at most this far
+    min_points: int = 200
+
+    def __post_init__(self) -> None:
+        if self.nose_method not in NOSE_METHODS:
+            raise FaceError(f"nose_method must be one of {', '.join(NOSE_METHODS)} (got '{self.nose_method}')")
+        if not 0 < self.ring_inner_m < self.ring_outer_m:
+            raise FaceError("ring_inner_m must be positive and smaller than ring_outer_m")
+        for name in ("depth_window_m", "svd_sphere_m", "candidate_voxel_m", "sample_voxel_m", "radial_radius_m", "crop_radius_m",
+                     "sphere_radius_m"):
+            if not getattr(self, name) > 0:
+                raise FaceError(f"{name} must be positive (got {getattr(self, name)})")
+
+
+@dataclass
+class NoseResult:
+    """A nose tip [m, left optical frame], the outward face normal there and how much the nose stands out."""
+
+    tip: np.ndarray
+    normal: np.ndarray
+    prominence_m: float
+    method: str
+
+
+@dataclass
+class FaceFrame:
+    """Pose-normalising frame of a face: origin at the nose tip, rows = (right, down, out of the face)."""
+
+    origin: np.ndarray
+    axes: np.ndarray          # (3, 3) rows e1, e2, radial; local = (p - origin) @ axes.T
+
+    def to_local(self, points: np.ndarray) -> np.ndarray:
+        """Points in the face frame (z = height along the radial vector, <= 0 behind the tip)."""
+        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
+
+
+def _check(points: np.ndarray, params: FaceParams) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(p) < params.min_points:
+        raise FaceError(f"{len(p)} points are too few for a face (need {params.min_points}); scan closer or "
+                        f"check the laser line extraction")
+    if not np.all(np.isfinite(p)):
+        raise FaceError("the cloud holds NaN or infinite points; drop them first")
+    return p
+
+
+def depth_window(points: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+    """Mask of the points within ``depth_window_m`` behind the nearest surface (robust 0.5 % depth)."""
+    r = np.linalg.norm(points, axis=1)
+    near = np.percentile(r, 0.5)
+    return r <= near + params.depth_window_m
+
+
+def _towards_camera(normal: np.ndarray, at: np.ndarray) -> np.ndarray:
+    return normal if np.dot(normal, -at) > 0 else -normal
+
+
+def _plane_normal(points: np.ndarray) -> np.ndarray:
+    c = points - points.mean(axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    return vt[-1]
+
+
+def nose_tip_svd(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+    """The thesis' nose finder (ch. 11.1.2): farthest point from the SVD facial plane through the centroid."""
+    p = _check(points, params)
+    p = p[depth_window(p, params)]
+    centroid = p.mean(axis=0)
+    reduced = p[np.linalg.norm(p - centroid, axis=1) <= params.svd_sphere_m]
+    if len(reduced) < 10:
+        raise FaceError(f"only {len(reduced)} points within {params.svd_sphere_m * 1000:.0f} mm of the centroid; "
+                        f"raise svd_sphere_m")
+    n = _towards_camera(_plane_normal(reduced), centroid)
+    height = (reduced - centroid) @ n
+    i = int(np.argmax(height))
+    return NoseResult(reduced[i].copy(), n, float(height[i]), "svd")
+
+
+def _voxel_means(points: np.ndarray, voxel: float) -> np.ndarray:
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, points)
+    return sums / counts[:, None]
+
+
+def _ring_planes(centres: np.ndarray, samples: np.ndarray, inner: float, outer: float) -> Tuple[np.ndarray, ...]:
+    """For every centre: mean, unit normal (least spread) and count of the samples in the ring inner..outer."""
+    tree_c, tree_s = cKDTree(centres), cKDTree(samples)
+    dist = tree_c.sparse_distance_matrix(tree_s, outer, output_type="coo_matrix")
+    keep = dist.data > inner
+    A = sparse.csr_matrix((np.ones(int(keep.sum())), (dist.row[keep], dist.col[keep])),
+                          shape=(len(centres), len(samples)))
+    count = np.asarray(A.sum(axis=1)).ravel()
+    safe = np.maximum(count, 1)[:, None]
+    mean = (A @ samples) / safe
+    outer_prod = np.einsum("ni,nj->nij", samples, samples).reshape(len(samples), 9)
+    cov = ((A @ outer_prod) / safe).reshape(-1, 3, 3) - np.einsum("ni,nj->nij", mean, mean)
+    _, vecs = np.linalg.eigh(cov)
+    normal = vecs[:, :, 0]
+    flip = np.einsum("ij,ij->i", normal, -centres) < 0
+    normal[flip] *= -1.0
+    return mean, normal, count
+
+
+def _quadric_height(centre: np.ndarray, normal: np.ndarray, ring: np.ndarray) -> float:
+    """Height of ``centre`` above the quadric h(x, y) fitted to ``ring`` in the frame of ``normal``."""
+    e1 = np.cross(normal, [0.0, 1.0, 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.cross(normal, [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    d = ring - centre
+    x, y, h = d @ e1, d @ e2, d @ normal
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    coef, *_ = np.linalg.lstsq(A, h, rcond=None)
+    return float(-coef[0])   # the candidate sits at x = y = 0, h = 0
+
+
+def nose_tip_protrusion(points: np.ndarray, params: FaceParams = FaceParams(), top: int = 12) -> NoseResult:
+    """The most protruding point of the surface relative to its own surroundings (see the module doc).
+
+    Raises:
+        NotAFaceError: nothing protrudes at least ``min_prominence_m`` above its quadric ring.
+    """
+    p = _check(points, params)
+    p = p[depth_window(p, params)]
+    samples = _voxel_means(p, params.sample_voxel_m)
+    candidates = _voxel_means(p, params.candidate_voxel_m)
+    mean, normal, count = _ring_planes(candidates, samples, params.ring_inner_m, params.ring_outer_m)
+    # a candidate needs its ring mostly present: at the rim of the scan the ring is one-sided
+    full_ring = np.pi * (params.ring_outer_m ** 2 - params.ring_inner_m ** 2) / params.sample_voxel_m ** 2
+    ok = count >= 0.35 * full_ring
+    if not np.any(ok):
+        raise NotAFaceError("no part of the surface is wide enough for a face (every 35 mm neighbourhood is "
+                            "mostly empty); scan the whole face at about 30 cm")
+    height = np.einsum("ij,ij->i", candidates - mean, normal)
+    height[~ok] = -np.inf
+    best = np.argsort(height)[::-1][:top]
+    tree = cKDTree(samples)
+    scores = []
+    for i in best:
+        if not np.isfinite(height[i]):
+            continue
+        around = samples[tree.query_ball_point(candidates[i], params.ring_outer_m)]
+        ring = around[np.linalg.norm(around - candidates[i], axis=1) > params.ring_inner_m]
+        q = _quadric_height(candidates[i], normal[i], ring)
+        # the nose points at the scanner more than any other bump (an ear of a turned head is seen edge-on)
+        facing = max(float(np.dot(normal[i], -candidates[i]) / np.linalg.norm(candidates[i])), 0.0)
+        scores.append((q * facing, q, int(i)))
+    if not scores:
+        raise NotAFaceError("no nose candidate found")
+    _, prominence, i = max(scores)
+    if prominence < params.min_prominence_m:
+        raise NotAFaceError(f"no nose: the most prominent feature stands {prominence * 1000:.1f} mm out of its "
+                            f"surroundings (a nose: > {params.min_prominence_m * 1000:.0f} mm); is a face in front "
+                            f"of the scanner?")
+    # refine on the full-resolution points: farthest along the ring normal near the candidate
+    n = normal[i]
+    near = p[np.linalg.norm(p - candidates[i], axis=1) <= params.ring_inner_m]
+    h = (near - mean[i]) @ n
+    top_k = np.argsort(h)[::-1][:5]
+    tip = near[top_k].mean(axis=0)
+    return NoseResult(tip, n, float(prominence), "protrusion")
+
+
+def nose_tip(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+    """Nose tip with ``params.nose_method``."""
+    if params.nose_method == "svd":
+        return nose_tip_svd(points, params)
+    return nose_tip_protrusion(points, params)
+
+
+def radial_vector(points: np.ndarray, tip: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+    """Unit normal of the plane fitted to the points within ``radial_radius_m`` of the tip, out of the face."""
+    p = np.asarray(points, dtype=np.float64)
+    near = p[np.linalg.norm(p - tip, axis=1) <= params.radial_radius_m]
+    if len(near) < 10:
+        raise FaceError(f"only {len(near)} points within {params.radial_radius_m * 1000:.0f} mm of the nose tip")
+    return _towards_camera(_plane_normal(near), tip)
+
+
+def face_frame(tip: np.ndarray, radial: np.ndarray, up_hint: np.ndarray = np.array([0.0, -1.0, 0.0])) -> FaceFrame:
+    """Frame at the tip: z = radial vector, y = 'down' of the face taken from the camera's -``up_hint``."""
+    z = np.asarray(radial, dtype=np.float64) / np.linalg.norm(radial)
+    down = -np.asarray(up_hint, dtype=np.float64)
+    y = down - down.dot(z) * z
+    if np.linalg.norm(y) < 1e-6:
+        y = np.cross(z, [1.0, 0.0, 0.0])
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    return FaceFrame(np.asarray(tip, dtype=np.float64).copy(), np.stack([x, y, z]))
+
+
+def symmetric_frame(points: np.ndarray, frame: FaceFrame, params: FaceParams = FaceParams(),
+                    rounds: int = 2) -> FaceFrame:
+    """Refine ``frame`` so that its x = 0 plane is the face's mirror-symmetry plane.
+
+    The plane fitted around the nose is biased towards the side the scanner sees best (a turned head
+    hides one cheek). Faces are mirror-symmetric: the face points mirrored in the frame's x = 0
+    plane are aligned back onto the face by ICP (open3d, point-to-plane); the composed reflection
+    is a reflection about the true symmetry plane, whose normal becomes the new x axis. The radial
+    vector is kept in that plane, and the tip is moved onto it.
+    """
+    import open3d as o3d
+
+    p = np.asarray(points, dtype=np.float64)
+    local_all = frame.to_local(p)
+    sel = np.linalg.norm(local_all, axis=1) <= params.crop_radius_m
+    if sel.sum() < 50:
+        return frame
+    for _ in range(rounds):
+        local = frame.to_local(p[sel])
+        local = _voxel_means(local, params.sample_voxel_m)
+        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local))
+        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * params.sample_voxel_m, max_nn=20))
+        target.orient_normals_towards_camera_location(np.array([0.0, 0.0, 1.0]))
+        M = np.diag([-1.0, 1.0, 1.0])
+        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local @ M))
+        T = np.eye(4)
+        est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+        for dist in (0.012, 0.005, 0.0025):
+            T = o3d.pipelines.registration.registration_icp(
+                source, target, dist, T, est, o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30)
+            ).transformation
+        S = T[:3, :3] @ M                     # a reflection: its -1 eigenvector is the plane normal
+        vals, vecs = np.linalg.eig(S)
+        k = int(np.argmin(np.real(vals)))
+        nx = np.real(vecs[:, k])
+        nx /= np.linalg.norm(nx)
+        if nx[0] < 0:
+            nx = -nx
+        # points x with S x + t = x lie on the plane: n . x = n . t / 2
+        offset = 0.5 * float(nx @ T[:3, 3])
+        axes_local = np.eye(3)
+        z = axes_local[2] - (axes_local[2] @ nx) * nx
+        z /= np.linalg.norm(z)
+        y = np.cross(z, nx)
+        new_axes_local = np.stack([nx, y, z])
+        origin_local = offset * nx         # the old tip moved onto the plane
+        # a failed mirror alignment (too little overlap) shows as a big jump: keep the frame we had
+        if abs(offset) > params.max_symmetry_shift_m or nx[0] < np.cos(np.radians(35.0)):
+            break
+        frame = FaceFrame(frame.origin + origin_local @ frame.axes, new_axes_local @ frame.axes)
+    return _profile_pitch(p[sel], frame, params)
+
+
+def _profile_pitch(points: np.ndarray, frame: FaceFrame, params: FaceParams) -> FaceFrame:
+    """Tilt the radial vector (about the frame's x axis) perpendicular to the face's profile line.
+
+    The profile (face points near the symmetry plane, away from the nose) runs from the forehead to the
+    chin; its principal direction is the face's vertical whatever the nod, while the plane fitted
+    around the nose leans towards the camera.
+    """
+    local = frame.to_local(points)
+    r = np.linalg.norm(local, axis=1)
+    prof = local[(np.abs(local[:, 0]) < 0.004) & (r > 0.03)]
+    above, below = prof[prof[:, 1] < 0], prof[prof[:, 1] > 0]
+    if len(above) < 10 or len(below) < 10:
+        return frame   # forehead or chin missing: keep the fitted plane's direction
+    yz = prof[:, 1:] - prof[:, 1:].mean(axis=0)
+    _, _, vt = np.linalg.svd(yz, full_matrices=False)
+    d = vt[0] if vt[0][0] > 0 else -vt[0]          # (y, z) of the profile direction, pointing down
+    angle = np.arctan2(d[1], d[0])                 # lean of the profile towards +z (out of the face)
+    c, s_ = np.cos(angle), np.sin(angle)
+    # rotate y and z about x so that the profile direction becomes the new y
+    y = c * frame.axes[1] + s_ * frame.axes[2]
+    z = -s_ * frame.axes[1] + c * frame.axes[2]
+    return FaceFrame(frame.origin, np.stack([frame.axes[0], y, z]))
+
+
+def crop_face(points: np.ndarray, tip: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+    """Mask of the points within ``crop_radius_m`` of the nose tip (the face, without hair, ears and neck)."""
+    return np.linalg.norm(np.asarray(points) - tip, axis=1) <= params.crop_radius_m
+
+
+def spherical_embedding(points: np.ndarray, frame: FaceFrame,
+                        radius_m: float = FaceParams().sphere_radius_m) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Map points onto the sphere touching the nose tip (thesis ch. 11.2.2).
+
+    Returns (elevation [rad] from the radial vector, azimuth [rad] about it in (-pi, pi], radial
+    distance from the sphere centre [m]).
+    """
+    centre = frame.origin - radius_m * frame.axes[2]
+    d = (np.asarray(points, dtype=np.float64) - centre) @ frame.axes.T
+    rho = np.linalg.norm(d, axis=1)
+    unit = d / np.maximum(rho[:, None], 1e-12)
+    elevation = np.arccos(np.clip(unit[:, 2], -1.0, 1.0))
+    azimuth = np.arctan2(unit[:, 1], unit[:, 0])
+    return elevation, azimuth, rho
+
+
+def parametric_map(elevation: np.ndarray, azimuth: np.ndarray, rho: np.ndarray, radius_m: float,
+                   shape: Tuple[int, int] = (24, 64), max_elevation_rad: float = np.radians(60.0)) -> np.ndarray:
+    """2D map (elevation rows x azimuth columns) of the mean height above the sphere [m]; NaN = no data.
+
+    Row 0 is the ring around the nose tip (thesis Figure 56: "the bottom row represents all the points
+    on a circle directly on top of the nose"); a roll about the radial vector shifts the columns cyclically.
+    """
+    rows, cols = shape
+    r = np.floor(elevation / max_elevation_rad * rows).astype(np.int64)
+    c = np.floor((azimuth + np.pi) / (2 * np.pi) * cols).astype(np.int64) % cols
+    ok = (r >= 0) & (r < rows)
+    flat = r[ok] * cols + c[ok]
+    total = np.bincount(flat, weights=rho[ok] - radius_m, minlength=rows * cols)
+    count = np.bincount(flat, minlength=rows * cols)
+    out = np.full(rows * cols, np.nan)
+    has = count > 0
+    out[has] = total[has] / count[has]
+    return out.reshape(rows, cols)
+
+
+def embed_face(points: np.ndarray, params: FaceParams = FaceParams(),
+               nose: Optional[NoseResult] = None) -> Tuple[NoseResult, FaceFrame, np.ndarray]:
+    """Nose tip, face frame and the mask of the cropped face points, in one call."""
+    p = _check(points, params)
+    nose = nose or nose_tip(p, params)
+    frame = face_frame(nose.tip, nose.normal if nose.method == "protrusion" else radial_vector(p, nose.tip, params))
+    frame = symmetric_frame(p, frame, params)
+    return nose, frame, crop_face(p, frame.origin, params)

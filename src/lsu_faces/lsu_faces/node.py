@@ -1,0 +1,331 @@
+"""The ``face_processor`` node: scan cloud -> mesh, renders, nose tip; face gallery services.
+
+A thin adapter over :mod:`lsu_faces.pipeline` and :mod:`lsu_faces.gallery`:
+
+- subscribes ``scan/cloud`` (PointCloud2 x y z rgb u v snap; reliable, transient-local) and
+  ``scan/events`` (to learn the scan id and its output folder);
+- publishes ``scan/mesh`` (Marker TRIANGLE_LIST with vertex colours) and ``scan/mesh_shape``
+  (shape_msgs/Mesh), both transient-local, and ``face/nose`` (PointStamped);
+- writes mesh.ply, mesh.obj and front/side renders into the scan's folder (``output_dir`` of the
+  scan events, else ``<output_dir>/<scan id or time>``);
+- serves ``face/enroll`` and ``face/identify`` (lsu_interfaces/srv/Enroll, Identify) on an SQLite
+  gallery (``gallery_file``).
+
+Bad input (empty or tiny cloud, no u/v, not a face, unreadable files, locked or corrupt gallery) is
+logged as one line and returned in the service message; no exception escapes a callback.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+from pathlib import Path
+from typing import Any, List, Optional
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PointStamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from shape_msgs.msg import Mesh, MeshTriangle
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker
+
+from lsu_interfaces.msg import ScanEvent
+from lsu_interfaces.srv import Enroll, Identify
+
+from .face import NOSE_METHODS, FaceParams
+from .gallery import Gallery, GalleryError
+from .mesh import FaceMesh, MeshParams
+from .pipeline import ProcessParams, ScanResult, load_cloud_file, process_cloud, write_outputs
+from .signature import SIGNATURE_METHODS, SignatureParams
+from .smoothing import METHODS as SMOOTH_METHODS
+from .smoothing import SmoothParams
+
+__all__ = ["FaceProcessorNode", "mesh_to_marker", "mesh_to_shape", "main"]
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
+
+
+def mesh_to_marker(mesh: FaceMesh, header: Header, max_triangles: int = 0) -> Marker:
+    """A TRIANGLE_LIST Marker (three points per triangle, one colour per point) of ``mesh``."""
+    tri = mesh.triangles
+    if max_triangles and len(tri) > max_triangles:
+        # RViz draws every point of the list: keep an even subset of a huge mesh
+        tri = tri[np.linspace(0, len(tri) - 1, max_triangles).astype(np.int64)]
+    m = Marker(header=header, ns="lsu_scan_mesh", id=0, type=Marker.TRIANGLE_LIST, action=Marker.ADD)
+    m.pose.orientation.w = 1.0
+    m.scale.x = m.scale.y = m.scale.z = 1.0
+    m.color = ColorRGBA(r=0.8, g=0.8, b=0.8, a=1.0)
+    flat = tri.reshape(-1)
+    v = mesh.vertices[flat]
+    m.points = [Point(x=float(a), y=float(b), z=float(c)) for a, b, c in v.tolist()]
+    if mesh.colors is not None:
+        col = mesh.colors[flat].astype(np.float64) / 255.0
+        m.colors = [ColorRGBA(r=float(r), g=float(g), b=float(b), a=1.0) for r, g, b in col.tolist()]
+    return m
+
+
+def mesh_to_shape(mesh: FaceMesh) -> Mesh:
+    """shape_msgs/Mesh of ``mesh`` (unused vertices dropped)."""
+    m = mesh.compact()
+    out = Mesh()
+    out.vertices = [Point(x=float(a), y=float(b), z=float(c)) for a, b, c in m.vertices.tolist()]
+    out.triangles = [MeshTriangle(vertex_indices=np.asarray(t, dtype=np.uint32)) for t in m.triangles.tolist()]
+    return out
+
+
+class FaceProcessorNode(Node):
+    """Meshes every scan cloud, finds the face, and serves the gallery (see module doc)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("face_processor", **{"namespace": "/lsu", **kwargs})
+        mp, sp, fp, gp = MeshParams(), SmoothParams(), FaceParams(), SignatureParams()
+
+        def declare(name: str, default: Any, description: str) -> None:
+            self.declare_parameter(name, default, ParameterDescriptor(description=description))
+
+        declare("output_dir", "~/.lsu/faces", "folder for mesh.ply, mesh.obj and renders when the scan events name "
+                "no folder (a sub-folder per scan)")
+        declare("gallery_file", "~/.lsu/faces/gallery.db", "SQLite face gallery used by face/enroll and face/identify")
+        declare("scans_dir", "", "folder searched for <scan_id>/cloud.ply by the services' scan_id (empty: output_dir)")
+        declare("write_files", True, "write mesh.ply, mesh.obj and the renders for every scan")
+        declare("render_size_px", 480, "side of the square front/side renders [px]")
+        declare("max_edge_factor", mp.max_edge_factor, "cull triangles with an edge longer than this x the median edge")
+        declare("max_stretch", mp.max_stretch, "cull triangles stretched more than this x the median (depth jumps)")
+        declare("smoothing", sp.method, "mesh smoothing: taubin (no shrinkage), laplacian (thesis) or none")
+        declare("smoothing_iterations", sp.iterations, "Laplacian iterations or Taubin passes")
+        declare("laplacian_factor", sp.factor, "Laplacian step towards the neighbour centroid (thesis: 0.1)")
+        declare("taubin_lambda", sp.taubin_lambda, "Taubin shrink step (0..1)")
+        declare("taubin_mu", sp.taubin_mu, "Taubin inflate step (< -taubin_lambda)")
+        declare("nose_method", fp.nose_method, "nose tip finder: protrusion (robust) or svd (thesis)")
+        declare("signature_method", gp.method, "face signature: depthmap (ICP-aligned) or fft (thesis)")
+        declare("reject_threshold", 0.33, "identify accepts the best match only at or above this score (0..1)")
+        declare("marker_max_triangles", 60000, "triangles sent in the scan/mesh Marker (0 = all)")
+        self.add_on_set_parameters_callback(self._check_parameters)
+
+        self.latest: Optional[ScanResult] = None
+        self.scan_id = ""
+        self.scan_dir = ""
+        self.processed = 0
+        self.errors = 0
+        self.last_error = ""
+        self.mesh_pub = self.create_publisher(Marker, "scan/mesh", LATCHED)
+        self.shape_pub = self.create_publisher(Mesh, "scan/mesh_shape", LATCHED)
+        self.nose_pub = self.create_publisher(PointStamped, "face/nose", 10)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PointCloud2, "scan/cloud", self.on_cloud, LATCHED)
+        self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)
+        self.create_service(Enroll, "face/enroll", self.on_enroll)
+        self.create_service(Identify, "face/identify", self.on_identify)
+        self.create_timer(1.0, self.publish_diagnostics)
+
+    # ------------------------------------------------------------------ parameters
+    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+        choices = {"smoothing": SMOOTH_METHODS, "nose_method": NOSE_METHODS, "signature_method": SIGNATURE_METHODS}
+        for p in params:
+            if p.name in choices and p.value not in choices[p.name]:
+                return SetParametersResult(successful=False, reason=f"{p.name} must be one of "
+                                                                    f"{', '.join(choices[p.name])}")
+            if p.name == "reject_threshold" and not 0.0 <= p.value <= 1.0:
+                return SetParametersResult(successful=False, reason="reject_threshold must be between 0 and 1")
+            if p.name in ("max_edge_factor", "max_stretch") and p.value <= 1.0:
+                return SetParametersResult(successful=False, reason=f"{p.name} must be greater than 1")
+            if p.name in ("smoothing_iterations", "render_size_px", "marker_max_triangles") and p.value < 0:
+                return SetParametersResult(successful=False, reason=f"{p.name} must not be negative")
+        return SetParametersResult(successful=True)
+
+    def _value(self, name: str) -> Any:
+        return self.get_parameter(name).value
+
+    def process_params(self) -> ProcessParams:
+        """The processing chain's settings from the node parameters."""
+        v = self._value
+        return ProcessParams(
+            mesh=MeshParams(max_edge_factor=float(v("max_edge_factor")), max_stretch=float(v("max_stretch"))),
+            smoothing=SmoothParams(method=str(v("smoothing")), iterations=int(v("smoothing_iterations")),
+                                   factor=float(v("laplacian_factor")), taubin_lambda=float(v("taubin_lambda")),
+                                   taubin_mu=float(v("taubin_mu"))),
+            face=FaceParams(nose_method=str(v("nose_method"))),
+            signature=SignatureParams(method=str(v("signature_method"))))
+
+    def gallery(self) -> Gallery:
+        """The gallery named by ``gallery_file``."""
+        return Gallery(str(self._value("gallery_file")))
+
+    def _error(self, text: str) -> str:
+        self.errors += 1
+        self.last_error = text
+        self.get_logger().error(text)
+        return text
+
+    # ------------------------------------------------------------------ scan data
+    def on_event(self, msg: ScanEvent) -> None:
+        """Remember the running scan's id and folder (files of its cloud go there)."""
+        if msg.type == ScanEvent.STARTED or (msg.scan_id and msg.scan_id != self.scan_id):
+            self.scan_id = msg.scan_id
+            self.scan_dir = msg.output_dir
+        elif msg.output_dir:
+            self.scan_dir = msg.output_dir
+
+    def _folder(self) -> Path:
+        if self.scan_dir:
+            return Path(self.scan_dir).expanduser()
+        name = self.scan_id or _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        return Path(str(self._value("output_dir"))).expanduser() / name
+
+    def on_cloud(self, msg: PointCloud2) -> None:
+        """Mesh, smooth, texture, write, find the face; publish mesh and nose."""
+        try:
+            result = self._process_msg(msg)
+        except Exception as exc:  # noqa: BLE001 - a bad cloud must never take the node down
+            self._error(f"scan cloud not processed: {exc.__class__.__name__}: {exc}")
+            return
+        if result is None:
+            return
+        self.latest = result
+        self.processed += 1
+        frame_id = msg.header.frame_id or "lsu_left_optical"
+        header = Header(stamp=msg.header.stamp, frame_id=frame_id)
+        if result.mesh is not None:
+            self.mesh_pub.publish(mesh_to_marker(result.mesh, header, int(self._value("marker_max_triangles"))))
+            self.shape_pub.publish(mesh_to_shape(result.mesh))
+        if result.nose is not None:
+            tip = result.frame.origin if result.frame is not None else result.nose.tip
+            self.nose_pub.publish(PointStamped(header=header, point=Point(x=float(tip[0]), y=float(tip[1]),
+                                                                          z=float(tip[2]))))
+        files: List[Path] = []
+        if result.mesh is not None and bool(self._value("write_files")):
+            try:
+                files = write_outputs(result, self._folder(), int(self._value("render_size_px")))
+            except (OSError, ValueError) as exc:
+                self._error(f"cannot write the mesh files to {self._folder()}: {exc}")
+        for text in result.messages:
+            self.get_logger().warning(f"scan {self.scan_id or '(no id)'}: {text}")
+        what = f"scan {self.scan_id or '(no id)'}: {len(result.points)} points"
+        if result.mesh is not None:
+            what += f", mesh of {result.mesh.n_triangles} triangles"
+        if result.nose is not None:
+            what += f", nose at {np.round(result.nose.tip * 1000, 1).tolist()} mm"
+        if files:
+            what += f", {len(files)} files in {files[0].parent}"
+        self.get_logger().info(what)
+
+    def _process_msg(self, msg: PointCloud2) -> Optional[ScanResult]:
+        from lsu_reconstruct.pointcloud2 import Cloud, PointField, decode
+
+        cloud = Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
+                      data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,
+                      row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
+        names = [f.name for f in msg.fields]
+        missing = [n for n in ("x", "y", "z") if n not in names]
+        if missing:
+            self._error(f"scan cloud has no {', '.join(missing)} field(s); it has {', '.join(names) or 'none'}: not an "
+                        f"LSU cloud")
+            return None
+        if cloud.n_points == 0:
+            self._error("scan cloud is empty: no points were triangulated (is the laser visible to both cameras?)")
+            return None
+        wanted = [n for n in ("x", "y", "z", "rgb", "u", "v") if n in names]
+        columns = decode(cloud, wanted)
+        try:
+            return process_cloud(columns, self.process_params())
+        except ValueError as exc:
+            self._error(f"scan cloud not processed: {exc}")
+            return None
+
+    # ------------------------------------------------------------------ services
+    def _result_for(self, cloud_file: str, scan_id: str) -> ScanResult:
+        if scan_id:
+            base = Path(str(self._value("scans_dir") or self._value("output_dir"))).expanduser()
+            hits = [p for p in (base / scan_id / "cloud.ply",) if p.is_file()] or sorted(base.glob(f"*{scan_id}*/cloud.ply"))
+            if not hits:
+                raise FileNotFoundError(f"no cloud.ply of scan '{scan_id}' under {base}")
+            cloud_file = str(hits[0])
+        if cloud_file:
+            loaded = load_cloud_file(cloud_file)
+            return process_cloud(loaded["columns"], self.process_params(), loaded["faces"])  # type: ignore[arg-type]
+        if self.latest is None:
+            raise LookupError("no scan cloud received yet on scan/cloud; scan first or give cloud_file")
+        return self.latest
+
+    def on_enroll(self, request: Enroll.Request, response: Enroll.Response) -> Enroll.Response:
+        """face/enroll: add the face of a cloud (file, scan id or the latest scan) under ``name``."""
+        try:
+            if not request.name.strip():
+                raise ValueError("name is empty; give the person's name")
+            result = self._result_for(request.cloud_file, request.scan_id)
+            if result.signature is None:
+                raise ValueError("; ".join(result.messages) or "no face in this cloud")
+            mesh_file = ""
+            if request.cloud_file:
+                mesh_file = request.cloud_file
+            elif result.mesh is not None:
+                mesh_file = str(self._folder() / "mesh.ply")
+            response.entry_id = self.gallery().enroll(request.name, result.signature, mesh_file)
+            response.points_used = int(result.signature.points_used)
+            response.success = True
+            self.get_logger().info(f"enrolled '{request.name}' as entry {response.entry_id}")
+        except (ValueError, LookupError, OSError, GalleryError) as exc:
+            response.success = False
+            response.message = self._error(f"enrol failed: {exc}")
+        return response
+
+    def on_identify(self, request: Identify.Request, response: Identify.Response) -> Identify.Response:
+        """face/identify: rank the gallery against the face of a cloud."""
+        try:
+            result = self._result_for(request.cloud_file, request.scan_id)
+            if result.signature is None:
+                raise ValueError("; ".join(result.messages) or "no face in this cloud")
+            matches = self.gallery().identify(result.signature, int(request.max_results or 5))
+            response.names = [m.name for m in matches]
+            response.scores = [float(m.score) for m in matches]
+            response.entry_ids = [int(m.entry_id) for m in matches]
+            threshold = float(self._value("reject_threshold"))
+            response.accepted = bool(matches) and matches[0].score >= threshold
+            response.best_name = matches[0].name if response.accepted else ""
+            response.success = True
+            if not matches:
+                response.message = "the gallery is empty; enrol faces first"
+        except (ValueError, LookupError, OSError, GalleryError) as exc:
+            response.success = False
+            response.message = self._error(f"identify failed: {exc}")
+        return response
+
+    # ------------------------------------------------------------------ diagnostics
+    def publish_diagnostics(self) -> None:
+        """Processing counts and the last error on /diagnostics."""
+        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: face processing", hardware_id="lsu_faces")
+        status.level = DiagnosticStatus.WARN if self.errors else DiagnosticStatus.OK
+        status.message = f"{self.processed} clouds processed, {self.errors} errors"
+        status.values = [KeyValue(key="processed", value=str(self.processed)),
+                         KeyValue(key="errors", value=str(self.errors)),
+                         KeyValue(key="last_error", value=self.last_error)]
+        diag = DiagnosticArray()
+        diag.header.stamp = self.get_clock().now().to_msg()
+        diag.status = [status]
+        self.diag_pub.publish(diag)
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``face_processor``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = FaceProcessorNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

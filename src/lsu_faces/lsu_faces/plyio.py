@@ -1,0 +1,123 @@
+"""Read PLY clouds and meshes with every vertex property (numpy).
+
+open3d's readers keep only x y z, normals and colours, but an LSU cloud (``lsu reconstruct``,
+``cloud.ply`` of a scan) carries the left-image pixel ``u v`` and the ``snap`` index that meshing
+needs, so this small reader parses the header and maps the vertex element straight into a numpy
+structured array. It reads ascii and binary (little and big endian) files, scalar vertex
+properties of any type, and an optional ``face`` element of vertex index lists.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, Optional, Tuple
+
+import numpy as np
+
+__all__ = ["PlyError", "read_ply"]
+
+_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+          "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+          "double": "f8", "float64": "f8"}
+
+
+class PlyError(ValueError):
+    """The file is not a PLY this reader understands; the message names the file and the problem."""
+
+
+def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.ndarray]]:
+    """(vertex columns by property name, faces (M, 3) int64 or None) of a PLY file."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PLY file {path} not found")
+    raw = path.read_bytes()
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise PlyError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header)")
+    body_start = raw.index(b"\n", end) + 1
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    fmt = ""
+    elements = []
+    for line in header:
+        parts = line.split()
+        if not parts:
+            continue
+        if parts[0] == "format":
+            fmt = parts[1]
+        elif parts[0] == "element":
+            elements.append({"name": parts[1], "count": int(parts[2]), "props": []})
+        elif parts[0] == "property" and elements:
+            if parts[1] == "list":
+                elements[-1]["props"].append((parts[4], "list", _TYPES.get(parts[2]), _TYPES.get(parts[3])))
+            else:
+                if parts[1] not in _TYPES:
+                    raise PlyError(f"{path}: unknown property type '{parts[1]}'")
+                elements[-1]["props"].append((parts[2], _TYPES[parts[1]]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise PlyError(f"{path}: unsupported PLY format '{fmt}'")
+    order = "<" if fmt != "binary_big_endian" else ">"
+    vertices: Dict[str, np.ndarray] = {}
+    faces: Optional[np.ndarray] = None
+    if fmt == "ascii":
+        tokens = raw[body_start:].split()
+        pos = 0
+        for el in elements:
+            if any(p[1] == "list" for p in el["props"]):
+                rows = []
+                for _ in range(el["count"]):
+                    n = int(tokens[pos])
+                    rows.append([int(t) for t in tokens[pos + 1:pos + 1 + n]])
+                    pos += 1 + n
+                if el["name"] == "face":
+                    faces = _triangles(rows, path)
+            else:
+                k = len(el["props"])
+                block = np.array(tokens[pos:pos + k * el["count"]], dtype=np.float64).reshape(el["count"], k)
+                pos += k * el["count"]
+                if el["name"] == "vertex":
+                    vertices = {p[0]: block[:, i].astype(p[1]) for i, p in enumerate(el["props"])}
+        return _checked(vertices, faces, path)
+    offset = body_start
+    for el in elements:
+        if any(p[1] == "list" for p in el["props"]):
+            if len(el["props"]) != 1:
+                raise PlyError(f"{path}: element '{el['name']}' mixes lists and scalars; not supported")
+            _, _, ctype, itype = el["props"][0]
+            if ctype is None or itype is None:
+                raise PlyError(f"{path}: bad list property types in element '{el['name']}'")
+            # LSU and open3d meshes are triangles: read the fixed layout, then check every count is 3
+            dt = np.dtype([("n", order + ctype), ("i", order + itype, (3,))])
+            need = dt.itemsize * el["count"]
+            if offset + need > len(raw):
+                raise PlyError(f"{path}: file ends inside the '{el['name']}' element")
+            arr = np.frombuffer(raw, dtype=dt, count=el["count"], offset=offset)
+            if el["count"] and not np.all(arr["n"] == 3):
+                raise PlyError(f"{path}: only triangle faces are supported")
+            offset += need
+            if el["name"] == "face":
+                faces = arr["i"].astype(np.int64)
+        else:
+            dt = np.dtype([(p[0], order + p[1]) for p in el["props"]])
+            need = dt.itemsize * el["count"]
+            if offset + need > len(raw):
+                raise PlyError(f"{path}: file ends inside the '{el['name']}' element ({el['count']} expected)")
+            arr = np.frombuffer(raw, dtype=dt, count=el["count"], offset=offset)
+            offset += need
+            if el["name"] == "vertex":
+                vertices = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name in dt.names}
+    return _checked(vertices, faces, path)
+
+
+def _triangles(rows: list, path: Path) -> np.ndarray:
+    if any(len(r) != 3 for r in rows):
+        raise PlyError(f"{path}: only triangle faces are supported")
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+
+
+def _checked(vertices: Dict[str, np.ndarray], faces: Optional[np.ndarray], path: Path):
+    if not all(k in vertices for k in ("x", "y", "z")):
+        raise PlyError(f"{path}: the vertex element has no x, y, z properties")
+    n = len(vertices["x"])
+    if faces is not None and len(faces) and (faces.min() < 0 or faces.max() >= n):
+        raise PlyError(f"{path}: face indices outside the {n} vertices")
+    return vertices, faces

@@ -1,0 +1,106 @@
+"""face_processor round trip: PointCloud2 in -> Marker, Mesh and nose out; services; bad clouds never crash it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+sim = pytest.importorskip("lsu_cameras.sim")
+from lsu_faces.synthetic import fast_scan  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def head_scan():
+    rig = sim.load_rig()
+    objs = sim.build_scene("head:8", rig, yaw_deg=10)
+    sample = fast_scan(objs, rig, np.arange(0, 471, 5), noise_m=5e-5, drop_fraction=0.1, seed=8)
+    return sample.columns, objs[0].extra["nose_tip_m"]
+
+
+def _msg(columns, fields=None):
+    from std_msgs.msg import Header
+
+    from lsu_reconstruct.node import cloud_to_msg
+    from lsu_reconstruct.pointcloud2 import FLOAT32, encode, layout
+
+    if fields is None:
+        cloud = encode(columns)
+    else:
+        f, step = layout([(n, FLOAT32) for n in fields])
+        cloud = encode({n: columns[n] for n in fields}, f, step)
+    return cloud_to_msg(cloud, Header(frame_id="lsu_left_optical"))
+
+
+def test_cloud_in_mesh_and_nose_out_then_enroll_identify(ros_node, tmp_path, head_scan):
+    from geometry_msgs.msg import PointStamped
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+    from shape_msgs.msg import Mesh
+    from visualization_msgs.msg import Marker
+
+    from lsu_faces.node import FaceProcessorNode
+    from lsu_interfaces.srv import Enroll, Identify
+
+    columns, truth = head_scan
+    node = ros_node.add(FaceProcessorNode(context=ros_node.context, parameter_overrides=[
+        Parameter("output_dir", value=str(tmp_path / "out")), Parameter("gallery_file", value=str(tmp_path / "g.db")),
+        Parameter("render_size_px", value=96)]))
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    got = {}
+    h = ros_node.node
+    h.create_subscription(Marker, "/lsu/scan/mesh", lambda m: got.setdefault("marker", m), latched)
+    h.create_subscription(Mesh, "/lsu/scan/mesh_shape", lambda m: got.setdefault("shape", m), latched)
+    h.create_subscription(PointStamped, "/lsu/face/nose", lambda m: got.setdefault("nose", m), 10)
+    pub = h.create_publisher(PointCloud2, "/lsu/scan/cloud", latched)
+    pub.publish(_msg(columns))
+    assert ros_node.spin_until(lambda: {"marker", "shape", "nose"} <= set(got), 60.0), f"got only {sorted(got)}"
+    marker = got["marker"]
+    assert marker.type == Marker.TRIANGLE_LIST and len(marker.points) % 3 == 0 and len(marker.points) > 0
+    assert len(marker.colors) == len(marker.points)
+    assert len(got["shape"].triangles) > 0
+    p = got["nose"].point
+    assert np.linalg.norm(np.array([p.x, p.y, p.z]) - truth) < 0.003
+    assert got["nose"].header.frame_id == "lsu_left_optical"
+    wanted = {"mesh.ply", "mesh.obj", "render_front.png", "render_side.png"}
+
+    def written() -> set:
+        return {f.name for f in (tmp_path / "out").rglob("*") if f.is_file()}
+
+    # files are written after the mesh and nose are published
+    assert ros_node.spin_until(lambda: wanted <= written() and node.processed == 1, 30.0), written()
+
+    enroll = h.create_client(Enroll, "/lsu/face/enroll")
+    r = ros_node.call(enroll, Enroll.Request(name="eve"), 60.0)
+    assert r.success, r.message
+    assert r.entry_id > 0 and r.points_used > 100
+    identify = h.create_client(Identify, "/lsu/face/identify")
+    r = ros_node.call(identify, Identify.Request(max_results=3), 60.0)
+    assert r.success and r.accepted and r.best_name == "eve" and r.scores[0] > 0.9
+    r = ros_node.call(identify, Identify.Request(cloud_file=str(tmp_path / "missing.ply")), 30.0)
+    assert not r.success and "not found" in r.message
+    r = ros_node.call(enroll, Enroll.Request(name=""), 30.0)
+    assert not r.success and "name" in r.message
+
+
+def test_bad_clouds_give_errors_not_exceptions(ros_node, tmp_path, head_scan):
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import PointCloud2
+
+    from lsu_faces.node import FaceProcessorNode
+
+    columns, _ = head_scan
+    node = ros_node.add(FaceProcessorNode(context=ros_node.context, parameter_overrides=[
+        Parameter("output_dir", value=str(tmp_path / "out")), Parameter("write_files", value=False)]))
+    empty = {k: v[:0] for k, v in columns.items()}
+    tiny = {k: v[:10] for k, v in columns.items()}
+    cases = [(empty, None, "empty"), (tiny, None, "fewer than"), (columns, ["x", "y", "z"], "u/v")]
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = ros_node.node.create_publisher(PointCloud2, "/lsu/scan/cloud", latched)
+    for cols, fields, words in cases:
+        before = (node.errors, node.processed, node.latest)
+        pub.publish(_msg(cols, fields))
+        assert ros_node.spin_until(lambda: (node.errors, node.processed, node.latest) != before, 30.0)
+        text = node.last_error + " ".join(node.latest.messages if node.latest else [])
+        assert words in text, text
