@@ -43,7 +43,7 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
 def cmd_demo(args: argparse.Namespace) -> int:
     from .cli import workspace_root
     from .scanner import LsuScanner, ScannerError
-    from .testing import LaunchedProcess
+    from .processes import LaunchedProcess
 
     claim = rosenv.isolate()
     out = Path(args.out or workspace_root() / "scans").resolve()

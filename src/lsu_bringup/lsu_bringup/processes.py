@@ -1,0 +1,87 @@
+"""A long-running `lsu ...` subprocess with its output collected (tests, demo, benchmarks, tools).
+
+Started in its own session so it can be stopped as a group; `interrupt()` is Ctrl-C, `kill()` the
+last resort.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import List, Optional
+
+LSU = str(Path(sys.executable).parent / "lsu")
+
+
+class ProcessWaitError(AssertionError):
+    """An expected output line did not come (an AssertionError, so pytest reports it as a failure)."""
+
+
+class LaunchedProcess:
+    """A running `lsu ...` subprocess whose output is collected in the background."""
+
+    def __init__(self, args: List[str], cwd: Optional[str] = None) -> None:
+        self.args = args
+        self.lines: List[str] = []
+        self._lock = threading.Lock()
+        self.process = subprocess.Popen([LSU, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, text=True, cwd=cwd, start_new_session=True)
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.process.stdout is not None
+        for line in self.process.stdout:
+            with self._lock:
+                self.lines.append(line.rstrip("\n"))
+
+    @property
+    def output(self) -> str:
+        with self._lock:
+            return "\n".join(self.lines)
+
+    def wait_for_line(self, pattern: str, timeout_s: float = 20.0) -> "re.Match[str]":
+        """Wait for an output line matching ``pattern``; raises ProcessWaitError with the output so far."""
+        regex = re.compile(pattern)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            with self._lock:
+                for line in self.lines:
+                    match = regex.search(line)
+                    if match:
+                        return match
+            if self.process.poll() is not None:
+                time.sleep(0.2)  # let the reader drain
+                with self._lock:
+                    hit = next((regex.search(x) for x in self.lines if regex.search(x)), None)
+                if hit:
+                    return hit
+                raise ProcessWaitError(f"`lsu {' '.join(self.args)}` exited ({self.process.returncode}) before "
+                                       f"printing /{pattern}/:\n{self.output}")
+            time.sleep(0.05)
+        raise ProcessWaitError(f"no line /{pattern}/ from `lsu {' '.join(self.args)}` within {timeout_s} s:\n"
+                               f"{self.output}")
+
+    def interrupt(self, timeout_s: float = 10.0) -> int:
+        """SIGINT (like Ctrl-C) and wait; returns the exit code."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+        try:
+            return self.process.wait(timeout=timeout_s)
+        finally:
+            self._reader.join(timeout=2.0)
+
+    def kill(self) -> None:
+        """SIGKILL the process group (teardown of last resort)."""
+        if self.process.poll() is None:
+            try:
+                os.killpg(self.process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            self.process.wait(timeout=5)
