@@ -82,7 +82,7 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
 
 def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.ArgumentParser:
     """The full `lsu` argument parser, plugins included."""
-    from . import bag_cli, demo, doctor, graph, scanner
+    from . import accuracy_cli, bag_cli, demo, doctor, graph, scanner
     from .nodes_index import command_plugins
 
     parser = argparse.ArgumentParser(
@@ -95,6 +95,7 @@ def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.Argu
     demo.register(sub)
     bag_cli.register(sub)
     scanner.register(sub)
+    accuracy_cli.register(sub)
     for entry in command_plugins():
         try:
             entry.load()(sub)
