@@ -35,7 +35,8 @@ def live_scan(tmp: Path) -> dict:
         with LsuScanner(wait_s=60) as scanner:
             # one short warm-up scan: first-call costs (imports, caches) are not the steady state we measure
             scanner.scan(start=230, end=240, step=5, settle_s=0.1, output_dir=str(tmp / "warmup"))
-            result = scanner.scan(start=0, end=470, step=2, settle_s=0.1, record_bag=True)
+            scanner.start_scan(start=0, end=470, step=2, settle_s=0.1, record_bag=True)
+            result = scanner.get_result(timeout_s=600)  # a lost result fails the benchmark instead of hanging it
     finally:
         graph.interrupt(timeout_s=30)
         graph.kill()
@@ -146,6 +147,10 @@ def main() -> int:
             result, record = live["result"], live["record"]
             bound = record["timings_s"]["mechanical_lower_bound"]
             acks = sorted(s.get("ack_s", 0.0) for s in record["snaps"])
+            # where a snap's time goes (the coordinator records each phase per snap; the first snap's move
+            # from the texture position is left out)
+            phases = {name: sorted(s[f"{name}_s"] for s in record["snaps"][1:] if f"{name}_s" in s) or [0.0]
+                      for name in ("move", "capture")}
             rep = replay(Path(result.output_dir) / "bag")
     finally:
         claim.release()
@@ -154,14 +159,17 @@ def main() -> int:
         {"scan_wall_over_mechanical": result.seconds / bound, "scan_wall_s": result.seconds,
          "scan_mechanical_bound_s": bound, "scan_snaps": result.snaps, "scan_points": result.points,
          "ack_ms_median": 1000 * acks[len(acks) // 2], "ack_ms_max": 1000 * acks[-1],
+         "move_ms_median": 1000 * phases["move"][len(phases["move"]) // 2],
+         "capture_ms_median": 1000 * phases["capture"][len(phases["capture"]) // 2],
          "replay_snaps_per_s": rep["snaps"] / rep["seconds"],
          "replay_snaps": rep["snaps"], "bag_snaps_missing_images": rep["missing_in_bag"]},
         {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
-         "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "replay_snaps_per_s": "snaps/s",
+         "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
+         "capture_ms_median": "ms", "replay_snaps_per_s": "snaps/s",
          "replay_snaps": "snaps", "bag_snaps_missing_images": "snaps"},
         notes="live: lsu launch sim (6 processes, synthetic head 7), scan 0..470 step 2, settle 0.1 s, texture on, bag "
               "recorded, after a 3-snap warm-up scan; bound = moves at the emulator's 200 steps/s + (settle + 33 ms "
-              "exposure) per snap + the texture exposure. replay: that bag's scan events and image pairs (raw CDR "
+              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). replay: that bag's scan events and image pairs (raw CDR "
               "from the bag) published into lsu run replay (extractor + matcher in one process) with at most 4 snaps "
               "awaiting their /lsu/points acknowledgement (below the image queue depth 5): no snap is dropped and "
               "snaps/s is the graph's sustained processing rate.")

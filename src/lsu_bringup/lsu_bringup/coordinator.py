@@ -1,7 +1,8 @@
 """`scan_coordinator` node: stop-snap scans through the `/lsu/scan` action (thesis ch. 3.3).
 
-laser off -> texture pair -> laser on -> for each position: move, settle, capture, SNAP event,
-matcher acknowledgement (its per-snap `points`) -> laser off -> FINISHED -> scan cloud on disk.
+laser off -> texture pair -> laser on -> for each position: move, settle, the matcher's
+acknowledgement of the previous snap (its per-snap `points`; processed during this move and
+settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED -> scan cloud on disk.
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
@@ -77,7 +78,7 @@ class ScanCoordinatorNode(Node):
         self.capture = self.create_client(CaptureStereo, "stereo/capture", callback_group=group)
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self.state: Optional[ScannerState] = None
-        self._acks: Dict[tuple, int] = {}
+        self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
         self._cloud: Optional[PointCloud2] = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
@@ -97,7 +98,7 @@ class ScanCoordinatorNode(Node):
 
     def _on_points(self, msg: PointCloud2) -> None:
         with self._cond:
-            self._acks[_key(msg.header.stamp)] = int(msg.width) * int(msg.height)
+            self._acks[_key(msg.header.stamp)] = (int(msg.width) * int(msg.height), time.monotonic())
             self._cond.notify_all()
 
     def _on_cloud(self, msg: PointCloud2) -> None:
@@ -120,7 +121,7 @@ class ScanCoordinatorNode(Node):
 
     @staticmethod
     def _start_call(client: Any, request: Any) -> tuple:
-        """Send a request now; wait for it later with `_finish_call` (lets a move overlap an ack wait)."""
+        """Send a request now; wait for it with `_finish_call`."""
         done = threading.Event()
         future = client.call_async(request)
         future.add_done_callback(lambda _f: done.set())
@@ -244,29 +245,36 @@ class ScanCoordinatorNode(Node):
                 self._event(ScanEvent.TEXTURE, scan_id, folder, image_stamp=response.stamp)
             self._set_laser(True)
             snap_times: List[float] = []
-            pending: Optional[Dict[str, Any]] = None  # the last snap, until the matcher acknowledges it
+            # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
+            # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
+            pending: Optional[Dict[str, Any]] = None
             for index, position in enumerate(plan.positions):
                 t_snap = time.monotonic()
                 self._check_cancel(goal_handle)
                 self._feedback(goal_handle, "moving", index, len(plan.positions), position, points_total, snap_times)
-                if not self.move.wait_for_service(timeout_sec=5.0):
-                    raise ScanAborted(f"move to {position}: service {self.move.srv_name} is not available")
-                move_call = self._start_call(self.move, MoveTo.Request(position_steps=position,
-                                                                      timeout_s=float(self.move_timeout_s)))
-                if pending is not None:  # the previous snap is processed while the carriage moves
-                    points_total += self._await_ack(pending)
-                moved = self._finish_call(self.move, move_call, float(self.move_timeout_s) or 60.0,
-                                          f"move to {position}")
+                request = MoveTo.Request(position_steps=position, timeout_s=float(self.move_timeout_s))
+                moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}")
                 if not moved.success:
                     raise ScanAborted(f"move to {position} failed: {moved.message}")
+                t_moved = time.monotonic()
                 self._sleep(goal_handle, plan.settle_s)
+                t_slept = time.monotonic()
+                if pending is not None:
+                    points_total += self._await_ack(pending)
+                    pending = None
+                t_settled = time.monotonic()
                 response = self._capture()
+                t_captured = time.monotonic()
                 key = _key(response.stamp)
                 self._event(ScanEvent.SNAP, scan_id, folder, index=index, position_steps=moved.position_steps,
                             image_stamp=response.stamp, expected_snaps=len(plan.positions))
+                # per-phase wall times: where a snap's time goes (bench_scan reads them)
                 captured.append({"index": index, "position_steps": int(moved.position_steps),
-                                 "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s)})
-                pending = {"entry": captured[-1], "key": key, "t_captured": time.monotonic(), "t_snap": t_snap}
+                                 "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s),
+                                 "move_s": round(t_moved - t_snap, 4), "settle_s": round(t_slept - t_moved, 4),
+                                 "ack_wait_s": round(t_settled - t_slept, 4),
+                                 "capture_s": round(t_captured - t_settled, 4)})
+                pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
                 snap_times.append(time.monotonic() - t_snap)
             if pending is not None:
                 points_total += self._await_ack(pending)
@@ -326,9 +334,10 @@ class ScanCoordinatorNode(Node):
         if not self._wait(lambda: key in self._acks, float(self.ack_timeout_s)):
             raise ScanAborted(f"snap {entry['index']} (position {entry['position_steps']}) was not acknowledged by "
                               f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
-        entry["points"] = self._acks.pop(key)
-        entry["ack_s"] = round(time.monotonic() - pending["t_captured"], 4)
-        entry["snap_s"] = round(time.monotonic() - pending["t_snap"], 4)
+        entry["points"], t_ack = self._acks.pop(key)
+        # from the arrival time, not from now: the wait may start long after the points came
+        entry["ack_s"] = round(max(0.0, t_ack - pending["t_captured"]), 4)
+        entry["snap_s"] = round(t_ack - pending["t_snap"], 4)
         return int(entry["points"])
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
@@ -359,17 +368,55 @@ class ScanCoordinatorNode(Node):
         return len(points)
 
     def _start_bag(self, folder: Path) -> Any:
+        """Record the scan's topics on a private node spun by its own single-threaded executor.
+
+        Why not on this node: the recorder's subscriptions would be destroyed (on close) while the
+        multi-threaded executor builds its wait set in another thread, which rclpy answers with
+        InvalidHandle out of spin(): the coordinator died after the scan and the result was lost.
+        Its own executor is stopped before the subscriptions go; a single-threaded executor also
+        costs less than half as much per recorded message.
+        """
+        from rclpy.executors import SingleThreadedExecutor
+
         from .bag_cli import BagRecorder
 
+        # Not /lsu/sim/truth: the emulator publishes it at 200 Hz, ~1 ms of executor time per message
+        # in this process, while the scan loop needs the CPU. The bag is for replaying the processing;
+        # `lsu bag record --all` still takes everything.
         topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
                   "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
                   "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
-                  "/lsu/driver/state", "/lsu/sim/truth"]
-        return BagRecorder(self, topics, folder / "bag", "mcap", compress=True)
+                  "/lsu/driver/state"]
+        # no global arguments: the process's `-r __node:=scan_coordinator` would give it our name
+        node = rclpy.create_node("_scan_coordinator_bag", namespace=self.get_namespace(), context=self.context,
+                                 use_global_arguments=False, start_parameter_services=False)
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(node)
+        stop = threading.Event()
+
+        def spin() -> None:
+            while not stop.is_set() and self.context.ok():
+                executor.spin_once(timeout_sec=0.1)
+
+        try:
+            recorder = BagRecorder(node, topics, folder / "bag", "mcap", compress=True,
+                                   log=lambda text: self.get_logger().info(text))
+        except BaseException:
+            executor.shutdown()
+            node.destroy_node()
+            raise
+        thread = threading.Thread(target=spin, name="lsu-scan-bag", daemon=True)
+        thread.start()
+        return recorder, node, executor, stop, thread
 
     @staticmethod
-    def _stop_bag(recorder: Any) -> str:
+    def _stop_bag(bag: Any) -> str:
+        recorder, node, executor, stop, thread = bag
+        stop.set()
+        thread.join(timeout=5.0)  # its executor no longer waits on the subscriptions closing below
         recorder.close()
+        executor.shutdown()
+        node.destroy_node()
         return str(recorder.path)
 
     def destroy_node(self) -> None:
