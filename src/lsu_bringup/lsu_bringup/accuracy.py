@@ -276,14 +276,19 @@ def smooth_vertices(mesh, method: str, iterations: int, factor: float) -> np.nda
     return smooth(mesh.vertices, mesh.triangles, params)
 
 
-def surface_rms_mm(objects: Sequence, xyz: np.ndarray) -> float:
-    """RMS distance [mm] of points to the rendered scene meshes (open3d ray-casting scene: exact truth)."""
+def surface_distances_m(objects: Sequence, xyz: np.ndarray) -> np.ndarray:
+    """Distance [m] of each point to the rendered scene meshes (open3d ray-casting scene: exact truth)."""
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
     for obj in objects:
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj.mesh))
-    d = scene.compute_distance(o3d.core.Tensor(np.asarray(xyz, dtype=np.float32))).numpy().astype(np.float64)
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(xyz, dtype=np.float32))).numpy().astype(np.float64)
+
+
+def surface_rms_mm(objects: Sequence, xyz: np.ndarray) -> float:
+    """RMS distance [mm] of points to the rendered scene meshes."""
+    d = surface_distances_m(objects, xyz)
     return float(np.sqrt(np.mean(d * d)) * 1000.0)
 
 

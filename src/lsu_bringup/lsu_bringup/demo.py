@@ -27,14 +27,13 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
     import open3d as o3d
     from lsu_cameras.sim import build_scene, load_rig
 
+    from .accuracy import surface_distances_m
+
     cloud = o3d.io.read_point_cloud(str(cloud_ply))
     points = np.asarray(cloud.points, dtype=np.float32)
     if len(points) == 0:
         return {}
-    raycast = o3d.t.geometry.RaycastingScene()
-    for obj in build_scene(scene, load_rig()):
-        raycast.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj.mesh))
-    distance_mm = raycast.compute_distance(o3d.core.Tensor(points)).numpy() * 1000.0
+    distance_mm = surface_distances_m(build_scene(scene, load_rig()), points) * 1000.0
     return {"points": float(len(points)), "median_mm": float(np.median(distance_mm)),
             "rms_mm": float(np.sqrt(np.mean(distance_mm ** 2))), "p95_mm": float(np.percentile(distance_mm, 95)),
             "within_0.1mm_pct": float(100.0 * np.mean(distance_mm <= 0.1))}
