@@ -94,7 +94,7 @@ def replay(bag: Path, window: int = 4) -> dict:
             continue
         snaps.append((events_before, left, right, key, raw))
         events_before = []
-    graph = LaunchedProcess(["run", "replay"])
+    graph = LaunchedProcess(["run", "replay", "--executor", "single"])
     rclpy.init()
     node = rclpy.create_node("bench_replay")
     acks = set()

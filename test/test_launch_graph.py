@@ -71,7 +71,7 @@ def test_launch_exchange_and_sigint_stops_every_process(launch, lsu_cli):
 
 def test_run_gives_the_same_exchange_in_one_process(launch, lsu_cli):
     proc = launch("run", PINGPONG, "ns:=pp_run")
-    proc.wait_for_line(r"spinning 2 node\(s\) in one process")
+    proc.wait_for_line(r"spinning 2 node\(s\) in one process \(multi-threaded")
     check_exchange(lsu_cli, "pp_run")
     children = subprocess.run(["pgrep", "-P", str(proc.process.pid)], capture_output=True, text=True).stdout.split()
     assert children == []  # both nodes live inside the lsu process

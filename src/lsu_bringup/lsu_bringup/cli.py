@@ -60,7 +60,7 @@ def cmd_launch(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from .runner import run_in_process
 
-    return run_in_process(_load(args))
+    return run_in_process(_load(args), executor=args.executor)
 
 
 def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
@@ -73,10 +73,14 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
                    help="grace after SIGINT before SIGTERM (default 2.5)")
     p.set_defaults(func=cmd_launch)
     p = sub.add_parser("run", help="run the nodes of a launch file in one process",
-                       description="Build every node of a launch file in this process and spin them on a "
-                                   "MultiThreadedExecutor.")
+                       description="Build every node of a launch file in this process and spin them on one "
+                                   "executor.")
     p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
     p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    p.add_argument("--executor", choices=("multi", "single"), default="multi",
+                   help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "
+                        "callback (the scan coordinator); single: one thread, lower overhead per callback, "
+                        "for graphs of processing nodes such as `replay`")
     p.set_defaults(func=cmd_run)
 
 

@@ -1,4 +1,4 @@
-"""`lsu run`: the nodes of a launch file in one process on a MultiThreadedExecutor.
+"""`lsu run`: the nodes of a launch file in one process on one executor (multi-threaded by default).
 
 Same launch files, same names, parameters and remappings as `lsu launch` (each node gets
 the `--ros-args` list as node-local arguments), minus process isolation: faster start-up,
@@ -46,27 +46,33 @@ def build_nodes(description: LaunchDescription, param_dir: Path, context: Option
     return nodes
 
 
-def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout) -> int:
-    """Build all nodes and spin them until Ctrl-C / SIGTERM; returns the exit code."""
+def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, executor: str = "multi") -> int:
+    """Build all nodes and spin them until Ctrl-C / SIGTERM; returns the exit code.
+
+    ``executor``: "multi" (a thread pool: nodes may block in a callback waiting for another
+    node's reply) or "single" (one thread: no hand-off between threads per callback, so a
+    pipeline of processing nodes runs faster; a callback that waits would deadlock it).
+    """
     import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 
     rclpy.init()
     nodes: List[Any] = []
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
             nodes = build_nodes(description, Path(tmp), out=out)
-            executor = MultiThreadedExecutor()
+            spinner = MultiThreadedExecutor() if executor == "multi" else SingleThreadedExecutor()
             for node in nodes:
-                executor.add_node(node)
-            out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process; Ctrl-C stops\n")
+                spinner.add_node(node)
+            out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process ({executor}-threaded executor); "
+                      "Ctrl-C stops\n")
             out.flush()
             try:
-                executor.spin()
+                spinner.spin()
             except (KeyboardInterrupt, ExternalShutdownException):
                 pass
             finally:
-                executor.shutdown(timeout_sec=2.0)
+                spinner.shutdown(timeout_sec=2.0)
     finally:
         for node in nodes:
             node.destroy_node()

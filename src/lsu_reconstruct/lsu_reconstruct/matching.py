@@ -118,6 +118,17 @@ def _savgol_matrices(window: int) -> tuple:
     return centre, head, tail
 
 
+def prepare(params: MatchParams) -> None:
+    """Fill the caches ``match_line`` needs for ``params`` ahead of the first snap.
+
+    The first Savitzky-Golay fit imports scipy.signal (1-2 s here); a node calls this at start-up
+    and on a parameter change so the first snap of a scan is not acknowledged seconds late.
+    """
+    window = params.smooth_window_rows
+    if window >= 5:
+        _savgol_matrices(window + 1 if window % 2 == 0 else window)
+
+
 def smooth_line(u: np.ndarray, v: np.ndarray, window: int, linked: Optional[np.ndarray] = None) -> np.ndarray:
     """Local quadratic (Savitzky-Golay) fit of u as a function of v along each run of consecutive rows.
 

@@ -15,6 +15,7 @@ A thin adapter over :mod:`lsu_reconstruct.pipeline`:
 
 from __future__ import annotations
 
+import struct
 import sys
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -27,13 +28,14 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
 from std_msgs.msg import Header
 
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
-from .matching import LineArrays, MatchParams
+from .matching import LineArrays, MatchParams, prepare
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
 from .pointcloud2 import Cloud, PointField, decode, encode
 from .stereo import CalibrationError, StereoModel
@@ -97,6 +99,17 @@ def _stamp_key(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def _cdr_stamp_key(raw: bytes) -> int:
+    """`_stamp_key` of a serialized message that starts with a std_msgs/Header (e.g. Image).
+
+    CDR: a 4-byte encapsulation header (byte 1: 0 = big, 1 = little endian), then the
+    header's stamp as int32 sec and uint32 nanosec, so the key is read without decoding the
+    rest of a 900 KB image.
+    """
+    sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 @dataclass
 class _Scan:
     scan_id: str
@@ -138,11 +151,11 @@ class StereoMatcherNode(Node):
         declare("scan_timeout_s", 5.0, "after FINISHED/ABORTED, wait this long for missing snaps, then publish "
                 "the partial scan cloud")
         self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(lambda _: setattr(self, "params", self._match_params()))
+        self.add_post_set_parameters_callback(lambda _: self._use_params(self._match_params()))
 
         self.model: Optional[StereoModel] = None
         self.calibration_error = ""
-        self.params = self._match_params()
+        self._use_params(self._match_params())
         self.left: "OrderedDict[int, LaserLine]" = OrderedDict()
         self.right: "OrderedDict[int, LaserLine]" = OrderedDict()
         self.unmatched = {"left": 0, "right": 0}
@@ -154,7 +167,7 @@ class StereoMatcherNode(Node):
         self.scan: Optional[_Scan] = None
         self.snap_of_stamp: Dict[int, int] = {}
         self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
-        self.images: "OrderedDict[int, Image]" = OrderedDict()       # recent left images (texture candidates)
+        self.images: "OrderedDict[int, bytes]" = OrderedDict()       # recent left images, CDR (texture candidates)
         self._camera_info: Dict[str, CameraInfo] = {}
         self._extrinsics: Optional[StereoExtrinsics] = None
 
@@ -165,8 +178,9 @@ class StereoMatcherNode(Node):
         self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
                                  RELIABLE_DATA)
         self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)
+        # raw: only the texture pair's image is ever decoded, every other frame is a cheap copy
         self.create_subscription(Image, "stereo/left/image_raw", self.on_image, QoSProfile(
-            depth=4, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST))
+            depth=4, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST), raw=True)
         if self.get_parameter("calibration_source").value == "topics":
             self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), LATCHED)
             self.create_subscription(CameraInfo, "stereo/right/camera_info", lambda m: self.on_info("right", m),
@@ -187,6 +201,10 @@ class StereoMatcherNode(Node):
                            max_order_dev=float(g("max_order_dev")),
                            min_quality=float(g("min_quality")), smooth_window_rows=int(g("smooth_window_rows")),
                            max_reproj_px=float(g("max_reproj_px")), method=str(g("triangulation")))
+
+    def _use_params(self, params: MatchParams) -> None:
+        prepare(params)  # caches filled now, not on the first snap
+        self.params = params
 
     def _check_parameters(self, params: List[Any]) -> SetParametersResult:
         for param in params:
@@ -337,20 +355,20 @@ class StereoMatcherNode(Node):
             self.scan.end_time_s = self.get_clock().now().nanoseconds / 1e9
             self._check_scan_end()
 
-    def on_image(self, msg: Image) -> None:
-        """Keep a few recent left images; the one named by TEXTURE colours the scan."""
-        key = _stamp_key(msg.header.stamp)
+    def on_image(self, raw: bytes) -> None:
+        """Keep a few recent left images (serialized); the one named by TEXTURE colours the scan."""
+        key = _cdr_stamp_key(raw)
         if self.scan is not None and self.scan.texture_key == key:
-            self._take_texture(msg)
+            self._take_texture(raw)
             return
-        self.images[key] = msg
+        self.images[key] = raw
         while len(self.images) > 4:
             self.images.popitem(last=False)
 
-    def _take_texture(self, msg: Image) -> None:
+    def _take_texture(self, raw: bytes) -> None:
         assert self.scan is not None
         try:
-            self.scan.texture = image_to_array(msg)
+            self.scan.texture = image_to_array(deserialize_message(raw, Image))
         except ValueError as exc:
             self._error(str(exc))
 
