@@ -380,9 +380,9 @@ class ScanCoordinatorNode(Node):
 
         from .bag_cli import BagRecorder
 
-        # Not /lsu/sim/truth: the emulator publishes it at 200 Hz, ~1 ms of executor time per message
-        # in this process, while the scan loop needs the CPU. The bag is for replaying the processing;
-        # `lsu bag record --all` still takes everything.
+        # Not /lsu/sim/truth: simulation only, and ~1 ms of executor time per message in this process
+        # while the scan loop needs the CPU. The bag is for replaying the processing; `lsu bag record
+        # --all` still takes everything.
         topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
                   "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
                   "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",

@@ -67,7 +67,7 @@ def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
 class PolledGroup(CallbackGroup):
     """A callback group no executor ever runs: its subscriptions are read on demand (`take_latest`).
 
-    Why: ``sim/truth`` arrives at 200 Hz but a capture needs only the newest sample. Each
+    Why: ``sim/truth`` arrives at up to 50 Hz but a capture needs only the newest sample. Each
     executor callback costs ~1 ms of Python (single-threaded executor; ~2.5 ms multi-threaded), so
     following it cost a fifth of a core and queued captures behind truth callbacks. A depth-1
     reader keeps the newest sample inside DDS with no Python work until we ask for it.

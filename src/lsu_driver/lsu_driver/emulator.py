@@ -30,7 +30,7 @@ import time
 import tty
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 from . import protocol as p
 
@@ -131,6 +131,10 @@ class Gp32Emulator:
         self.log: List[str] = []          # every line in and out, for tests and debugging
         self.boot_count = 0
         self._true = float(self.config.start_position_steps)
+        # called (from the firmware thread) whenever the discrete state changes: motion started or
+        # stopped, laser, homing, reset; the ROS node publishes the truth at once instead of polling
+        self.on_change: Optional[Callable[[], None]] = None
+        self._change_key: tuple = ()
         self._power_on()
 
     # ----------------------------------------------------------------------------- lifecycle
@@ -381,36 +385,49 @@ class Gp32Emulator:
     # ---------------------------------------------------------------------------- loop
     def _loop(self) -> None:
         while self._running:
-            with self._lock:
-                master = self._master
-                unplugged_until = self._unplugged_until
+            self._iterate()
+            self._notify_change()
+
+    def _iterate(self) -> None:
+        with self._lock:
+            master = self._master
+            unplugged_until = self._unplugged_until
+        now = time.monotonic()
+        if unplugged_until is not None:
+            if now >= unplugged_until:
+                with self._lock:
+                    self._replug()
+            else:
+                time.sleep(0.005)
+            return
+        try:
+            readable, _, _ = select.select([master], [], [], 0.001)
+            data = os.read(master, 4096) if readable else b""
+        except (OSError, ValueError, TypeError):
+            data = b""
+        with self._lock:
+            if data:
+                self._inbuf += data
+                while b"\n" in self._inbuf:
+                    line, self._inbuf = self._inbuf.split(b"\n", 1)
+                    if line.strip(b"\r"):
+                        self._handle(line + b"\n")
+                if len(self._inbuf) > 4 * p.MAX_LINE:  # no newline for too long: answer and resync
+                    self._inbuf = b""
+                    self._send(p.Err(p.ERR_TOO_LONG, p.ERROR_TEXT[p.ERR_TOO_LONG]))
             now = time.monotonic()
-            if unplugged_until is not None:
-                if now >= unplugged_until:
-                    with self._lock:
-                        self._replug()
-                else:
-                    time.sleep(0.005)
-                continue
-            try:
-                readable, _, _ = select.select([master], [], [], 0.001)
-                data = os.read(master, 4096) if readable else b""
-            except (OSError, ValueError, TypeError):
-                data = b""
-            with self._lock:
-                if data:
-                    self._inbuf += data
-                    while b"\n" in self._inbuf:
-                        line, self._inbuf = self._inbuf.split(b"\n", 1)
-                        if line.strip(b"\r"):
-                            self._handle(line + b"\n")
-                    if len(self._inbuf) > 4 * p.MAX_LINE:  # no newline for too long: answer and resync
-                        self._inbuf = b""
-                        self._send(p.Err(p.ERR_TOO_LONG, p.ERROR_TEXT[p.ERR_TOO_LONG]))
-                now = time.monotonic()
-                self._advance(now)
-                self._check_watchdog(now)
-                self._flush(now)
+            self._advance(now)
+            self._check_watchdog(now)
+            self._flush(now)
+
+    def _notify_change(self) -> None:
+        """Call `on_change` when what `truth` reports has changed other than by steady motion."""
+        with self._lock:
+            key = (self._motion is not None, self._velocity, self.laser_on, self.homed, self.boot_count,
+                   self._stopped_at_wall, self.faults.stalled, self._unplugged_until is not None)
+            changed, self._change_key = key != self._change_key, key
+        if changed and self.on_change is not None:
+            self.on_change()
 
     # ---------------------------------------------------------------------------- truth / faults
     def truth(self) -> Truth:

@@ -8,6 +8,7 @@ and accepts faults on its UNIX control socket (`lsu gp32 fault`).
 from __future__ import annotations
 
 import sys
+import time
 from typing import Any, List, Optional
 
 import rclpy
@@ -76,16 +77,40 @@ class Gp32EmulatorNode(Node):
             stalled=declare("fault_stalled", False, "the motor does not move (pulses are still counted)"),
             seed=declare("fault_seed", 0, "seed of the fault random generator"),
         )
-        rate_hz = declare("truth_rate_hz", 200.0, "publish rate of sim/truth [Hz]")
-        self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl").start()
+        rate_hz = declare("truth_rate_hz", 50.0, "sim/truth rate while the carriage moves [Hz]")
+        self.rest_period_s = 1.0 / declare("truth_rest_rate_hz", 5.0, "sim/truth rate at rest [Hz]")
         self.truth_pub = self.create_publisher(SimTruth, "sim/truth",
                                                QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-        self.timer = self.create_timer(1.0 / rate_hz, self._publish)
+        self._last_publish = 0.0
+        # Every change (motion start/stop, laser, homing, reset) is published the moment the firmware
+        # thread sees it; in between, the samples are periodic: a moving carriage is extrapolated from
+        # its velocity and a resting one from its vibration model, so a fast stream would only cost CPU
+        # in every subscriber (200 Hz took a fifth of a core per reader).
+        self._changed = self.create_guard_condition(self._publish)
+        self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
+        self.emulator.on_change = self._on_change
+        self.emulator.start()
+        self.timer = self.create_timer(1.0 / rate_hz, self._periodic)
         self.get_logger().info(f"GP32 emulator on {self.emulator.device_path} (link {link}, control "
                                f"{self.emulator.control_path})")
 
+    def _on_change(self) -> None:
+        try:
+            self._changed.trigger()  # thread-safe: the executor runs _publish
+        except Exception:  # noqa: BLE001 - the node is being destroyed under the firmware thread
+            pass
+
+    def _periodic(self) -> None:
+        truth = self.emulator.truth()
+        if truth.moving or time.monotonic() - self._last_publish >= self.rest_period_s:
+            self._send(truth)
+
     def _publish(self) -> None:
-        self.truth_pub.publish(truth_to_msg(self.emulator.truth()))
+        self._send(self.emulator.truth())
+
+    def _send(self, truth: Truth) -> None:
+        self._last_publish = time.monotonic()
+        self.truth_pub.publish(truth_to_msg(truth))
 
     def destroy_node(self) -> None:
         self.emulator.close()
