@@ -105,15 +105,23 @@ def blais_rioux_kernel(order: int, size: int) -> np.ndarray:
 
 def blais_rioux_zero_crossing(gm: np.ndarray, g0: np.ndarray, gp: np.ndarray) -> np.ndarray:
     """Offset of the zero crossing of g next to the peak from g at the columns -1, 0, +1 (in [-1, 1])."""
-    # g < 0 left of the peak and > 0 right of it; interpolate its zero crossing next to the peak
-    right_side = g0 <= 0.0
-    lo = np.where(right_side, g0, gm)
-    hi = np.where(right_side, gp, g0)
-    den = hi - lo
-    frac = np.full_like(g0, 0.5)
-    np.divide(-lo, den, out=frac, where=den > 0)
-    # the crossing lies in [0, 1] right of the peak, or in [-1, 0] left of it
-    return clamp(frac, 0.0, 1.0) - (~right_side)
+    return blais_rioux_crossing(-g0, g0 - gm, gp - g0)
+
+
+def blais_rioux_crossing(neg_g0: np.ndarray, rise_left: np.ndarray, rise_right: np.ndarray) -> np.ndarray:
+    """`blais_rioux_zero_crossing` from -g(0), g(0) - g(-1) and g(+1) - g(0), all linear in the profile.
+
+    g < 0 left of the peak and > 0 right of it; its zero crossing is interpolated on the segment
+    next to the peak where g changes sign: [0, 1] when g(0) <= 0, else [-1, 0]. On either
+    segment the interpolated crossing is -g(0) / (rise of g along the segment), so one division
+    covers both (the sign of g(0) keeps each on its own side of 0), and dividing by at least
+    |g(0)| clamps it to [-1, 1] on the way. A segment on which g does not rise (a flat or
+    clipped top, noise) has no crossing: the offset is then the segment's far end, or 0 when
+    g(0) = 0. Taking the three inputs from the extractor's matrix product leaves 6 numpy calls.
+    """
+    left = neg_g0 < 0.0
+    rise = np.where(left, rise_left, rise_right)
+    return neg_g0 / np.maximum(np.maximum(rise, np.abs(neg_g0)), _TINY)
 
 
 def _blais_rioux(profile: np.ndarray, order: int) -> np.ndarray:
@@ -147,6 +155,10 @@ METHOD_SUPPORT_PX: Dict[str, int] = {"gaussian3": 1, "parabola": 1, "com": 1, "b
 BLAIS_RIOUX_ORDER: Dict[str, int] = {"blais_rioux4": 4, "blais_rioux8": 8}
 
 
+_WALK_STEP = np.array([1, -1])  # the two walks of `half_max_crossings`: right, left
+_WALK_STEP.setflags(write=False)
+
+
 def half_max_crossings(profile: np.ndarray, base: Optional[np.ndarray] = None
                        ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sub-pixel positions (relative to the centre column) where the peak falls to half its height.
@@ -165,20 +177,22 @@ def half_max_crossings(profile: np.ndarray, base: Optional[np.ndarray] = None
         raise ValueError(f"half_max_crossings needs at least 3 samples per row, got {m}")
     level = 0.5 * profile[:, r] if base is None else 0.5 * (profile[:, r] + base)
     below = profile < level[:, None]
-    # index of the first sample below the level going right / left from the centre; argmax gives
-    # 0 both when there is none and when the centre itself is below: neither is a peak
-    jr = below[:, r:].argmax(axis=1)
-    jl = below[:, r::-1].argmax(axis=1)
-    found = (jr > 0) & (jl > 0)
+    # Index of the first sample below the level going right / left from the centre, both walks
+    # in one argmax over the two halves side by side; argmax gives 0 both when there is none
+    # and when the centre itself is below: neither is a peak.
+    j = np.concatenate([below[:, r:], below[:, r::-1]], axis=1).reshape(n, 2, r + 1).argmax(axis=2)
+    found = np.minimum.reduce(j, axis=1) > 0
+    # flat index of the first sample below the level (outer) and of the one before it (inner),
+    # right then left: both interpolations in one set of (n, 2) operations
+    outer = np.arange(r, n * m, m)[:, None] + _WALK_STEP * j
     flat = profile.ravel()
-    outer = np.arange(r, n * m, m) + jr
-    low, high = flat[outer], flat[outer - 1]
+    low = flat[outer]
+    high = flat[outer - _WALK_STEP]
     # high >= level > low on found rows; the floor only keeps the others finite
-    right = jr - (level - low) / np.maximum(high - low, _TINY)
-    outer -= jr + jl
-    low, high = flat[outer], flat[outer + 1]
-    left = (level - low) / np.maximum(high - low, _TINY) - jl
-    return left.astype(profile.dtype, copy=False), right.astype(profile.dtype, copy=False), found
+    frac = (level[:, None] - low) / np.maximum(high - low, _TINY)
+    # right: jr - frac; left: frac - jl
+    side = _WALK_STEP * (j - frac)
+    return side[:, 1].astype(profile.dtype, copy=False), side[:, 0].astype(profile.dtype, copy=False), found
 
 
 @dataclass(frozen=True)

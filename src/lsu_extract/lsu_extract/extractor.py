@@ -17,13 +17,16 @@ Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixel
 3. fallback: rows where the window holds no clean peak are searched in full, except rows
    dark in every channel (below ``min_contrast``), which cannot hold a laser that bright;
 4. refinement: a window of the signal around each integer peak gives the background (the
-   lower end), the sub-pixel centre (detectors.py), the width between the half-maximum
-   crossings, and for a saturated plateau the centre between those crossings.
+   lower end), the sub-pixel centre (detectors.py) and the width (the equivalent width of the
+   profile, see `_fit`); the half-maximum crossings are walked for the rows that need them,
+   and give a saturated plateau its centre.
 
-Speed: a 640x480 frame costs about a hundred numpy/OpenCV calls on arrays of a few
-thousand elements, so the call count, not the arithmetic, sets the time. Hence the fast
-paths for the usual case (every coarse row found, no window at a border, no clipped pixel,
-every row valid) and the linear parts of the refinement fused into one matrix product.
+Speed: a 640x480 frame costs some 80 numpy/OpenCV calls on arrays of a few thousand
+elements, so the call count, not the arithmetic, sets the time. Hence the fast paths for the
+usual case (every coarse row found, no window at a border, no clipped pixel, every row
+valid), the tracking windows kept column-major so that the per-row peak search is one
+reduction over axis 0 (`_track`), and every linear feature of the refinement (background,
+peak, width, width range, the Blais-Rioux filter) fused into one matrix product.
 
 A pure module: numpy and OpenCV, no ROS.
 """
@@ -33,13 +36,13 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 from functools import lru_cache
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from .detectors import BLAIS_RIOUX_ORDER, METHOD_SUPPORT_PX, METHODS, SUBPIXEL_METHODS, THESIS
 from .detectors import clamp as _clamp
-from .detectors import blais_rioux_kernel, blais_rioux_zero_crossing, half_max_crossings, thesis_detector
+from .detectors import blais_rioux_crossing, blais_rioux_kernel, half_max_crossings, thesis_detector
 from .image import ImageFormatError
 from .signal import LaserSignal
 from .tracking import BLANK, coarse_track, decide, row_candidates
@@ -125,7 +128,8 @@ class LaserLineResult:
     u: np.ndarray        # sub-pixel column of the line centre [px], float32
     v: np.ndarray        # row [px], float32
     peak: np.ndarray     # laser signal above background at the peak [DN] (thesis: red value)
-    width: np.ndarray    # FWHM of the profile [px] (thesis: laser pixels in the row)
+    width: np.ndarray    # FWHM of the profile [px]: its equivalent width, or half-maximum crossings (see _fit)
+    #                      (thesis: laser pixels in the row)
     quality: np.ndarray  # 0..1: contrast x uniqueness (x 0.8 when saturated)
     rows_searched: int = 0
     rows_ambiguous: int = 0   # rejected: two competing peaks, continuity could not choose
@@ -137,7 +141,7 @@ class LaserLineResult:
         return int(self.u.size)
 
 
-_FIELDS = ("u", "peak", "width", "quality", "saturated")
+_FIELDS = ("u", "peak", "width", "quality")  # per-row outputs; plus "saturated" (None: no row clipped) and "valid"
 
 
 def _mid(params: ExtractorParams) -> float:
@@ -148,11 +152,72 @@ def _span(params: ExtractorParams) -> float:
     return 0.5 * (params.max_width_px - params.min_width_px)
 
 
+# Area of a Gaussian of unit height per unit FWHM: sqrt(pi / (4 ln 2)). The equivalent width
+# area / peak of a Gaussian profile is its FWHM times this.
+GAUSSIAN_AREA_PER_FWHM = math.sqrt(math.pi / (4.0 * math.log(2.0)))
+_TINY = 1e-6  # a Python float: numpy's fast path for scalars, and it keeps float32 float32
+
+
+@lru_cache(maxsize=16)
+def _peak_search_layout(rows: int, n: int, w: int) -> Tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+    """Cached read-only tables for `_peak_search` over a (rows, n) search region (rows = 2 w + 1).
+
+    Returns (codes, bits, offset, interior): ``codes[j, i] = j * n + i``, the flat index that
+    `_peak_search` returns and that the strided profile view of `_column_profiles` takes;
+    ``bits`` how many low bits hold it; ``offset[j * n + i] = j - w``, the peak's column
+    relative to the region's centre; ``interior[j * n + i]``: j is not on the region's edge.
+    """
+    bits = max(1, (rows * n - 1).bit_length())
+    # the signal (-255..255) shifted left by `bits` must fit the key type
+    dtype = np.int32 if bits <= 22 else np.int64
+    codes = np.arange(rows * n, dtype=dtype).reshape(rows, n)
+    offset = np.repeat(np.arange(-w, rows - w), n)
+    interior = (offset > -w) & (offset < rows - 1 - w)
+    for table in (codes, offset, interior):
+        table.setflags(write=False)
+    return codes, bits, offset, interior
+
+
+def _peak_search(values: np.ndarray, codes: np.ndarray, bits: int) -> np.ndarray:
+    """``argmax(values, axis=0) * n + arange(n)`` of integer ``values`` (m, n): the first maximum on ties.
+
+    numpy's argmax over axis 0 copies to make the axis contiguous, then loops per column: ~30 us
+    for 25 x 480, then two more calls make the flat index. Instead each value is shifted left
+    and its flat index (``codes``, `_peak_search_layout`) subtracted: of equal values the
+    first row keeps the smallest key, and one min over axis 0, a vector operation per row,
+    finds the largest value with its index in the low bits. Exact: the values are integers
+    (the signal, -255..255, which `_peak_search_layout` sizes the key type for).
+    """
+    keys = codes - (values.astype(codes.dtype) << bits)
+    return keys.min(axis=0) & ((1 << bits) - 1)
+
+
+def _column_profiles(signal: np.ndarray, flat_index: np.ndarray, size: int) -> np.ndarray:
+    """``size`` samples down each column ``i`` of a column-major window from ``flat_index[i] = j * n + i``.
+
+    Returns (n, size) float32: rows ``j .. j + size - 1`` of column ``i``. A strided view
+    whose entry ``q`` holds the ``size`` samples from flat index ``q`` down one column (stride:
+    one window row) turns the gather into one fancy index of n entries.
+    """
+    length, n = signal.shape
+    item = signal.itemsize
+    runs = np.ndarray(((length - size + 1) * n, size), signal.dtype, signal, 0, (item, item * n))
+    return runs[flat_index].astype(np.float32)
+
+
+@lru_cache(maxsize=16)
+def _track_starts(height: int, width: int, reach: int) -> np.ndarray:
+    """``arange(height) * width - reach`` (cached, read-only): flat window starts of every row, less the centre column."""
+    starts = np.arange(height) * width - reach
+    starts.setflags(write=False)
+    return starts
+
+
 def _profiles(signal: np.ndarray, peak_idx: np.ndarray, half: int) -> np.ndarray:
     """The ``2 * half + 1`` signal samples centred on each row's peak: (n, 2 * half + 1) float32, a copy.
 
-    Where the window holds them all (the tracking windows always do), one strided gather of
-    short contiguous runs; otherwise the samples beyond a window end repeat its edge value.
+    Where the window holds them all, one strided gather of short contiguous runs; otherwise
+    (windows shifted at a border) the samples beyond a window end repeat its edge value.
     """
     n, length = signal.shape
     size = 2 * half + 1
@@ -164,84 +229,241 @@ def _profiles(signal: np.ndarray, peak_idx: np.ndarray, half: int) -> np.ndarray
 
 
 @lru_cache(maxsize=32)
-def _linear_features(method: str, half: int) -> np.ndarray:
-    """(2 * half + 1, k) matrix: the means of the two samples at each profile end, then the method's filter if linear.
+def _linear_features(method: str, half: int, min_width: float, max_width: float) -> np.ndarray:
+    """(k, 2 * half + 1) matrix of linear features of a profile: ``matrix @ profile.T`` gives all of them.
 
-    One matrix product gives the background estimate and, for Blais-Rioux, the filter values the
-    zero crossing is interpolated from: the per-op cost of numpy, not the arithmetic, is what a
-    480-row frame pays for.
+    Rows: 0, 1: the centre sample's height above the mean of the two samples at the left /
+    right window end (the peak is the larger: the background is the lower end); 2: the area
+    above the straight line through the two end means, over `GAUSSIAN_AREA_PER_FWHM`; 3: the
+    centre sample's height above that line (2 / 3 is the width); 4..7: the shortcut test of
+    `_fit`, all > 0 when it holds: 4 x row 0 - 3 x row 1 and 4 x row 1 - 3 x row 0 (the end
+    means differ by less than a quarter of the peak), row 2 - ``min_width`` x row 3 and
+    ``max_width`` x row 3 - row 2 (the width is within those bounds); then, for Blais-Rioux,
+    -g(0), g(0) - g(-1) and g(+1) - g(0) of its filter g (`blais_rioux_crossing`).
+
+    Each would be a few numpy calls of its own; the per-call cost of numpy, not the
+    arithmetic, is what a 480-row frame pays for. Rows 0, 1, 4 and 5 have weights that are
+    multiples of 0.5 (up to 4), so on the integer-valued signal they are exact. One row per
+    feature: the products come out as contiguous rows, which the elementwise calls after it
+    read faster than strided columns.
     """
     size = 2 * half + 1
-    ends = np.zeros((size, 2), np.float32)
-    ends[:2, 0] = ends[-2:, 1] = 0.5
+    rows = np.zeros((8, size), np.float64)
+    rows[0, :2] = rows[1, -2:] = -0.5
+    rows[:2, half] = 1.0
+    line = np.zeros(size)
+    line[:2] = line[-2:] = 0.25  # the mean of the two end means: the line's mean height
+    rows[2] = (1.0 - size * line) / GAUSSIAN_AREA_PER_FWHM
+    rows[3] = -line
+    rows[3, half] += 1.0
+    rows[4] = 4.0 * rows[0] - 3.0 * rows[1]
+    rows[5] = 4.0 * rows[1] - 3.0 * rows[0]
+    rows[6] = rows[2] - min_width * rows[3]
+    rows[7] = max_width * rows[3] - rows[2]
     if method in BLAIS_RIOUX_ORDER:
-        ends = np.concatenate([ends, blais_rioux_kernel(BLAIS_RIOUX_ORDER[method], size)], axis=1)
-    ends.setflags(write=False)
-    return ends
+        g = blais_rioux_kernel(BLAIS_RIOUX_ORDER[method], size).T.astype(np.float64)  # g(-1), g(0), g(+1)
+        rows = np.concatenate([rows, [-g[1], g[1] - g[0], g[2] - g[1]]])
+    matrix = rows.astype(np.float32)
+    matrix.setflags(write=False)
+    return matrix
+
+
+def _shortcut_widths(params: ExtractorParams) -> Tuple[float, float]:
+    """The equivalent widths for which `_fit` skips the half-maximum crossings: the accepted range less a margin.
+
+    The equivalent width and the crossings agree within ~0.2 px on a Gaussian line up to 8 px;
+    wider, the window truncates the tails and the equivalent width reads up to ~4 px less at
+    16 px. Rows nearer the limits than that are measured by the crossings, so that acceptance
+    does not depend on which estimate a row got.
+    """
+    return params.min_width_px + 1.0, params.max_width_px - 4.0
+
+
+def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray], params: ExtractorParams,
+         image_width: int, accept: Optional[np.ndarray] = None, inside: bool = False) -> Dict[str, Optional[np.ndarray]]:
+    """Sub-pixel centre, peak, width and contrast quality of each row's profile around its integer peak.
+
+    ``profile`` is (n, 2 * half + 1) float32, the signal around image column ``column`` (its
+    centre sample); ``saturated`` flags rows whose peak is a clipped plateau (None: none is);
+    ``accept``: rows the caller has already rejected are False (None: all accepted);
+    ``inside``: the caller knows every column is at least ``half`` from both borders.
+    Returns per-row arrays (see `_FIELDS`) and ``valid`` (None: every row is valid).
+
+    Width: walking out to the half-maximum crossings costs a dozen numpy calls, so the usual
+    row takes its width from the matrix product instead: the equivalent width (area / height
+    above the straight line through the window ends) over `GAUSSIAN_AREA_PER_FWHM`, which is the
+    FWHM of a Gaussian line on a linear background (within ~0.1 px of the crossings up to 8 px;
+    a wider line is truncated by the window and reads narrower). The crossings are walked, and
+    give the width and the acceptance, for the rows where that shortcut is not sound:
+
+    - a saturated plateau: its clipped top says nothing of the area; its centre is midway
+      between the crossings;
+    - window ends more than a quarter of the peak apart: a step or a neighbouring patch in the
+      background, which the line does not model. Closer ends also guarantee what the walk
+      checks, a sample below half height on each side (both end means are below it);
+    - an equivalent width out of range or near its ends (`_shortcut_widths`): acceptance is
+      decided by the crossings, as before, so the shortcut neither loses a row nor, where the
+      two estimates differ a little (a hot pixel, a noisy broad bump), adds one;
+    - rows near the image border, whose crossings must lie inside the image.
+    """
+    half = params.refine_half_px
+    features = _linear_features(params.method, half, *_shortcut_widths(params)) @ profile.T
+    # height above the local background, the lower of the two window ends, so that a
+    # neighbouring bright patch on one side does not eat the contrast
+    peak = np.maximum(features[0], features[1])
+    strong = peak >= params.min_contrast
+    if accept is not None:
+        strong &= accept
+    # Nearly level ends (then the height above the line is > 0 too) and the width well in range.
+    # With peak = max(row 0, row 1) > 0, |end difference| = |row 0 - row 1| < peak / 4 is the
+    # same as min(row 0, row 1) > 3/4 max(row 0, row 1): two linear rows > 0, like the width.
+    shortcut = np.minimum.reduce(features[4:8], axis=0) > 0.0
+    valid = strong & shortcut
+    width = features[2] / np.maximum(features[3], _TINY)
+    if params.method in BLAIS_RIOUX_ORDER:
+        offset = blais_rioux_crossing(features[8], features[9], features[10])
+    else:
+        offset = SUBPIXEL_METHODS[params.method](profile - (profile[:, half] - peak)[:, None])
+    n = valid.size
+    if saturated is None and (inside or half <= column.min() and column.max() <= image_width - 1 - half) \
+            and np.count_nonzero(valid) == n:
+        all_valid = True  # the usual tracking result: no crossing to walk, no row to drop
+    else:
+        all_valid = False
+        walk = strong > shortcut  # strong and not shortcut: weak rows are rejected anyway
+        if saturated is not None:
+            walk |= saturated & strong
+        near_border = not inside and (column.min() < half or column.max() > image_width - 1 - half)
+        if near_border:
+            # A peak at least `half` columns from both borders has the estimator's samples and
+            # both crossings inside the image (they are within +-half); only nearer rows are tested.
+            walk |= ((column < half) | (column > image_width - 1 - half)) & strong
+        if np.count_nonzero(walk):
+            sub = walk.nonzero()[0]
+            left, right, found = half_max_crossings(profile[sub], profile[sub, half] - peak[sub])
+            width[sub] = right - left
+            ok = found & (np.abs(width[sub] - _mid(params)) <= _span(params))
+            if saturated is not None:
+                # A clipped top has no shape to fit; the flanks are intact and symmetric, so the
+                # centre is midway between the half-maximum crossings.
+                offset[sub] = np.where(saturated[sub], 0.5 * (left + right), offset[sub])
+            if near_border:
+                # nearer the border the profile is cut and its centre is not observable
+                margin = METHOD_SUPPORT_PX[params.method]
+                col = column[sub]
+                ok &= ~((col < margin) | (col > image_width - 1 - margin) |
+                        (col + left < 0.0) | (col + right > image_width - 1.0))
+            valid[sub] = ok
+    u = np.add(offset, column, out=offset, casting="unsafe")  # float32, in place
+    if params.method not in BLAIS_RIOUX_ORDER:
+        # u is finite by construction (finite signal, guarded divisions); the test keeps it so for
+        # any estimator (the Blais-Rioux crossing is clamped to [-1, 1])
+        finite = np.isfinite(u)
+        if np.count_nonzero(finite) < n:
+            valid &= finite
+            all_valid = False
+    # only valid rows (peak >= min_contrast) are reported, so no clamp at 0 is needed
+    quality = np.minimum((peak - params.min_contrast) * (0.5 / params.min_contrast), 1.0)
+    if saturated is not None:
+        quality = np.where(saturated, 0.8 * quality, quality)
+    return {"u": u, "peak": peak, "width": width, "quality": quality, "saturated": saturated,
+            "valid": None if all_valid else valid}
 
 
 def _refine(signal: np.ndarray, red: np.ndarray, first: np.ndarray, peak_idx: np.ndarray,
-            params: ExtractorParams, image_width: int) -> Dict[str, np.ndarray]:
-    """Sub-pixel centre, peak, FWHM and contrast quality of each row's peak within its window.
+            params: ExtractorParams, image_width: int, accept: Optional[np.ndarray] = None
+            ) -> Dict[str, Optional[np.ndarray]]:
+    """`_fit` of each row's peak within its window: ``signal``/``red`` are (n, L) windows from image column ``first``.
 
-    ``signal``/``red`` are (n, L) windows starting at image column ``first``, ``peak_idx`` the
-    integer peak in each. Returns per-row arrays (see `_FIELDS`) and ``valid``.
+    ``peak_idx`` is the integer peak in each window. The general (row-major) path: windows
+    shifted at a border, and the fallback rows.
     """
-    half = params.refine_half_px
-    profile = _profiles(signal, peak_idx, half)
-    features = profile @ _linear_features(params.method, half)
-    # local background: the lower of the two window ends, so a neighbouring bright patch on one
-    # side does not eat the contrast
-    background = np.minimum(features[:, 0], features[:, 1])
-    peak = profile[:, half] - background
-    left, right, found = half_max_crossings(profile, background)
-    if params.method in BLAIS_RIOUX_ORDER:
-        offset = blais_rioux_zero_crossing(features[:, 2], features[:, 3], features[:, 4])
-    else:
-        profile -= background[:, None]
-        offset = SUBPIXEL_METHODS[params.method](profile)
+    profile = _profiles(signal, peak_idx, params.refine_half_px)
+    saturated = None
     # The signal's argmax can sit just beside the clipped red pixels (green/blue noise), so look
     # at the peak's neighbours too; the exact test only runs when the windows clip at all.
     if red.size and red.max() >= params.saturation_level:
         near = _clamp(peak_idx[:, None] + np.arange(-1, 2)[None, :], 0, red.shape[1] - 1)
         saturated = np.take_along_axis(red, near, axis=1).max(axis=1) >= params.saturation_level
-        # A clipped top has no shape to fit; the flanks are intact and symmetric, so the centre is
-        # midway between the half-maximum crossings.
-        offset = np.where(saturated, 0.5 * (left + right), offset)
+    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept)
+
+
+def _refine_columns(sig: LaserSignal, rows: np.ndarray, column: np.ndarray, params: ExtractorParams,
+                    image_width: int) -> Dict[str, Optional[np.ndarray]]:
+    """`_fit` of the peak at ``column`` in each of ``rows`` (the fallback rows), every window inside the image.
+
+    The window of +-half around the peak is the profile itself: gathered column-major, it is
+    already the transposed profile the matrix product of `_fit` wants, with no second gather.
+    """
+    half = params.refine_half_px
+    signal, red = sig.window_columns(rows * image_width + (column - half), 2 * half + 1)
+    saturated = None
+    if red.max() >= params.saturation_level:
+        # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
+        saturated = np.maximum.reduce(red[half - 1:half + 2], axis=0) >= params.saturation_level
+    return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True)
+
+
+def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: ExtractorParams,
+           image_width: int) -> Dict[str, Optional[np.ndarray]]:
+    """`_fit` of the strongest peak within ``window_px`` of ``centre`` in each row (every window inside the image).
+
+    The fast path of the tracking stage: the windows (search region +- window_px, plus the
+    refinement's +-half beyond it) are gathered column-major (`LaserSignal.window_columns`), so
+    the peak search is one reduction over axis 0 and the profiles one strided gather.
+    """
+    w, half = params.window_px, params.refine_half_px
+    reach = w + half
+    n = rows.size
+    if n == sig.height:  # every row (rows is then arange(height)): the row offsets are cached
+        starts = _track_starts(sig.height, image_width, reach) + centre
     else:
-        saturated = None
-    width = right - left
-    column = first + peak_idx
-    u = column + offset
-    # u is finite by construction (finite signal, guarded divisions); the test keeps it so for any estimator
-    valid = found & (peak >= params.min_contrast) & (np.abs(width - _mid(params)) <= _span(params)) & np.isfinite(u)
-    # The estimator's samples and both half-maximum crossings must lie inside the image; nearer
-    # the border the profile is cut and its centre is not observable. A peak at least `half`
-    # columns from both borders has all of them inside (margin and crossings are within +-half).
-    if column.min() < half or column.max() > image_width - 1 - half:
-        margin = METHOD_SUPPORT_PX[params.method]
-        valid &= ~((column < margin) | (column > image_width - 1 - margin) |
-                   (column + left < 0.0) | (column + right > image_width - 1.0))
-    quality = _clamp((peak - params.min_contrast) * (0.5 / params.min_contrast), 0.0, 1.0)
-    if saturated is not None:
-        quality = np.where(saturated, 0.8 * quality, quality)
-    return {"u": u, "peak": peak, "width": width, "quality": quality, "saturated": saturated, "valid": valid}
+        starts = rows * image_width + (centre - reach)
+    signal, red = sig.window_columns(starts, 2 * reach + 1)
+    codes, bits, offset, interior = _peak_search_layout(2 * w + 1, n, w)
+    # the peak's flat index j * n + i in the search region (window rows half .. half + 2 w);
+    # the profile runs from window row j, i.e. half rows before the peak
+    flat = _peak_search(signal[half:half + 2 * w + 1], codes, bits)
+    profile = _column_profiles(signal, flat, 2 * half + 1)
+    column = centre + offset[flat]
+    saturated = None
+    if red.max() >= params.saturation_level:
+        # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
+        peak_row = flat // n + half
+        near = red[peak_row[None, :] + np.arange(-1, 2)[:, None], np.arange(n)[None, :]]
+        saturated = near.max(axis=0) >= params.saturation_level
+    # a peak on the region's edge may be a slope rising towards something outside: search the row
+    return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True)
+
+
+@lru_cache(maxsize=16)
+def _coarse_rows(height: int, step: int) -> np.ndarray:
+    """The rows of the coarse pass, every ``step``-th from ``step // 2`` (cached, read-only)."""
+    rows = np.arange(min(step // 2, height - 1), height, step)
+    rows.setflags(write=False)
+    return rows
+
+
+_NO_ROWS = np.zeros(0, np.int64)
+_NO_ROWS.setflags(write=False)
+_NO_COLS = np.zeros(0)
+_NO_COLS.setflags(write=False)
 
 
 def _keep(rows: np.ndarray, fit: Dict[str, Optional[np.ndarray]],
           uniqueness: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
     """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given."""
     ok = fit["valid"]
-    if ok.all():  # the usual tracking result: nothing to drop
-        kept = {name: fit[name] for name in ("u", "peak", "width", "quality")}
+    if ok is None:  # every row valid: nothing to drop
+        kept = {name: fit[name] for name in _FIELDS}
         kept["v"] = rows
     else:
-        kept = {name: fit[name][ok] for name in ("u", "peak", "width", "quality")}  # type: ignore[index]
+        kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]
         kept["v"] = rows[ok]
     saturated = fit["saturated"]
-    kept["saturated"] = np.zeros(kept["v"].shape, bool) if saturated is None else saturated[ok]
+    kept["saturated"] = saturated if saturated is None or ok is None else saturated[ok]
     if uniqueness is not None:
-        kept["quality"] = kept["quality"] * uniqueness[ok]
+        kept["quality"] = kept["quality"] * (uniqueness if ok is None else uniqueness[ok])
     return kept
 
 
@@ -278,35 +500,32 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
     pending: Optional[np.ndarray] = None  # None = every row
     if params.window_px > 0:
         w = params.window_px
-        coarse = slice(min(step // 2, height - 1), height, step)
-        coarse_rows = np.arange(height)[coarse]
-        cand = row_candidates(sig.rows_clipped(coarse), coarse_rows, half, params.min_contrast)
+        coarse_rows = _coarse_rows(height, step)
+        cand = row_candidates(sig.rows_clipped(slice(coarse_rows[0], height, step)), coarse_rows, half,
+                              params.min_contrast)
         full_searched += coarse_rows.size
-        pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, np.empty(0, np.int64),
-                      np.empty(0), 2 * step)
+        pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)
         rows_w, guess = coarse_track(height, coarse_rows, pick.column, step)
         if rows_w.size:
             centre = np.rint(guess).astype(np.int64)
             reach = w + half  # the window holds the search region (+-w) and, beyond it, the refinement's +-half
-            s, red, first = sig.windows(rows_w, centre - reach, 2 * reach + 1)
             if reach <= centre.min() and centre.max() <= width - 1 - reach:
-                # no window was shifted at a border: the search region is the same slice in every row
-                rel = reach
-                peak_idx = np.argmax(s[:, half:half + 2 * w + 1], axis=1) + half
+                # no window reaches a border (the usual case): column-major windows, fewest calls
+                fit = _track(sig, rows_w, centre, params, width)
             else:
-                rel = centre - first
+                s, red, first = sig.windows(rows_w, centre - reach, 2 * reach + 1)
+                rel = centre - first  # windows at a border were shifted inside the image
                 region = np.abs(np.arange(s.shape[1])[None, :] - rel[:, None]) <= w
                 peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
-            fit = _refine(s, red, first, peak_idx, params, width)
-            # a peak on the region's edge may be a slope rising towards something outside: search the row
-            fit["valid"] &= np.abs(peak_idx - rel) < w
+                # a peak on the region's edge may be a slope rising towards something outside: search the row
+                fit = _refine(s, red, first, peak_idx, params, width, accept=np.abs(peak_idx - rel) < w)
             chunks.append(_keep(rows_w, fit))
         if chunks and chunks[0]["v"].size == height:
             pending = np.zeros(0, np.int64)
         elif chunks:
             missing = np.ones(height, bool)
             missing[chunks[0]["v"]] = False
-            pending = np.flatnonzero(missing)
+            pending = missing.nonzero()[0]
     ambiguous = 0
     if pending is None:
         pending = np.arange(height)
@@ -315,28 +534,33 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
     if pending.size:
         cand = row_candidates(sig.rows(pending), pending, half, params.min_contrast)
         full_searched += pending.size
-        known_rows = chunks[0]["v"] if chunks else np.empty(0, np.int64)
-        known_cols = chunks[0]["u"] if chunks else np.empty(0)
+        known_rows = chunks[0]["v"] if chunks else _NO_ROWS
+        known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
                       known_rows, known_cols, 2 * step)
         ambiguous = int(np.count_nonzero(pick.ambiguous))
         ok = pick.column >= 0
         rows_f = pending[ok]
         if rows_f.size:
-            s, red, first = sig.windows(rows_f, pick.column[ok] - half, 2 * half + 1)
-            fit = _refine(s, red, first, pick.column[ok] - first, params, width)
+            column = pick.column[ok]
+            if half <= column.min() and column.max() <= width - 1 - half:
+                fit = _refine_columns(sig, rows_f, column, params, width)
+            else:  # some window is cut by the border: shifted inside the image, edge samples repeated
+                s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
+                fit = _refine(s, red, first, column - first, params, width)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
+    saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
     if len(chunks) == 1:
         found = chunks[0]
     elif chunks:
         order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
         found = {name: np.concatenate([c[name] for c in chunks])[order] for name in ("v", *_FIELDS)}
     else:
-        found = {name: np.zeros(0, bool if name == "saturated" else np.float32) for name in ("v", *_FIELDS)}
+        found = {name: np.zeros(0, np.float32) for name in ("v", *_FIELDS)}
+    # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
-        u=found["u"].astype(np.float32), v=found["v"].astype(np.float32),
+        u=found["u"].astype(np.float32, copy=False), v=found["v"].astype(np.float32),
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
-        rows_searched=height, rows_ambiguous=ambiguous,
-        rows_saturated=int(np.count_nonzero(found["saturated"])), rows_full_search=full_searched)
+        rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched)

@@ -11,10 +11,14 @@ Computing the signal for a whole 640x480 frame costs several times a copy of the
 `LaserSignal` computes it lazily: for a set of full rows (coarse search, fallback) or for a
 window of columns per row (tracking), gathering the window pixels with one strided view.
 
-The arithmetic runs in OpenCV (``split``/``max``/``subtract`` straight to float32): numpy
-reads a channel of interleaved BGR with a 3-byte stride and cannot vectorise it, OpenCV
-de-interleaves with SIMD, and float32 is what the peak search (``argmax`` is vectorised
-for floats, not for int16) and the sub-pixel estimators want anyway.
+The arithmetic runs in OpenCV: numpy reads a channel of interleaved BGR with a 3-byte stride
+and cannot vectorise it. Full rows are de-interleaved with ``split`` and stay row-major, as
+the full-row argmax wants them. The tracking windows are short (a few dozen pixels) and many
+(one per row): `window_columns` de-interleaves them with one byte transpose (``cv2.transpose``
+of the (n, 3 L) pixel bytes), which leaves each channel as an (L, n) view with contiguous
+rows, and keeps that column-major layout, in which a per-row peak search is a reduction over
+axis 0 (one vector operation per window column for all rows at once) instead of numpy's
+per-row loop.
 """
 
 from __future__ import annotations
@@ -109,6 +113,41 @@ class LaserSignal:
         texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
         signal, red = self._signal(pixels, texture)
         return signal, red, first
+
+    def window_columns(self, starts: np.ndarray, length: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Signal and red channel of ``length`` pixels from each of ``starts``, column-major.
+
+        ``starts`` are flat pixel indices (``row * width + first column``) of windows that lie
+        inside their row (the caller has checked; this does not clamp).
+
+        Returns:
+            (signal (length, n) int16, red (length, n) uint8): entry ``[j, i]`` is pixel
+            ``starts[i] + j``. int16 holds the signal exactly (-255..255) at half the bytes of
+            float32; the red array may be a strided view.
+        """
+        pixels = self._sliding(self.image, length)[starts]
+        texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
+        if self.colour:
+            red, other = self._planes(pixels, texture)
+        else:
+            red = cv2.transpose(pixels)
+            other = None if texture is None else cv2.transpose(texture)
+        if other is None:
+            return red.astype(np.int16), red
+        # numpy: int16 - uint8 stays int16, and on these strided views it beats cv2.subtract's conversion
+        return red.astype(np.int16) - other, red
+
+    def _planes(self, pixels: np.ndarray, texture: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+        """(red, other) of (n, L, 3) colour pixels, each (L, n) uint8; other = max(green, blue) or the texture's red.
+
+        One byte transpose de-interleaves: row 3 j + c of the (3 L, n) result is channel c of
+        column j, so the channels are strided views whose rows are contiguous.
+        """
+        n, length = pixels.shape[:2]
+        planes = cv2.transpose(pixels.reshape(n, 3 * length)).reshape(length, 3, n)
+        if texture is None:
+            return planes[:, 2], cv2.max(planes[:, 1], planes[:, 0])
+        return planes[:, 2], cv2.transpose(texture.reshape(n, 3 * length)).reshape(length, 3, n)[:, 2]
 
     def _sliding(self, image: np.ndarray, length: int) -> np.ndarray:
         # A (pixels - length + 1, length[, 3]) view whose entry k is the `length` pixels from flat

@@ -46,6 +46,14 @@ def _suppression_offsets(rows: int, width: int, suppress_px: int) -> np.ndarray:
     return offsets
 
 
+@lru_cache(maxsize=32)
+def row_starts(rows: int, width: int) -> np.ndarray:
+    """(rows,) flat index of the first element of each row of a (rows, width) array (cached, read-only)."""
+    starts = np.arange(0, rows * width, width)
+    starts.setflags(write=False)
+    return starts
+
+
 def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
                    min_contrast: float = 0.0) -> RowCandidates:
     """Top-two peaks of each full row of the laser signal (n, W): float32, or uint8 clipped at 0.
@@ -62,31 +70,27 @@ def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
     if signal_rows.dtype != np.uint8:
         signal_rows = np.ascontiguousarray(signal_rows, dtype=np.float32)
     blank = 0 if signal_rows.dtype == np.uint8 else BLANK  # below every value of the signal
-    first = np.argmax(signal_rows, axis=1)
+    first = signal_rows.argmax(axis=1)
     background = cv2.reduce(signal_rows, 1, cv2.REDUCE_AVG, dtype=cv2.CV_32F).ravel()
-    starts = np.arange(0, n * w, w)
+    starts = row_starts(n, w)
     first_contrast = signal_rows.ravel()[starts + first] - background
     strong = first_contrast >= min_contrast
-    if strong.all():
-        sub: "slice | np.ndarray" = slice(None)
-        rest = signal_rows.copy()
+    # The second peak of every row, weak ones included (their result is then discarded): fewer
+    # calls than picking out the strong rows and scattering their results back.
+    rest = signal_rows.copy()
+    # blank +-suppress_px around the first peak (a scatter of n x (2 s + 1) values, not a full-row mask)
+    flat = rest.ravel()
+    if np.minimum.reduce(first) < suppress_px or np.maximum.reduce(first) > w - 1 - suppress_px:
+        offsets = _suppression_offsets(n, w, 0)
+        flat[offsets + _clamp(first[:, None] + np.arange(-suppress_px, suppress_px + 1), 0, w - 1)] = blank
     else:
-        sub = np.flatnonzero(strong)
-        rest = signal_rows[sub]
-    m = rest.shape[0]
-    second = first.copy()
-    second_contrast = np.full(n, BLANK, np.float32)
-    if m:
-        # blank +-suppress_px around the first peak (a scatter of m x (2 s + 1) values, not a full-row mask)
-        flat = rest.ravel()
-        peak = first[sub]
-        if peak.min() < suppress_px or peak.max() > w - 1 - suppress_px:
-            offsets = _suppression_offsets(m, w, 0)
-            flat[offsets + _clamp(peak[:, None] + np.arange(-suppress_px, suppress_px + 1), 0, w - 1)] = blank
-        else:
-            flat[_suppression_offsets(m, w, suppress_px) + peak[:, None]] = blank
-        second[sub] = np.argmax(rest, axis=1)
-        second_contrast[sub] = flat[starts[:m] + second[sub]] - background[sub]
+        flat[_suppression_offsets(n, w, suppress_px) + first[:, None]] = blank
+    second = rest.argmax(axis=1)
+    second_contrast = flat[starts + second] - background
+    if np.count_nonzero(strong) < n:
+        # weak rows get no second peak: nothing will be chosen in them
+        second = np.where(strong, second, first)
+        second_contrast = np.where(strong, second_contrast, BLANK)
     return RowCandidates(rows=np.asarray(rows), first=first, second=second,
                          first_contrast=first_contrast, second_contrast=second_contrast)
 
@@ -95,21 +99,20 @@ def nearest_reference(rows: np.ndarray, ref_rows: np.ndarray, ref_cols: np.ndarr
                       max_gap_rows: int) -> np.ndarray:
     """Column of the nearest reference row (above or below) within ``max_gap_rows``; NaN if none.
 
-    ``ref_rows`` must be sorted ascending.
+    ``ref_rows`` must be sorted ascending. Of two references at the same distance, the one
+    above (the smaller row) is taken.
     """
-    out = np.full(rows.shape, np.nan)
     if ref_rows.size == 0 or rows.size == 0:
-        return out
-    pos = np.searchsorted(ref_rows, rows)
-    below = _clamp(pos, 0, ref_rows.size - 1)
-    above = _clamp(pos - 1, 0, ref_rows.size - 1)
+        return np.full(rows.shape, np.nan)
+    pos = np.searchsorted(ref_rows, rows)  # the first reference at or below (after) each row
+    below = np.minimum(pos, ref_rows.size - 1)
+    above = np.maximum(pos - 1, 0)
     d_below = np.abs(ref_rows[below] - rows)
     d_above = np.abs(ref_rows[above] - rows)
-    pick = np.where(d_below < d_above, below, above)
-    dist = np.minimum(d_below, d_above)
-    ok = dist <= max_gap_rows
-    out[ok] = ref_cols[pick[ok]]
-    return out
+    use_below = d_below < d_above
+    pick = np.where(use_below, below, above)
+    dist = np.where(use_below, d_below, d_above)
+    return np.where(dist <= max_gap_rows, ref_cols[pick], np.nan)
 
 
 @dataclass(frozen=True)
@@ -142,38 +145,46 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
     ``ref_cols`` or a resolved row here, within ``max_gap_rows``). Without a usable reference
     the stronger peak wins, unless the second is at least ``ambiguity_ratio`` of it: then the
     peaks compete, and the row is counted ambiguous and dropped.
+
+    ``c.rows`` and ``ref_rows`` must each be ascending (as the extractor makes them), and
+    disjoint.
     """
     strong = c.first_contrast >= min_contrast
-    double = strong & (c.second_contrast >= min_contrast) & \
-        (c.second_contrast >= _SECOND_PEAK_RATIO * c.first_contrast)
-    if not double.any():
+    # a second peak above both min_contrast and the ratio of the first (weak rows have none: BLANK)
+    double = strong & (c.second_contrast >= np.maximum(_SECOND_PEAK_RATIO * c.first_contrast, min_contrast))
+    if not np.count_nonzero(double):
         # the common case, one clear peak or none per row: nothing to resolve
         return Decision(column=np.where(strong, c.first, -1), ambiguous=np.zeros(strong.shape, bool), candidates=c)
     competing = double & (c.second_contrast >= ambiguity_ratio * c.first_contrast)
-    column = np.where(strong & ~double, c.first, -1)
+    column = np.where(strong > double, c.first, -1)  # strong and not double
     ref_rows = np.asarray(ref_rows, dtype=np.int64)
     ref_cols = np.asarray(ref_cols, dtype=np.float64)
     # Each pass lets rows resolved in the previous one serve as references for their
     # neighbours, so continuity spreads along a run of double-peaked rows (bounded: a loop
-    # over passes, vectorised over rows).
+    # over passes, vectorised over rows). Integer indices of the open rows, not masks: the
+    # loop body is a few dozen calls on a handful of rows, so each call counts.
     for _ in range(_CONTINUITY_PASSES):
-        open_rows = double & (column < 0)
-        if not open_rows.any():
+        open_idx = (double & (column < 0)).nonzero()[0]
+        if not open_idx.size:
             break
-        known = column >= 0
-        all_rows = np.concatenate([ref_rows, c.rows[known]])
-        all_cols = np.concatenate([ref_cols, column[known].astype(np.float64)])
-        order = np.argsort(all_rows, kind="stable")
-        ref = nearest_reference(c.rows[open_rows], all_rows[order], all_cols[order], max_gap_rows)
-        near_first = np.abs(c.first[open_rows] - ref) <= window_px
-        near_second = np.abs(c.second[open_rows] - ref) <= window_px
-        pick = np.where(near_first & ~near_second, c.first[open_rows],
-                        np.where(near_second & ~near_first, c.second[open_rows], -1))
-        if not (pick >= 0).any():
+        known = (column >= 0).nonzero()[0]
+        if ref_rows.size:  # merge the external references with the rows resolved here
+            all_rows = np.concatenate([ref_rows, c.rows[known]])
+            order = np.argsort(all_rows, kind="stable")
+            all_rows = all_rows[order]
+            all_cols = np.concatenate([ref_cols, column[known]])[order]
+        else:  # c.rows is ascending: so are its resolved rows
+            all_rows, all_cols = c.rows[known], column[known]
+        ref = nearest_reference(c.rows[open_idx], all_rows, all_cols, max_gap_rows)
+        first, second = c.first[open_idx], c.second[open_idx]
+        near_first = np.abs(first - ref) <= window_px  # False where ref is NaN
+        near_second = np.abs(second - ref) <= window_px
+        pick = np.where(near_first > near_second, first, np.where(near_second > near_first, second, -1))
+        if not np.count_nonzero(pick >= 0):
             break
-        column[open_rows] = pick
+        column[open_idx] = pick
     undecided = double & (column < 0)
-    column = np.where(undecided & ~competing, c.first, column)
+    column = np.where(undecided > competing, c.first, column)
     ambiguous = undecided & competing
     return Decision(column=column, ambiguous=ambiguous, candidates=c)
 
@@ -211,21 +222,33 @@ def coarse_neighbours(height: int, first_row: int, step: int) -> Tuple[np.ndarra
     return out[0], out[1], out[2]
 
 
+@lru_cache(maxsize=16)
+def _all_rows(height: int) -> Tuple[np.ndarray, np.ndarray]:
+    """``arange(height)`` as int64 and float64 (cached, read-only; np.interp is faster on floats)."""
+    rows = np.arange(height)
+    rows_f = rows.astype(np.float64)
+    rows.setflags(write=False)
+    rows_f.setflags(write=False)
+    return rows, rows_f
+
+
 def coarse_track(height: int, coarse_rows: np.ndarray, column: np.ndarray, step: int) -> Tuple[np.ndarray, np.ndarray]:
     """Rows within ``step`` rows of a coarse row that found the line, and the line column expected in each.
 
     ``coarse_rows`` must be ``coarse_rows[0] + k * step``; ``column`` is the coarse decision
     (-1 = none). The expected column is interpolated linearly between the found coarse rows
     (held constant beyond the first and last one). Same rule as `interpolate_track`, with the
-    neighbour search replaced by the cached layout of `coarse_neighbours`.
+    neighbour search replaced by the cached layout of `coarse_neighbours`. When every coarse
+    row found the line, the rows returned are a cached read-only ``arange(height)``.
     """
     ok = column >= 0
-    if ok.all():  # the line crosses the whole frame: every row is tracked
-        rows = np.arange(height)
-        return rows, np.interp(rows, coarse_rows, column)
-    if not ok.any():
+    found = np.count_nonzero(ok)
+    if found == ok.size:  # the line crosses the whole frame: every row is tracked
+        rows, rows_f = _all_rows(height)
+        return rows, np.interp(rows_f, coarse_rows, column)
+    if not found:
         return np.zeros(0, np.int64), np.zeros(0)
     before, nearest, after = coarse_neighbours(height, int(coarse_rows[0]), step)
-    rows = np.flatnonzero(ok[before] | ok[nearest] | ok[after])
+    rows = (ok[before] | ok[nearest] | ok[after]).nonzero()[0]
     guess = np.interp(rows, coarse_rows[ok], column[ok])
     return rows, guess

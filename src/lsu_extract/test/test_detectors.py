@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from lsu_extract.detectors import SUBPIXEL_METHODS, blais_rioux_kernel, half_max_crossings, thesis_detector
+from lsu_extract.detectors import (SUBPIXEL_METHODS, blais_rioux_kernel, blais_rioux_zero_crossing, half_max_crossings,
+                                   thesis_detector)
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
@@ -92,3 +93,19 @@ def test_blais_rioux_filter_matches_its_definition(order):
     for i, col in enumerate((r - 1, r, r + 1)):  # g(i) = sum_k f(i - k) - f(i + k), k = 1..order/2
         expected = sum(profile[:, col - k] - profile[:, col + k] for k in range(1, half + 1))
         np.testing.assert_allclose(g[:, i], expected, atol=1e-5)
+
+
+def test_blais_rioux_crossing_is_the_interpolated_zero_crossing_next_to_the_peak():
+    # the straightforward form: interpolate g linearly on the segment where it changes sign
+    rng = np.random.default_rng(11)
+    gm, g0, gp = (rng.normal(size=2000).astype(np.float32) for _ in range(3))
+    gm, gp = gm - 2.0, gp + 2.0  # mostly rising through the peak, as g does
+    offset = blais_rioux_zero_crossing(gm, g0, gp)
+    right = g0 <= 0
+    lo, hi = np.where(right, g0, gm), np.where(right, gp, g0)
+    rising = hi > lo
+    expected = np.clip(-lo / np.where(rising, hi - lo, 1.0), 0.0, 1.0) - (~right)
+    np.testing.assert_allclose(offset[rising], expected[rising], atol=1e-5)
+    assert np.all(np.abs(offset) <= 1.0) and np.all(np.isfinite(offset))
+    # a flat top (g = 0 around the peak) has its centre on the peak
+    assert blais_rioux_zero_crossing(np.zeros(1), np.zeros(1), np.zeros(1))[0] == 0.0

@@ -200,3 +200,53 @@ def test_tracking_and_full_search_refine_the_same_peaks_on_a_bright_textured_fra
     np.testing.assert_allclose(tracked.u, full.u, atol=1e-4)
     np.testing.assert_allclose(tracked.width, full.width, atol=1e-4)
     np.testing.assert_allclose(tracked.peak, full.peak, atol=1e-3)
+
+
+@pytest.mark.parametrize("fwhm", [2.5, 4.0, 6.0, 8.0])
+def test_width_estimate_is_the_fwhm_of_an_analytic_gaussian_line(fwhm):
+    # the equivalent width (area / height over the window) of a pixel-integrated Gaussian line
+    image, _, _ = render_line(CLEAN.with_(fwhm_px=fwhm, slope_px_per_row=0.13, bow_px=9.0))
+    result = extract_laser_line(image)
+    assert len(result) == image.shape[0]
+    # pixel integration widens a sampled line a little; the sub-pixel phase moves each row's value
+    assert abs(float(np.median(result.width)) - fwhm) <= 0.05 * fwhm + 0.1
+    assert np.all(np.abs(result.width - fwhm) <= 0.1 * fwhm + 0.3)
+
+
+def test_width_on_a_step_in_the_background_comes_from_the_half_maximum_crossings():
+    # a bright patch on one side of the line: the ends of the refinement window differ by more
+    # than a quarter of the peak, so the width is measured between the crossings, not by area
+    image, truth, _ = render_line(CLEAN.with_(fwhm_px=4.0, slope_px_per_row=0.0, bow_px=0.0))
+    image = image.copy()
+    image[:, 328:, 2] = np.minimum(image[:, 328:, 2].astype(int) + 60, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    assert len(result) == image.shape[0]
+    assert np.max(np.abs(errors(result, truth))) <= 0.15
+    assert abs(float(np.median(result.width)) - 4.0) <= 0.4
+
+
+def test_saturated_rows_report_the_width_between_the_crossings_of_the_plateau():
+    image, truth, _ = render_line(CLEAN.with_(amplitude_dn=700.0, fwhm_px=5.0))
+    result = extract_laser_line(image)
+    assert result.rows_saturated == len(result) == image.shape[0]
+    # a clipped Gaussian of 700 DN at 255: half of 255 is reached ~1.7 x further out than half of 700
+    assert np.all((result.width > 5.0) & (result.width < 12.0))
+    assert np.max(np.abs(errors(result, truth))) <= 0.15
+
+
+@pytest.mark.parametrize("method", ["blais_rioux4", "gaussian3", "com"])
+def test_tracking_and_full_search_agree_on_mono_and_texture_frames(method):
+    # the column-major tracking windows (colour, mono, with and without a laser-off frame)
+    # against the row-major full-row search of the same frames
+    scene = LineScene(ambient=0.3, seed=13, slope_px_per_row=-0.11, bow_px=14.0)
+    image, truth, _ = render_line(scene)
+    texture, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=14))
+    for img, tex in ((image[..., 2].copy(), None), (image, texture), (image[..., 2].copy(), texture[..., 2].copy())):
+        tracked = extract_laser_line(img, ExtractorParams(method=method), texture=tex)
+        full = extract_laser_line(img, ExtractorParams(method=method, window_px=0), texture=tex)
+        assert_finite(tracked)
+        assert len(tracked) >= image.shape[0] - 2
+        np.testing.assert_array_equal(tracked.v, full.v)
+        np.testing.assert_allclose(tracked.u, full.u, atol=1e-4)
+        np.testing.assert_allclose(tracked.width, full.width, atol=1e-4)
+        assert np.max(np.abs(errors(tracked, truth))) <= 1.0  # on the line (mono frames clip: gaussian3 is coarse there)

@@ -60,3 +60,19 @@ def test_row_candidates_agree_on_float_and_clipped_signals_where_the_signal_is_p
     for i in range(12):
         outside = np.abs(np.arange(200) - a.first[i]) > 5
         assert rows[i, a.second[i]] == rows[i][outside].max()
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.integers(1, 40), n=st.integers(1, 300), seed=st.integers(0, 2 ** 32 - 1))
+def test_column_peak_search_is_argmax_over_axis_0_first_on_ties(rows, n, seed):
+    from lsu_extract.extractor import _peak_search, _peak_search_layout
+
+    rng = np.random.default_rng(seed)
+    values = rng.integers(-255, 256, (rows, n)).astype(np.int16)
+    values[:, ::3] = values[0, ::3]  # ties: the first row must win
+    codes, bits, offset, interior = _peak_search_layout(rows, n, rows // 2)
+    flat = _peak_search(values, codes, bits)
+    j = np.argmax(values, axis=0)
+    np.testing.assert_array_equal(flat, j * n + np.arange(n))
+    np.testing.assert_array_equal(offset[flat], j - rows // 2)
+    np.testing.assert_array_equal(interior[flat], (j > 0) & (j < rows - 1))
