@@ -199,6 +199,12 @@ class SimSource(StereoSource):
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         t = self.clock()
+        started = time.monotonic()
         # simulated cameras are perfectly synchronized: both exposures start at t
         frame = self.rig.render(self.carriage(t), capture_time_s=t)
+        # a real frame is not there before its exposure has ended: a render faster than the
+        # exposure must not make a simulated scan faster than the unit could be
+        remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)
+        if remaining > 0:
+            time.sleep(remaining)
         return StereoPair(frame.left, frame.right, t, 0.0)

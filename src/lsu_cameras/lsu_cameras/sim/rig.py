@@ -24,6 +24,7 @@ The truth describes the sheet at the carriage's rest position: vibration is an e
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Union
 
@@ -176,6 +177,10 @@ class SimulatedRig:
     def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0) -> None:
         self.geometry = geometry
         self.rng = np.random.default_rng(seed)
+        # one generator per camera, so the two views can be rendered on two threads (numpy and
+        # OpenCV release the GIL in the per-pixel work) and stay reproducible from ``seed``
+        self._view_rngs = self.rng.spawn(2)
+        self._pool: Optional[ThreadPoolExecutor] = None
         self._views = [_View(cam, cam.center, _grid_rays(cam)) for cam in (geometry.left, geometry.right)]
         self.objects: List[SceneObject] = []
         self.set_scene(objects)
@@ -303,10 +308,9 @@ class SimulatedRig:
         """
         state = carriage if isinstance(carriage, CarriageState) else CarriageState(float(carriage))
         g = self.geometry
-        rng = np.random.default_rng(seed) if seed is not None else self.rng
         sensor = g.sensor
         mean_offset = 0.0
-        images = []
+        offsets = origin = np.zeros(0)
         if state.laser_on:
             if capture_time_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
                 disp = np.zeros(1)
@@ -317,8 +321,10 @@ class SimulatedRig:
             n = g.laser_normal
             offsets = np.array([n.dot(g.laser_origin(state.position_steps + d)) for d in disp])
             origin = g.laser_origin(state.position_steps + mean_offset)
-        W, H = g.image_size
-        for view in self._views:
+        rngs = np.random.default_rng(seed).spawn(2) if seed is not None else self._view_rngs
+
+        def expose(k: int) -> np.ndarray:
+            view = self._views[k]
             img = view.base.copy()
             if state.laser_on:
                 idx, value = self._laser_radiance(view, offsets, origin)
@@ -331,13 +337,17 @@ class SimulatedRig:
             sigma *= np.float32(1.0 / sensor.full_well_e)
             sigma += np.float32((sensor.read_noise_dn / 255.0) ** 2)
             np.sqrt(sigma, out=sigma)
-            noise = rng.standard_normal(img.shape, dtype=np.float32)
+            noise = rngs[k].standard_normal(img.shape, dtype=np.float32)
             noise *= sigma
             img += noise  # img is this capture's own copy of the base image
             img *= np.float32(255.0)
             np.rint(img, out=img)
             np.clip(img, 0, 255, out=img)
-            images.append(img.astype(np.uint8))
+            return img.astype(np.uint8)
+
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lsu-sim-render")
+        images = list(self._pool.map(expose, range(2)))
         truth = self.laser_truth(state.position_steps) if with_truth and state.laser_on else None
         return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, mean_offset, truth)
 
