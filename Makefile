@@ -18,6 +18,7 @@ help:
 	@echo "make setup   - create .venv, install pinned ROS 2 Jazzy wheels, build lsu_interfaces (idempotent)"
 	@echo "make demo    - set up if needed, run the LSU graph on the emulated unit and show what it does"
 	@echo "make test    - set up if needed, run the whole test suite"
+	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
 	@echo "make bench   - run the benchmarks, JSON in bench/results/"
 	@echo "make lock    - re-resolve requirements.in into requirements.lock"
 	@echo "make clean   - remove build/ log/ (keeps .venv); make distclean also removes .venv"
@@ -30,6 +31,10 @@ demo: setup
 
 test: setup
 	cd $(ROOT) && $(VENV)/bin/python -m pytest $(PYTEST_ARGS)
+
+# the fault-injection suite alone (make test runs it too); summary in test-results/faults.json
+test-faults: setup
+	cd $(ROOT) && $(VENV)/bin/python -m pytest -m fault $(PYTEST_ARGS)
 
 bench: setup
 	@ls $(ROOT)/bench/bench_*.py >/dev/null 2>&1 || { echo "no benchmarks yet"; exit 0; }; \

@@ -18,7 +18,8 @@ def truth(control: str) -> dict:
     return send_control(control, {"get": "truth"})["truth"]
 
 
-def test_sigkilled_driver_with_laser_on_is_caught_by_the_watchdog(launch, lsu_cli, tmp_path):
+@pytest.mark.fault('process: driver SIGKILLed, laser on')
+def test_sigkilled_driver_with_laser_on_is_caught_by_the_watchdog(launch, lsu_cli, tmp_path, fault_report):
     port = str(tmp_path / "gp32")
     proc = launch("launch", LAUNCH, f"port:={port}", "watchdog_ms:=1000")
     proc.wait_for_line(r"connected to LSU-GP32")
@@ -32,11 +33,13 @@ def test_sigkilled_driver_with_laser_on_is_caught_by_the_watchdog(launch, lsu_cl
     while truth(port + ".ctl")["laser_on"] and time.monotonic() - killed < 3.0:
         time.sleep(0.02)
     off_after = time.monotonic() - killed
+    fault_report.note(error_shown="(driver gone; the unit's watchdog fired)", laser_on_after_s=off_after)
     assert not truth(port + ".ctl")["laser_on"]
     assert off_after <= 1.0 + 0.3  # within the watchdog time (+ one status-poll period of slack)
 
 
-def test_sigint_to_the_graph_leaves_laser_off(launch, lsu_cli, tmp_path):
+@pytest.mark.fault('process: SIGINT to the driver, laser on')
+def test_sigint_to_the_graph_leaves_laser_off(launch, lsu_cli, tmp_path, fault_report):
     port = str(tmp_path / "gp32b")
     proc = launch("launch", LAUNCH, f"port:={port}", "watchdog_ms:=0")  # watchdog off: only the driver can switch
     proc.wait_for_line(r"connected to LSU-GP32")
@@ -45,7 +48,9 @@ def test_sigint_to_the_graph_leaves_laser_off(launch, lsu_cli, tmp_path):
     assert truth(port + ".ctl")["laser_on"]
     driver_pid = int(re.search(r"started gp32_driver .* pid (\d+)", proc.output).group(1))
     os.kill(driver_pid, signal.SIGINT)  # Ctrl-C to the driver alone: its shutdown path switches the laser off
-    deadline = time.monotonic() + 5
+    sent = time.monotonic()
+    deadline = sent + 5
     while truth(port + ".ctl")["laser_on"] and time.monotonic() < deadline:
         time.sleep(0.05)
+    fault_report.note(laser_on_after_s=time.monotonic() - sent)
     assert not truth(port + ".ctl")["laser_on"]

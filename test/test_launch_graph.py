@@ -91,6 +91,7 @@ def test_params_can_be_read_set_and_dumped(launch, lsu_cli):
     assert missing.returncode != 0 and "no parameter 'nope'" in missing.stderr
 
 
+@pytest.mark.fault('process: required node dies')
 def test_required_node_death_ends_the_launch_with_an_error(launch):
     proc = launch("launch", PINGPONG, "ns:=pp_req", "talker_required:=true")
     proc.wait_for_line(r"started listener")
@@ -113,6 +114,7 @@ def test_respawn_restarts_a_dead_node(launch):
     assert pids_of(proc)["listener"] != first and alive(pids_of(proc)["listener"])
 
 
+@pytest.mark.fault('process: launcher SIGKILLed')
 def test_killed_launcher_leaves_no_orphans(launch):
     proc = launch("launch", PINGPONG, "ns:=pp_orphan")
     proc.wait_for_line(r"started listener")

@@ -65,9 +65,12 @@ class ScanCoordinatorNode(Node):
 
         self.output_dir = Path(declare("output_dir", "", "parent folder of scans/<id>/; empty = <workspace>/scans")
                                or workspace_root() / "scans")
-        self.capture_timeout_s = declare("capture_timeout_s", 3.0, "a stereo/capture call longer than this aborts")
+        self.capture_timeout_s = declare("capture_timeout_s", 1.0, "a stereo/capture call longer than this aborts "
+                                                                   "(+ 0.3 s for the reply; below the laser watchdog)")
         self.ack_timeout_s = declare("ack_timeout_s", 5.0, "a snap the matcher does not acknowledge within this "
                                                            "aborts the scan [s]")
+        self.laser_pause_s = declare("laser_pause_s", 0.5, "a snap not acknowledged within this switches the laser "
+                                                           "off until it is (the pipeline stalls; below the watchdog) [s]")
         self.move_timeout_s = declare("move_timeout_s", 0.0, "carriage/move_to timeout [s]; 0 = the driver's own")
         self.cloud_timeout_s = declare("cloud_timeout_s", 15.0, "wait for the matcher's scan/cloud after the scan [s]")
         self.exposure_s = declare("exposure_s", 0.033, "camera exposure, for the mechanical lower bound [s]")
@@ -151,7 +154,7 @@ class ScanCoordinatorNode(Node):
 
     def _capture(self) -> Any:
         response = self._call(self.capture, CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
-                              float(self.capture_timeout_s) + 1.0, "capture")
+                              float(self.capture_timeout_s) + 0.3, "capture")
         if not response.success:
             raise ScanAborted(f"capture failed: {response.message}")
         return response
@@ -270,7 +273,7 @@ class ScanCoordinatorNode(Node):
                 self._sleep(goal_handle, plan.settle_s)
                 t_slept = time.monotonic()
                 if pending is not None:
-                    points_total += self._await_ack(pending)
+                    points_total += self._await_ack(pending, resume_laser=True)
                     pending = None
                 t_settled = time.monotonic()
                 response = self._capture()
@@ -287,7 +290,7 @@ class ScanCoordinatorNode(Node):
                 pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
                 snap_times.append(time.monotonic() - t_snap)
             if pending is not None:
-                points_total += self._await_ack(pending)
+                points_total += self._await_ack(pending, resume_laser=False)
             self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
                            points_total, snap_times)
         except ScanCanceled as exc:
@@ -338,16 +341,31 @@ class ScanCoordinatorNode(Node):
             goal_handle.succeed()
         return result
 
-    def _await_ack(self, pending: Dict[str, Any]) -> int:
-        """Wait until stereo_matcher published the snap's points; returns their count."""
+    def _await_ack(self, pending: Dict[str, Any], resume_laser: bool) -> int:
+        """Wait until stereo_matcher published the snap's points; returns their count.
+
+        After ``laser_pause_s`` without them the laser goes off (and back on once they come, if
+        ``resume_laser``): a stalled pipeline never leaves the laser on longer than the watchdog.
+        """
         entry, key = pending["entry"], pending["key"]
-        if not self._wait(lambda: key in self._acks, float(self.ack_timeout_s)):
+        timeout = float(self.ack_timeout_s)
+        first = min(float(self.laser_pause_s), timeout)
+        paused = False
+        if not self._wait(lambda: key in self._acks, first):
+            # the processing stalls (a node died or hangs): no laser while no picture is taken
+            self.get_logger().warning(f"snap {entry['index']} not acknowledged after {first:g} s: laser off while "
+                                      "waiting for stereo_matcher")
+            self._set_laser(False)
+            paused = True
+        if paused and not self._wait(lambda: key in self._acks, timeout - first):
             raise ScanAborted(f"snap {entry['index']} (position {entry['position_steps']}) was not acknowledged by "
                               f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
         entry["points"], t_ack = self._acks.pop(key)
         # from the arrival time, not from now: the wait may start long after the points came
         entry["ack_s"] = round(max(0.0, t_ack - pending["t_captured"]), 4)
         entry["snap_s"] = round(t_ack - pending["t_snap"], 4)
+        if paused and resume_laser:
+            self._set_laser(True)
         return int(entry["points"])
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,

@@ -8,14 +8,21 @@
 - ``launch``: starts `lsu launch ...` (or any `lsu` long-runner) in a subprocess and always
   tears it down (SIGINT, then SIGKILL to its whole process group).
 - ``lsu_cli``: runs a short `lsu ...` command and returns the CompletedProcess.
+- Fault suite: tests marked ``@pytest.mark.fault("name")`` inject one fault and record what
+  followed with the ``fault_report`` fixture (error text shown, laser-on time after the fault,
+  snaps captured and lost). At the end of the session the records go to ``faults.json``
+  (``$LSU_FAULTS_JSON``, default ``test-results/faults.json``) with the totals: faults injected
+  / survived (the test passed), the longest laser-on time after a fault, snaps lost.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import time
-from typing import Any, Callable, Iterator, List, Optional
+from pathlib import Path
+from typing import Any, Callable, Dict, Iterator, List, Optional
 
 import pytest
 
@@ -35,6 +42,76 @@ def pytest_configure(config: pytest.Config) -> None:
     else:
         _claim = rosenv.isolate()
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+
+
+_FAULTS: Dict[str, Dict[str, Any]] = {}  # test id -> its fault record
+
+
+class FaultReport:
+    """What one fault test saw; filled by the test, judged by its outcome."""
+
+    def __init__(self, fault: str, test_id: str) -> None:
+        self.record: Dict[str, Any] = {"fault": fault, "test": test_id, "error_shown": "", "laser_on_after_s": None,
+                                       "snaps_captured": None, "snaps_lost": 0, "data_kept": ""}
+
+    def note(self, **fields: Any) -> None:
+        """Record fields: error_shown (text the user saw), laser_on_after_s (time the laser stayed on
+        after the fault, 0.0 if it was off), snaps_captured, snaps_lost, data_kept (what is on disk)."""
+        unknown = set(fields) - set(self.record)
+        if unknown:
+            raise KeyError(f"unknown fault record fields: {sorted(unknown)}")
+        self.record.update(fields)
+
+
+@pytest.fixture
+def fault_report(request: pytest.FixtureRequest) -> FaultReport:
+    """The record of the fault this test injects (the test must carry ``@pytest.mark.fault(name)``)."""
+    marker = request.node.get_closest_marker("fault")
+    if marker is None or not marker.args:
+        raise pytest.UsageError(f"{request.node.nodeid}: fault_report needs @pytest.mark.fault('name')")
+    report = FaultReport(str(marker.args[0]), request.node.nodeid)
+    _FAULTS[request.node.nodeid] = report.record
+    return report
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: Any) -> Any:
+    report = yield
+    marker = item.get_closest_marker("fault")
+    if marker is not None and marker.args:
+        record = _FAULTS.setdefault(item.nodeid, FaultReport(str(marker.args[0]), item.nodeid).record)
+        if report.when == "call" or (report.when == "setup" and report.outcome != "passed"):
+            record["survived"] = report.outcome == "passed"
+            if report.outcome == "failed":
+                record["failure"] = str(report.longrepr)[-600:]
+    return report
+
+
+def fault_summary(records: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """Totals of the fault records: injected, survived, longest laser-on time after a fault, snaps lost."""
+    laser = [r["laser_on_after_s"] for r in records if r.get("laser_on_after_s") is not None]
+    return {"faults_injected": len(records), "faults_survived": sum(1 for r in records if r.get("survived")),
+            "max_laser_on_after_fault_s": max(laser) if laser else 0.0,
+            "snaps_lost": sum(int(r.get("snaps_lost") or 0) for r in records), "faults": records}
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """Write faults.json and print the fault table when any fault test ran."""
+    if not _FAULTS:
+        return
+    summary = fault_summary(sorted(_FAULTS.values(), key=lambda r: r["test"]))
+    path = Path(os.environ.get("LSU_FAULTS_JSON") or Path(str(config.rootpath)) / "test-results" / "faults.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(summary, indent=2) + "\n")
+    tr = terminalreporter
+    tr.section("LSU fault suite")
+    for r in summary["faults"]:
+        laser = "-" if r["laser_on_after_s"] is None else f"{r['laser_on_after_s']:.2f} s"
+        tr.write_line(f"{'survived' if r.get('survived') else 'FAILED  '}  {r['fault']:<46} laser on after: {laser:>7}  "
+                      f"snaps lost: {r['snaps_lost']}  | {str(r['error_shown'])[:90]}")
+    tr.write_line(f"{summary['faults_survived']}/{summary['faults_injected']} faults survived; laser on at most "
+                  f"{summary['max_laser_on_after_fault_s']:.2f} s after a fault; {summary['snaps_lost']} snaps lost "
+                  f"-> {path}")
 
 
 def pytest_report_header(config: pytest.Config) -> str:

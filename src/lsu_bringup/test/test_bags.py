@@ -146,6 +146,7 @@ def test_unknown_storage_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("storage", bags.STORAGES)
+@pytest.mark.fault('bag: truncated')
 def test_truncated_bag_gives_one_line_error_naming_the_file(tmp_path, storage):
     path = tmp_path / "bag"
     write_laser_bag(path, storage, compress=False, n=400)
@@ -169,6 +170,7 @@ def test_sqlite_cut_in_the_last_page_fails_while_reading(tmp_path):
         list(bags.read_messages(path))
 
 
+@pytest.mark.fault('bag: missing metadata')
 def test_missing_metadata_says_what_happened(tmp_path):
     path = tmp_path / "bag"
     write_laser_bag(path, "mcap", compress=False)
@@ -179,6 +181,7 @@ def test_missing_metadata_says_what_happened(tmp_path):
         list(bags.read_messages(tmp_path / "nowhere"))
 
 
+@pytest.mark.fault('bag: unknown message type')
 def test_unknown_type_names_topic_and_type(tmp_path):
     with pytest.raises(UnknownTypeError) as caught:
         bags.BagTypes().ensure("nope_msgs/msg/Thing", "/lsu/nope")

@@ -19,6 +19,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -307,6 +308,14 @@ class StereoCameraNode(Node):
         right = image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value))
         if request.publish:
             self._publish_pair(left, right)
+            # A captured snap is one its readers have: wait until every reliable subscriber (extractor,
+            # matcher, bag recorder) acknowledged both images, so a camera killed right after answering
+            # cannot take the frames with it. Briefly: a reader that died still counts until discovery
+            # drops it, and must not hold up the scan.
+            for pub in (self.pub_left, self.pub_right):
+                if not pub.wait_for_all_acked(Duration(seconds=0.2)):
+                    self.get_logger().warning("capture: not every image subscriber acknowledged the frame in time",
+                                              throttle_duration_sec=5.0)
         if request.return_images:
             response.left, response.right = left, right
         response.success = True

@@ -78,6 +78,7 @@ def test_sim_source_follows_sim_truth_and_falls_back_to_the_parameter(ros_node):
     ({"source": "v4l2", "devices": ["/dev/lsu_none0", "/dev/lsu_none1"]}, "cannot open the left camera"),
     ({"source": "v4l2", "profile": "bright"}, "camera profile 'bright' not found"),
 ])
+@pytest.mark.fault('camera: missing/broken source')
 def test_bad_source_keeps_the_node_up_and_capture_says_why(ros_node, params, expected):
     make_node(ros_node, **params)
     client = ros_node.node.create_client(CaptureStereo, "/lsu/stereo/capture")
@@ -85,6 +86,7 @@ def test_bad_source_keeps_the_node_up_and_capture_says_why(ros_node, params, exp
     assert not response.success and expected in response.message
 
 
+@pytest.mark.fault('calibration: size mismatch')
 def test_calibration_of_another_size_is_not_published(ros_node, tmp_path):
     sim = config_dir() / "calibration" / "sim"
     for name in ("left.yaml", "right.yaml", "stereo.yaml"):

@@ -36,6 +36,7 @@ def test_folder_source_errors(tmp_path):
         FolderSource(tmp_path)
 
 
+@pytest.mark.fault('camera: device missing')
 def test_unopenable_v4l2_device_is_a_clear_error():
     with pytest.raises(CameraError, match="cannot open the left camera '/dev/lsu_no_such_video'"):
         V4l2Source(["/dev/lsu_no_such_video", "/dev/lsu_no_such_video2"])
@@ -78,6 +79,7 @@ def test_unknown_profile_key_and_name_are_errors(tmp_path):
         load_profile("bright")
 
 
+@pytest.mark.fault('calibration: corrupt YAML')
 def test_calibration_files_bad_yaml_and_size_mismatch(tmp_path):
     sim = config_dir() / "calibration" / "sim"
     for name in ("left.yaml", "right.yaml", "stereo.yaml"):

@@ -101,6 +101,7 @@ def test_sweep_runs_between_the_sensors_until_stopped(client, emulator):
     assert 1 in ends and not emulator.truth().moving
 
 
+@pytest.mark.fault('serial: garbage bytes')
 def test_garbage_is_reported_and_the_link_keeps_working(client, emulator):
     errors = []
     client.add_error_listener(errors.append)
@@ -112,6 +113,7 @@ def test_garbage_is_reported_and_the_link_keeps_working(client, emulator):
     assert all(isinstance(e, p.MalformedLine) and e.raw for e in errors)
 
 
+@pytest.mark.fault('serial: dropped bytes')
 def test_dropped_bytes_fail_cleanly_or_succeed(client, emulator):
     emulator.set_faults(drop_probability=0.01)  # per byte: ~1 reply line in 5 is damaged
     outcomes = {"ok": 0, "timeout": 0}
@@ -127,6 +129,7 @@ def test_dropped_bytes_fail_cleanly_or_succeed(client, emulator):
     assert client.status().position == 0
 
 
+@pytest.mark.fault('serial: late replies')
 def test_late_replies_time_out_clearly_and_are_not_mistaken_later(client, emulator):
     client.set_watchdog(0)  # the test stays silent longer than the default watchdog
     emulator.set_faults(reply_delay_s=1.6)
@@ -140,6 +143,7 @@ def test_late_replies_time_out_clearly_and_are_not_mistaken_later(client, emulat
     assert not client.status().laser_on
 
 
+@pytest.mark.fault('serial: unit reset mid-move')
 def test_reset_mid_move_reports_lost_position_and_laser_off(client, emulator):
     client.home()
     client.laser(True)
@@ -153,6 +157,7 @@ def test_reset_mid_move_reports_lost_position_and_laser_off(client, emulator):
     assert not client.homed and not client.status().homed
 
 
+@pytest.mark.fault('serial: stalled motor')
 def test_stalled_motor_times_out_and_stop_is_sent(client, emulator):
     emulator.set_faults(stalled=True)
     with pytest.raises(MotionTimeout) as info:
@@ -162,6 +167,7 @@ def test_stalled_motor_times_out_and_stop_is_sent(client, emulator):
     assert not emulator.truth().moving
 
 
+@pytest.mark.fault('serial: port unplugged and back')
 def test_port_removed_and_recreated_reconnects_and_asks_for_homing(client, emulator):
     client.home()
     states = []
@@ -181,6 +187,7 @@ def test_port_removed_and_recreated_reconnects_and_asks_for_homing(client, emula
     assert not client.homed and not client.status().homed
 
 
+@pytest.mark.fault('serial: missing port')
 def test_missing_port_is_a_clear_error(tmp_path):
     with pytest.raises(NotConnected) as info:
         Gp32Client(str(tmp_path / "nothing")).connect()

@@ -83,6 +83,7 @@ def test_stop_preempts_move_to(rig, emulator):
     assert not result.success and 40 <= result.position_steps < 400 and "before reaching 400" in result.message
 
 
+@pytest.mark.fault('driver node: unit reset mid-move')
 def test_reset_mid_move_reports_not_homed_and_laser_off(rig, emulator):
     h, _, states, c = rig
     h.call(c["home"], Trigger.Request(), timeout_s=20)
@@ -99,6 +100,7 @@ def test_reset_mid_move_reports_not_homed_and_laser_off(rig, emulator):
     assert not refused.success and "not homed" in refused.message
 
 
+@pytest.mark.fault('driver node: port unplugged and back')
 def test_port_removed_and_recreated(rig, emulator):
     h, _, states, c = rig
     h.call(c["home"], Trigger.Request(), timeout_s=20)
@@ -113,6 +115,7 @@ def test_port_removed_and_recreated(rig, emulator):
     assert h.spin_until(lambda: not states[-1][1].homed and "home" in states[-1][1].fault, 2.0)
 
 
+@pytest.mark.fault('driver node: garbage and late replies')
 def test_garbage_and_late_replies_through_the_node(rig, emulator):
     h, driver, states, c = rig
     for _ in range(5):
@@ -125,6 +128,7 @@ def test_garbage_and_late_replies_through_the_node(rig, emulator):
     emulator.clear_faults()
 
 
+@pytest.mark.fault('driver node: stalled motor while homing')
 def test_stalled_motor_fails_homing_with_stop_sent_and_laser_off(ros_node, tmp_path):
     emu = Gp32Emulator(EmulatorConfig(start_position_steps=400.0), Faults(stalled=True), link=str(tmp_path / "s"))
     emu.start()
