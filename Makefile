@@ -19,7 +19,7 @@ help:
 	@echo "make demo    - set up if needed, run the LSU graph on the emulated unit and show what it does"
 	@echo "make test    - set up if needed, run the whole test suite"
 	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
-	@echo "make bench   - run the benchmarks, JSON in bench/results/"
+	@echo "make bench   - run the benchmarks, JSON in bench/results/ and a table in bench/results/SUMMARY.md"
 	@echo "make lock    - re-resolve requirements.in into requirements.lock"
 	@echo "make clean   - remove build/ log/ (keeps .venv); make distclean also removes .venv"
 
@@ -38,7 +38,8 @@ test-faults: setup
 
 bench: setup
 	@ls $(ROOT)/bench/bench_*.py >/dev/null 2>&1 || { echo "no benchmarks yet"; exit 0; }; \
-	for b in $(ROOT)/bench/bench_*.py; do $(VENV)/bin/python $$b || exit 1; done
+	for b in $(ROOT)/bench/bench_*.py; do $(VENV)/bin/python $$b || exit 1; done; \
+	$(VENV)/bin/python $(ROOT)/bench/summary.py
 
 bench-%: setup
 	$(VENV)/bin/python $(ROOT)/bench/bench_$*.py

@@ -1,0 +1,86 @@
+"""`make bench` summary: the headline figures of every bench/results/<area>.json in one Markdown table.
+
+    python bench/summary.py   ->  bench/results/SUMMARY.md (and printed)
+
+Each row: area, figure, value with its unit, the issue's target where one exists, and whether it
+is met; the result's date and machine come from the JSON itself. Nothing is measured here.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+# (area, figure, target text, test) - the acceptance figures of the issues; other figures stay in the JSON
+HEADLINES: List[Tuple[str, str, str, Optional[str]]] = [
+    ("driver", "roundtrip_ms_median", "", None),
+    ("cameras", "render_pair_ms_median", "", None),
+    ("cameras", "calib_focal_err_pct", "<= 0.5", "<= 0.5"),
+    ("cameras", "calib_baseline_err_pct", "<= 0.5", "<= 0.5"),
+    ("cameras", "calib_rotation_err_deg", "<= 0.1", "<= 0.1"),
+    ("extract", "rms_px_default", "<= 0.1", "<= 0.1"),
+    ("extract", "rms_px_thesis", "(thesis method)", None),
+    ("extract", "false_rows_pct_ambient", "<= 0.5", "<= 0.5"),
+    ("extract", "missed_rows_pct_ambient", "<= 1", "<= 1"),
+    ("extract", "extract_ms_median", "<= 2", "<= 2"),
+    ("extract", "extract_over_copy_ratio", "<= 8", "<= 8"),
+    ("extract", "extract_over_copy_ratio_rig_head", "", None),
+    ("reconstruct", "plane_sigma_mm_300", "", None),
+    ("faces", "rank1_pct", "", None),
+    ("scan", "scan_wall_over_mechanical", "<= 1.2", "<= 1.2"),
+    ("scan", "replay_snaps_per_s", ">= 100", ">= 100"),
+    ("accuracy", "three_sigma_mm_300_smoothed", "<= 0.15", "<= 0.15"),
+    ("accuracy", "thesis_three_sigma_mm_300", "(thesis chain)", None),
+    ("accuracy", "gaussian_1sigma_pct", "68.2 +- 3", "within 3 of 68.2"),
+    ("accuracy", "gaussian_2sigma_pct", "95.4 +- 3", "within 3 of 95.4"),
+    ("accuracy", "gaussian_3sigma_pct", "99.7 +- 3", "within 3 of 99.7"),
+]
+
+
+def _met(value: float, test: Optional[str]) -> str:
+    if test is None:
+        return ""
+    op, _, ref = test.partition(" ")
+    if op == "<=":
+        return "yes" if value <= float(ref) else "NO"
+    if op == ">=":
+        return "yes" if value >= float(ref) else "NO"
+    if op == "within":
+        width, _, centre = ref.partition(" of ")
+        return "yes" if abs(value - float(centre)) <= float(width) else "NO"
+    raise ValueError(f"unknown target test {test!r}")
+
+
+def summary(results: Path = RESULTS) -> str:
+    """The Markdown table of the headline figures found under ``results``."""
+    data: Dict[str, dict] = {}
+    for path in sorted(results.glob("*.json")):
+        data[path.stem] = json.loads(path.read_text())
+    lines = ["| area | figure | value | target | met | measured |", "|---|---|---|---|---|---|"]
+    for area, name, target, test in HEADLINES:
+        result = data.get(area)
+        if result is None or name not in result.get("figures", {}):
+            lines.append(f"| {area} | {name} | (not measured: run `make bench-{area}`) | {target} | | |")
+            continue
+        value = float(result["figures"][name])
+        unit = result.get("units", {}).get(name, "")
+        lines.append(f"| {area} | {name} | {value:.4g} {unit} | {target} | {_met(value, test)} | {result['when'][:16]} |")
+    machines = {r["machine"].get("cpu", "?") + f", {r['machine'].get('cores', '?')} cores" for r in data.values()
+                if "machine" in r}
+    return "\n".join(["# Benchmark summary", "", f"Machine(s): {'; '.join(sorted(machines))}.", "",
+                      *lines, "", "Every figure, its unit and how it was measured: bench/results/<area>.json.", ""])
+
+
+def main() -> int:
+    text = summary()
+    (RESULTS / "SUMMARY.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
