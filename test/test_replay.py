@@ -36,7 +36,8 @@ def test_replayed_scan_gives_the_recorded_cloud(launch, ros_node):
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     ros_node.node.create_subscription(PointCloud2, "/lsu/scan/cloud", clouds.append, latched)
     ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
-    play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "5"],
+    play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "20",
+                           "--expect", "/lsu/scan/events=2", "--expect", "/lsu/stereo/left/image_raw=2"],
                           capture_output=True, text=True, timeout=120)
     assert play.returncode == 0, play.stdout + play.stderr
     assert ros_node.spin_until(lambda: len(clouds) >= 1, 30.0), graph.output[-3000:]

@@ -215,6 +215,7 @@ class BagPlayer:
 
     def __init__(self, node: Any, bag_dir: Path | str, *, topics: Optional[Sequence[str]] = None,
                  rate: float = 1.0, loop: bool = False, wait_subscribers_s: float = 1.0,
+                 expect: Optional[Dict[str, int]] = None,
                  log: Optional[Callable[[str], None]] = None) -> None:
         self.node = node
         self.path = Path(bag_dir)
@@ -222,6 +223,9 @@ class BagPlayer:
         self.rate = float(rate)
         bags.PlaybackClock(self.rate)  # validates the rate before anything is created
         self.wait_subscribers_s = float(wait_subscribers_s)
+        # topic -> subscribers to wait for (default 1): with several readers on a volatile topic,
+        # the first one matched says nothing about the others
+        self.expect = {node.resolve_topic_name(t): int(n) for t, n in (expect or {}).items()}
         self.log = log or (lambda text: node.get_logger().info(text))
         available = bags.bag_topics(self.path)
         selected = list(available) if topics is None else [node.resolve_topic_name(t) for t in topics]
@@ -250,7 +254,7 @@ class BagPlayer:
         stop = stop or threading.Event()
         end = time.monotonic() + self.wait_subscribers_s
         waited = False
-        while not all(p.get_subscription_count() > 0 for p in self.publishers.values()):
+        while not all(p.get_subscription_count() >= self.expect.get(t, 1) for t, p in self.publishers.items()):
             if time.monotonic() >= end or stop.is_set():
                 return False
             waited = True
@@ -373,9 +377,15 @@ def cmd_play(args: argparse.Namespace) -> int:
     """`lsu bag play`."""
     if args.wait_subscribers < 0:
         raise BagError(f"--wait-subscribers must be >= 0 seconds, got {args.wait_subscribers:g}")
+    expect: Dict[str, int] = {}
+    for item in args.expect:
+        topic, _, count = item.rpartition("=")
+        if not topic or not count.isdigit() or int(count) < 1:
+            raise BagError(f"--expect {item}: give TOPIC=N with N >= 1, e.g. --expect /lsu/scan/events=2")
+        expect[topic] = int(count)
     with _RosSession("lsu_bag_player") as ros:
         player = BagPlayer(ros.node, args.bag, topics=args.topics, rate=args.rate, loop=args.loop,
-                           wait_subscribers_s=args.wait_subscribers, log=_say)
+                           wait_subscribers_s=args.wait_subscribers, expect=expect, log=_say)
         _say(f"playing {args.bag}: {len(player.topics)} topic(s) at rate {args.rate:g}"
              f"{', looping' if args.loop else ''}; Ctrl-C stops")
         try:
@@ -435,6 +445,8 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.add_argument("--wait-subscribers", type=float, default=1.0, metavar="S",
                    help="wait up to S seconds for every topic to have a subscriber before the first "
                         "message (default 1)")
+    p.add_argument("--expect", action="append", default=[], metavar="TOPIC=N",
+                   help="wait for N subscribers on TOPIC instead of 1 (repeatable)")
     p.set_defaults(func=cmd_play)
 
     p = verbs.add_parser("info", help="summary of a bag (like `ros2 bag info`)")
