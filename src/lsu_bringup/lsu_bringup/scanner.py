@@ -93,6 +93,15 @@ class LsuScanner:
             time.sleep(0.005)
         return future.result()
 
+    def _in_spin_thread(self, call: Callable[[], Any], timeout_s: float, what: str) -> Any:
+        """Run ``call`` in the spin thread and return what it returned.
+
+        Why: rclpy's ActionClient registers a request's sequence number only after sending it, without
+        a lock; called from another thread, a fast answer taken by the spin thread in between is dropped
+        ("Ignoring unexpected goal response") and the caller waits forever. Services lock; actions do not.
+        """
+        return self._wait_future(self.executor.create_task(call), timeout_s, what)
+
     def _call(self, client: Any, request: Any, timeout_s: float, what: str) -> Any:
         if not client.wait_for_service(timeout_sec=self.wait_s):
             raise ScannerError(f"{what}: service {client.srv_name} not available; is the LSU graph running "
@@ -144,12 +153,13 @@ class LsuScanner:
         self._feedback = None  # feedback of an earlier scan must not pass for this one's
         goal = self._Scan.Goal(start_steps=start, end_steps=end, step_steps=step, settle_s=float(settle_s),
                                texture=texture, record_bag=record_bag, output_dir=output_dir, label=label)
-        handle = self._wait_future(self._action.send_goal_async(goal, feedback_callback=self._on_feedback),
-                                   self.wait_s, "scan goal")
+        sent = self._in_spin_thread(lambda: self._action.send_goal_async(goal, feedback_callback=self._on_feedback),
+                                    self.wait_s, "scan goal")
+        handle = self._wait_future(sent, self.wait_s, "scan goal")
         if not handle.accepted:
             raise ScannerError("scan goal rejected: another scan is running")
         self._goal_handle = handle
-        self._result_future = handle.get_result_async()
+        self._result_future = self._in_spin_thread(handle.get_result_async, self.wait_s, "scan result request")
 
     def _on_feedback(self, message: Any) -> None:
         self._feedback = message.feedback
@@ -165,7 +175,8 @@ class LsuScanner:
     def cancel_task(self, timeout_s: float = 10.0) -> None:
         """Cancel the running scan (the coordinator switches the laser off and keeps the data)."""
         if self._goal_handle is not None and not self.is_task_complete():
-            self._wait_future(self._goal_handle.cancel_goal_async(), timeout_s, "cancel")
+            sent = self._in_spin_thread(self._goal_handle.cancel_goal_async, timeout_s, "cancel")
+            self._wait_future(sent, timeout_s, "cancel")
 
     def get_result(self, timeout_s: float = 3600.0) -> Any:
         """Wait for and return the ``Scan.Result``."""
