@@ -36,7 +36,8 @@ import numpy as np
 __all__ = ["AccuracyError", "Pose", "StudyConfig", "ChainScan", "ChainSpec", "CHAINS", "GAUSSIAN_EXPECTED_PCT",
            "LAPLACIAN_ITERATIONS", "LAPLACIAN_FACTORS", "TAUBIN_PASSES", "default_poses", "plane_pose_object",
            "scan_scene", "plane_distances_mm", "fit_plane", "gaussian_table", "error_stats", "linear_fit",
-           "mesh_scan", "smooth_vertices", "surface_rms_mm", "run_study", "write_report", "THESIS_QUOTE_MM_300"]
+           "mesh_scan", "smooth_vertices", "surface_rms_mm", "run_study", "write_report", "THESIS_QUOTE_MM_300",
+           "ChainRunner", "evaluate_pose", "summarise"]
 
 # Normal-distribution fractions within 1, 2, 3 sigma, as the thesis' Table 2 rounded them.
 GAUSSIAN_EXPECTED_PCT = (68.2, 95.4, 99.7)
@@ -164,6 +165,47 @@ def _line_arrays(res):
     return LineArrays(res.u, res.v, res.peak, res.width, res.quality, res.image_width, res.image_height)
 
 
+class ChainRunner:
+    """Reconstructs stereo pairs through every chain; both chains see the same pixels of each pair."""
+
+    def __init__(self, model, chains: Sequence[ChainSpec] = CHAINS) -> None:
+        from lsu_extract.extractor import ExtractorParams
+        from lsu_reconstruct.matching import MatchParams
+
+        self.model, self.chains = model, tuple(chains)
+        self._extractors = {spec.extractor_method: (ExtractorParams(method=spec.extractor_method)
+                                                    if spec.extractor_method else ExtractorParams())
+                            for spec in self.chains}
+        self._match = {spec.name: (MatchParams() if spec.smooth_window_rows is None
+                                   else MatchParams(smooth_window_rows=spec.smooth_window_rows)) for spec in self.chains}
+        self._xyz: Dict[str, List[np.ndarray]] = {s.name: [] for s in self.chains}
+        self._uv: Dict[str, List[np.ndarray]] = {s.name: [] for s in self.chains}
+        self._snaps = {s.name: 0 for s in self.chains}
+
+    def add_pair(self, left: np.ndarray, right: np.ndarray, snap: int) -> None:
+        """Extract, match and triangulate one laser-on pair (BGR or mono uint8) with every chain."""
+        from lsu_extract.extractor import extract_laser_line
+        from lsu_reconstruct.pipeline import reconstruct_snap
+
+        lines = {method: (_line_arrays(extract_laser_line(left, params)), _line_arrays(extract_laser_line(right, params)))
+                 for method, params in self._extractors.items()}
+        for spec in self.chains:
+            line_l, line_r = lines[spec.extractor_method]
+            if len(line_l.u) == 0 or len(line_r.u) == 0:
+                continue  # the laser misses the target in one camera at this carriage position
+            pts = reconstruct_snap(self.model, line_l, line_r, self._match[spec.name], snap=snap, chain=spec.matching)
+            if len(pts):
+                self._xyz[spec.name].append(pts.xyz)
+                self._uv[spec.name].append(np.column_stack([pts.u, pts.v]))
+                self._snaps[spec.name] += 1
+
+    def scans(self) -> Dict[str, ChainScan]:
+        """What every chain reconstructed so far."""
+        return {s.name: ChainScan(np.concatenate(self._xyz[s.name]) if self._xyz[s.name] else np.zeros((0, 3)),
+                                  np.concatenate(self._uv[s.name]) if self._uv[s.name] else np.zeros((0, 2)),
+                                  self._snaps[s.name]) for s in self.chains}
+
+
 def scan_scene(model, geometry, objects: Sequence, step: int, seed: int,
                chains: Sequence[ChainSpec] = CHAINS) -> Dict[str, ChainScan]:
     """Stop-snap scan of a sim scene (carriage 0..track end every ``step``), reconstructed by every chain.
@@ -172,38 +214,13 @@ def scan_scene(model, geometry, objects: Sequence, step: int, seed: int,
     both chains see the same pixels, so their difference is the chain alone.
     """
     from lsu_cameras.sim import SimulatedRig
-    from lsu_extract.extractor import ExtractorParams, extract_laser_line
-    from lsu_reconstruct.matching import MatchParams
-    from lsu_reconstruct.pipeline import reconstruct_snap
 
     rig = SimulatedRig(geometry, objects, seed=seed)
-    extractors = {}
-    for spec in chains:
-        extractors[spec.extractor_method] = ExtractorParams(method=spec.extractor_method) if spec.extractor_method \
-            else ExtractorParams()
-    match = {spec.name: (MatchParams() if spec.smooth_window_rows is None
-                         else MatchParams(smooth_window_rows=spec.smooth_window_rows)) for spec in chains}
-    xyz: Dict[str, List[np.ndarray]] = {s.name: [] for s in chains}
-    uv: Dict[str, List[np.ndarray]] = {s.name: [] for s in chains}
-    snaps = {s.name: 0 for s in chains}
+    runner = ChainRunner(model, chains)
     for carriage in range(0, int(geometry.track_steps) + 1, step):
         frame = rig.render(float(carriage), seed=seed + carriage)
-        lines = {}
-        for method, params in extractors.items():
-            lines[method] = (_line_arrays(extract_laser_line(frame.left, params)),
-                             _line_arrays(extract_laser_line(frame.right, params)))
-        for spec in chains:
-            left, right = lines[spec.extractor_method]
-            if len(left.u) == 0 or len(right.u) == 0:
-                continue  # the laser misses the board in one camera at this carriage position
-            pts = reconstruct_snap(model, left, right, match[spec.name], snap=carriage, chain=spec.matching)
-            if len(pts):
-                xyz[spec.name].append(pts.xyz)
-                uv[spec.name].append(np.column_stack([pts.u, pts.v]))
-                snaps[spec.name] += 1
-    return {s.name: ChainScan(np.concatenate(xyz[s.name]) if xyz[s.name] else np.zeros((0, 3)),
-                              np.concatenate(uv[s.name]) if uv[s.name] else np.zeros((0, 2)), snaps[s.name])
-            for s in chains}
+        runner.add_pair(frame.left, frame.right, carriage)
+    return runner.scans()
 
 
 def plane_distances_mm(xyz: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
@@ -300,62 +317,50 @@ def _smoothing_grid() -> List[Tuple[str, str, int, float]]:
     return grid
 
 
-def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> Dict:
-    """The whole study on the simulated rig; returns a JSON-ready dict (see `write_report`)."""
-    from lsu_cameras.sim import build_scene, load_rig
-    from lsu_faces.smoothing import SmoothParams
-    from lsu_reconstruct.stereo import StereoModel
+def evaluate_pose(scans: Dict[str, ChainScan], p0: np.ndarray, n: np.ndarray, label: str,
+                  hint: str = "use a smaller --step or keep the poses inside 200..450 mm",
+                  keep: Optional[Callable[[np.ndarray], np.ndarray]] = None) -> Tuple[Dict, Dict, Dict]:
+    """Statistics of one pose for every chain against its truth plane (``p0``, unit ``n``, left frame).
 
-    config.check()
-    t_start = time.perf_counter()
-    calibration = config.calibration or (Path(__file__).resolve().parents[3] / "config" / "calibration" / "sim")
-    model = StereoModel.from_folder(calibration)
-    geometry = load_rig()
-    poses = default_poses(config.poses, config.min_distance_m, config.max_distance_m)
-    per_pose: List[Dict] = []
-    pooled_z: Dict[str, List[np.ndarray]] = {c.name: [] for c in CHAINS}
-    ref_index = None
-    ref_meshes: Dict[str, Tuple] = {}
-    for i, pose in enumerate(poses):
-        t0 = time.perf_counter()
-        board = plane_pose_object(geometry, pose)
-        p0, n = board.extra["point"], board.extra["normal"]
-        scans = scan_scene(model, geometry, [board], config.step, config.seed + 1000 * i)
-        row: Dict = {"pose": asdict(pose), "label": pose.label}
-        for spec in CHAINS:
-            scan = scans[spec.name]
-            if len(scan.xyz) < 50:
-                raise AccuracyError(f"pose {pose.label}: the {spec.name} chain reconstructed only {len(scan.xyz)} "
-                                    f"points; use a smaller --step or keep the poses inside 200..450 mm")
-            d = plane_distances_mm(scan.xyz, p0, n)
-            c, nf = fit_plane(scan.xyz)
-            free = plane_distances_mm(scan.xyz, c, nf)
-            mesh, used = mesh_scan(scan)
-            method, its, fac = spec.mesh_smoothing
-            smoothed = smooth_vertices(mesh, method, its, fac)[used]
-            ds = plane_distances_mm(smoothed, p0, n)
-            pooled_z[spec.name].append((d - d.mean()) / max(float(d.std()), 1e-300))
-            row[spec.name] = {
-                "snaps": scan.snaps,
-                "mean_distance_mm": float(np.linalg.norm(scan.xyz, axis=1).mean() * 1000.0),
-                "raw": error_stats(d), "smoothed": error_stats(ds), "free_fit": error_stats(free),
-                "free_fit_tilt_err_deg": float(np.degrees(np.arccos(min(1.0, abs(float(nf @ n)))))),
-                "free_fit_offset_mm": float(abs((c - p0) @ n) * 1000.0),
-                "gaussian_pct": list(gaussian_table(d)),
-            }
-            if pose.distance_m == REFERENCE_DISTANCE_M and pose.yaw_deg == 0.0 and pose.pitch_deg == 0.0:
-                ref_meshes[spec.name] = (mesh, used, p0, n)
-        if ref_meshes and ref_index is None:
-            ref_index = i
-        per_pose.append(row)
-        progress(f"pose {i + 1}/{len(poses)} ({pose.label}): ours sigma {row['ours']['raw']['sigma_mm']:.3f} mm, "
-                 f"thesis sigma {row['thesis']['raw']['sigma_mm']:.3f} mm ({time.perf_counter() - t0:.0f} s)")
+    ``keep(xyz) -> bool mask`` selects the points on the target (a real board has a wall behind it).
+    Returns (row: per-chain statistics, z: normalised residuals per chain for the pooled Gaussian
+    table, meshes: per chain (mesh, used vertex indices, p0, n) for the smoothing study).
+    """
+    row: Dict = {}
+    pooled: Dict[str, np.ndarray] = {}
+    meshes: Dict[str, Tuple] = {}
+    for spec in CHAINS:
+        scan = scans[spec.name]
+        if keep is not None and len(scan.xyz):
+            mask = keep(scan.xyz)
+            scan = ChainScan(scan.xyz[mask], scan.uv[mask], scan.snaps)
+        if len(scan.xyz) < 50:
+            raise AccuracyError(f"{label}: the {spec.name} chain reconstructed only {len(scan.xyz)} points on the "
+                                f"board; {hint}")
+        d = plane_distances_mm(scan.xyz, p0, n)
+        c, nf = fit_plane(scan.xyz)
+        free = plane_distances_mm(scan.xyz, c, nf)
+        mesh, used = mesh_scan(scan)
+        method, its, fac = spec.mesh_smoothing
+        smoothed = smooth_vertices(mesh, method, its, fac)[used]
+        ds = plane_distances_mm(smoothed, p0, n)
+        pooled[spec.name] = (d - d.mean()) / max(float(d.std()), 1e-300)
+        row[spec.name] = {
+            "snaps": scan.snaps,
+            "mean_distance_mm": float(np.linalg.norm(scan.xyz, axis=1).mean() * 1000.0),
+            "raw": error_stats(d), "smoothed": error_stats(ds), "free_fit": error_stats(free),
+            "free_fit_tilt_err_deg": float(np.degrees(np.arccos(min(1.0, abs(float(nf @ n)))))),
+            "free_fit_offset_mm": float(abs((c - p0) @ n) * 1000.0),
+            "gaussian_pct": list(gaussian_table(d)),
+        }
+        meshes[spec.name] = (mesh, used, p0, n)
+    return row, pooled, meshes
 
-    result: Dict = {"config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()},
-                    "calibration": str(calibration), "chains": {c.name: c.description for c in CHAINS},
-                    "default_smoothing": asdict(SmoothParams()), "poses": per_pose}
-    result["config"]["calibration"] = str(calibration)
 
+def summarise(result: Dict, per_pose: List[Dict], pooled_z: Dict[str, List[np.ndarray]], ref_index: int,
+              ref_meshes: Dict[str, Tuple]) -> Dict:
+    """Fill ``result`` with the Gaussian table, the trends, the board smoothing study and the figures."""
+    result["poses"] = per_pose
     # Gaussian table: every pose's residuals normalised by its own mean and sigma, pooled (the thesis
     # checked one data set; pooling shows the shape holds over distances and tilts).
     result["gaussian"] = {name: list(gaussian_table(np.concatenate(zs))) for name, zs in pooled_z.items()}
@@ -377,10 +382,9 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
                                                          "at_300_mm": slope * 300.0 + icpt}
     result["trends"] = trends
 
-    # Smoothing study on the 300 mm facing board: noise left after each smoother, per chain.
-    if ref_index is None:
-        raise AccuracyError("no pose at 300 mm facing the rig: keep 300 mm inside the distance range")
-    smoothing: Dict = {"plane_300": {}, "curved": {}}
+    # Smoothing study on the reference board: noise left after each smoother, per chain.
+    smoothing: Dict = result.setdefault("smoothing", {})
+    smoothing["plane_300"] = {}
     for spec in CHAINS:
         mesh, used, p0, n = ref_meshes[spec.name]
         rows = []
@@ -389,27 +393,10 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
             st = error_stats(plane_distances_mm(v, p0, n))
             rows.append({"label": label, "method": method, "iterations": its, "factor": fac, **st})
         smoothing["plane_300"][spec.name] = rows
-    progress("smoothing study on the board done; scanning the curved truth")
-
-    # Detail loss: the same smoothers on a curved truth; RMS distance from the rendered surface.
-    curved_objects = build_scene(config.curved_scene, geometry)
-    scans = scan_scene(model, geometry, curved_objects, config.step, config.seed + 999_000)
-    for spec in CHAINS:
-        mesh, used = mesh_scan(scans[spec.name])
-        rows = []
-        for label, method, its, fac in _smoothing_grid():
-            v = mesh.vertices[used] if method == "none" else smooth_vertices(mesh, method, its, fac)[used]
-            rows.append({"label": label, "method": method, "iterations": its, "factor": fac,
-                         "rms_mm": surface_rms_mm(curved_objects, v), "points": int(len(used))})
-        default_v = smooth_vertices(mesh, "default", 0, 0.0)[used]
-        rows.append({"label": "default (ours)", "method": "default", "iterations": SmoothParams().iterations,
-                     "factor": 0.0, "rms_mm": surface_rms_mm(curved_objects, default_v), "points": int(len(used))})
-        smoothing["curved"][spec.name] = rows
-    smoothing["curved_scene"] = config.curved_scene
-    result["smoothing"] = smoothing
 
     ref = per_pose[ref_index]
-    figures = {
+    result["reference_pose"] = ref["label"]
+    result["figures"] = {
         "three_sigma_mm_300_smoothed": ref["ours"]["smoothed"]["bound_mm"],
         "three_sigma_mm_300_raw": ref["ours"]["raw"]["bound_mm"],
         "sigma_mm_300_smoothed": ref["ours"]["smoothed"]["sigma_mm"],
@@ -426,11 +413,72 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
         "thesis_gaussian_3sigma_pct": result["gaussian"]["thesis"][2],
         "sigma_slope_mm_per_m": trends["ours_raw_sigma_mm"]["slope_per_mm"] * 1000.0,
         "thesis_sigma_slope_mm_per_m": trends["thesis_raw_sigma_mm"]["slope_per_mm"] * 1000.0,
-        "poses": len(poses),
-        "curved_rms_mm_raw": smoothing["curved"]["ours"][0]["rms_mm"],
-        "curved_rms_mm_default_smoothing": smoothing["curved"]["ours"][-1]["rms_mm"],
+        "poses": len(per_pose),
     }
-    result["figures"] = figures
+    return result
+
+
+def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> Dict:
+    """The whole study on the simulated rig; returns a JSON-ready dict (see `write_report`)."""
+    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_faces.smoothing import SmoothParams
+    from lsu_reconstruct.stereo import StereoModel
+
+    config.check()
+    t_start = time.perf_counter()
+    calibration = config.calibration or (Path(__file__).resolve().parents[3] / "config" / "calibration" / "sim")
+    model = StereoModel.from_folder(calibration)
+    geometry = load_rig()
+    poses = default_poses(config.poses, config.min_distance_m, config.max_distance_m)
+    per_pose: List[Dict] = []
+    pooled_z: Dict[str, List[np.ndarray]] = {c.name: [] for c in CHAINS}
+    ref_index = None
+    ref_meshes: Dict[str, Tuple] = {}
+    for i, pose in enumerate(poses):
+        t0 = time.perf_counter()
+        board = plane_pose_object(geometry, pose)
+        p0, n = board.extra["point"], board.extra["normal"]
+        scans = scan_scene(model, geometry, [board], config.step, config.seed + 1000 * i)
+        stats, z, meshes = evaluate_pose(scans, p0, n, f"pose {pose.label}")
+        row: Dict = {"pose": asdict(pose), "label": pose.label, **stats}
+        for name, zs in z.items():
+            pooled_z[name].append(zs)
+        if ref_index is None and pose.distance_m == REFERENCE_DISTANCE_M and pose.yaw_deg == 0.0 \
+                and pose.pitch_deg == 0.0:
+            ref_index, ref_meshes = i, meshes
+        per_pose.append(row)
+        progress(f"pose {i + 1}/{len(poses)} ({pose.label}): ours sigma {row['ours']['raw']['sigma_mm']:.3f} mm, "
+                 f"thesis sigma {row['thesis']['raw']['sigma_mm']:.3f} mm ({time.perf_counter() - t0:.0f} s)")
+    if ref_index is None:
+        raise AccuracyError("no pose at 300 mm facing the rig: keep 300 mm inside the distance range")
+
+    result: Dict = {"source": "sim", "truth": "the renderer's plane",
+                    "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()},
+                    "calibration": str(calibration), "chains": {c.name: c.description for c in CHAINS},
+                    "default_smoothing": asdict(SmoothParams())}
+    result["config"]["calibration"] = str(calibration)
+    summarise(result, per_pose, pooled_z, ref_index, ref_meshes)
+    progress("smoothing study on the board done; scanning the curved truth")
+
+    # Detail loss: the same smoothers on a curved truth; RMS distance from the rendered surface.
+    curved_objects = build_scene(config.curved_scene, geometry)
+    scans = scan_scene(model, geometry, curved_objects, config.step, config.seed + 999_000)
+    curved: Dict = {}
+    for spec in CHAINS:
+        mesh, used = mesh_scan(scans[spec.name])
+        rows = []
+        for label, method, its, fac in _smoothing_grid():
+            v = mesh.vertices[used] if method == "none" else smooth_vertices(mesh, method, its, fac)[used]
+            rows.append({"label": label, "method": method, "iterations": its, "factor": fac,
+                         "rms_mm": surface_rms_mm(curved_objects, v), "points": int(len(used))})
+        default_v = smooth_vertices(mesh, "default", 0, 0.0)[used]
+        rows.append({"label": "default (ours)", "method": "default", "iterations": SmoothParams().iterations,
+                     "factor": 0.0, "rms_mm": surface_rms_mm(curved_objects, default_v), "points": int(len(used))})
+        curved[spec.name] = rows
+    result["smoothing"]["curved"] = curved
+    result["smoothing"]["curved_scene"] = config.curved_scene
+    result["figures"]["curved_rms_mm_raw"] = curved["ours"][0]["rms_mm"]
+    result["figures"]["curved_rms_mm_default_smoothing"] = curved["ours"][-1]["rms_mm"]
     result["seconds"] = time.perf_counter() - t_start
     return result
 
@@ -484,10 +532,11 @@ def _plots(result: Dict, out: Path) -> List[str]:
     names.append("error_vs_distance.png")
 
     # 3. Smoothing study: noise left on the board and detail lost on the curved truth.
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
-    for ax, key, stat, title in ((axes[0], "plane_300", "sigma_mm", "board at 300 mm: sigma vs true plane"),
-                                 (axes[1], "curved", "rms_mm",
-                                  f"{result['smoothing']['curved_scene']}: RMS from true surface")):
+    panels = [("plane_300", "sigma_mm", f"board, {result.get('reference_pose', '300 mm')}: sigma vs true plane")]
+    if "curved" in result["smoothing"]:  # the simulated study only: a real rig has no curved truth
+        panels.append(("curved", "rms_mm", f"{result['smoothing']['curved_scene']}: RMS from true surface"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False)
+    for ax, (key, stat, title) in zip(axes[0], panels):
         for name, marker in (("ours", "o"), ("thesis", "s")):
             rows = result["smoothing"][key][name]
             base = rows[0][stat]
@@ -502,7 +551,7 @@ def _plots(result: Dict, out: Path) -> List[str]:
         ax.set_yscale("log")
         ax.set_xlabel("iterations / passes (dotted: unsmoothed)")
         ax.set_ylabel(f"{stat[:-3]} [mm]")
-        ax.set_title(title)
+        ax.set_title(title, fontsize=9)
         ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
     fig.savefig(out / "smoothing.png", dpi=90)
@@ -523,17 +572,26 @@ def write_report(result: Dict, out_dir: Path) -> List[Path]:
     (out / "accuracy.json").write_text(json.dumps(result, indent=1, default=float))
     f = result["figures"]
     g = result["gaussian"]
-    lines = [
-        "# LSU accuracy report (thesis ch. 9, simulated rig)", "",
-        f"{len(result['poses'])} poses of a flat textured board, {result['config']['min_distance_m'] * 1000:.0f} to "
-        f"{result['config']['max_distance_m'] * 1000:.0f} mm from the rig centre, tilted up to 25 deg; stop-snap "
-        f"scans every {result['config']['step']} carriage steps; calibration `{result['calibration']}`; truth: the "
-        f"renderer's plane. Both chains reconstruct the same rendered pairs:", "",
-    ]
+    bag = result.get("source") == "bag"
+    if bag:
+        c = result["config"]
+        lines = ["# LSU accuracy report (thesis ch. 9, recorded board scans)", "",
+                 f"{len(result['poses'])} recorded scans of a {c['board']} chessboard ({c['square_mm']:g} mm squares) "
+                 f"from `{c['bag']}`; calibration `{result['calibration']}`; truth: {result['truth']} (OpenCV "
+                 f"solvePnP with the left intrinsics), points over the checkered area within "
+                 f"{c['background_gate_mm']:g} mm of it. Both chains reconstruct the same recorded pairs:", ""]
+    else:
+        lines = [
+            "# LSU accuracy report (thesis ch. 9, simulated rig)", "",
+            f"{len(result['poses'])} poses of a flat textured board, {result['config']['min_distance_m'] * 1000:.0f} "
+            f"to {result['config']['max_distance_m'] * 1000:.0f} mm from the rig centre, tilted up to 25 deg; "
+            f"stop-snap scans every {result['config']['step']} carriage steps; calibration `{result['calibration']}`; "
+            f"truth: the renderer's plane. Both chains reconstruct the same rendered pairs:", "",
+        ]
     lines += [f"- **{k}**: {v}" for k, v in result["chains"].items()]
     lines += ["", "\"3 sigma\" is the thesis' quote: |bias| + 3 sigma of the signed distances to the true plane "
               "(ch. 9.4: 0.5 mm + 3 x 0.3 mm = 1.4 mm at 30 cm, smoothed).", "",
-              "## Headline (300 mm, facing the rig)", "",
+              f"## Headline ({'reference pose: ' + result['reference_pose'] if bag else '300 mm, facing the rig'})", "",
               "| | ours | thesis chain | thesis (real rig, 2005) |", "|---|---|---|---|",
               f"| 3 sigma + bias, smoothed [mm] | {_fmt(f['three_sigma_mm_300_smoothed'])} | "
               f"{_fmt(f['thesis_three_sigma_mm_300'])} | {THESIS_QUOTE_MM_300} |",
@@ -560,6 +618,18 @@ def write_report(result: Dict, out_dir: Path) -> List[Path]:
                          f"{_fmt(c['raw']['mean_mm'], 4)} | {_fmt(c['raw']['sigma_mm'], 4)} | "
                          f"{_fmt(c['smoothed']['sigma_mm'], 4)} | {_fmt(c['smoothed']['bound_mm'])} | "
                          f"{_fmt(c['free_fit']['sigma_mm'], 4)} | {c['free_fit_tilt_err_deg']:.3f} |")
+    if bag:
+        lines += ["", "## Truth (the detected board)", "",
+                  "How well each board pose is known: the RMS reprojection of its corners in the left image, and "
+                  "how far the pose solved from the right image (carried into the left frame by the stereo "
+                  "calibration) lies from it at the board centre. Errors below these are not resolved.", "",
+                  "| pose | reprojection [px] | right-image pose offset [mm] | tilt between them [deg] |",
+                  "|---|---|---|---|"]
+        for r in result["poses"]:
+            t = r["truth"]
+            off = "not found" if t["stereo_offset_mm"] is None else _fmt(t["stereo_offset_mm"], 4)
+            tilt = "" if t["stereo_tilt_deg"] is None else _fmt(t["stereo_tilt_deg"], 4)
+            lines.append(f"| {r['label']} | {_fmt(t['reprojection_px'], 4)} | {off} | {tilt} |")
     lines += ["", "## Error against distance (linear fits, mm per metre of mean distance)", "",
               "| chain | state | sigma slope | sigma at 300 mm | bias slope | bias at 300 mm |", "|---|---|---|---|---|---|"]
     for name in ("ours", "thesis"):
@@ -567,19 +637,30 @@ def write_report(result: Dict, out_dir: Path) -> List[Path]:
             s, b = result["trends"][f"{name}_{state}_sigma_mm"], result["trends"][f"{name}_{state}_mean_mm"]
             lines.append(f"| {name} | {state} | {s['slope_per_mm'] * 1000:.4f} | {_fmt(s['at_300_mm'], 4)} | "
                          f"{b['slope_per_mm'] * 1000:.4f} | {_fmt(b['at_300_mm'], 4)} |")
-    lines += ["", "![error vs distance](error_vs_distance.png)", "",
-              "## Smoothing study", "",
-              f"Board at 300 mm: sigma of the smoothed mesh against the true plane (noise left). "
-              f"{result['smoothing']['curved_scene']}: RMS distance of the smoothed mesh from the rendered surface "
-              f"(noise left plus shape lost: Laplacian smoothing shrinks a curved surface).", "",
-              "| smoother | ours board sigma [mm] | thesis board sigma [mm] | ours curved RMS [mm] | thesis curved RMS [mm] |",
-              "|---|---|---|---|---|"]
+    lines += ["", "![error vs distance](error_vs_distance.png)", "", "## Smoothing study", ""]
     sp = result["smoothing"]
+    curved = "curved" in sp
+    if curved:
+        lines += [f"Board at 300 mm: sigma of the smoothed mesh against the true plane (noise left). "
+                  f"{sp['curved_scene']}: RMS distance of the smoothed mesh from the rendered surface "
+                  f"(noise left plus shape lost: Laplacian smoothing shrinks a curved surface).", "",
+                  "| smoother | ours board sigma [mm] | thesis board sigma [mm] | ours curved RMS [mm] | "
+                  "thesis curved RMS [mm] |", "|---|---|---|---|---|"]
+    else:
+        lines += [f"Board ({result['reference_pose']}): sigma of the smoothed mesh against the detected plane "
+                  f"(noise left). Shape loss needs a curved truth, which only the simulated study has "
+                  f"(`lsu accuracy --sim`).", "",
+                  "| smoother | ours board sigma [mm] | thesis board sigma [mm] |", "|---|---|---|"]
     for i, row in enumerate(sp["plane_300"]["ours"]):
-        lines.append(f"| {row['label']} | {_fmt(row['sigma_mm'], 4)} | {_fmt(sp['plane_300']['thesis'][i]['sigma_mm'], 4)} "
-                     f"| {_fmt(sp['curved']['ours'][i]['rms_mm'], 4)} | {_fmt(sp['curved']['thesis'][i]['rms_mm'], 4)} |")
-    lines += [f"| default (ours: {result['default_smoothing']['method']} {result['default_smoothing']['iterations']}) "
-              f"| | | {_fmt(sp['curved']['ours'][-1]['rms_mm'], 4)} | {_fmt(sp['curved']['thesis'][-1]['rms_mm'], 4)} |",
+        cells = [row["label"], _fmt(row["sigma_mm"], 4), _fmt(sp["plane_300"]["thesis"][i]["sigma_mm"], 4)]
+        if curved:
+            cells += [_fmt(sp["curved"]["ours"][i]["rms_mm"], 4), _fmt(sp["curved"]["thesis"][i]["rms_mm"], 4)]
+        lines.append("| " + " | ".join(cells) + " |")
+    if curved:
+        lines.append(f"| default (ours: {result['default_smoothing']['method']} "
+                     f"{result['default_smoothing']['iterations']}) | | | {_fmt(sp['curved']['ours'][-1]['rms_mm'], 4)} "
+                     f"| {_fmt(sp['curved']['thesis'][-1]['rms_mm'], 4)} |")
+    lines += [
               "", "![smoothing](smoothing.png)", "",
               f"Run time {result['seconds']:.0f} s. Figures: `accuracy.json`."]
     (out / "report.md").write_text("\n".join(lines) + "\n")

@@ -137,5 +137,122 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path, capsys):
     assert lsu_main(["accuracy", "--sim", "-o", str(tmp_path), "--poses", "2"]) == 2
     assert "--poses must be >= 3" in capsys.readouterr().err
     assert lsu_main(["accuracy", "--bag", str(tmp_path), "-o", str(tmp_path)]) == 2
-    assert "not implemented yet" in capsys.readouterr().err
+    assert "no rosbag2 folder (metadata.yaml)" in capsys.readouterr().err
+    assert lsu_main(["accuracy", "--bag", str(tmp_path / "nowhere"), "-o", str(tmp_path)]) == 2
+    assert "no such folder" in capsys.readouterr().err
     assert not (tmp_path / "report.md").exists()
+
+
+# ---------------------------------------------------------------- recorded board scans (--bag)
+SQUARE_M = 0.02
+# (distance from the rig centre [m], yaw, pitch [deg]) of the recorded board poses
+BOARD_POSES = ((0.26, 0.0, 0.0), (0.30, 0.0, 0.0), (0.35, 15.0, -10.0))
+
+
+def board_object(geometry, distance_m: float, yaw_deg: float, pitch_deg: float):
+    """The sim's 9x6 chessboard, its centre ``distance_m`` in front of the rig, tilted."""
+    from lsu_cameras.sim import make_board
+
+    x, y, z = geometry.rig_axes
+    R = A._rotation(x, pitch_deg) @ A._rotation(y, yaw_deg) @ geometry.rig_axes.T
+    centre = geometry.rig_center + distance_m * z
+    return make_board(R, centre - R @ np.array([4 * SQUARE_M, 2.5 * SQUARE_M, 0.0]), (9, 6), SQUARE_M)
+
+
+@pytest.fixture(scope="module")
+def board_bags(tmp_path_factory):
+    """One scan bag per board pose, written from the simulated rig; the renderer's boards are the truth."""
+    from lsu_cameras.sim import load_rig
+
+    from lsu_bringup.simbags import write_sim_scan_bag
+
+    root = tmp_path_factory.mktemp("board_scans")
+    geometry = load_rig()
+    boards = []
+    for i, pose in enumerate(BOARD_POSES):
+        board = board_object(geometry, *pose)
+        write_sim_scan_bag(root / f"pose{i}" / "bag", [board], list(range(0, 471, 10)), seed=100 + i,
+                           scan_id=f"pose{i}", geometry=geometry)
+        boards.append(board)
+    return root, boards
+
+
+def test_board_plane_detected_in_the_laser_off_pair_matches_the_renderer(board_bags):
+    from lsu_cameras.calibration import BoardSpec
+    from lsu_reconstruct.stereo import StereoModel
+
+    from lsu_bringup.accuracy_bag import detect_board_plane, find_bags, read_board_scans
+
+    root, boards = board_bags
+    model = StereoModel.from_folder(Path(A.__file__).resolve().parents[3] / "config" / "calibration" / "sim")
+    bags = find_bags(root)
+    assert [b.parent.name for b in bags] == ["pose0", "pose1", "pose2"]
+    for bag, board in zip(bags, boards):
+        (scan,) = list(read_board_scans(bag))
+        assert scan.name == bag.parent.name and len(scan.snaps) == 48
+        plane = detect_board_plane(scan.texture, model, BoardSpec(9, 6, SQUARE_M), scan.name)
+        true_n = board.extra["pose_R"][:, 2]
+        assert math.degrees(math.acos(min(1.0, abs(float(plane.normal @ true_n))))) < 0.1
+        # the detected centre lies on the rendered board plane, and the board frame's origin is its first corner
+        assert abs(float((plane.center - board.extra["pose_t"]) @ true_n)) * 1000 < 0.05
+        assert np.linalg.norm(plane.t - board.extra["pose_t"]) * 1000 < 0.5
+        assert plane.reprojection_px < 0.2
+        assert plane.stereo_offset_mm is None or plane.stereo_offset_mm < 0.1
+
+
+def test_accuracy_from_board_bags_end_to_end(board_bags, tmp_path, capsys):
+    root, _ = board_bags
+    out = tmp_path / "report"
+    assert lsu_main(["accuracy", "--bag", str(root), "--square", "20", "-o", str(out)]) == 0
+    r = json.loads((out / "accuracy.json").read_text())
+    assert r["source"] == "bag" and len(r["poses"]) == 3
+    text = (out / "report.md").read_text()
+    assert "recorded board scans" in text and "Truth (the detected board)" in text and "curved RMS" not in text
+    for name in ("gaussian_table.png", "error_vs_distance.png", "smoothing.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for pose in r["poses"]:
+        # only points over the board count, and both chains see the same recorded pairs
+        assert pose["ours"]["raw"]["points"] > 3000
+        assert pose["ours"]["raw"]["sigma_mm"] < pose["thesis"]["raw"]["sigma_mm"] / 3
+        assert abs(pose["ours"]["raw"]["mean_mm"]) < 0.05  # no bias against the detected board
+    f = r["figures"]
+    assert 280 < f["reference_distance_mm"] < 330
+    assert f["three_sigma_mm_300_smoothed"] <= 0.15 < f["thesis_three_sigma_mm_300"]
+    assert r["trends"]["thesis_raw_sigma_mm"]["slope_per_mm"] > 0
+    assert "thesis chain" in capsys.readouterr().out
+
+
+def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
+    from lsu_cameras.sim import build_scene, load_rig
+
+    from lsu_bringup.bags import BagWriter
+    from lsu_bringup.simbags import EVENTS_TOPIC, write_sim_scan_bag
+
+    with BagWriter(tmp_path / "events_only" / "bag") as bag:
+        bag.add_topic(EVENTS_TOPIC, "lsu_interfaces/msg/ScanEvent")
+    assert lsu_main(["accuracy", "--bag", str(tmp_path / "events_only"), "-o", str(tmp_path / "r1")]) == 2
+    err = capsys.readouterr().err
+    assert "has no stereo/left/image_raw, stereo/right/image_raw" in err and "lsu scan --record" in err
+    geometry = load_rig()
+    write_sim_scan_bag(tmp_path / "plain" / "bag", build_scene("plane", geometry), [230, 240], seed=3,
+                       scan_id="plain", geometry=geometry)
+    assert lsu_main(["accuracy", "--bag", str(tmp_path / "plain"), "-o", str(tmp_path / "r2")]) == 2
+    assert "no 9x6 chessboard found in the laser-off left image" in capsys.readouterr().err
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_a_scan_recorded_by_the_graph_reads_as_a_board_scan(tmp_path, capsys):
+    """The committed bag was recorded by scan_coordinator (a head, no board): the reader takes its
+    events and images as they are; the study then stops at the board detection, saying so."""
+    from lsu_bringup.accuracy_bag import read_board_scans
+
+    bag = Path(__file__).resolve().parents[3] / "test" / "data" / "bags" / "scan_head"
+    (scan,) = list(read_board_scans(bag))
+    assert len(scan.snaps) == 6 and [s[0] for s in scan.snaps] == list(range(6))
+    assert scan.texture[0].shape == (480, 640, 3) and scan.texture[1].shape == (480, 640, 3)
+    # laser off in the texture pair, on in the snaps: the red excess tells them apart
+    red = [float((img[..., 2].astype(int) - img[..., :2].max(axis=2)).clip(0).max()) for img in (scan.texture[0],
+                                                                                             scan.snaps[0][1])]
+    assert red[1] > red[0] + 50
+    assert lsu_main(["accuracy", "--bag", str(bag), "-o", str(tmp_path / "r")]) == 2
+    assert "no 9x6 chessboard found" in capsys.readouterr().err
