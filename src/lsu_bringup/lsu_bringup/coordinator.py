@@ -128,29 +128,47 @@ class ScanCoordinatorNode(Node):
         return GoalResponse.ACCEPT
 
     # ------------------------------------------------------------------------------ helpers
-    def _call(self, client: Any, request: Any, timeout_s: float, what: str) -> Any:
-        """One service call from the scan thread, spinning the private node until the reply is in."""
+    @property
+    def shutting_down(self) -> bool:
+        """The node is being stopped (Ctrl-C, SIGTERM, destroy_node): the scan must end now, data kept."""
+        return self._stopping or not self.context.ok()
+
+    def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True) -> Any:
+        """One service call from the scan thread, spinning the private node until the reply is in.
+
+        With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
+        and the launcher's grace period is short); the laser-off call at the end does not stop early.
+        """
         if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
             raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
         future = client.call_async(request)
-        self._io_executor.spin_until_future_complete(future, timeout_sec=timeout_s)
+        end = time.monotonic() + timeout_s
+        while not future.done() and time.monotonic() < end:
+            if stop_early and self.shutting_down:
+                client.remove_pending_request(future)
+                raise ScanAborted("scan_coordinator is shutting down")
+            self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
         if not future.done():
             client.remove_pending_request(future)
             raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
         return future.result()
 
-    def _set_laser(self, on: bool) -> None:
-        response = self._call(self.laser, SetBool.Request(data=on), 3.0, f"laser {'on' if on else 'off'}")
+    def _set_laser(self, on: bool, timeout_s: float = 3.0, stop_early: bool = True) -> None:
+        response = self._call(self.laser, SetBool.Request(data=on), timeout_s, f"laser {'on' if on else 'off'}",
+                              stop_early=stop_early)
         if not response.success:
             raise ScanAborted(f"laser {'on' if on else 'off'} failed: {response.message}")
 
     def _laser_off_safely(self) -> str:
+        # on shutdown the driver is stopping too (it switches the laser off itself): ask briefly
+        timeout = 0.5 if self.shutting_down else 3.0
         try:
-            self._set_laser(False)
+            self._set_laser(False, timeout, stop_early=False)
             return ""
-        except ScanAborted as exc:
-            self.get_logger().error(f"could not switch the laser off: {exc} (the firmware watchdog will)")
-            return str(exc)
+        except Exception as exc:  # noqa: BLE001 - a dead context raises rclpy's own types; never skip the files
+            self.get_logger().error(f"could not switch the laser off: {exc} (the driver's shutdown or the "
+                                    "firmware watchdog will)")
+            return str(exc) or exc.__class__.__name__
 
     def _capture(self) -> Any:
         response = self._call(self.capture, CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
@@ -164,7 +182,12 @@ class ScanCoordinatorNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         for name, value in fields.items():
             setattr(msg, name, value)
-        self.events.publish(msg)
+        try:
+            self.events.publish(msg)
+        except Exception as exc:  # noqa: BLE001 - rclpy raises its own types on a context going down
+            if not self.shutting_down:
+                raise
+            self.get_logger().warning(f"scan event {kind} not published, shutting down ({exc.__class__.__name__})")
 
     def _wait(self, predicate: Callable[[], bool], timeout_s: float, spin: bool = True) -> bool:
         """Wait until ``predicate()``; with ``spin`` the scan thread handles the private node meanwhile."""
@@ -173,6 +196,8 @@ class ScanCoordinatorNode(Node):
             remaining = end - time.monotonic()
             if remaining <= 0:
                 return False
+            if self.shutting_down:
+                raise ScanAborted("scan_coordinator is shutting down")
             if spin:
                 self._io_executor.spin_once(timeout_sec=min(remaining, 0.05))
             else:
@@ -183,7 +208,7 @@ class ScanCoordinatorNode(Node):
     def _check_cancel(self, goal_handle: Any) -> None:
         if goal_handle.is_cancel_requested:
             raise ScanCanceled("canceled by the user")
-        if self._stopping:
+        if self.shutting_down:
             raise ScanAborted("scan_coordinator is shutting down")
 
     def _sleep(self, goal_handle: Any, seconds: float) -> None:
@@ -298,8 +323,11 @@ class ScanCoordinatorNode(Node):
         except ScanAborted as exc:
             abort_reason = str(exc)
         except Exception as exc:  # a bug must still leave the laser off and the data on disk
-            abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
-            self.get_logger().error(abort_reason)
+            if self.shutting_down:  # rclpy's own exceptions out of a context the signal handler shut down
+                abort_reason = f"scan_coordinator is shutting down ({exc.__class__.__name__})"
+            else:
+                abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
+                self.get_logger().error(abort_reason)
         finally:
             laser_error = self._laser_off_safely()
         if laser_error and not abort_reason:
@@ -378,7 +406,15 @@ class ScanCoordinatorNode(Node):
 
     def _save_cloud(self, folder: Path, serial_before: int, record: ScanRecord) -> int:
         """Wait for the matcher's scan cloud and write cloud.ply; returns its point count (0 if none came)."""
-        if not self._wait(lambda: self._cloud_serial > serial_before, float(self.cloud_timeout_s), spin=False):
+        if self.shutting_down:  # the matcher is stopping too; scan.json and the bag must be on disk first
+            self.get_logger().warning("shutting down: not waiting for stereo_matcher's scan/cloud; the per-snap "
+                                      "data is in the bag if one was recorded")
+            return 0
+        try:
+            arrived = self._wait(lambda: self._cloud_serial > serial_before, float(self.cloud_timeout_s), spin=False)
+        except ScanAborted:  # shutdown while waiting
+            arrived = False
+        if not arrived:
             self.get_logger().warning(f"no scan/cloud from stereo_matcher within {self.cloud_timeout_s:g} s; "
                                       "the per-snap data is in the bag if one was recorded")
             return 0
