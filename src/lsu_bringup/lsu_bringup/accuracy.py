@@ -37,7 +37,7 @@ __all__ = ["AccuracyError", "Pose", "StudyConfig", "ChainScan", "ChainSpec", "CH
            "LAPLACIAN_ITERATIONS", "LAPLACIAN_FACTORS", "TAUBIN_PASSES", "default_poses", "plane_pose_object",
            "scan_scene", "plane_distances_mm", "fit_plane", "gaussian_table", "error_stats", "linear_fit",
            "mesh_scan", "smooth_vertices", "surface_rms_mm", "run_study", "write_report", "THESIS_QUOTE_MM_300",
-           "ChainRunner", "evaluate_pose", "summarise"]
+           "ChainRunner", "evaluate_pose", "summarise", "board_pose_object"]
 
 # Normal-distribution fractions within 1, 2, 3 sigma, as the thesis' Table 2 rounded them.
 GAUSSIAN_EXPECTED_PCT = (68.2, 95.4, 99.7)
@@ -157,6 +157,19 @@ def plane_pose_object(geometry, pose: Pose):
     center = geometry.rig_center + pose.distance_m * z
     normal = _rotation(x, pose.pitch_deg) @ _rotation(y, pose.yaw_deg) @ (-z)
     return make_plane(center, normal, size_m=0.8, name=f"board {pose.label}")
+
+
+def board_pose_object(geometry, pose: Pose, square_m: float = 0.02, inner_corners: Tuple[int, int] = (9, 6)):
+    """The sim's chessboard at a pose: centre ``pose.distance_m`` in front of the rig, tilted like
+    `plane_pose_object`; ``extra["pose_R"]`` / ``extra["pose_t"]`` hold its true pose (left frame)."""
+    from lsu_cameras.sim import make_board
+
+    x, y, z = geometry.rig_axes
+    R = _rotation(x, pose.pitch_deg) @ _rotation(y, pose.yaw_deg) @ geometry.rig_axes.T
+    centre = geometry.rig_center + pose.distance_m * z
+    cols, rows = inner_corners
+    first = centre - R @ np.array([(cols - 1) / 2 * square_m, (rows - 1) / 2 * square_m, 0.0])
+    return make_board(R, first, inner_corners, square_m, name=f"chessboard {pose.label}")
 
 
 def _line_arrays(res):

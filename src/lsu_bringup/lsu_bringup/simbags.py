@@ -10,13 +10,13 @@ trying `lsu accuracy --bag` without a rig; a live recording (`lsu scan --record`
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import List, Optional, Sequence
 
 import numpy as np
 
 from .bags import BagTypes, BagWriter
 
-__all__ = ["write_sim_scan_bag", "EVENTS_TOPIC", "IMAGE_TOPICS"]
+__all__ = ["write_sim_scan_bag", "write_board_scan_bags", "EVENTS_TOPIC", "IMAGE_TOPICS"]
 
 EVENTS_TOPIC = "/lsu/scan/events"
 IMAGE_TOPICS = {"left": "/lsu/stereo/left/image_raw", "right": "/lsu/stereo/right/image_raw"}
@@ -80,3 +80,22 @@ def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequen
                   expected_snaps=len(positions))
         event(t + period_ns, _FINISHED, expected_snaps=len(positions), snaps_captured=len(positions))
     return Path(out_dir)
+
+
+def write_board_scan_bags(root: Path | str, poses: Sequence, square_m: float = 0.02, step: int = 10, seed: int = 100,
+                          geometry=None) -> List[Path]:
+    """One board scan per `lsu_bringup.accuracy.Pose` (carriage 0..track end every ``step``) as
+    ``root/pose<i>/bag``, like `lsu scan --record` leaves them; input for `lsu accuracy --bag`
+    (``--square`` = ``square_m`` in mm). Returns the bag folders."""
+    from lsu_cameras.sim import load_rig
+
+    from .accuracy import board_pose_object
+
+    geometry = geometry or load_rig()
+    bags = []
+    for i, pose in enumerate(poses):
+        board = board_pose_object(geometry, pose, square_m)
+        bags.append(write_sim_scan_bag(Path(root) / f"pose{i}" / "bag", [board],
+                                       list(range(0, int(geometry.track_steps) + 1, step)), seed=seed + 1000 * i,
+                                       scan_id=f"pose{i}", geometry=geometry))
+    return bags

@@ -145,18 +145,7 @@ def test_bad_arguments_fail_with_a_clear_message(tmp_path, capsys):
 
 # ---------------------------------------------------------------- recorded board scans (--bag)
 SQUARE_M = 0.02
-# (distance from the rig centre [m], yaw, pitch [deg]) of the recorded board poses
-BOARD_POSES = ((0.26, 0.0, 0.0), (0.30, 0.0, 0.0), (0.35, 15.0, -10.0))
-
-
-def board_object(geometry, distance_m: float, yaw_deg: float, pitch_deg: float):
-    """The sim's 9x6 chessboard, its centre ``distance_m`` in front of the rig, tilted."""
-    from lsu_cameras.sim import make_board
-
-    x, y, z = geometry.rig_axes
-    R = A._rotation(x, pitch_deg) @ A._rotation(y, yaw_deg) @ geometry.rig_axes.T
-    centre = geometry.rig_center + distance_m * z
-    return make_board(R, centre - R @ np.array([4 * SQUARE_M, 2.5 * SQUARE_M, 0.0]), (9, 6), SQUARE_M)
+BOARD_POSES = (A.Pose(0.26), A.Pose(0.30), A.Pose(0.35, yaw_deg=15.0, pitch_deg=-10.0))
 
 
 @pytest.fixture(scope="module")
@@ -164,17 +153,12 @@ def board_bags(tmp_path_factory):
     """One scan bag per board pose, written from the simulated rig; the renderer's boards are the truth."""
     from lsu_cameras.sim import load_rig
 
-    from lsu_bringup.simbags import write_sim_scan_bag
+    from lsu_bringup.simbags import write_board_scan_bags
 
     root = tmp_path_factory.mktemp("board_scans")
     geometry = load_rig()
-    boards = []
-    for i, pose in enumerate(BOARD_POSES):
-        board = board_object(geometry, *pose)
-        write_sim_scan_bag(root / f"pose{i}" / "bag", [board], list(range(0, 471, 10)), seed=100 + i,
-                           scan_id=f"pose{i}", geometry=geometry)
-        boards.append(board)
-    return root, boards
+    write_board_scan_bags(root, BOARD_POSES, SQUARE_M, step=10, seed=100, geometry=geometry)
+    return root, [A.board_pose_object(geometry, pose, SQUARE_M) for pose in BOARD_POSES]
 
 
 def test_board_plane_detected_in_the_laser_off_pair_matches_the_renderer(board_bags):
