@@ -632,8 +632,10 @@ def write_report(result: Dict, out_dir: Path) -> List[Path]:
                          f"{_fmt(c['smoothed']['sigma_mm'], 4)} | {_fmt(c['smoothed']['bound_mm'])} | "
                          f"{_fmt(c['free_fit']['sigma_mm'], 4)} | {c['free_fit_tilt_err_deg']:.3f} |")
     if bag:
-        lines += ["", "## Truth (the detected board)", "",
-                  "How well each board pose is known: the RMS reprojection of its corners in the left image, and "
+        lines += ["", "## Truth (the detected board)", ""]
+        if result.get("skipped"):
+            lines += ["Scans left out of every figure:", ""] + [f"- {reason}" for reason in result["skipped"]] + [""]
+        lines += ["How well each board pose is known: the RMS reprojection of its corners in the left image, and "
                   "how far the pose solved from the right image (carried into the left frame by the stereo "
                   "calibration) lies from it at the board centre. Errors below these are not resolved.", "",
                   "| pose | reprojection [px] | right-image pose offset [mm] | tilt between them [deg] |",

@@ -218,33 +218,48 @@ def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
     per_pose: List[Dict] = []
     pooled_z: Dict[str, List[np.ndarray]] = {c.name: [] for c in CHAINS}
     meshes_of: List[Dict[str, Tuple]] = []
+    skipped: List[str] = []  # one unusable scan (board out of view, a head scan in the folder) loses only itself
+
+    def measure(scan: BoardScan) -> None:
+        t0 = time.perf_counter()
+        h, w = scan.texture[0].shape[:2]
+        model.check_image_size(w, h, f"{scan.name} images")
+        plane = detect_board_plane(scan.texture, model, board, scan.name)
+        runner = ChainRunner(model)
+        for index, left, right in scan.snaps:
+            runner.add_pair(left, right, index)
+        pose = _pose_of(plane)
+        label = f"{scan.name} ({pose['distance_m'] * 1000:.0f} mm, yaw {pose['yaw_deg']:+.0f}, " \
+                f"pitch {pose['pitch_deg']:+.0f})"
+        stats, z, meshes = evaluate_pose(runner.scans(), plane.center, plane.normal, label,
+                                         hint="is the laser on the board in these snaps (scan range) and is "
+                                              "the calibration the rig's?", keep=plane.on_board)
+        truth = {"reprojection_px": plane.reprojection_px, "stereo_offset_mm": plane.stereo_offset_mm,
+                 "stereo_tilt_deg": plane.stereo_tilt_deg}
+        per_pose.append({"pose": pose, "label": label, "truth": truth, **stats})
+        for name, zs in z.items():
+            pooled_z[name].append(zs)
+        meshes_of.append(meshes)
+        progress(f"{label}: ours sigma {stats['ours']['raw']['sigma_mm']:.3f} mm, thesis sigma "
+                 f"{stats['thesis']['raw']['sigma_mm']:.3f} mm; board reprojection {plane.reprojection_px:.3f} px"
+                 f" ({time.perf_counter() - t0:.0f} s)")
+
     for bag in find_bags(bag_dir):
-        for scan in read_board_scans(bag):
-            t0 = time.perf_counter()
-            h, w = scan.texture[0].shape[:2]
-            model.check_image_size(w, h, f"{scan.name} images")
-            plane = detect_board_plane(scan.texture, model, board, scan.name)
-            runner = ChainRunner(model)
-            for index, left, right in scan.snaps:
-                runner.add_pair(left, right, index)
-            pose = _pose_of(plane)
-            label = f"{scan.name} ({pose['distance_m'] * 1000:.0f} mm, yaw {pose['yaw_deg']:+.0f}, " \
-                    f"pitch {pose['pitch_deg']:+.0f})"
-            stats, z, meshes = evaluate_pose(runner.scans(), plane.center, plane.normal, label,
-                                             hint="is the laser on the board in these snaps (scan range) and is "
-                                                  "the calibration the rig's?", keep=plane.on_board)
-            truth = {"reprojection_px": plane.reprojection_px, "stereo_offset_mm": plane.stereo_offset_mm,
-                     "stereo_tilt_deg": plane.stereo_tilt_deg}
-            per_pose.append({"pose": pose, "label": label, "truth": truth, **stats})
-            for name, zs in z.items():
-                pooled_z[name].append(zs)
-            meshes_of.append(meshes)
-            progress(f"{label}: ours sigma {stats['ours']['raw']['sigma_mm']:.3f} mm, thesis sigma "
-                     f"{stats['thesis']['raw']['sigma_mm']:.3f} mm; board reprojection {plane.reprojection_px:.3f} px"
-                     f" ({time.perf_counter() - t0:.0f} s)")
+        try:
+            for scan in read_board_scans(bag):
+                try:
+                    measure(scan)
+                except (AccuracyError, ValueError) as exc:
+                    skipped.append(str(exc))
+                    progress(f"skipped: {exc}")
+        except (AccuracyError, ValueError) as exc:  # the whole bag: missing topics, truncated file
+            skipped.append(str(exc))
+            progress(f"skipped: {exc}")
     if len(per_pose) < 2:
-        raise AccuracyError(f"--bag {bag_dir}: {len(per_pose)} board scan(s) found; the error-against-distance fit "
-                            f"needs >= 2 poses at different distances (the thesis-style study uses >= 8)")
+        why = "; ".join(skipped) if skipped else "no scan with a laser-off pair and laser snaps"
+        raise AccuracyError(f"--bag {bag_dir}: {len(per_pose)} usable board scan(s), the error-against-distance fit "
+                            f"needs >= 2 poses at different distances (the thesis-style study uses >= 8). "
+                            f"Skipped: {why}")
 
     def tilt(p: Dict) -> float:
         return math.hypot(p["pose"]["yaw_deg"], p["pose"]["pitch_deg"])
@@ -255,6 +270,7 @@ def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
                     "config": {"bag": str(bag_dir), "board": f"{board.cols}x{board.rows}",
                                "square_mm": board.square_m * 1000.0, "calibration": str(calibration),
                                "background_gate_mm": BACKGROUND_GATE_MM},
+                    "skipped": skipped,
                     "calibration": str(calibration), "chains": {c.name: c.description for c in CHAINS},
                     "default_smoothing": asdict(SmoothParams())}
     summarise(result, per_pose, pooled_z, ref_index, meshes_of[ref_index])

@@ -225,6 +225,21 @@ def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
     assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
 
 
+def test_an_unusable_scan_among_good_ones_is_skipped_and_reported(board_bags, tmp_path):
+    import shutil
+
+    root, _ = board_bags
+    mixed = tmp_path / "scans"
+    shutil.copytree(root, mixed)
+    # a head scan recorded by the graph: images and events, but no board in view
+    shutil.copytree(Path(__file__).resolve().parents[3] / "test" / "data" / "bags" / "scan_head", mixed / "head" / "bag")
+    out = tmp_path / "report"
+    assert lsu_main(["accuracy", "--bag", str(mixed), "--square", "20", "-o", str(out)]) == 0
+    r = json.loads((out / "accuracy.json").read_text())
+    assert len(r["poses"]) == 3 and len(r["skipped"]) == 1 and "no 9x6 chessboard found" in r["skipped"][0]
+    assert "Scans left out of every figure" in (out / "report.md").read_text()
+
+
 def test_a_scan_recorded_by_the_graph_reads_as_a_board_scan(tmp_path, capsys):
     """The committed bag was recorded by scan_coordinator (a head, no board): the reader takes its
     events and images as they are; the study then stops at the board detection, saying so."""
