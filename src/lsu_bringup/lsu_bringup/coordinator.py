@@ -211,6 +211,19 @@ class ScanCoordinatorNode(Node):
         if self.shutting_down:
             raise ScanAborted("scan_coordinator is shutting down")
 
+    def _since_stop_s(self, stamp: Any) -> Optional[float]:
+        """Seconds since the driver saw the carriage stop (``MoveTo.Response.stopped_stamp``), or None.
+
+        The vibration the settle waits out decays from the stop, not from when the move's reply
+        reached us; a stamp that is missing (an older driver) or implausible (clock trouble) counts
+        as no time passed, i.e. the full settle.
+        """
+        stopped = int(stamp.sec) + int(stamp.nanosec) * 1e-9
+        if stopped <= 0.0:
+            return None
+        elapsed = time.time() - stopped  # the driver stamps with the system clock of this machine
+        return elapsed if 0.0 <= elapsed <= 0.5 else None
+
     def _sleep(self, goal_handle: Any, seconds: float) -> None:
         """Settle: wait ``seconds``, handling acknowledgements and checking for a cancel meanwhile."""
         end = time.monotonic() + seconds
@@ -295,7 +308,8 @@ class ScanCoordinatorNode(Node):
                 if not moved.success:
                     raise ScanAborted(f"move to {position} failed: {moved.message}")
                 t_moved = time.monotonic()
-                self._sleep(goal_handle, plan.settle_s)
+                since_stop = self._since_stop_s(moved.stopped_stamp)
+                self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
                 t_slept = time.monotonic()
                 if pending is not None:
                     points_total += self._await_ack(pending, resume_laser=True)
@@ -310,6 +324,7 @@ class ScanCoordinatorNode(Node):
                 captured.append({"index": index, "position_steps": int(moved.position_steps),
                                  "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s),
                                  "move_s": round(t_moved - t_snap, 4), "settle_s": round(t_slept - t_moved, 4),
+                                 "stop_to_reply_s": None if since_stop is None else round(since_stop, 4),
                                  "ack_wait_s": round(t_settled - t_slept, 4),
                                  "capture_s": round(t_captured - t_settled, 4)})
                 pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}

@@ -82,6 +82,7 @@ class MotionResult:
     position: int                 # step counter when it stopped
     target: Optional[int]         # requested absolute target (None for a sweep)
     end_sensor: Optional[int]     # sensor (0 start / 1 end) that tripped during the motion, if any
+    stopped_at_s: Optional[float] = None  # wall-clock time the !DONE arrived (the carriage stopped)
 
     @property
     def reached(self) -> bool:
@@ -117,6 +118,7 @@ class Gp32Client:
         self._state = threading.Condition()
         self._event_seq = 0
         self._events: List[p.Line] = []       # recent events (bounded), newest last
+        self.last_stop_s: Optional[float] = None  # wall-clock arrival of the last !DONE
         self._listeners: List[Listener] = []
         self._error_listeners: List[Callable[[p.MalformedLine], None]] = []
         self._connection_listeners: List[Callable[[bool, str], None]] = []
@@ -306,6 +308,7 @@ class Gp32Client:
             self.position = 0
         elif isinstance(line, p.Done):
             self.position = line.position
+            self.last_stop_s = time.time()  # stamped on arrival: settling counts from the stop, not the reply
         with self._state:
             self._event_seq += 1
             self._events.append(line)
@@ -449,7 +452,8 @@ class Gp32Client:
 
         event = self._wait_event(since, done, timeout_s or self._motion_timeout(distance), what)
         assert isinstance(event, p.Done)
-        return MotionResult(event.position, target, sensor[-1] if sensor else None)
+        # one motion at a time: the latest !DONE is this one
+        return MotionResult(event.position, target, sensor[-1] if sensor else None, self.last_stop_s)
 
     def move_to(self, position: int, timeout_s: Optional[float] = None) -> MotionResult:
         """``G<pos>`` and wait until the carriage stopped; returns where it stopped.

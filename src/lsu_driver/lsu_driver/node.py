@@ -221,12 +221,14 @@ class Gp32DriverNode(Node):
         return ""
 
     def _motion(self, target: int, run: Any) -> tuple:
+        """Run a motion; returns (position, error text or '', wall-clock stop time or None)."""
         self.target = target
         self.moving = True
         self._publish_state(force=True)
+        stopped_at = None
         try:
             result: MotionResult = run()
-            position, error = result.position, ""
+            position, error, stopped_at = result.position, "", result.stopped_at_s
             if not result.reached:
                 why = (f"end sensor {result.end_sensor} tripped" if result.end_sensor is not None
                        else "stopped (carriage/stop or X)")
@@ -242,7 +244,7 @@ class Gp32DriverNode(Node):
         finally:
             self.moving = False
             self._publish_state(force=True)
-        return position, error
+        return position, error, stopped_at
 
     def _srv_move_to(self, request: MoveTo.Request, response: MoveTo.Response) -> MoveTo.Response:
         response.message = self._refuse_motion()
@@ -254,11 +256,14 @@ class Gp32DriverNode(Node):
             response.position_steps = self.client.position or 0
             return response
         timeout = request.timeout_s or None
-        position, error = self._motion(request.position_steps,
-                                       lambda: self.client.move_to(request.position_steps, timeout))
+        position, error, stopped_at = self._motion(request.position_steps,
+                                                   lambda: self.client.move_to(request.position_steps, timeout))
         response.success = not error
         response.position_steps = int(position)
         response.message = error
+        if stopped_at is not None:
+            response.stopped_stamp.sec = int(stopped_at)
+            response.stopped_stamp.nanosec = min(999_999_999, int((stopped_at - int(stopped_at)) * 1e9))
         return response
 
     def _srv_step(self, request: Step.Request, response: Step.Response) -> Step.Response:
@@ -271,7 +276,7 @@ class Gp32DriverNode(Node):
             return response
         start = self.client.position or 0
         timeout = request.timeout_s or None
-        position, error = self._motion(start + request.steps, lambda: self.client.step(request.steps, timeout))
+        position, error, _ = self._motion(start + request.steps, lambda: self.client.step(request.steps, timeout))
         response.success = not error
         response.position_steps = int(position)
         response.message = error

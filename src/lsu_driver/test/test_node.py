@@ -47,6 +47,9 @@ def test_services_home_move_step_and_laser(rig, emulator):
     assert home.success and "470" in home.message
     moved = h.call(c["move_to"], MoveTo.Request(position_steps=100), timeout_s=10)
     assert moved.success and moved.position_steps == 100 and abs(emulator.truth().position_steps - 100) < 0.5
+    # the stop stamp is when the unit stopped (the emulator's own clock of it), not when the reply left
+    stopped = moved.stopped_stamp.sec + moved.stopped_stamp.nanosec * 1e-9
+    assert abs(stopped - emulator.truth().stopped_at_s) < 0.02
     stepped = h.call(c["step"], Step.Request(steps=-30), timeout_s=10)
     assert stepped.success and stepped.position_steps == 70
     beyond = h.call(c["move_to"], MoveTo.Request(position_steps=900))
