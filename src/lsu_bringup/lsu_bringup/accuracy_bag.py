@@ -96,8 +96,11 @@ def _suffix_topic(topics: Dict[str, Tuple[str, tuple]], suffix: str, msgtype: st
     return found[0] if found else None
 
 
-def read_board_scans(bag: Path) -> Iterator[BoardScan]:
+def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) -> Iterator[BoardScan]:
     """The scans of one bag, one per ``scan_id`` with a TEXTURE pair and at least one SNAP pair.
+
+    With ``skip``, a scan that cannot be used (no laser-off pair) is reported to it and the others
+    still come; without, it raises.
 
     Raises:
         AccuracyError: a topic is missing, or a scan has no laser-off pair (what to record is said).
@@ -138,12 +141,20 @@ def read_board_scans(bag: Path) -> Iterator[BoardScan]:
     for scan_id, scan in scans.items():
         folder = bag.name if bag.name != "bag" else bag.parent.name  # `lsu scan --record` writes <scan_id>/bag
         name = scan_id if folder == scan_id else f"{folder}:{scan_id}"
+        problem = ""
+        tex = (None, None)
         if scan["texture"] is None:
-            raise AccuracyError(f"{name}: no laser-off (TEXTURE) pair, so the board cannot be detected; scan with "
-                                f"texture on (the default of `lsu scan`)")
-        tex = (frames.get(("left", scan["texture"])), frames.get(("right", scan["texture"])))
-        if tex[0] is None or tex[1] is None:
-            raise AccuracyError(f"{name}: the laser-off pair's images are not in the bag (the recording started late?)")
+            problem = (f"{name}: no laser-off (TEXTURE) pair, so the board cannot be detected; scan with texture on "
+                       f"(the default of `lsu scan`)")
+        else:
+            tex = (frames.get(("left", scan["texture"])), frames.get(("right", scan["texture"])))
+            if tex[0] is None or tex[1] is None:
+                problem = f"{name}: the laser-off pair's images are not in the bag (the recording started late?)"
+        if problem:
+            if skip is None:
+                raise AccuracyError(problem)
+            skip(problem)
+            continue
         pairs = [(index, frames[("left", key)], frames[("right", key)]) for key, index in sorted(scan["snaps"].items())
                  if ("left", key) in frames and ("right", key) in frames]
         if pairs:
@@ -244,17 +255,19 @@ def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
                  f"{stats['thesis']['raw']['sigma_mm']:.3f} mm; board reprojection {plane.reprojection_px:.3f} px"
                  f" ({time.perf_counter() - t0:.0f} s)")
 
+    def skip(reason: str) -> None:
+        skipped.append(reason)
+        progress(f"skipped: {reason}")
+
     for bag in find_bags(bag_dir):
         try:
-            for scan in read_board_scans(bag):
+            for scan in read_board_scans(bag, skip):
                 try:
                     measure(scan)
                 except (AccuracyError, ValueError) as exc:
-                    skipped.append(str(exc))
-                    progress(f"skipped: {exc}")
+                    skip(str(exc))
         except (AccuracyError, ValueError) as exc:  # the whole bag: missing topics, truncated file
-            skipped.append(str(exc))
-            progress(f"skipped: {exc}")
+            skip(str(exc))
     if len(per_pose) < 2:
         why = "; ".join(skipped) if skipped else "no scan with a laser-off pair and laser snaps"
         raise AccuracyError(f"--bag {bag_dir}: {len(per_pose)} usable board scan(s), the error-against-distance fit "

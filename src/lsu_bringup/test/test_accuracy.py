@@ -222,7 +222,11 @@ def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
                        scan_id="plain", geometry=geometry)
     assert lsu_main(["accuracy", "--bag", str(tmp_path / "plain"), "-o", str(tmp_path / "r2")]) == 2
     assert "no 9x6 chessboard found in the laser-off left image" in capsys.readouterr().err
-    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+    write_sim_scan_bag(tmp_path / "dark" / "bag", build_scene("plane", geometry), [230], seed=4, scan_id="dark",
+                       geometry=geometry, texture=False)
+    assert lsu_main(["accuracy", "--bag", str(tmp_path / "dark"), "-o", str(tmp_path / "r3")]) == 2
+    assert "no laser-off (TEXTURE) pair" in capsys.readouterr().err
+    assert not any((tmp_path / r).exists() for r in ("r1", "r2", "r3"))
 
 
 def test_an_unusable_scan_among_good_ones_is_skipped_and_reported(board_bags, tmp_path):
