@@ -90,7 +90,10 @@ def test_signal_to_the_launcher_mid_scan(sig, tmp_path, fault_report):
         (folder,) = [p for p in scans.iterdir() if p.is_dir()]
         assert (folder / "scan.json").is_file(), graph.output[-4000:]
         record = json.loads((folder / "scan.json").read_text())
-        assert record["partial"] and "shutting down" in record["status"], record["status"]
+        # the coordinator says it was shut down; if the signal reached it late, the reason is the driver's
+        # own shutdown stopping the move (X) -- either way partial, with the reason
+        assert record["partial"] and ("shutting down" in record["status"]
+                                      or "carriage/stop or X" in record["status"]), record["status"]
         stamps = {s["stamp"] for s in record["snaps"]}
         assert len(stamps) == record["snaps_captured"] >= 5
         bagged = {"left": set(), "right": set()}

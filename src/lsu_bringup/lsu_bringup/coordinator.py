@@ -345,6 +345,9 @@ class ScanCoordinatorNode(Node):
                 self.get_logger().error(abort_reason)
         finally:
             laser_error = self._laser_off_safely()
+        if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
+            # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first
+            abort_reason = f"scan_coordinator is shutting down ({abort_reason})"
         if laser_error and not abort_reason:
             abort_reason = f"laser off failed at the end of the scan: {laser_error}"
         partial = bool(abort_reason)

@@ -13,6 +13,7 @@ from typing import List, Optional
 import serial
 
 from . import protocol as p
+from .client import PORT_ERRORS
 from .emulator import EmulatorConfig, Faults, Gp32Emulator, send_control
 
 
@@ -120,7 +121,7 @@ def cmd_console(args: argparse.Namespace) -> int:
         while not stop.is_set():
             try:
                 buffer += ser.read(max(1, ser.in_waiting))
-            except (serial.SerialException, OSError) as exc:
+            except PORT_ERRORS as exc:
                 print(f"\n[port lost: {exc}]", flush=True)
                 stop.set()
                 return

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import termios
 import threading
 import time
 from dataclasses import dataclass
@@ -31,6 +32,10 @@ from typing import Callable, List, Optional, Union
 import serial
 
 from . import protocol as p
+
+# What a serial port that vanishes can raise: pyserial's own error, OSError from read/ioctl, and
+# termios.error from tcdrain/tcflush (flush(), reset_input_buffer()), which is not an OSError.
+PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 log = logging.getLogger("lsu_driver.client")
 
@@ -190,10 +195,10 @@ class Gp32Client:
     def _open(self) -> None:
         try:
             ser = serial.Serial(self.port, self.baud, timeout=0.05, write_timeout=1.0)
-        except (serial.SerialException, OSError, ValueError) as exc:
+            ser.reset_input_buffer()
+        except (*PORT_ERRORS, ValueError) as exc:
             raise NotConnected(f"cannot open serial port {self.port} at {self.baud} baud ({exc}); check the "
                                "cable/adapter, the port name (lsu doctor lists ports) and permissions") from None
-        ser.reset_input_buffer()
         self._serial = ser
         self._lost.clear()
         while not self._replies.empty():
@@ -221,7 +226,7 @@ class Gp32Client:
         if ser is not None:
             try:
                 ser.close()
-            except (serial.SerialException, OSError):
+            except PORT_ERRORS:
                 pass
         if self._reader is not None and self._reader is not threading.current_thread():
             self._reader.join(timeout=1.0)
@@ -259,7 +264,7 @@ class Gp32Client:
                 # read(n) waits for n bytes or the timeout: ask for what is there (at least 1) so a
                 # reply is handed over the moment its bytes arrive, not 50 ms later
                 chunk = ser.read(max(1, ser.in_waiting))
-            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            except (*PORT_ERRORS, TypeError, AttributeError) as exc:
                 if self._serial is ser and not self._closing:
                     self._port_lost(f"serial port {self.port} vanished ({exc.__class__.__name__})")
                 return
@@ -335,7 +340,7 @@ class Gp32Client:
                 try:
                     ser.write(line)
                     ser.flush()
-                except (serial.SerialException, OSError) as exc:
+                except PORT_ERRORS as exc:
                     raise NotConnected(f"writing '{text}' to {self.port} failed ({exc})") from None
                 deadline = time.monotonic() + self.command_timeout_s
                 while True:

@@ -230,3 +230,23 @@ def test_fuzzed_line_never_breaks_the_client(client, emulator):
     time.sleep(0.1)
     assert errors and client.malformed_lines == len(errors)
     assert client.status().position == 0
+
+
+def test_a_port_vanishing_during_a_write_is_a_lost_connection_not_a_crash():
+    """tcdrain on a pty whose other end is gone raises termios.error, which is not an OSError: it must
+    reach callers (the driver's status poll timer) as NotConnected, never escape as termios.error."""
+    import termios
+
+    class VanishedPort:
+        is_open = True
+
+        def write(self, data: bytes) -> int:
+            return len(data)
+
+        def flush(self) -> None:
+            raise termios.error(5, "Input/output error")
+
+    c = Gp32Client("/dev/null-gp32", command_timeout_s=0.2)
+    c._serial = VanishedPort()  # what the client holds when the unplug races a command
+    with pytest.raises(NotConnected, match="Input/output error"):
+        c.status()
