@@ -9,27 +9,12 @@ from pathlib import Path
 import pytest
 import yaml
 
+from lsu_bringup.processes import pid_alive
+
 DATA = Path(__file__).parent / "data"
 PINGPONG = str(DATA / "launch" / "pingpong.launch.yaml")
 
 pytestmark = pytest.mark.slow
-
-
-def pids_of(proc) -> dict:
-    """node label -> pid, from the launcher's 'started X (...) pid N' lines."""
-    return {m.group(1): int(m.group(2)) for m in re.finditer(r"started (\S+) \(.*\) pid (\d+)", proc.output)}
-
-
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    # a zombie is dead for our purpose
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
-    except FileNotFoundError:
-        return False
 
 
 def check_exchange(lsu_cli, ns: str) -> None:
@@ -53,17 +38,17 @@ def check_exchange(lsu_cli, ns: str) -> None:
 def test_launch_exchange_and_sigint_stops_every_process(launch, lsu_cli):
     proc = launch("launch", PINGPONG, "ns:=pp_launch")
     proc.wait_for_line(r"started listener .* pid \d+")
-    pids = pids_of(proc)
-    assert set(pids) == {"talker", "listener"} and all(alive(p) for p in pids.values())
+    pids = proc.started_pids()
+    assert set(pids) == {"talker", "listener"} and all(pid_alive(p) for p in pids.values())
     check_exchange(lsu_cli, "pp_launch")
     nodes = lsu_cli("node", "list").stdout.split()
     assert {"/pp_launch/talker", "/pp_launch/listener"} <= set(nodes)
 
     t0 = time.monotonic()
     code = proc.interrupt(timeout_s=10)
-    while any(alive(p) for p in pids.values()) and time.monotonic() - t0 < 5:
+    while any(pid_alive(p) for p in pids.values()) and time.monotonic() - t0 < 5:
         time.sleep(0.05)
-    assert not any(alive(p) for p in pids.values()), proc.output
+    assert not any(pid_alive(p) for p in pids.values()), proc.output
     assert time.monotonic() - t0 < 5
     assert code == 0, proc.output
     assert "[talker]" in proc.output or "[lsu launch] all nodes stopped" in proc.output
@@ -95,36 +80,36 @@ def test_params_can_be_read_set_and_dumped(launch, lsu_cli):
 def test_required_node_death_ends_the_launch_with_an_error(launch):
     proc = launch("launch", PINGPONG, "ns:=pp_req", "talker_required:=true")
     proc.wait_for_line(r"started listener")
-    pids = pids_of(proc)
+    pids = proc.started_pids()
     os.kill(pids["talker"], 9)
     assert proc.process.wait(timeout=15) != 0
     assert "required node talker ended" in proc.output
-    assert not alive(pids["listener"])
+    assert not pid_alive(pids["listener"])
 
 
 def test_respawn_restarts_a_dead_node(launch):
     proc = launch("launch", PINGPONG, "ns:=pp_resp", "listener_respawn:=true")
     proc.wait_for_line(r"started listener")
-    first = pids_of(proc)["listener"]
+    first = proc.started_pids()["listener"]
     os.kill(first, 9)
     proc.wait_for_line(r"listener ended .*respawning")
     deadline = time.monotonic() + 10
-    while pids_of(proc)["listener"] == first and time.monotonic() < deadline:
+    while proc.started_pids()["listener"] == first and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert pids_of(proc)["listener"] != first and alive(pids_of(proc)["listener"])
+    assert proc.started_pids()["listener"] != first and pid_alive(proc.started_pids()["listener"])
 
 
 @pytest.mark.fault('process: launcher SIGKILLed')
 def test_killed_launcher_leaves_no_orphans(launch):
     proc = launch("launch", PINGPONG, "ns:=pp_orphan")
     proc.wait_for_line(r"started listener")
-    pids = pids_of(proc)
+    pids = proc.started_pids()
     proc.process.kill()  # SIGKILL: the launcher gets no chance to clean up
     proc.process.wait(timeout=5)
     deadline = time.monotonic() + 5
-    while any(alive(p) for p in pids.values()) and time.monotonic() < deadline:
+    while any(pid_alive(p) for p in pids.values()) and time.monotonic() < deadline:
         time.sleep(0.05)
-    assert not any(alive(p) for p in pids.values())
+    assert not any(pid_alive(p) for p in pids.values())
 
 
 BAD_FILES = {

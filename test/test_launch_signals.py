@@ -9,8 +9,6 @@ is on disk: scan.json marked partial with the reason, and a closed bag holding e
 from __future__ import annotations
 
 import json
-import os
-import re
 import signal
 import time
 from pathlib import Path
@@ -20,7 +18,7 @@ import yaml
 
 from lsu_bringup.bags import deserialize, read_messages
 from lsu_bringup.scanner import LsuScanner
-from lsu_bringup.testing import LaunchedProcess
+from lsu_bringup.processes import LaunchedProcess, pid_alive
 from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow
@@ -41,17 +39,6 @@ def split_sim_launch(tmp: Path) -> tuple[Path, Path]:
     return paths
 
 
-def alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:  # a zombie is gone for our purpose
-        return Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.parametrize("sig", [pytest.param(s, id=s.name, marks=pytest.mark.fault(f"process: {s.name} to lsu launch "
                                                                                        f"mid-scan"))
                                  for s in (signal.SIGINT, signal.SIGTERM)])
@@ -66,7 +53,7 @@ def test_signal_to_the_launcher_mid_scan(sig, tmp_path, fault_report):
         graph = LaunchedProcess(["launch", str(graph_file), f"port:={port}", "scene:=plane", f"output_dir:={scans}"])
         graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
         graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=60)
-        pids = [int(p) for p in re.findall(r"started \S+ .* pid (\d+)", graph.output)]
+        pids = list(graph.started_pids().values())
         assert len(pids) >= 6, graph.output[-2000:]
         scanner = LsuScanner(wait_s=30)
         scanner.start_scan(start=100, end=300, step=2, settle_s=0.05, record_bag=True, output_dir=str(scans))
@@ -85,7 +72,7 @@ def test_signal_to_the_launcher_mid_scan(sig, tmp_path, fault_report):
             time.sleep(0.01)
         assert laser_off_s is not None, "laser still on 5 s after the launcher was signalled"
         rc = graph.process.wait(timeout=15)
-        assert not [p for p in pids if alive(p)], f"processes left after {sig.name}: {graph.output[-3000:]}"
+        assert not [p for p in pids if pid_alive(p)], f"processes left after {sig.name}: {graph.output[-3000:]}"
         # what was captured is on disk: a partial scan.json saying why, and a closed bag with every pair
         (folder,) = [p for p in scans.iterdir() if p.is_dir()]
         assert (folder / "scan.json").is_file(), graph.output[-4000:]

@@ -42,7 +42,7 @@ def laser_on(g) -> bool:
 
 
 def pid_of(g, node: str) -> int:
-    return int(re.findall(rf"started {node} .* pid (\d+)", g["proc"].output)[-1])
+    return g["proc"].started_pids()[node]
 
 
 def scan_json(result) -> dict:

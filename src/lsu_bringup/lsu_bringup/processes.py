@@ -14,9 +14,21 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import List, Optional
+from typing import Dict, List, Optional
 
 LSU = str(Path(sys.executable).parent / "lsu")
+
+
+def pid_alive(pid: int) -> bool:
+    """True while process ``pid`` runs (a zombie counts as gone: it only waits to be reaped)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # the state follows the ")" closing the command name, which may itself hold spaces
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
 
 
 class ProcessWaitError(AssertionError):
@@ -45,6 +57,10 @@ class LaunchedProcess:
     def output(self) -> str:
         with self._lock:
             return "\n".join(self.lines)
+
+    def started_pids(self) -> Dict[str, int]:
+        """Node label -> pid from `lsu launch`'s "started X (...) pid N" lines (a respawn: the latest pid)."""
+        return {m.group(1): int(m.group(2)) for m in re.finditer(r"started (\S+) \(.*\) pid (\d+)", self.output)}
 
     def wait_for_line(self, pattern: str, timeout_s: float = 20.0) -> "re.Match[str]":
         """Wait for an output line matching ``pattern``; raises ProcessWaitError with the output so far."""
