@@ -138,8 +138,8 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
         if key in wanted:
             frames[(side_of[message.topic], key)] = decode_image(msg.data, int(msg.width), int(msg.height),
                                                                  msg.encoding, int(msg.step)).copy()
+    folder = bag.name if bag.name != "bag" else bag.parent.name  # `lsu scan --record` writes <scan_id>/bag
     for scan_id, scan in scans.items():
-        folder = bag.name if bag.name != "bag" else bag.parent.name  # `lsu scan --record` writes <scan_id>/bag
         name = scan_id if folder == scan_id else f"{folder}:{scan_id}"
         problem = ""
         tex = (None, None)
