@@ -28,12 +28,13 @@ import re
 import struct
 import sys
 import threading
-from concurrent.futures import ThreadPoolExecutor
+import queue
+from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 import yaml
 from rosbags.interfaces import Connection, ConnectionExtRosbag2, Nodetype, Qos, QosDurability, QosHistory
@@ -240,6 +241,52 @@ def playback_qos(profiles: Sequence[Qos]) -> PlaybackQos:
 
 
 # ----------------------------------------------------------------------------- writer
+class _WriterThread:
+    """One thread that runs the bag's storage calls in submission order.
+
+    Why not ``concurrent.futures.ThreadPoolExecutor``: its workers quit when the interpreter starts
+    exiting (and the executor then refuses work), but a scan thread still running after the
+    main thread returned on Ctrl-C must be able to finish the bag -- it did not, and the scan's
+    bag and scan.json were lost. This thread is a daemon so a bag nobody closes never blocks exit.
+    """
+
+    def __init__(self, name: str) -> None:
+        self._queue: "queue.SimpleQueue[Optional[Tuple[Future, Callable[..., Any], tuple, dict]]]" = \
+            queue.SimpleQueue()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            future, fn, args, kwargs = item
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(fn(*args, **kwargs))
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
+                future.set_exception(exc)
+
+    def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Future:
+        """Queue ``fn(*args, **kwargs)``; its result or exception arrives in the returned future."""
+        if self._closed:
+            raise RuntimeError("the bag's writer thread was stopped")
+        future: Future = Future()
+        self._queue.put((future, fn, args, kwargs))
+        return future
+
+    def shutdown(self, wait: bool = True) -> None:
+        """Let the queued calls finish, then stop the thread (joined with ``wait``)."""
+        if not self._closed:
+            self._closed = True
+            self._queue.put(None)
+        if wait and self._thread is not threading.current_thread():
+            self._thread.join()
+
+
 class BagWriter:
     """A new rosbag2 folder, written while topics appear; thread-safe.
 
@@ -263,7 +310,7 @@ class BagWriter:
                            f"(a bag is never overwritten)")
         self.storage = storage
         self.types = types or BagTypes()
-        self._io = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lsu-bag-writer")
+        self._io = _WriterThread("lsu-bag-writer")
         self._connections: Dict[str, Connection] = {}
         self._lock = threading.Lock()
         self.counts: Dict[str, int] = {}

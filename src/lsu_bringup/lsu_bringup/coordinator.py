@@ -38,6 +38,9 @@ from .scan_plan import (ScanGoalError, ScanRecord, calibration_checksum, mechani
 EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# how long the end-of-scan laser-off call may still wait once a shutdown began: `lsu launch`
+# SIGKILLs 4 s after its SIGINT, and scan.json and the bag must be on disk before that
+SHUTDOWN_CALL_S = 0.5
 
 
 class ScanAborted(Exception):
@@ -137,16 +140,22 @@ class ScanCoordinatorNode(Node):
         """One service call from the scan thread, spinning the private node until the reply is in.
 
         With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
-        and the launcher's grace period is short); the laser-off call at the end does not stop early.
+        and the launcher's grace period is short); the laser-off call at the end does not stop early
+        but gives up :data:`SHUTDOWN_CALL_S` after a shutdown begins, even one that begins mid-call
+        (the driver, stopped by the same Ctrl-C, switches the laser off itself and will not answer).
         """
         if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
             raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
         future = client.call_async(request)
         end = time.monotonic() + timeout_s
+        cut = False
         while not future.done() and time.monotonic() < end:
-            if stop_early and self.shutting_down:
-                client.remove_pending_request(future)
-                raise ScanAborted("scan_coordinator is shutting down")
+            if self.shutting_down:
+                if stop_early or not self.context.ok():  # a shut-down context receives nothing any more
+                    client.remove_pending_request(future)
+                    raise ScanAborted("scan_coordinator is shutting down")
+                if not cut:
+                    end, cut = min(end, time.monotonic() + SHUTDOWN_CALL_S), True
             self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
         if not future.done():
             client.remove_pending_request(future)
@@ -161,7 +170,7 @@ class ScanCoordinatorNode(Node):
 
     def _laser_off_safely(self) -> str:
         # on shutdown the driver is stopping too (it switches the laser off itself): ask briefly
-        timeout = 0.5 if self.shutting_down else 3.0
+        timeout = SHUTDOWN_CALL_S if self.shutting_down else 3.0
         try:
             self._set_laser(False, timeout, stop_early=False)
             return ""
@@ -357,7 +366,13 @@ class ScanCoordinatorNode(Node):
         record.timings_s["scan"] = time.monotonic() - t0
         cloud_points = self._save_cloud(folder, cloud_serial_before, record) if captured else 0
         if recorder is not None:
-            record.files.append(self._stop_bag(recorder))
+            try:
+                record.files.append(self._stop_bag(recorder))
+            except Exception as exc:  # noqa: BLE001 - scan.json must still be written, saying what happened
+                bag_error = f"the bag could not be finished: {exc.__class__.__name__}: {exc}"
+                self.get_logger().error(bag_error)
+                abort_reason = f"{abort_reason}; {bag_error}" if abort_reason else bag_error
+                partial = True
         record.snaps = captured
         record.snaps_captured = len(captured)
         record.snaps_acknowledged = sum(1 for s in captured if "points" in s)
@@ -496,9 +511,11 @@ class ScanCoordinatorNode(Node):
         recorder, node, executor, stop, thread = bag
         stop.set()
         thread.join(timeout=5.0)  # its executor no longer waits on the subscriptions closing below
-        recorder.close()
-        executor.shutdown()
-        node.destroy_node()
+        try:
+            recorder.close()
+        finally:
+            executor.shutdown()
+            node.destroy_node()
         return str(recorder.path)
 
     def destroy_node(self) -> None:

@@ -401,3 +401,27 @@ def test_player_rejects_a_type_this_python_cannot_load(ros_node, tmp_path):
 def test_file_module_does_not_import_rclpy():
     code = "import sys, lsu_bringup.bags; sys.exit('rclpy' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], timeout=60).returncode == 0
+
+
+def test_a_thread_outliving_main_still_finishes_its_bag(tmp_path):
+    """Ctrl-C: the coordinator's main thread returns while the scan thread still writes and closes
+    the bag. The bag must be complete (a concurrent.futures worker would have quit at exit)."""
+    path = tmp_path / "bag"
+    code = f"""
+import threading, time
+from lsu_bringup import bags
+writer = bags.BagWriter({str(path)!r}, "mcap")
+writer.add_topic("/t", "std_msgs/msg/String")
+def finish():
+    time.sleep(0.5)  # the main thread is exiting by now
+    for i in range(3):
+        writer.write("/t", 1_000 + i, bytes([0, 1, 0, 0, 2, 0, 0, 0, 65 + i, 0]))
+    writer.close()
+threading.Thread(target=finish).start()
+"""
+    result = subprocess.run([sys.executable, "-c", code], timeout=60, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert (path / "metadata.yaml").is_file(), result.stderr
+    got = list(bags.read_messages(path))
+    assert [m.timestamp_ns for m in got] == [1_000, 1_001, 1_002]
+    assert bags.deserialize(got[2]).data == "C"
