@@ -62,3 +62,66 @@ def test_short_buffer_and_bad_step_are_named():
         decode_image(b"\0" * 48, 4, 4, "bgr8", step=3)
     with pytest.raises(ImageFormatError, match="empty"):
         decode_image(b"", 0, 4, "bgr8")
+
+
+# ------------------------------------------------------------------- serialized Image (raw subscription)
+def _image_fields(frame_id: str, encoding: str, height: int, width: int, step: int, seed: int):
+    rng = np.random.default_rng(seed)
+    return dict(sec=-5 if seed == 3 else 1_800_000_000 + seed, nanosec=123_456_789, frame_id=frame_id, height=height,
+                width=width, encoding=encoding, is_bigendian=seed % 2, step=step,
+                data=rng.integers(0, 256, height * step, dtype=np.uint8))
+
+
+@pytest.mark.parametrize("frame_id", ["", "a", "ab", "abc", "lsu_left_optical", "cam_é"])
+@pytest.mark.parametrize("encoding", ["bgr8", "mono8", "rgba8"])
+def test_serialized_image_fields_and_pixels_as_rclpy_wrote_them(frame_id, encoding):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    from lsu_extract.image import parse_image_cdr
+
+    f = _image_fields(frame_id, encoding, 5, 7, 7 * {"bgr8": 3, "mono8": 1, "rgba8": 4}[encoding] + 3, len(frame_id))
+    msg = Image(height=f["height"], width=f["width"], encoding=encoding, is_bigendian=f["is_bigendian"], step=f["step"],
+                data=f["data"].tobytes())
+    msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id = f["sec"], f["nanosec"], frame_id
+    got = parse_image_cdr(serialize_message(msg))
+    assert (got.sec, got.nanosec, got.frame_id, got.height, got.width, got.encoding, got.is_bigendian, got.step) == \
+        (f["sec"], f["nanosec"], frame_id, 5, 7, encoding, f["is_bigendian"], f["step"])
+    assert bytes(got.data) == f["data"].tobytes()
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_serialized_image_from_rosbags_in_both_byte_orders(little_endian):
+    from rosbags.typesys import Stores, get_typestore
+
+    from lsu_extract.image import parse_image_cdr
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    T = store.types
+    f = _image_fields("lsu_right_optical", "bgr8", 4, 6, 18, 3)
+    msg = T["sensor_msgs/msg/Image"](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=f["sec"], nanosec=f["nanosec"]),
+                                        frame_id=f["frame_id"]),
+        height=4, width=6, encoding="bgr8", is_bigendian=f["is_bigendian"], step=18, data=f["data"])
+    raw = store.serialize_cdr(msg, "sensor_msgs/msg/Image", little_endian=little_endian)
+    got = parse_image_cdr(raw)
+    assert (got.sec, got.nanosec, got.frame_id, got.width, got.height, got.step) == \
+        (-5, 123_456_789, "lsu_right_optical", 6, 4, 18)
+    np.testing.assert_array_equal(decode_image(got.data, got.width, got.height, got.encoding, got.step),
+                                  f["data"].reshape(4, 18).reshape(4, 6, 3))
+
+
+def test_truncated_or_foreign_serialized_image_is_named():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    from lsu_extract.image import parse_image_cdr
+
+    msg = Image(height=2, width=3, encoding="mono8", step=3, data=bytes(range(6)))
+    msg.header.frame_id = "cam"
+    raw = serialize_message(msg)
+    for cut in range(len(raw)):
+        with pytest.raises(ImageFormatError, match=r"serialized Image"):
+            parse_image_cdr(raw[:cut])
+    with pytest.raises(ImageFormatError, match=r"no CDR encapsulation header.*sensor_msgs/Image"):
+        parse_image_cdr(b"\x07\x07\x00\x00" + raw[4:])
