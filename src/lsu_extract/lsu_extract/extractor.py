@@ -532,15 +532,17 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
     if pending.size:
         pending = pending[sig.may_hold_laser(pending, params.min_contrast)]
     if pending.size:
-        cand = row_candidates(sig.rows(pending), pending, half, params.min_contrast)
         full_searched += pending.size
+        # strong rows only: on a frame where the line has left the object, most pending rows are lit
+        # skin or background without it, and they need no second-peak search nor a decision
+        cand = row_candidates(sig.rows(pending), pending, half, params.min_contrast, strong_only=True)
         known_rows = chunks[0]["v"] if chunks else _NO_ROWS
         known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
                       known_rows, known_cols, 2 * step)
         ambiguous = int(np.count_nonzero(pick.ambiguous))
         ok = pick.column >= 0
-        rows_f = pending[ok]
+        rows_f = cand.rows[ok]
         if rows_f.size:
             column = pick.column[ok]
             if half <= column.min() and column.max() <= width - 1 - half:

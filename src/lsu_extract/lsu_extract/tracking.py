@@ -55,13 +55,17 @@ def row_starts(rows: int, width: int) -> np.ndarray:
 
 
 def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
-                   min_contrast: float = 0.0) -> RowCandidates:
+                   min_contrast: float = 0.0, strong_only: bool = False) -> RowCandidates:
     """Top-two peaks of each full row of the laser signal (n, W): float32, or uint8 clipped at 0.
 
     The background of a row is its mean signal: the laser covers a few pixels of hundreds,
     so the mean is the ambient/texture level (cheaper than a median, and the bias is small).
     Rows whose strongest peak is below ``min_contrast`` get no second peak (contrast
-    ``BLANK``): nothing will be chosen in them, so the search for one is skipped.
+    ``BLANK``): nothing will be chosen in them, so the search for one is skipped. With
+    ``strong_only`` they are left out of the result altogether (``rows`` then holds only the
+    strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
+    the others is the same, and a frame where the line left the object (hundreds of lit rows
+    without it) costs a fraction of the second-peak search.
     """
     n, w = signal_rows.shape
     if n == 0:
@@ -75,6 +79,16 @@ def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
     starts = row_starts(n, w)
     first_contrast = signal_rows.ravel()[starts + first] - background
     strong = first_contrast >= min_contrast
+    if strong_only and np.count_nonzero(strong) < n:
+        keep = strong.nonzero()[0]
+        signal_rows, rows = signal_rows[keep], np.asarray(rows)[keep]
+        first, background, first_contrast = first[keep], background[keep], first_contrast[keep]
+        strong = strong[keep]
+        n = keep.size
+        if n == 0:
+            none = np.zeros(0, np.int64)
+            return RowCandidates(rows, none, none, np.zeros(0, np.float32), np.zeros(0, np.float32))
+        starts = row_starts(n, w)
     # The second peak of every row, weak ones included (their result is then discarded): fewer
     # calls than picking out the strong rows and scattering their results back.
     rest = signal_rows.copy()

@@ -76,3 +76,32 @@ def test_column_peak_search_is_argmax_over_axis_0_first_on_ties(rows, n, seed):
     np.testing.assert_array_equal(flat, j * n + np.arange(n))
     np.testing.assert_array_equal(offset[flat], j - rows // 2)
     np.testing.assert_array_equal(interior[flat], (j > 0) & (j < rows - 1))
+
+
+def test_strong_only_keeps_exactly_the_rows_with_a_peak_above_the_contrast_and_decides_the_same():
+    from lsu_extract.tracking import decide
+
+    rng = np.random.default_rng(11)
+    rows = rng.integers(0, 25, (40, 160)).astype(np.float32)  # lit skin without the laser
+    laser = np.zeros(40, bool)
+    laser[[3, 4, 5, 6, 20, 21, 33]] = True
+    cols = rng.integers(10, 150, 40)
+    rows[laser, cols[laser]] += 100.0
+    rows[[4, 21], 100] += 80.0  # competing reflections in two laser rows
+    index = np.arange(100, 140)  # image row numbers of the searched rows
+    every = row_candidates(rows, index, 4, 30.0)
+    strong = row_candidates(rows, index, 4, 30.0, strong_only=True)
+    # independent truth: a row is strong when its maximum stands 30 above its mean
+    truth = rows.max(axis=1) - rows.mean(axis=1) >= 30.0
+    assert truth.tolist() == laser.tolist()
+    np.testing.assert_array_equal(strong.rows, index[truth])
+    for name in ("first", "second"):
+        np.testing.assert_array_equal(getattr(strong, name), getattr(every, name)[truth])
+    ref_rows, ref_cols = np.array([99]), np.array([float(cols[3])])
+    d_all = decide(every, 30.0, 0.6, 8, ref_rows, ref_cols, 16)
+    d_strong = decide(strong, 30.0, 0.6, 8, ref_rows, ref_cols, 16)
+    np.testing.assert_array_equal(d_strong.column, d_all.column[truth])
+    assert (d_all.column[~truth] < 0).all() and not d_all.ambiguous[~truth].any()
+    assert d_strong.ambiguous.sum() == d_all.ambiguous.sum()
+    nothing = row_candidates(rows[~laser], index[~laser], 4, 30.0, strong_only=True)
+    assert nothing.rows.size == nothing.first.size == 0
