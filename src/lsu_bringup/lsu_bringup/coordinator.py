@@ -241,7 +241,9 @@ class ScanCoordinatorNode(Node):
             if remaining <= 0:
                 return
             self._check_cancel(goal_handle)
-            self._io_executor.spin_once(timeout_sec=min(0.005, remaining))
+            # an acknowledgement wakes this wait at once; the timeout only bounds how late a cancel
+            # (handled on the main node) is seen, and each wake-up costs a wait-set rebuild
+            self._io_executor.spin_once(timeout_sec=min(0.02, remaining))
 
     # ------------------------------------------------------------------------------ the scan
     def _execute(self, goal_handle: Any) -> Scan.Result:
