@@ -147,8 +147,14 @@ def test_late_replies_time_out_clearly_and_are_not_mistaken_later(client, emulat
 def test_reset_mid_move_reports_lost_position_and_laser_off(client, emulator):
     client.home()
     client.laser(True)
-    timer = threading.Timer(0.3, emulator.reset)
-    timer.start()
+
+    def reset_once_moving() -> None:  # not a fixed delay: under load the move may start late
+        end = time.monotonic() + 10.0
+        while emulator.truth().counter_steps <= 10 and time.monotonic() < end:
+            time.sleep(0.005)
+        emulator.reset()
+
+    threading.Thread(target=reset_once_moving, daemon=True).start()
     with pytest.raises(DeviceReset) as info:
         client.move_to(400)
     assert "position lost" in str(info.value)

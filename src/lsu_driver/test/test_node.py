@@ -1,6 +1,5 @@
 """gp32_driver through its ROS services and topics, with the emulator as the unit."""
 
-import threading
 import time
 
 import pytest
@@ -92,7 +91,10 @@ def test_reset_mid_move_reports_not_homed_and_laser_off(rig, emulator):
     h.call(c["home"], Trigger.Request(), timeout_s=20)
     h.call(c["laser"], SetBool.Request(data=True))
     future = c["move_to"].call_async(MoveTo.Request(position_steps=400))
-    threading.Timer(0.3, emulator.reset).start()
+    # reset once the unit is moving (a fixed delay raced a slow request under load: the reset then
+    # came first and the move was refused as "not homed", a different, also correct, answer)
+    assert h.spin_until(lambda: emulator.truth().counter_steps > 10, 10.0), "the move never started"
+    emulator.reset()
     assert h.spin_until(future.done, 10.0)
     result = future.result()
     assert not result.success and "reset" in result.message and "re-home" in result.message
