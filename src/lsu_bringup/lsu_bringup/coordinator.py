@@ -28,6 +28,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
 
+from lsu_cameras.polled import PolledGroup, take_latest
 from lsu_interfaces.action import Scan
 from lsu_interfaces.msg import ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
@@ -92,13 +93,18 @@ class ScanCoordinatorNode(Node):
         self.move = self._io.create_client(MoveTo, "carriage/move_to")
         self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
-        self.state: Optional[ScannerState] = None
+        self._state: Optional[ScannerState] = None
         self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
         self._cloud: Optional[PointCloud2] = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
-        self.create_subscription(ScannerState, "driver/state", self._on_state, 10, callback_group=group)
+        # read when a goal starts, not followed: as an executor-run subscription it woke the
+        # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
+        # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
+        self._state_sub = self.create_subscription(
+            ScannerState, "driver/state", lambda _msg: None,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE), callback_group=PolledGroup())
         self._io.create_subscription(PointCloud2, "points", self._on_points, QoSProfile(
             depth=50, reliability=ReliabilityPolicy.RELIABLE))
         # on the main node: latched, and it must be current when the next scan starts
@@ -110,8 +116,13 @@ class ScanCoordinatorNode(Node):
                                     callback_group=group)
 
     # ------------------------------------------------------------------------------ inputs
-    def _on_state(self, msg: ScannerState) -> None:
-        self.state = msg
+    @property
+    def state(self) -> Optional[ScannerState]:
+        """The newest gp32_driver state received (None before the first)."""
+        latest = take_latest(self._state_sub)
+        if latest is not None:
+            self._state = latest
+        return self._state
 
     def _on_points(self, msg: PointCloud2) -> None:
         with self._cond:

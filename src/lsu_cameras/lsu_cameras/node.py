@@ -18,7 +18,7 @@ import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -30,6 +30,7 @@ from lsu_interfaces.srv import CaptureStereo
 
 from .calib_io import CalibrationFileError, CalibrationSet, CameraCalibration, read_calibration_dir, read_camera_yaml
 from .paths import config_dir
+from .polled import PolledGroup, take_latest
 from .profiles import ProfileError, load_profile
 from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
 
@@ -63,36 +64,6 @@ def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
     msg.r = [float(x) for x in cal.rectification_matrix.reshape(-1)]
     msg.p = [float(x) for x in cal.projection_matrix.reshape(-1)]
     return msg
-
-
-class PolledGroup(CallbackGroup):
-    """A callback group no executor ever runs: its subscriptions are read on demand (`take_latest`).
-
-    Why: ``sim/truth`` arrives at up to 50 Hz but a capture needs only the newest sample. Each
-    executor callback costs ~1 ms of Python (single-threaded executor; ~2.5 ms multi-threaded), so
-    following it cost a fifth of a core and queued captures behind truth callbacks. A depth-1
-    reader keeps the newest sample inside DDS with no Python work until we ask for it.
-    """
-
-    def can_execute(self, entity: Any) -> bool:
-        return False
-
-    def beginning_execution(self, entity: Any) -> bool:
-        return False
-
-    def ending_execution(self, entity: Any) -> None:
-        pass
-
-
-def take_latest(subscription: Any) -> Optional[Any]:
-    """The newest message waiting in a `PolledGroup` subscription's reader (None if none arrived since)."""
-    latest = None
-    with subscription.handle:  # raises InvalidHandle once destroyed, like an executor's take
-        while True:
-            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
-            if taken is None:
-                return latest
-            latest = taken[0]
 
 
 def _url_to_path(url: str) -> Path:
