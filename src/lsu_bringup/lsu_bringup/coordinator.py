@@ -159,14 +159,12 @@ class ScanCoordinatorNode(Node):
             raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
         future = client.call_async(request)
         end = time.monotonic() + timeout_s
-        cut = False
         while not future.done() and time.monotonic() < end:
             if self.shutting_down:
                 if stop_early or not self.context.ok():  # a shut-down context receives nothing any more
                     client.remove_pending_request(future)
                     raise ScanAborted("scan_coordinator is shutting down")
-                if not cut:
-                    end, cut = min(end, time.monotonic() + SHUTDOWN_CALL_S), True
+                end = min(end, time.monotonic() + SHUTDOWN_CALL_S)  # the first cut stays: later ones are later
             self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
         if not future.done():
             client.remove_pending_request(future)
