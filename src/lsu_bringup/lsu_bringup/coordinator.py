@@ -6,7 +6,10 @@ settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED ->
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
-marked partial with the reason.
+marked partial with the reason. While the scan runs, the laser is only on while the scan makes
+progress: a move, a capture or a snap's acknowledgement that is ``laser_pause_s`` late switches it
+off at once, without waiting for the late answer (the laser guard); it comes back on before the
+next capture, and a capture exposed after the laser went off is taken again.
 """
 
 from __future__ import annotations
@@ -73,8 +76,8 @@ class ScanCoordinatorNode(Node):
                                                                    "(+ 0.3 s for the reply; below the laser watchdog)")
         self.ack_timeout_s = declare("ack_timeout_s", 5.0, "a snap the matcher does not acknowledge within this "
                                                            "aborts the scan [s]")
-        self.laser_pause_s = declare("laser_pause_s", 0.5, "a snap not acknowledged within this switches the laser "
-                                                           "off until it is (the pipeline stalls; below the watchdog) [s]")
+        self.laser_pause_s = declare("laser_pause_s", 0.3, "a move, capture or snap acknowledgement this late "
+                                                           "switches the laser off until the scan goes on [s]")
         self.move_timeout_s = declare("move_timeout_s", 0.0, "carriage/move_to timeout [s]; 0 = the driver's own")
         self.cloud_timeout_s = declare("cloud_timeout_s", 15.0, "wait for the matcher's scan/cloud after the scan [s]")
         self.exposure_s = declare("exposure_s", 0.033, "camera exposure, for the mechanical lower bound [s]")
@@ -99,6 +102,15 @@ class ScanCoordinatorNode(Node):
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
+        # the laser guard (scan thread only): what the driver was last asked, the deadlines by which
+        # the scan must have made progress (name -> (monotonic deadline, warning)), and the off call
+        # the guard sent without waiting for it
+        self._laser_lit = False
+        self._deadlines: Dict[str, tuple] = {}
+        self._guarded_ack: Optional[tuple] = None
+        self._off_future: Any = None
+        self._off_wall = 0.0
+        self._pauses: List[Dict[str, Any]] = []
         # read when a goal starts, not followed: as an executor-run subscription it woke the
         # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
         # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
@@ -147,35 +159,85 @@ class ScanCoordinatorNode(Node):
         """The node is being stopped (Ctrl-C, SIGTERM, destroy_node): the scan must end now, data kept."""
         return self._stopping or not self.context.ok()
 
-    def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True) -> Any:
+    def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True,
+              due_s: Optional[float] = None) -> Any:
         """One service call from the scan thread, spinning the private node until the reply is in.
 
         With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
         and the launcher's grace period is short); the laser-off call at the end does not stop early
         but gives up :data:`SHUTDOWN_CALL_S` after a shutdown begins, even one that begins mid-call
         (the driver, stopped by the same Ctrl-C, switches the laser off itself and will not answer).
+        ``due_s``: when the answer is expected; ``laser_pause_s`` past it the laser guard switches
+        the laser off while the wait goes on.
         """
         if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
             raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
         future = client.call_async(request)
         end = time.monotonic() + timeout_s
+        if due_s is not None:
+            late = float(self.laser_pause_s)
+            self._deadlines["call"] = (time.monotonic() + due_s + late,
+                                       f"{what}: no answer from {client.srv_name} {late:g} s after it was due")
+        try:
+            self._await_future(future, client, end, stop_early)
+        finally:
+            self._deadlines.pop("call", None)
+        if not future.done():
+            client.remove_pending_request(future)
+            raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
+        return future.result()
+
+    def _await_future(self, future: Any, client: Any, end: float, stop_early: bool) -> None:
+        """Spin the private node until ``future`` is done or ``end`` (monotonic) passed; see `_call`."""
         while not future.done() and time.monotonic() < end:
             if self.shutting_down:
                 if stop_early or not self.context.ok():  # a shut-down context receives nothing any more
                     client.remove_pending_request(future)
                     raise ScanAborted("scan_coordinator is shutting down")
                 end = min(end, time.monotonic() + SHUTDOWN_CALL_S)  # the first cut stays: later ones are later
-            self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.05, max(0.0, end - time.monotonic())))
-        if not future.done():
-            client.remove_pending_request(future)
-            raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
-        return future.result()
+            self._guard_laser()
+            self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+
+    def _guard_laser(self) -> None:
+        """Switch the laser off now if the scan is late on a deadline, without waiting for the reply.
+
+        Called by every wait of the scan thread. A stalled pipeline (a hung camera, a dead matcher,
+        a driver that does not report the stop) then leaves the laser on for ``laser_pause_s`` past
+        the moment the answer was due, not for the whole timeout of the call it waits on.
+        """
+        if self._guarded_ack is not None and self._guarded_ack in self._acks:
+            self._deadlines.pop("ack", None)
+            self._guarded_ack = None
+        if not self._laser_lit or self._off_future is not None or not self._deadlines:
+            return
+        deadline, warning = min(self._deadlines.values(), key=lambda d: d[0])
+        if time.monotonic() < deadline:
+            return
+        self._off_future = self.laser.call_async(SetBool.Request(data=False))
+        self._off_wall = time.time()
+        self._laser_lit = False
+        self._pauses.append({"at": round(self._off_wall, 3), "why": warning})
+        self.get_logger().warning(f"{warning}: laser off until the scan can go on")
+
+    def _resume_laser(self) -> None:
+        """Laser on again before a capture if the guard switched it off (after its off call is through)."""
+        if self._off_future is not None:
+            # the driver serves calls concurrently: the on must not overtake the off
+            future, self._off_future = self._off_future, None
+            self._await_future(future, self.laser, time.monotonic() + 3.0, stop_early=True)
+            if not future.done():
+                self.laser.remove_pending_request(future)
+        if not self._laser_lit:
+            self._set_laser(True)
 
     def _set_laser(self, on: bool, timeout_s: float = 3.0, stop_early: bool = True) -> None:
+        if not on:
+            self._laser_lit = False  # the guard must not send another off meanwhile
         response = self._call(self.laser, SetBool.Request(data=on), timeout_s, f"laser {'on' if on else 'off'}",
                               stop_early=stop_early)
         if not response.success:
             raise ScanAborted(f"laser {'on' if on else 'off'} failed: {response.message}")
+        self._laser_lit = on
 
     def _laser_off_safely(self) -> str:
         # on shutdown the driver is stopping too (it switches the laser off itself): ask briefly
@@ -188,12 +250,27 @@ class ScanCoordinatorNode(Node):
                                     "firmware watchdog will)")
             return str(exc) or exc.__class__.__name__
 
-    def _capture(self) -> Any:
-        response = self._call(self.capture, CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
-                              float(self.capture_timeout_s) + 0.3, "capture")
-        if not response.success:
-            raise ScanAborted(f"capture failed: {response.message}")
-        return response
+    def _capture(self, lit: bool = True) -> Any:
+        """One published stereo capture; with ``lit`` the laser is on during its exposure.
+
+        A capture the laser guard interrupted is taken again unless its exposure (the image stamp,
+        from the same system clock) ended before the laser was switched off.
+        """
+        exposure = float(self.exposure_s)
+        for _attempt in range(3):
+            if lit:
+                self._resume_laser()
+            response = self._call(self.capture,
+                                  CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
+                                  float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
+            if not response.success:
+                raise ScanAborted(f"capture failed: {response.message}")
+            exposed_until = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9 + exposure
+            if not lit or self._laser_lit or exposed_until < self._off_wall:
+                return response
+            self.get_logger().warning("the capture came after the laser went off: taking it again")
+        raise ScanAborted(f"capture: 3 captures in a row came {self.laser_pause_s:g} s late (the laser went off "
+                          "meanwhile); is the camera overloaded?")
 
     def _event(self, kind: int, scan_id: str, folder: Path, **fields: Any) -> None:
         msg = ScanEvent(type=kind, scan_id=scan_id, output_dir=str(folder))
@@ -217,7 +294,8 @@ class ScanCoordinatorNode(Node):
             if self.shutting_down:
                 raise ScanAborted("scan_coordinator is shutting down")
             if spin:
-                self._io_executor.spin_once(timeout_sec=min(remaining, 0.05))
+                self._guard_laser()
+                self._io_executor.spin_once(timeout_sec=min(remaining, 0.02))
             else:
                 with self._cond:
                     self._cond.wait(min(remaining, 0.05))
@@ -250,6 +328,7 @@ class ScanCoordinatorNode(Node):
             if remaining <= 0:
                 return
             self._check_cancel(goal_handle)
+            self._guard_laser()
             # an acknowledgement wakes this wait at once; the timeout only bounds how late a cancel
             # (handled on the main node) is seen, and each wake-up costs a wait-set rebuild
             self._io_executor.spin_once(timeout_sec=min(0.02, remaining))
@@ -305,6 +384,9 @@ class ScanCoordinatorNode(Node):
                                f" step {goal.step_steps}, settle {plan.settle_s:g} s -> {folder}")
         self._event(ScanEvent.STARTED, scan_id, folder, expected_snaps=len(plan.positions))
         cloud_serial_before = self._cloud_serial
+        with self._cond:
+            self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
+        self._pauses = []
         captured: List[Dict[str, Any]] = []
         points_total = 0
         abort_reason = ""
@@ -312,27 +394,31 @@ class ScanCoordinatorNode(Node):
         try:
             self._set_laser(False)
             if plan.texture:
-                response = self._capture()
+                response = self._capture(lit=False)
                 self._event(ScanEvent.TEXTURE, scan_id, folder, image_stamp=response.stamp)
             self._set_laser(True)
             snap_times: List[float] = []
             # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
             # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
             pending: Optional[Dict[str, Any]] = None
+            rate = max(1.0, float(state.step_rate_steps_per_s))
+            here = int(state.position_steps)
             for index, position in enumerate(plan.positions):
                 t_snap = time.monotonic()
                 self._check_cancel(goal_handle)
                 self._feedback(goal_handle, "moving", index, len(plan.positions), position, points_total, snap_times)
                 request = MoveTo.Request(position_steps=position, timeout_s=float(self.move_timeout_s))
-                moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}")
+                moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}",
+                                   due_s=abs(position - here) / rate)
                 if not moved.success:
                     raise ScanAborted(f"move to {position} failed: {moved.message}")
+                here = int(moved.position_steps)
                 t_moved = time.monotonic()
                 since_stop = self._since_stop_s(moved.stopped_stamp)
                 self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
                 t_slept = time.monotonic()
                 if pending is not None:
-                    points_total += self._await_ack(pending, resume_laser=True)
+                    points_total += self._await_ack(pending)
                     pending = None
                 t_settled = time.monotonic()
                 response = self._capture()
@@ -348,9 +434,14 @@ class ScanCoordinatorNode(Node):
                                  "ack_wait_s": round(t_settled - t_slept, 4),
                                  "capture_s": round(t_captured - t_settled, 4)})
                 pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
+                # its points are due at once (~10 ms): a stalled pipeline must not keep the laser on
+                self._guarded_ack = key
+                self._deadlines["ack"] = (t_captured + float(self.laser_pause_s),
+                                          f"snap {index} not acknowledged after {self.laser_pause_s:g} s "
+                                          "(waiting for stereo_matcher)")
                 snap_times.append(time.monotonic() - t_snap)
             if pending is not None:
-                points_total += self._await_ack(pending, resume_laser=False)
+                points_total += self._await_ack(pending)
             self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
                            points_total, snap_times)
         except ScanCanceled as exc:
@@ -364,6 +455,8 @@ class ScanCoordinatorNode(Node):
                 abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
                 self.get_logger().error(abort_reason)
         finally:
+            self._deadlines.clear()
+            self._guarded_ack = None
             laser_error = self._laser_off_safely()
         if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
             # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first
@@ -385,6 +478,7 @@ class ScanCoordinatorNode(Node):
                 abort_reason = f"{abort_reason}; {bag_error}" if abort_reason else bag_error
                 partial = True
         record.snaps = captured
+        record.laser_pauses = self._pauses
         record.snaps_captured = len(captured)
         record.snaps_acknowledged = sum(1 for s in captured if "points" in s)
         record.points = cloud_points or points_total
@@ -413,31 +507,24 @@ class ScanCoordinatorNode(Node):
             goal_handle.succeed()
         return result
 
-    def _await_ack(self, pending: Dict[str, Any], resume_laser: bool) -> int:
+    def _await_ack(self, pending: Dict[str, Any]) -> int:
         """Wait until stereo_matcher published the snap's points; returns their count.
 
-        After ``laser_pause_s`` without them the laser goes off (and back on once they come, if
-        ``resume_laser``): a stalled pipeline never leaves the laser on longer than the watchdog.
+        ``ack_timeout_s`` after the capture without them the scan aborts; the laser guard has switched
+        the laser off long before (``laser_pause_s`` after the capture), and `_capture` switches it
+        back on when the points came after all.
         """
         entry, key = pending["entry"], pending["key"]
-        timeout = float(self.ack_timeout_s)
-        first = min(float(self.laser_pause_s), timeout)
-        paused = False
-        if not self._wait(lambda: key in self._acks, first):
-            # the processing stalls (a node died or hangs): no laser while no picture is taken
-            self.get_logger().warning(f"snap {entry['index']} not acknowledged after {first:g} s: laser off while "
-                                      "waiting for stereo_matcher")
-            self._set_laser(False)
-            paused = True
-        if paused and not self._wait(lambda: key in self._acks, timeout - first):
+        remaining = float(self.ack_timeout_s) - (time.monotonic() - pending["t_captured"])
+        if not self._wait(lambda: key in self._acks, remaining):
             raise ScanAborted(f"snap {entry['index']} (position {entry['position_steps']}) was not acknowledged by "
                               f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
+        self._deadlines.pop("ack", None)
+        self._guarded_ack = None
         entry["points"], t_ack = self._acks.pop(key)
         # from the arrival time, not from now: the wait may start long after the points came
         entry["ack_s"] = round(max(0.0, t_ack - pending["t_captured"]), 4)
         entry["snap_s"] = round(t_ack - pending["t_snap"], 4)
-        if paused and resume_laser:
-            self._set_laser(True)
         return int(entry["points"])
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,

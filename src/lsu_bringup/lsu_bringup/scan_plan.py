@@ -110,6 +110,8 @@ class ScanRecord:
     status: str = ""
     timings_s: Dict[str, float] = field(default_factory=dict)
     snaps: List[Dict[str, object]] = field(default_factory=list)
+    # each time the laser guard switched the laser off mid-scan: wall time and why (a late answer)
+    laser_pauses: List[Dict[str, object]] = field(default_factory=list)
     files: List[str] = field(default_factory=list)
 
     def write(self, folder: Path) -> Path:
