@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, List, Optional
 
 from rclpy.callback_groups import CallbackGroup
 
@@ -27,12 +27,18 @@ class PolledGroup(CallbackGroup):
         pass
 
 
-def take_latest(subscription: Any) -> Optional[Any]:
-    """The newest message waiting in a `PolledGroup` subscription's reader (None if none arrived since)."""
-    latest = None
+def take_all(subscription: Any) -> List[Any]:
+    """Every message waiting in a `PolledGroup` subscription's reader, oldest first (serialized bytes if raw)."""
+    taken_all = []
     with subscription.handle:  # raises InvalidHandle once destroyed, like an executor's take
         while True:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
             if taken is None:
-                return latest
-            latest = taken[0]
+                return taken_all
+            taken_all.append(taken[0])
+
+
+def take_latest(subscription: Any) -> Optional[Any]:
+    """The newest message waiting in a `PolledGroup` subscription's reader (None if none arrived since)."""
+    waiting = take_all(subscription)
+    return waiting[-1] if waiting else None

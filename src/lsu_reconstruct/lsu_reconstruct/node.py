@@ -33,6 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
 from std_msgs.msg import Header
 
+from lsu_cameras.polled import PolledGroup, take_all
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
 from .matching import LineArrays, MatchParams, prepare
@@ -48,6 +49,7 @@ RELIABLE_DATA = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, his
 EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+IMAGES_KEPT = 8  # newest left frames kept for the texture: its TEXTURE event may come a few frames late
 
 
 # ---------------------------------------------------------------------------- message conversion
@@ -167,7 +169,7 @@ class StereoMatcherNode(Node):
         self.scan: Optional[_Scan] = None
         self.snap_of_stamp: Dict[int, int] = {}
         self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
-        self.images: "OrderedDict[int, bytes]" = OrderedDict()       # recent left images, CDR (texture candidates)
+        self.images: "OrderedDict[int, bytes]" = OrderedDict()       # left images taken, CDR (texture candidates)
         self._camera_info: Dict[str, CameraInfo] = {}
         self._extrinsics: Optional[StereoExtrinsics] = None
 
@@ -178,9 +180,13 @@ class StereoMatcherNode(Node):
         self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
                                  RELIABLE_DATA)
         self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)
-        # raw: only the texture pair's image is ever decoded, every other frame is a cheap copy
-        self.create_subscription(Image, "stereo/left/image_raw", self.on_image, QoSProfile(
-            depth=4, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST), raw=True)
+        # Read on demand, only while a TEXTURE event names an image not yet found: the reader keeps
+        # the newest few frames in DDS, and the snaps' frames (one per snap, 900 KB) are never
+        # taken into Python nor wake the executor (each was a copy and a callback in the replay's
+        # busiest thread). Raw: only the texture pair's image is ever decoded.
+        self._image_sub = self.create_subscription(Image, "stereo/left/image_raw", lambda _raw: None, QoSProfile(
+            depth=IMAGES_KEPT, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST),
+            callback_group=PolledGroup(), raw=True)
         if self.get_parameter("calibration_source").value == "topics":
             self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), LATCHED)
             self.create_subscription(CameraInfo, "stereo/right/camera_info", lambda m: self.on_info("right", m),
@@ -327,6 +333,7 @@ class StereoMatcherNode(Node):
     # ------------------------------------------------------------------ scan events and texture
     def on_event(self, msg: ScanEvent) -> None:
         """Scan bookkeeping: STARTED, TEXTURE, SNAP, FINISHED, ABORTED."""
+        self._look_for_texture()  # an image that came after its TEXTURE event
         if msg.type == ScanEvent.STARTED:
             self.scan = _Scan(msg.scan_id, int(msg.expected_snaps))
             self.snap_of_stamp.clear()
@@ -345,8 +352,7 @@ class StereoMatcherNode(Node):
                 self._file_snap(int(msg.index), snap, Header(stamp=msg.image_stamp))
         elif msg.type == ScanEvent.TEXTURE:
             self.scan.texture_key = key
-            if key in self.images:
-                self._take_texture(self.images[key])
+            self._look_for_texture()
         elif msg.type in (ScanEvent.FINISHED, ScanEvent.ABORTED):
             self.scan.end_type = msg.type
             if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
@@ -355,24 +361,26 @@ class StereoMatcherNode(Node):
             self.scan.end_time_s = self.get_clock().now().nanoseconds / 1e9
             self._check_scan_end()
 
-    def on_image(self, raw: bytes) -> None:
-        """Keep a few recent left images (serialized); the one named by TEXTURE colours the scan."""
-        key = _cdr_stamp_key(raw)
-        if self.scan is not None and self.scan.texture_key == key:
-            self._take_texture(raw)
+    def _look_for_texture(self) -> None:
+        """If the scan waits for its texture image, take the waiting left images and look for it."""
+        scan = self.scan
+        if scan is None or scan.texture_key is None or scan.texture is not None:
             return
-        self.images[key] = raw
-        while len(self.images) > 4:
+        for raw in take_all(self._image_sub):
+            self.images[_cdr_stamp_key(raw)] = raw
+        while len(self.images) > IMAGES_KEPT:
             self.images.popitem(last=False)
-
-    def _take_texture(self, raw: bytes) -> None:
-        assert self.scan is not None
+        raw = self.images.pop(scan.texture_key, None)
+        if raw is None:
+            return
+        self.images.clear()
         try:
-            self.scan.texture = image_to_array(deserialize_message(raw, Image))
+            scan.texture = image_to_array(deserialize_message(raw, Image))
         except ValueError as exc:
             self._error(str(exc))
 
     def _check_scan_end(self) -> None:
+        self._look_for_texture()
         scan = self.scan
         if scan is None or scan.end_type is None or scan.published:
             return

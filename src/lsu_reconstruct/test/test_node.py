@@ -83,8 +83,9 @@ def test_pair_with_equal_stamps_gives_points_and_no_nan(ros_node, rig, tmp_path)
     assert set(cols["snap"].tolist()) == {0}
 
 
-def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path):
-    ns = "/lsu_rt_scan"
+@pytest.mark.parametrize("order", ["image first", "event first"])
+def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path, order):
+    ns = "/lsu_rt_scan_" + order.split()[0]
     node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
     pub = publishers(ros_node, ns)
     clouds = []
@@ -94,11 +95,22 @@ def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path):
     pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=2))
     assert ros_node.spin_until(lambda: node.scan is not None, 10)  # events and lines travel on different topics
     tex_stamp = Time(sec=200)
-    image = Image(encoding="bgr8", width=640, height=480, step=640 * 3)
-    image.header.stamp = tex_stamp
-    image.data = np.tile(np.array([30, 200, 10], np.uint8), 640 * 480).tobytes()  # bgr
-    pub["image"].publish(image)
-    pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=tex_stamp))
+
+    def left_image(stamp: Time, bgr: list) -> Image:
+        image = Image(encoding="bgr8", width=640, height=480, step=640 * 3)
+        image.header.stamp = stamp
+        image.data = np.tile(np.array(bgr, np.uint8), 640 * 480).tobytes()
+        return image
+
+    if order == "image first":
+        pub["image"].publish(left_image(tex_stamp, [30, 200, 10]))
+        pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=tex_stamp))
+    else:  # the event overtook its image, and laser frames came around it: the texture is still found
+        pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=tex_stamp))
+        assert ros_node.spin_until(lambda: node.scan.texture_key is not None, 10)
+        pub["image"].publish(left_image(Time(sec=199), [0, 0, 255]))
+        pub["image"].publish(left_image(tex_stamp, [30, 200, 10]))
+        pub["image"].publish(left_image(Time(sec=201), [0, 0, 255]))
     for index, x in enumerate((-0.02, 0.03)):
         stamp = Time(sec=201 + index)
         pub["events"].publish(ev(type=ScanEvent.SNAP, index=index, position_steps=10 * index, image_stamp=stamp))
