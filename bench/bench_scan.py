@@ -99,21 +99,23 @@ def replay(bag: Path, window: int = 4) -> dict:
             images[(m.topic, struct.unpack_from("<iI", m.data, 4))] = m.data
         else:
             events.append((deserialize_ros(m), m.data))
-    snaps = []  # (events before it, left bytes, right bytes, stamp key, snap event bytes)
-    events_before: list = []
+    snaps = []  # (messages before it as (topic, bytes), left bytes, right bytes, stamp key, snap event bytes)
+    before: list = []
     missing = 0
     for event, raw in events:
-        if event.type != ScanEvent.SNAP:
-            events_before.append(raw)
-            continue
         key = (event.image_stamp.sec, event.image_stamp.nanosec)
         left = images.get(("/lsu/stereo/left/image_raw", key))
         right = images.get(("/lsu/stereo/right/image_raw", key))
+        if event.type != ScanEvent.SNAP:
+            if event.type == ScanEvent.TEXTURE and left is not None and right is not None:
+                before += [("left", left), ("right", right)]  # the laser-off pair, ahead of its event as live
+            before.append(("events", raw))
+            continue
         if left is None or right is None:
             missing += 1
             continue
-        snaps.append((events_before, left, right, key, raw))
-        events_before = []
+        snaps.append((before, left, right, key, raw))
+        before = []
     graph = LaunchedProcess(["run", "replay", "--executor", "single"])
     rclpy.init()
     node = rclpy.create_node("bench_replay")
@@ -140,8 +142,8 @@ def replay(bag: Path, window: int = 4) -> dict:
             while len(in_flight) >= window:
                 _wait_acks(node, acks, in_flight, done)
                 done += 1
-            for raw in before:
-                pub_events.publish(raw)
+            for topic, raw in before:
+                {"events": pub_events, "left": pub_left, "right": pub_right}[topic].publish(raw)
             pub_left.publish(left)
             pub_right.publish(right)
             pub_events.publish(snap_event)
@@ -196,7 +198,7 @@ def main() -> int:
               "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
               "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
               "scan_wall_over_mechanical_recording; bound = moves at the emulator's 200 steps/s + (settle + 33 ms "
-              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). replay: the recording scan's bag, its scan events and image pairs (raw CDR "
+              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). replay: the recording scan's bag, its scan events and image pairs, the laser-off texture pair included (raw CDR "
               "from the bag) published into lsu run replay (extractor + matcher in one process) with at most 4 snaps "
               "awaiting their /lsu/points acknowledgement (below the image queue depth 5): no snap is dropped and "
               "snaps/s is the graph's sustained processing rate; replay_cpu_ms_per_snap: CPU time (all threads) of the "

@@ -119,6 +119,7 @@ class _Scan:
     snaps: Dict[int, SnapPoints] = field(default_factory=dict)
     texture_key: Optional[int] = None
     texture: Optional[np.ndarray] = None
+    frames_after_texture: int = 0        # left frames seen stamped after the texture's, while it is missing
     end_type: Optional[int] = None       # FINISHED or ABORTED once known
     end_reason: str = ""
     end_time_s: float = 0.0
@@ -364,14 +365,21 @@ class StereoMatcherNode(Node):
     def _look_for_texture(self) -> None:
         """If the scan waits for its texture image, take the waiting left images and look for it."""
         scan = self.scan
-        if scan is None or scan.texture_key is None or scan.texture is not None:
+        if scan is None or scan.texture_key is None or scan.texture is not None \
+                or scan.frames_after_texture > IMAGES_KEPT:
             return
         for raw in take_all(self._image_sub):
-            self.images[_cdr_stamp_key(raw)] = raw
+            key = _cdr_stamp_key(raw)
+            self.images[key] = raw
+            scan.frames_after_texture += key > scan.texture_key
         while len(self.images) > IMAGES_KEPT:
             self.images.popitem(last=False)
         raw = self.images.pop(scan.texture_key, None)
         if raw is None:
+            if scan.frames_after_texture > IMAGES_KEPT:  # it would be out of the reader's history by now
+                self.images.clear()
+                self.get_logger().warning(f"scan {scan.scan_id}: the texture image (left, stamped "
+                                          f"{scan.texture_key / 1e9:.3f}) never came; the cloud stays uncoloured")
             return
         self.images.clear()
         try:

@@ -129,6 +129,46 @@ def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path, order):
     assert np.all(unpack_rgb(cols["rgb"]) == [10, 200, 30])
 
 
+def test_a_texture_image_that_never_comes_leaves_the_cloud_uncoloured_and_stops_the_search(ros_node, rig, tmp_path):
+    from lsu_reconstruct.node import IMAGES_KEPT
+
+    ns = "/lsu_rt_notexture"
+    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
+    pub = publishers(ros_node, ns)
+    clouds = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
+    wait_matched(ros_node, pub)
+    ev = lambda **kw: ScanEvent(scan_id="s2", **kw)  # noqa: E731
+    pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=1))
+    assert ros_node.spin_until(lambda: node.scan is not None, 10)
+    pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=Time(sec=300)))  # its image is lost
+    assert ros_node.spin_until(lambda: node.scan.texture_key is not None, 10)
+    image = Image(encoding="bgr8", width=64, height=48, step=64 * 3, data=bytes(64 * 48 * 3))
+
+    def laser_frames(first: int, count: int) -> None:
+        for sec in range(first, first + count):
+            image.header.stamp = Time(sec=sec)
+            pub["image"].publish(image)
+            ros_node.spin_until(lambda: False, 0.03)  # the reader keeps the newest IMAGES_KEPT only
+
+    laser_frames(301, IMAGES_KEPT + 2)
+    assert ros_node.spin_until(lambda: node.scan.frames_after_texture > IMAGES_KEPT, 10), \
+        node.scan.frames_after_texture
+    seen = node.scan.frames_after_texture
+    laser_frames(401, 3)
+    ros_node.spin_until(lambda: False, 0.3)  # the 10 Hz check and the events would look again, if it still did
+    assert node.scan.frames_after_texture == seen, "the matcher keeps taking frames for a texture that is gone"
+    stamp = Time(sec=501)
+    pub["events"].publish(ev(type=ScanEvent.SNAP, index=0, position_steps=0, image_stamp=stamp))
+    left, right = snap_lines(rig, 0.0)
+    pub["left"].publish(line_msg(left, stamp))
+    pub["right"].publish(line_msg(right, stamp))
+    pub["events"].publish(ev(type=ScanEvent.FINISHED, expected_snaps=1, snaps_captured=1))
+    assert ros_node.spin_until(lambda: clouds, 10), "no scan/cloud after FINISHED"
+    assert node.scan.texture is None
+    assert np.all(unpack_rgb(decode_msg(clouds[0])["rgb"]) == 255)  # uncoloured: white
+
+
 @pytest.mark.fault('scan: a snap never arrives')
 def test_missing_snap_gives_a_partial_cloud_after_the_timeout(ros_node, rig, tmp_path):
     ns = "/lsu_rt_partial"
