@@ -34,6 +34,7 @@ HEADLINES: List[Tuple[str, str, str, Optional[str]]] = [
     ("scan", "scan_wall_over_mechanical", "<= 1.2", "<= 1.2"),
     ("scan", "scan_wall_over_mechanical_recording", "(with its bag)", None),
     ("scan", "replay_snaps_per_s", ">= 100", ">= 100"),
+    ("scan", "replay_cpu_ms_per_snap", "(replay process CPU)", None),
     ("accuracy", "three_sigma_mm_300_smoothed", "<= 0.15", "<= 0.15"),
     ("accuracy", "thesis_three_sigma_mm_300", "(thesis chain)", None),
     ("accuracy", "gaussian_1sigma_pct", "68.2 +- 3", "within 3 of 68.2"),
