@@ -14,6 +14,14 @@ def test_defaults_fill_only_what_the_user_left_unset():
     assert env[rosenv.DOMAIN_VAR] == "7" and not report.domain_set_by_lsu
 
 
+def test_frame_sized_malloc_settings_are_set_unless_the_user_chose_them():
+    env = {"HOME": "/root", "MALLOC_TRIM_THRESHOLD_": "1000"}
+    rosenv.apply_defaults(env)
+    assert env["MALLOC_MMAP_THRESHOLD_"] == str(16 << 20)  # above a 640x480 bgr8 frame (921,600 bytes)
+    assert int(env["MALLOC_MMAP_THRESHOLD_"]) > 640 * 480 * 3
+    assert env["MALLOC_TRIM_THRESHOLD_"] == "1000"
+
+
 def test_empty_environment_gets_a_home_for_ros_logging():
     env: dict = {}
     rosenv.apply_defaults(env)
