@@ -457,6 +457,7 @@ class ScanCoordinatorNode(Node):
         finally:
             self._deadlines.clear()
             self._guarded_ack = None
+            self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)
             laser_error = self._laser_off_safely()
         if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
             # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first

@@ -126,19 +126,28 @@ class GoalHandle:
         self.ended = "canceled"
 
 
-def run_scan(context: Any, tmp_path: Any, rig: Rig, **params: Any) -> SimpleNamespace:
+def make_coordinator(context: Any, tmp_path: Any, **params: Any) -> ScanCoordinatorNode:
     overrides = {"output_dir": str(tmp_path), "laser_pause_s": PAUSE_S, "exposure_s": EXPOSURE_S,
                  "cloud_timeout_s": 0.1, **params}
     coordinator = ScanCoordinatorNode(context=context, namespace=NS, parameter_overrides=[
         rclpy.parameter.Parameter(k, value=v) for k, v in overrides.items()])
+    end = time.monotonic() + 10.0
+    while coordinator.state is None or not coordinator.capture.service_is_ready():
+        assert time.monotonic() < end, "the stand-ins were not discovered"
+        time.sleep(0.05)
+    return coordinator
+
+
+def scan_with(coordinator: ScanCoordinatorNode) -> SimpleNamespace:
+    handle = GoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
+    result = coordinator._scan(handle)
+    return SimpleNamespace(result=result, ended=handle.ended, pauses=list(coordinator._pauses))
+
+
+def run_scan(context: Any, tmp_path: Any, rig: Rig, **params: Any) -> SimpleNamespace:
+    coordinator = make_coordinator(context, tmp_path, **params)
     try:
-        end = time.monotonic() + 10.0
-        while coordinator.state is None or not coordinator.capture.service_is_ready():
-            assert time.monotonic() < end, "the stand-ins were not discovered"
-            time.sleep(0.05)
-        handle = GoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
-        result = coordinator._scan(handle)
-        return SimpleNamespace(result=result, ended=handle.ended, pauses=list(coordinator._pauses))
+        return scan_with(coordinator)
     finally:
         coordinator.destroy_node()
 
@@ -203,3 +212,20 @@ def test_missing_acknowledgements_switch_the_laser_off_soon_after_the_capture(ro
     assert PAUSE_S - 0.05 < off < PAUSE_S + 0.4, f"laser off {off:.3f} s after the unacknowledged capture"
     assert len(scan.pauses) == 1 and "snap 0 not acknowledged" in scan.pauses[0]["why"]
     assert rig.laser[-1][1] is False
+
+
+def test_a_scan_that_ended_while_the_laser_was_paused_leaves_the_next_scans_guard_armed(
+        ros_context, tmp_path, rig_factory):
+    rig = rig_factory(late_s=0.0, late_call="", exposed="early", acks=False)
+    coordinator = make_coordinator(ros_context, tmp_path, ack_timeout_s=1.0)
+    try:
+        first = scan_with(coordinator)
+        assert first.ended == "aborted" and len(first.pauses) == 1  # it ended paused
+        rig.acks, rig.late_call, rig.late_s, rig.late_done = True, "move", 1.0, False
+        rig.laser.clear()
+        second = scan_with(coordinator)
+    finally:
+        coordinator.destroy_node()
+    assert second.ended == "succeeded", second.result.status
+    assert len(second.pauses) == 1 and "move to" in second.pauses[0]["why"], second.pauses
+    assert [on for _t, on in rig.laser] == [False, True, False, True, False]
