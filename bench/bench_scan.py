@@ -213,7 +213,7 @@ def main() -> int:
               "awaiting their /lsu/points acknowledgement (below the image queue depth 5): no snap is dropped and "
               "snaps/s is the graph's sustained processing rate (median of 3 replays, each in a fresh graph; min and max "
               "beside it); replay_cpu_ms_per_snap: CPU time (all threads) of the "
-              "replay process over the same window per snap, steadier than snaps/s on a shared machine.")
+              "replay process over the same window per snap (on a shared host it varies too: the same work took 10-20 ms).")
     return 0
 
 
