@@ -60,6 +60,31 @@ def wait_matched(ros_node, pub, node_sub_count=1):
     assert ros_node.spin_until(lambda: all(p.get_subscription_count() >= node_sub_count for p in pub.values()), 10)
 
 
+def started_scan(ros_node, rig, tmp_path, ns, scan_id, expected_snaps, **params):
+    """A file-calibrated matcher in ``ns`` that has seen the STARTED event of scan ``scan_id``.
+
+    Returns (node, publishers, clouds received on scan/cloud, event factory for this scan).
+    """
+    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")),
+                 **params)
+    pub = publishers(ros_node, ns)
+    clouds = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
+    wait_matched(ros_node, pub)
+    ev = lambda **kw: ScanEvent(scan_id=scan_id, **kw)  # noqa: E731
+    pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=expected_snaps))
+    assert ros_node.spin_until(lambda: node.scan is not None, 10)  # events and lines travel on different topics
+    return node, pub, clouds, ev
+
+
+def left_image(stamp, bgr, width=640, height=480):
+    """A bgr8 image of one colour."""
+    image = Image(encoding="bgr8", width=width, height=height, step=width * 3)
+    image.header.stamp = stamp
+    image.data = np.tile(np.array(bgr, np.uint8), width * height).tobytes()
+    return image
+
+
 @pytest.mark.fault('laser lines: empty and NaN rows')
 def test_pair_with_equal_stamps_gives_points_and_no_nan(ros_node, rig, tmp_path):
     ns = "/lsu_rt_pair"
@@ -85,23 +110,8 @@ def test_pair_with_equal_stamps_gives_points_and_no_nan(ros_node, rig, tmp_path)
 
 @pytest.mark.parametrize("order", ["image first", "event first"])
 def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path, order):
-    ns = "/lsu_rt_scan_" + order.split()[0]
-    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
-    pub = publishers(ros_node, ns)
-    clouds = []
-    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
-    wait_matched(ros_node, pub)
-    ev = lambda **kw: ScanEvent(scan_id="s1", **kw)  # noqa: E731
-    pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=2))
-    assert ros_node.spin_until(lambda: node.scan is not None, 10)  # events and lines travel on different topics
+    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, "/lsu_rt_scan_" + order.split()[0], "s1", 2)
     tex_stamp = Time(sec=200)
-
-    def left_image(stamp: Time, bgr: list) -> Image:
-        image = Image(encoding="bgr8", width=640, height=480, step=640 * 3)
-        image.header.stamp = stamp
-        image.data = np.tile(np.array(bgr, np.uint8), 640 * 480).tobytes()
-        return image
-
     if order == "image first":
         pub["image"].publish(left_image(tex_stamp, [30, 200, 10]))
         pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=tex_stamp))
@@ -132,23 +142,13 @@ def test_scan_events_give_a_coloured_scan_cloud(ros_node, rig, tmp_path, order):
 def test_a_texture_image_that_never_comes_leaves_the_cloud_uncoloured_and_stops_the_search(ros_node, rig, tmp_path):
     from lsu_reconstruct.node import IMAGES_KEPT
 
-    ns = "/lsu_rt_notexture"
-    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")))
-    pub = publishers(ros_node, ns)
-    clouds = []
-    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
-    wait_matched(ros_node, pub)
-    ev = lambda **kw: ScanEvent(scan_id="s2", **kw)  # noqa: E731
-    pub["events"].publish(ev(type=ScanEvent.STARTED, expected_snaps=1))
-    assert ros_node.spin_until(lambda: node.scan is not None, 10)
+    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, "/lsu_rt_notexture", "s2", 1)
     pub["events"].publish(ev(type=ScanEvent.TEXTURE, image_stamp=Time(sec=300)))  # its image is lost
     assert ros_node.spin_until(lambda: node.scan.texture_key is not None, 10)
-    image = Image(encoding="bgr8", width=64, height=48, step=64 * 3, data=bytes(64 * 48 * 3))
 
     def laser_frames(first: int, count: int) -> None:
         for sec in range(first, first + count):
-            image.header.stamp = Time(sec=sec)
-            pub["image"].publish(image)
+            pub["image"].publish(left_image(Time(sec=sec), [0, 0, 0], width=64, height=48))
             ros_node.spin_until(lambda: False, 0.03)  # the reader keeps the newest IMAGES_KEPT only
 
     laser_frames(301, IMAGES_KEPT + 2)
@@ -171,22 +171,14 @@ def test_a_texture_image_that_never_comes_leaves_the_cloud_uncoloured_and_stops_
 
 @pytest.mark.fault('scan: a snap never arrives')
 def test_missing_snap_gives_a_partial_cloud_after_the_timeout(ros_node, rig, tmp_path):
-    ns = "/lsu_rt_partial"
-    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")),
-                 scan_timeout_s=0.5)
-    pub = publishers(ros_node, ns)
-    clouds = []
-    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
-    wait_matched(ros_node, pub)
-    pub["events"].publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s2", expected_snaps=3))
-    assert ros_node.spin_until(lambda: node.scan is not None, 10)
+    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, "/lsu_rt_partial", "s2", 3, scan_timeout_s=0.5)
     stamp = Time(sec=300)
     left, right = snap_lines(rig, 0.0)
     pub["left"].publish(line_msg(left, stamp))  # lines before their SNAP event: held until it comes
     pub["right"].publish(line_msg(right, stamp))
     assert ros_node.spin_until(lambda: node.waiting, 10)
-    pub["events"].publish(ScanEvent(type=ScanEvent.SNAP, scan_id="s2", index=1, image_stamp=stamp))
-    pub["events"].publish(ScanEvent(type=ScanEvent.FINISHED, scan_id="s2", expected_snaps=3))
+    pub["events"].publish(ev(type=ScanEvent.SNAP, index=1, image_stamp=stamp))
+    pub["events"].publish(ev(type=ScanEvent.FINISHED, expected_snaps=3))
     assert ros_node.spin_until(lambda: clouds, 10)
     cols = decode_msg(clouds[0])
     assert set(cols["snap"].tolist()) == {1} and len(cols["x"]) > 400
