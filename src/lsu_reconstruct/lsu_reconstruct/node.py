@@ -170,7 +170,6 @@ class StereoMatcherNode(Node):
         self.scan: Optional[_Scan] = None
         self.snap_of_stamp: Dict[int, int] = {}
         self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
-        self.images: "OrderedDict[int, bytes]" = OrderedDict()       # left images taken, CDR (texture candidates)
         self._camera_info: Dict[str, CameraInfo] = {}
         self._extrinsics: Optional[StereoExtrinsics] = None
 
@@ -368,20 +367,18 @@ class StereoMatcherNode(Node):
         if scan is None or scan.texture_key is None or scan.texture is not None \
                 or scan.frames_after_texture > IMAGES_KEPT:
             return
-        for raw in take_all(self._image_sub):
-            key = _cdr_stamp_key(raw)
-            self.images[key] = raw
+        # only the frames waiting now can hold it: the ones taken earlier were checked against the same key
+        raw = None
+        for candidate in take_all(self._image_sub):
+            key = _cdr_stamp_key(candidate)
+            if key == scan.texture_key:
+                raw = candidate
             scan.frames_after_texture += key > scan.texture_key
-        while len(self.images) > IMAGES_KEPT:
-            self.images.popitem(last=False)
-        raw = self.images.pop(scan.texture_key, None)
         if raw is None:
             if scan.frames_after_texture > IMAGES_KEPT:  # it would be out of the reader's history by now
-                self.images.clear()
                 self.get_logger().warning(f"scan {scan.scan_id}: the texture image (left, stamped "
                                           f"{scan.texture_key / 1e9:.3f}) never came; the cloud stays uncoloured")
             return
-        self.images.clear()
         try:
             scan.texture = image_to_array(deserialize_message(raw, Image))
         except ValueError as exc:
