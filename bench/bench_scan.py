@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import json
+import os
 import struct
 import subprocess
 import sys
@@ -75,8 +76,6 @@ REPLAYS = 3
 
 def _cpu_s(pid: int) -> float:
     """CPU seconds (user + system, all threads) used so far by process ``pid`` (Linux /proc)."""
-    import os
-
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
