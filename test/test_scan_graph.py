@@ -153,7 +153,8 @@ def test_camera_capture_timeout(graph, fault_report):
         result = graph["scanner"].get_result(timeout_s=30)
         hung_capture = "capture" in result.status and "no answer" in result.status
         images_never_came = "not acknowledged" in result.status
-        assert result.partial and (hung_capture or images_never_came), result.status
+        assert result.partial and (hung_capture or images_never_came), \
+            f"{result.status}\n{graph['proc'].output[-4000:]}"  # the graph's log says what stalled
         assert scan_json(result)["snaps_captured"] >= 5
         note_fault(fault_report, result, off)
     finally:
