@@ -163,18 +163,7 @@ def smooth_line(u: np.ndarray, v: np.ndarray, window: int, linked: Optional[np.n
 
 def ray_depths(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Depth (z in the left frame) of the midpoint triangulation of undistorted pixel pairs (N, 2)."""
-    r1 = np.hstack([x1, np.ones((len(x1), 1))]) @ np.linalg.inv(model.K1).T
-    r2 = (np.hstack([x2, np.ones((len(x2), 1))]) @ np.linalg.inv(model.K2).T) @ model.R  # R^T r in left frame
-    c = model.right_centre
-    # Closest points of lam*r1 and c + mu*r2: 2x2 normal equations, solved for all rows at once.
-    a = np.einsum("ij,ij->i", r1, r1)
-    b = np.einsum("ij,ij->i", r1, r2)
-    e = np.einsum("ij,ij->i", r2, r2)
-    d1 = r1 @ c
-    d2 = r2 @ c
-    den = a * e - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (d1 * e - b * d2) / den
+    r1, _r2, lam, _mu = model.closest_approach(x1, x2)
     return lam * r1[:, 2]
 
 

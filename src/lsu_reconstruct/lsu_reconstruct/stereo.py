@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Dict, Optional, Tuple
 
@@ -293,10 +294,43 @@ class StereoModel:
         """|T| [m]."""
         return float(np.linalg.norm(self.T))
 
-    @property
+    # The per-snap paths (undistortion, rays) use these for every line: computed once per model
+    # (the model is frozen; its arrays are not changed after construction).
+    @cached_property
     def right_centre(self) -> np.ndarray:
         """Right optical centre in the left frame, ``-R^T T`` [m]."""
         return -self.R.T @ self.T
+
+    @cached_property
+    def K1_inv(self) -> np.ndarray:
+        """Inverse of the left camera matrix."""
+        return np.linalg.inv(self.K1)
+
+    @cached_property
+    def K2_inv(self) -> np.ndarray:
+        """Inverse of the right camera matrix."""
+        return np.linalg.inv(self.K2)
+
+    def closest_approach(self, x1: np.ndarray, x2: np.ndarray
+                         ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where the rays of undistorted pixel pairs (N, 2) pass closest: ``(r1, r2, lam, mu)``.
+
+        ``r1``, ``r2``: ray directions in the left frame (z = 1 in each camera); the closest points
+        are ``lam * r1`` on the left ray and ``right_centre + mu * r2`` on the right one (NaN or inf
+        for parallel rays). The 2x2 normal equations are solved for all rows at once.
+        """
+        r1 = x1 @ self.K1_inv[:, :2].T + self.K1_inv[:, 2]
+        r2 = (x2 @ self.K2_inv[:, :2].T + self.K2_inv[:, 2]) @ self.R  # R^T r: in the left frame
+        c = self.right_centre
+        a = np.einsum("ij,ij->i", r1, r1)
+        b = np.einsum("ij,ij->i", r1, r2)
+        e = np.einsum("ij,ij->i", r2, r2)
+        d1, d2 = r1 @ c, r2 @ c
+        den = a * e - b * b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = (d1 * e - b * d2) / den
+            mu = (b * d1 - a * d2) / den
+        return r1, r2, lam, mu
 
     @property
     def P1(self) -> np.ndarray:
@@ -316,13 +350,12 @@ class StereoModel:
                 f"{self.image_size[0]}x{self.image_size[1]}; recalibrate at this resolution or set the cameras back")
 
     @staticmethod
-    def _undistort(u: np.ndarray, v: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    def _undistort(u: np.ndarray, v: np.ndarray, K: np.ndarray, Kinv: np.ndarray, D: np.ndarray) -> np.ndarray:
         # Normalise with the full K^-1 ourselves (OpenCV's undistortPoints ignores skew K[0,1]),
         # let OpenCV invert the distortion in normalised coordinates, and map back with K.
         pts = np.stack([np.asarray(u, dtype=np.float64).reshape(-1), np.asarray(v, dtype=np.float64).reshape(-1)], 1)
         if pts.shape[0] == 0:
             return np.zeros((0, 2))
-        Kinv = np.linalg.inv(K)
         xd = pts @ Kinv[:2, :2].T + Kinv[:2, 2]
         if D.size and np.any(D != 0):
             xu = cv2.undistortPoints(xd.reshape(-1, 1, 2), np.eye(3), D, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
@@ -332,11 +365,11 @@ class StereoModel:
 
     def undistort_left(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Raw left pixels -> undistorted left pixels, (N, 2)."""
-        return self._undistort(u, v, self.K1, self.D1)
+        return self._undistort(u, v, self.K1, self.K1_inv, self.D1)
 
     def undistort_right(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Raw right pixels -> undistorted right pixels, (N, 2)."""
-        return self._undistort(u, v, self.K2, self.D2)
+        return self._undistort(u, v, self.K2, self.K2_inv, self.D2)
 
     def distort_right(self, pts: np.ndarray) -> np.ndarray:
         """Undistorted right pixels (N, 2) -> raw right pixels (N, 2), via ``cv2.projectPoints``."""

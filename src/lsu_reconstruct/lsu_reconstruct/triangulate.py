@@ -45,18 +45,8 @@ def _check(x1: np.ndarray, x2: np.ndarray) -> tuple:
 def triangulate_midpoint(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
     """Midpoint of the shortest segment between the two rays, (N, 3) [m]."""
     x1, x2 = _check(x1, x2)
-    r1 = np.hstack([x1, np.ones((len(x1), 1))]) @ np.linalg.inv(model.K1).T
-    r2 = (np.hstack([x2, np.ones((len(x2), 1))]) @ np.linalg.inv(model.K2).T) @ model.R
-    c = model.right_centre
-    a = np.einsum("ij,ij->i", r1, r1)
-    b = np.einsum("ij,ij->i", r1, r2)
-    e = np.einsum("ij,ij->i", r2, r2)
-    d1, d2 = r1 @ c, r2 @ c
-    den = a * e - b * b
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (d1 * e - b * d2) / den
-        mu = (b * d1 - a * d2) / den
-    return 0.5 * (lam[:, None] * r1 + (c + mu[:, None] * r2))
+    r1, r2, lam, mu = model.closest_approach(x1, x2)
+    return 0.5 * (lam[:, None] * r1 + (model.right_centre + mu[:, None] * r2))
 
 
 def triangulate_dlt(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
