@@ -76,7 +76,7 @@ class ScanCoordinatorNode(Node):
                                                                    "(+ 0.3 s for the reply; below the laser watchdog)")
         self.ack_timeout_s = declare("ack_timeout_s", 5.0, "a snap the matcher does not acknowledge within this "
                                                            "aborts the scan [s]")
-        self.laser_pause_s = declare("laser_pause_s", 0.3, "a move, capture or snap acknowledgement this late "
+        self.laser_pause_s = declare("laser_pause_s", 0.2, "a move, capture or snap acknowledgement this late "
                                                            "switches the laser off until the scan goes on [s]")
         self.move_timeout_s = declare("move_timeout_s", 0.0, "carriage/move_to timeout [s]; 0 = the driver's own")
         self.cloud_timeout_s = declare("cloud_timeout_s", 15.0, "wait for the matcher's scan/cloud after the scan [s]")
@@ -111,6 +111,7 @@ class ScanCoordinatorNode(Node):
         self._off_future: Any = None
         self._off_wall = 0.0
         self._pauses: List[Dict[str, Any]] = []
+        self._capture_asked = 0.0  # monotonic time the last capture was asked for
         # read when a goal starts, not followed: as an executor-run subscription it woke the
         # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
         # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
@@ -170,8 +171,14 @@ class ScanCoordinatorNode(Node):
         ``due_s``: when the answer is expected; ``laser_pause_s`` past it the laser guard switches
         the laser off while the wait goes on.
         """
-        if not client.wait_for_service(timeout_sec=min(timeout_s, 5.0)):
-            raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
+        # polled here rather than with client.wait_for_service, which sleeps 0.25 s at a time and
+        # does not run the laser guard meanwhile
+        available_by = time.monotonic() + min(timeout_s, 5.0)
+        while not client.service_is_ready():
+            if time.monotonic() >= available_by or not self.context.ok():
+                raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
+            self._guard_laser()
+            time.sleep(0.01)
         future = client.call_async(request)
         end = time.monotonic() + timeout_s
         if due_s is not None:
@@ -260,6 +267,7 @@ class ScanCoordinatorNode(Node):
         for _attempt in range(3):
             if lit:
                 self._resume_laser()
+            self._capture_asked = time.monotonic()
             response = self._call(self.capture,
                                   CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
                                   float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
@@ -434,9 +442,12 @@ class ScanCoordinatorNode(Node):
                                  "ack_wait_s": round(t_settled - t_slept, 4),
                                  "capture_s": round(t_captured - t_settled, 4)})
                 pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
-                # its points are due at once (~10 ms): a stalled pipeline must not keep the laser on
+                # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on. From
+                # when the exposure was due if the capture's answer came later: a capture slowed down by
+                # the same fault (a camera publishing to the dead matcher's reader) must not add its delay.
                 self._guarded_ack = key
-                self._deadlines["ack"] = (t_captured + float(self.laser_pause_s),
+                due = min(t_captured, self._capture_asked + float(self.exposure_s))
+                self._deadlines["ack"] = (due + float(self.laser_pause_s),
                                           f"snap {index} not acknowledged after {self.laser_pause_s:g} s "
                                           "(waiting for stereo_matcher)")
                 snap_times.append(time.monotonic() - t_snap)
