@@ -443,8 +443,8 @@ class ScanCoordinatorNode(Node):
                                  "capture_s": round(t_captured - t_settled, 4)})
                 pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
                 # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on. From
-                # when the exposure was due if the capture's answer came later: a capture slowed down by
-                # the same fault (a camera publishing to the dead matcher's reader) must not add its delay.
+                # when the exposure was due if the capture's answer came later: a capture slowed down
+                # while the graph is in trouble must not add its delay to the laser's time on.
                 self._guarded_ack = key
                 due = min(t_captured, self._capture_asked + float(self.exposure_s))
                 self._deadlines["ack"] = (due + float(self.laser_pause_s),

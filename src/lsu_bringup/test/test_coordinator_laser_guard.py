@@ -229,3 +229,16 @@ def test_a_scan_that_ended_while_the_laser_was_paused_leaves_the_next_scans_guar
     assert second.ended == "succeeded", second.result.status
     assert len(second.pauses) == 1 and "move to" in second.pauses[0]["why"], second.pauses
     assert [on for _t, on in rig.laser] == [False, True, False, True, False]
+
+
+def test_a_slow_capture_does_not_delay_the_off_for_its_missing_acknowledgement(ros_context, tmp_path, rig_factory):
+    # answered 0.25 s after it was asked: slow, but within exposure + pause, so no capture pause
+    rig = rig_factory(late_s=0.25, late_call="capture", exposed="early", acks=False)
+    scan = run_scan(ros_context, tmp_path, rig, ack_timeout_s=1.5)
+    assert scan.ended == "aborted" and "not acknowledged by stereo_matcher" in scan.result.status
+    slow = rig.captures[1]
+    assert slow["answered"] - slow["asked"] > 0.2 and slow["lit_when_asked"]
+    off = first_guard_off(rig) - slow["asked"]
+    # the points were due from when the exposure was due, not from the slow answer (that would be >= 0.55 s)
+    assert EXPOSURE_S + PAUSE_S - 0.05 < off < EXPOSURE_S + PAUSE_S + 0.15, f"laser off {off:.3f} s after the ask"
+    assert len(scan.pauses) == 1 and "snap 0 not acknowledged" in scan.pauses[0]["why"], scan.pauses
