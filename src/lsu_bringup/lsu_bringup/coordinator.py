@@ -18,11 +18,13 @@ import datetime as _dt
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.parameter import Parameter
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
@@ -36,8 +38,9 @@ from lsu_interfaces.action import Scan
 from lsu_interfaces.msg import ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
-from .scan_plan import (ScanGoalError, ScanRecord, calibration_checksum, mechanical_lower_bound_s, new_scan_id,
-                        plan_positions)
+from .laser_guard import LaserGuard, ack_due_at
+from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
+                        mechanical_lower_bound_s, new_scan_id, plan_positions)
 
 EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -59,29 +62,63 @@ def _key(stamp: Any) -> tuple:
     return (int(stamp.sec), int(stamp.nanosec))
 
 
+# name -> (default, description, (low, high) or None). Every one is read when it is used, so a
+# `param set` takes effect at the next call, deadline or scan; values outside the range are refused.
+PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
+    "output_dir": ("", "parent folder of scans/<id>/; empty = <workspace>/scans (applies from the next scan)", None),
+    "capture_timeout_s": (1.0, "a stereo/capture call longer than this aborts (+ 0.3 s for the reply; below the "
+                               "laser watchdog) [s]", (0.05, 30.0)),
+    "ack_timeout_s": (5.0, "a snap the matcher does not acknowledge within this (from its capture) aborts the "
+                           "scan [s]", (0.1, 600.0)),
+    "laser_pause_s": (0.2, "a move, capture or snap acknowledgement this late switches the laser off until the "
+                           "scan goes on [s] (applies from the next deadline)", (0.02, 1.5)),
+    "move_timeout_s": (0.0, "carriage/move_to timeout [s]; 0 = the driver's own", (0.0, 600.0)),
+    "cloud_timeout_s": (15.0, "wait for the matcher's scan/cloud after the scan [s]", (0.0, 600.0)),
+    "exposure_s": (0.033, "camera exposure: the mechanical lower bound in scan.json, when a capture is due [s]",
+                   (0.0, 1.0)),
+    "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
+                        None),
+}
+
+
+def _descriptor(description: str, bounds: Optional[Tuple[float, float]]) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(description=description)
+    if bounds is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
+    return descriptor
+
+
+@dataclass
+class ScanRun:
+    """One scan's state while it runs: what it is, and what it captured so far (kept on every way out)."""
+
+    scan_id: str
+    folder: Path
+    plan: ScanPlan
+    record: ScanRecord
+    start_state: ScannerState                         # the driver's state when the goal came
+    started: float                                    # monotonic
+    captured: List[SnapRecord] = field(default_factory=list)
+    points_total: int = 0
+    abort_reason: str = ""
+    canceled: bool = False
+
+
 class ScanCoordinatorNode(Node):
     """Serves the ``scan`` action; publishes ``scan/events``; writes one folder per scan."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("scan_coordinator", **{"namespace": "/lsu", **kwargs})
-
-        def declare(name: str, default: Any, description: str) -> Any:
-            return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
-
-        from .cli import workspace_root
-
-        self.output_dir = Path(declare("output_dir", "", "parent folder of scans/<id>/; empty = <workspace>/scans")
-                               or workspace_root() / "scans")
-        self.capture_timeout_s = declare("capture_timeout_s", 1.0, "a stereo/capture call longer than this aborts "
-                                                                   "(+ 0.3 s for the reply; below the laser watchdog)")
-        self.ack_timeout_s = declare("ack_timeout_s", 5.0, "a snap the matcher does not acknowledge within this "
-                                                           "aborts the scan [s]")
-        self.laser_pause_s = declare("laser_pause_s", 0.2, "a move, capture or snap acknowledgement this late "
-                                                           "switches the laser off until the scan goes on [s]")
-        self.move_timeout_s = declare("move_timeout_s", 0.0, "carriage/move_to timeout [s]; 0 = the driver's own")
-        self.cloud_timeout_s = declare("cloud_timeout_s", 15.0, "wait for the matcher's scan/cloud after the scan [s]")
-        self.exposure_s = declare("exposure_s", 0.033, "camera exposure, for the mechanical lower bound [s]")
-        self.calibration_dir = declare("calibration_dir", "", "calibration folder used (its checksum goes in scan.json)")
+        # the laser guard's books (scan thread only); the off call it sent without waiting for the reply
+        self.guard = LaserGuard(pause_s=float(PARAMETERS["laser_pause_s"][0]))
+        self._off_future: Any = None
+        self._guarded_ack: Optional[tuple] = None  # the image stamp whose points the "ack" deadline waits for
+        self._capture_asked = 0.0  # monotonic time the last capture was asked for
+        for name, (default, description, bounds) in PARAMETERS.items():
+            self.declare_parameter(name, default, _descriptor(description, bounds))
+        self._apply_parameters([self.get_parameter(name) for name in PARAMETERS])
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         group = ReentrantCallbackGroup()
         # The scan loop's own traffic (service calls, per-snap acknowledgements) lives on a private
         # node that the scan thread spins itself while it waits: a reply is handled in the thread
@@ -102,16 +139,6 @@ class ScanCoordinatorNode(Node):
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
-        # the laser guard (scan thread only): what the driver was last asked, the deadlines by which
-        # the scan must have made progress (name -> (monotonic deadline, warning)), and the off call
-        # the guard sent without waiting for it
-        self._laser_lit = False
-        self._deadlines: Dict[str, tuple] = {}
-        self._guarded_ack: Optional[tuple] = None
-        self._off_future: Any = None
-        self._off_wall = 0.0
-        self._pauses: List[Dict[str, Any]] = []
-        self._capture_asked = 0.0  # monotonic time the last capture was asked for
         # read when a goal starts, not followed: as an executor-run subscription it woke the
         # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
         # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
@@ -122,7 +149,9 @@ class ScanCoordinatorNode(Node):
             depth=50, reliability=ReliabilityPolicy.RELIABLE))
         # on the main node: latched, and it must be current when the next scan starts
         self.create_subscription(PointCloud2, "scan/cloud", self._on_cloud, LATCHED, callback_group=group)
-        self._busy = threading.Lock()
+        self._busy = threading.Lock()      # held by the scan thread while a scan runs
+        self._goal_lock = threading.Lock()  # makes "is a scan running or accepted?" and "accept" one step
+        self._goal_active = False
         self._counter = 0
         self._server = ActionServer(self, Scan, "scan", execute_callback=self._execute,
                                     goal_callback=self._on_goal, cancel_callback=lambda _h: CancelResponse.ACCEPT,
@@ -149,10 +178,42 @@ class ScanCoordinatorNode(Node):
             self._cond.notify_all()
 
     def _on_goal(self, _goal: Scan.Goal) -> GoalResponse:
-        if self._busy.locked():
-            self.get_logger().warning("scan goal rejected: a scan is already running")
-            return GoalResponse.REJECT
+        # One step under one lock: two goals sent at the same moment are not both accepted (the
+        # second would otherwise be queued behind the first instead of refused).
+        with self._goal_lock:
+            if self._goal_active:
+                self.get_logger().warning("scan goal rejected: a scan is already running")
+                return GoalResponse.REJECT
+            self._goal_active = True
         return GoalResponse.ACCEPT
+
+    # ------------------------------------------------------------------------------ parameters
+    def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+        """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
+        for param in changed:
+            if param.name in ("output_dir", "calibration_dir") and param.value:
+                path = Path(str(param.value))
+                if path.exists() and not path.is_dir():
+                    return SetParametersResult(successful=False,
+                                               reason=f"{param.name} {path} exists and is not a folder")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, changed: List[Parameter]) -> None:
+        """Every accepted value takes effect now: the scan reads these attributes at each use."""
+        for param in changed:
+            if param.name not in PARAMETERS:
+                continue
+            value = param.value
+            if param.name == "output_dir":
+                from .cli import workspace_root
+
+                self.output_dir = Path(value) if value else workspace_root() / "scans"
+            elif param.name == "calibration_dir":
+                self.calibration_dir = str(value)
+            else:
+                setattr(self, param.name, float(value))
+                if param.name == "laser_pause_s":
+                    self.guard.pause_s = float(value)
 
     # ------------------------------------------------------------------------------ helpers
     @property
@@ -182,13 +243,11 @@ class ScanCoordinatorNode(Node):
         future = client.call_async(request)
         end = time.monotonic() + timeout_s
         if due_s is not None:
-            late = float(self.laser_pause_s)
-            self._deadlines["call"] = (time.monotonic() + due_s + late,
-                                       f"{what}: no answer from {client.srv_name} {late:g} s after it was due")
+            self.guard.due("call", time.monotonic() + due_s, f"{what}: no answer from {client.srv_name}")
         try:
             self._await_future(future, client, end, stop_early)
         finally:
-            self._deadlines.pop("call", None)
+            self.guard.answered("call")
         if not future.done():
             client.remove_pending_request(future)
             raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
@@ -213,17 +272,13 @@ class ScanCoordinatorNode(Node):
         the moment the answer was due, not for the whole timeout of the call it waits on.
         """
         if self._guarded_ack is not None and self._guarded_ack in self._acks:
-            self._deadlines.pop("ack", None)
+            self.guard.answered("ack")
             self._guarded_ack = None
-        if not self._laser_lit or self._off_future is not None or not self._deadlines:
-            return
-        deadline, warning = min(self._deadlines.values(), key=lambda d: d[0])
-        if time.monotonic() < deadline:
+        warning = self.guard.overdue(time.monotonic())
+        if warning is None:
             return
         self._off_future = self.laser.call_async(SetBool.Request(data=False))
-        self._off_wall = time.time()
-        self._laser_lit = False
-        self._pauses.append({"at": round(self._off_wall, 3), "why": warning})
+        self.guard.switched_off(warning, time.time())
         self.get_logger().warning(f"{warning}: laser off until the scan can go on")
 
     def _resume_laser(self) -> None:
@@ -231,20 +286,23 @@ class ScanCoordinatorNode(Node):
         if self._off_future is not None:
             # the driver serves calls concurrently: the on must not overtake the off
             future, self._off_future = self._off_future, None
-            self._await_future(future, self.laser, time.monotonic() + 3.0, stop_early=True)
+            try:
+                self._await_future(future, self.laser, time.monotonic() + 3.0, stop_early=True)
+            finally:
+                self.guard.off_settled()
             if not future.done():
                 self.laser.remove_pending_request(future)
-        if not self._laser_lit:
+        if not self.guard.lit:
             self._set_laser(True)
 
     def _set_laser(self, on: bool, timeout_s: float = 3.0, stop_early: bool = True) -> None:
         if not on:
-            self._laser_lit = False  # the guard must not send another off meanwhile
+            self.guard.lit_by_scan(False)  # the guard must not send another off meanwhile
         response = self._call(self.laser, SetBool.Request(data=on), timeout_s, f"laser {'on' if on else 'off'}",
                               stop_early=stop_early)
         if not response.success:
             raise ScanAborted(f"laser {'on' if on else 'off'} failed: {response.message}")
-        self._laser_lit = on
+        self.guard.lit_by_scan(on)
 
     def _laser_off_safely(self) -> str:
         # on shutdown the driver is stopping too (it switches the laser off itself): ask briefly
@@ -274,7 +332,7 @@ class ScanCoordinatorNode(Node):
             if not response.success:
                 raise ScanAborted(f"capture failed: {response.message}")
             exposed_until = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9 + exposure
-            if not lit or self._laser_lit or exposed_until < self._off_wall:
+            if not lit or self.guard.lit or exposed_until < self.guard.last_off_wall:
                 return response
             self.get_logger().warning("the capture came after the laser went off: taking it again")
         raise ScanAborted(f"capture: 3 captures in a row came {self.laser_pause_s:g} s late (the laser went off "
@@ -343,10 +401,48 @@ class ScanCoordinatorNode(Node):
 
     # ------------------------------------------------------------------------------ the scan
     def _execute(self, goal_handle: Any) -> Scan.Result:
-        with self._busy:
-            return self._scan(goal_handle)
+        try:
+            with self._busy:
+                return self._scan(goal_handle)
+        finally:
+            with self._goal_lock:
+                self._goal_active = False
 
     def _scan(self, goal_handle: Any) -> Scan.Result:
+        """plan -> snap loop -> finish; the laser is off and the files are on disk on every way out."""
+        run = self._plan(goal_handle)
+        if isinstance(run, Scan.Result):
+            return run  # refused before anything moved
+        recorder = self._start_bag_or_warn(run) if goal_handle.request.record_bag else None
+        self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
+                               f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
+                               f"{run.plan.settle_s:g} s -> {run.folder}")
+        self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=len(run.plan.positions))
+        cloud_serial_before = self._cloud_serial
+        with self._cond:
+            self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
+        self.guard.start_scan()
+        try:
+            self._snap_loop(goal_handle, run)
+        except ScanCanceled as exc:
+            run.abort_reason, run.canceled = str(exc), True
+        except ScanAborted as exc:
+            run.abort_reason = str(exc)
+        except Exception as exc:  # a bug must still leave the laser off and the data on disk
+            if self.shutting_down:  # rclpy's own exceptions out of a context the signal handler shut down
+                run.abort_reason = f"scan_coordinator is shutting down ({exc.__class__.__name__})"
+            else:
+                run.abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
+                self.get_logger().error(run.abort_reason)
+        finally:
+            self.guard.clear()
+            self._guarded_ack = None
+            self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)
+            laser_error = self._laser_off_safely()
+        return self._finish(goal_handle, run, laser_error, cloud_serial_before, recorder)
+
+    def _plan(self, goal_handle: Any) -> Any:
+        """The scan's id, folder, record and validated positions, or the refusal (a Scan.Result, goal aborted)."""
         goal: Scan.Goal = goal_handle.request
         t0 = time.monotonic()
         self._counter += 1
@@ -357,9 +453,9 @@ class ScanCoordinatorNode(Node):
         record = ScanRecord(scan_id=scan_id, started=_dt.datetime.now().isoformat(timespec="seconds"),
                             goal={k: getattr(goal, k) for k in goal.get_fields_and_field_types()},
                             parameters={"capture_timeout_s": self.capture_timeout_s, "ack_timeout_s": self.ack_timeout_s,
-                                        "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s},
+                                        "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s,
+                                        "laser_pause_s": self.laser_pause_s},
                             calibration=calibration_checksum(calib))
-        result = Scan.Result(scan_id=scan_id, output_dir=str(folder))
         state = self.state
         try:
             if state is None or not state.connected:
@@ -373,103 +469,84 @@ class ScanCoordinatorNode(Node):
             except ScanGoalError as exc:
                 raise ScanAborted(f"bad goal: {exc}") from None
         except ScanAborted as exc:
-            result.status = str(exc)
             self.get_logger().error(f"scan {scan_id} refused: {exc}")
             goal_handle.abort()
-            return result
+            return Scan.Result(scan_id=scan_id, output_dir=str(folder), status=str(exc))
         record.snaps_expected = len(plan.positions)
         record.timings_s["mechanical_lower_bound"] = mechanical_lower_bound_s(
             plan, state.position_steps, max(1.0, state.step_rate_steps_per_s), float(self.exposure_s))
         folder.mkdir(parents=True, exist_ok=True)
-        recorder = None
-        if goal.record_bag:
-            try:
-                recorder = self._start_bag(folder)
-            except Exception as exc:  # no bag is no reason to lose the scan: say so and go on
-                self.get_logger().error(f"bag recording could not start ({exc.__class__.__name__}: {exc}); "
-                                        "scanning without a bag")
-        self.get_logger().info(f"scan {scan_id}: {len(plan.positions)} snaps {plan.positions[0]}..{plan.positions[-1]}"
-                               f" step {goal.step_steps}, settle {plan.settle_s:g} s -> {folder}")
-        self._event(ScanEvent.STARTED, scan_id, folder, expected_snaps=len(plan.positions))
-        cloud_serial_before = self._cloud_serial
-        with self._cond:
-            self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
-        self._pauses = []
-        captured: List[Dict[str, Any]] = []
-        points_total = 0
-        abort_reason = ""
-        canceled = False
+        return ScanRun(scan_id=scan_id, folder=folder, plan=plan, record=record, start_state=state, started=t0)
+
+    def _start_bag_or_warn(self, run: ScanRun) -> Any:
         try:
-            self._set_laser(False)
-            if plan.texture:
-                response = self._capture(lit=False)
-                self._event(ScanEvent.TEXTURE, scan_id, folder, image_stamp=response.stamp)
-            self._set_laser(True)
-            snap_times: List[float] = []
-            # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
-            # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
-            pending: Optional[Dict[str, Any]] = None
-            rate = max(1.0, float(state.step_rate_steps_per_s))
-            here = int(state.position_steps)
-            for index, position in enumerate(plan.positions):
-                t_snap = time.monotonic()
-                self._check_cancel(goal_handle)
-                self._feedback(goal_handle, "moving", index, len(plan.positions), position, points_total, snap_times)
-                request = MoveTo.Request(position_steps=position, timeout_s=float(self.move_timeout_s))
-                moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}",
-                                   due_s=abs(position - here) / rate)
-                if not moved.success:
-                    raise ScanAborted(f"move to {position} failed: {moved.message}")
-                here = int(moved.position_steps)
-                t_moved = time.monotonic()
-                since_stop = self._since_stop_s(moved.stopped_stamp)
-                self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
-                t_slept = time.monotonic()
-                if pending is not None:
-                    points_total += self._await_ack(pending)
-                    pending = None
-                t_settled = time.monotonic()
-                response = self._capture()
-                t_captured = time.monotonic()
-                key = _key(response.stamp)
-                self._event(ScanEvent.SNAP, scan_id, folder, index=index, position_steps=moved.position_steps,
-                            image_stamp=response.stamp, expected_snaps=len(plan.positions))
-                # per-phase wall times: where a snap's time goes (bench_scan reads them)
-                captured.append({"index": index, "position_steps": int(moved.position_steps),
-                                 "stamp": f"{key[0]}.{key[1]:09d}", "skew_s": float(response.skew_s),
-                                 "move_s": round(t_moved - t_snap, 4), "settle_s": round(t_slept - t_moved, 4),
-                                 "stop_to_reply_s": None if since_stop is None else round(since_stop, 4),
-                                 "ack_wait_s": round(t_settled - t_slept, 4),
-                                 "capture_s": round(t_captured - t_settled, 4)})
-                pending = {"entry": captured[-1], "key": key, "t_captured": t_captured, "t_snap": t_snap}
-                # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on. From
-                # when the exposure was due if the capture's answer came later: a capture slowed down
-                # while the graph is in trouble must not add its delay to the laser's time on.
-                self._guarded_ack = key
-                due = min(t_captured, self._capture_asked + float(self.exposure_s))
-                self._deadlines["ack"] = (due + float(self.laser_pause_s),
-                                          f"snap {index} not acknowledged after {self.laser_pause_s:g} s "
-                                          "(waiting for stereo_matcher)")
-                snap_times.append(time.monotonic() - t_snap)
+            return self._start_bag(run.folder)
+        except Exception as exc:  # no bag is no reason to lose the scan: say so and go on
+            self.get_logger().error(f"bag recording could not start ({exc.__class__.__name__}: {exc}); "
+                                    "scanning without a bag")
+            return None
+
+    def _snap_loop(self, goal_handle: Any, run: ScanRun) -> None:
+        """Texture pair, then move / settle / previous snap's points / capture / SNAP for each position.
+
+        Raises ScanAborted / ScanCanceled; ``run.captured`` holds every snap taken so far either way.
+        """
+        plan, state, total = run.plan, run.start_state, len(run.plan.positions)
+        self._set_laser(False)
+        if plan.texture:
+            response = self._capture(lit=False)
+            self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
+        self._set_laser(True)
+        snap_times: List[float] = []
+        # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
+        # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
+        pending: Optional[Dict[str, Any]] = None
+        rate = max(1.0, float(state.step_rate_steps_per_s))
+        here = int(state.position_steps)
+        for index, position in enumerate(plan.positions):
+            t_snap = time.monotonic()
+            self._check_cancel(goal_handle)
+            self._feedback(goal_handle, "moving", index, total, position, run.points_total, snap_times)
+            request = MoveTo.Request(position_steps=position, timeout_s=float(self.move_timeout_s))
+            moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}",
+                               due_s=abs(position - here) / rate)
+            if not moved.success:
+                raise ScanAborted(f"move to {position} failed: {moved.message}")
+            here = int(moved.position_steps)
+            t_moved = time.monotonic()
+            since_stop = self._since_stop_s(moved.stopped_stamp)
+            self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
+            t_slept = time.monotonic()
             if pending is not None:
-                points_total += self._await_ack(pending)
-            self._feedback(goal_handle, "finishing", len(plan.positions), len(plan.positions), plan.positions[-1],
-                           points_total, snap_times)
-        except ScanCanceled as exc:
-            abort_reason, canceled = str(exc), True
-        except ScanAborted as exc:
-            abort_reason = str(exc)
-        except Exception as exc:  # a bug must still leave the laser off and the data on disk
-            if self.shutting_down:  # rclpy's own exceptions out of a context the signal handler shut down
-                abort_reason = f"scan_coordinator is shutting down ({exc.__class__.__name__})"
-            else:
-                abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
-                self.get_logger().error(abort_reason)
-        finally:
-            self._deadlines.clear()
-            self._guarded_ack = None
-            self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)
-            laser_error = self._laser_off_safely()
+                run.points_total += self._await_ack(pending)
+                pending = None
+            t_settled = time.monotonic()
+            response = self._capture()
+            t_captured = time.monotonic()
+            key = _key(response.stamp)
+            self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=moved.position_steps,
+                        image_stamp=response.stamp, expected_snaps=total)
+            # per-phase wall times: where a snap's time goes (bench_scan reads them)
+            snap = SnapRecord(index=index, position_steps=int(moved.position_steps), stamp=f"{key[0]}.{key[1]:09d}",
+                              skew_s=float(response.skew_s), move_s=round(t_moved - t_snap, 4),
+                              settle_s=round(t_slept - t_moved, 4),
+                              stop_to_reply_s=None if since_stop is None else round(since_stop, 4),
+                              ack_wait_s=round(t_settled - t_slept, 4), capture_s=round(t_captured - t_settled, 4))
+            run.captured.append(snap)
+            pending = {"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_snap}
+            # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on.
+            self._guarded_ack = key
+            self.guard.due("ack", ack_due_at(t_captured, self._capture_asked, float(self.exposure_s)),
+                           f"snap {index} not acknowledged by stereo_matcher")
+            snap_times.append(time.monotonic() - t_snap)
+        if pending is not None:
+            run.points_total += self._await_ack(pending)
+        self._feedback(goal_handle, "finishing", total, total, plan.positions[-1], run.points_total, snap_times)
+
+    def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
+                recorder: Any) -> Scan.Result:
+        """FINISHED / ABORTED event, cloud.ply, the bag closed, scan.json; ends the goal."""
+        abort_reason, record, folder, total = run.abort_reason, run.record, run.folder, len(run.plan.positions)
         if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
             # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first
             abort_reason = f"scan_coordinator is shutting down ({abort_reason})"
@@ -477,10 +554,10 @@ class ScanCoordinatorNode(Node):
             abort_reason = f"laser off failed at the end of the scan: {laser_error}"
         partial = bool(abort_reason)
         kind = ScanEvent.ABORTED if partial else ScanEvent.FINISHED
-        self._event(kind, scan_id, folder, expected_snaps=len(plan.positions), snaps_captured=len(captured),
+        self._event(kind, run.scan_id, folder, expected_snaps=total, snaps_captured=len(run.captured),
                     partial=partial, reason=abort_reason)
-        record.timings_s["scan"] = time.monotonic() - t0
-        cloud_points = self._save_cloud(folder, cloud_serial_before, record) if captured else 0
+        record.timings_s["scan"] = time.monotonic() - run.started
+        cloud_points = self._save_cloud(folder, cloud_serial_before, record) if run.captured else 0
         if recorder is not None:
             try:
                 record.files.append(self._stop_bag(recorder))
@@ -489,29 +566,26 @@ class ScanCoordinatorNode(Node):
                 self.get_logger().error(bag_error)
                 abort_reason = f"{abort_reason}; {bag_error}" if abort_reason else bag_error
                 partial = True
-        record.snaps = captured
-        record.laser_pauses = self._pauses
-        record.snaps_captured = len(captured)
-        record.snaps_acknowledged = sum(1 for s in captured if "points" in s)
-        record.points = cloud_points or points_total
+        record.snaps = [snap.as_json() for snap in run.captured]
+        record.laser_pauses = [pause.as_json() for pause in self.guard.pauses]
+        record.snaps_captured = len(run.captured)
+        record.snaps_acknowledged = sum(1 for snap in run.captured if snap.acknowledged)
+        record.points = cloud_points or run.points_total
         record.partial = partial
         record.status = (f"partial: {abort_reason}" if partial else
-                         f"finished: {len(captured)} snaps, {record.points} points")
-        record.timings_s["total"] = time.monotonic() - t0
+                         f"finished: {len(run.captured)} snaps, {record.points} points")
+        record.timings_s["total"] = time.monotonic() - run.started
         record.files.append(str(record.write(folder)))
-        result.success = not partial
-        result.partial = partial
-        result.snaps = len(captured)
-        result.points = int(record.points)
-        result.seconds = float(record.timings_s["scan"])
-        result.files = [str(f) for f in record.files]
-        result.status = record.status
-        summary = f"scan {scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}"
+        result = Scan.Result(scan_id=run.scan_id, output_dir=str(folder), success=not partial, partial=partial,
+                             snaps=len(run.captured), points=int(record.points),
+                             seconds=float(record.timings_s["scan"]), files=[str(f) for f in record.files],
+                             status=record.status)
+        summary = f"scan {run.scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}"
         if partial:  # rclpy refuses one call site logging at two severities
             self.get_logger().warning(summary)
         else:
             self.get_logger().info(summary)
-        if canceled:
+        if run.canceled:
             goal_handle.canceled()
         elif partial:
             goal_handle.abort()
@@ -526,18 +600,19 @@ class ScanCoordinatorNode(Node):
         the laser off long before (``laser_pause_s`` after the capture), and `_capture` switches it
         back on when the points came after all.
         """
-        entry, key = pending["entry"], pending["key"]
+        snap, key = pending["snap"], pending["key"]
         remaining = float(self.ack_timeout_s) - (time.monotonic() - pending["t_captured"])
         if not self._wait(lambda: key in self._acks, remaining):
-            raise ScanAborted(f"snap {entry['index']} (position {entry['position_steps']}) was not acknowledged by "
+            raise ScanAborted(f"snap {snap.index} (position {snap.position_steps}) was not acknowledged by "
                               f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
-        self._deadlines.pop("ack", None)
+        self.guard.answered("ack")
         self._guarded_ack = None
-        entry["points"], t_ack = self._acks.pop(key)
+        points, t_ack = self._acks.pop(key)
+        snap.points = int(points)
         # from the arrival time, not from now: the wait may start long after the points came
-        entry["ack_s"] = round(max(0.0, t_ack - pending["t_captured"]), 4)
-        entry["snap_s"] = round(t_ack - pending["t_snap"], 4)
-        return int(entry["points"])
+        snap.ack_s = round(max(0.0, t_ack - pending["t_captured"]), 4)
+        snap.snap_s = round(t_ack - pending["t_snap"], 4)
+        return snap.points
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
                   snap_times: List[float]) -> None:

@@ -123,3 +123,37 @@ class ScanRecord:
         tmp.replace(path)
         return path
 
+
+
+@dataclass
+class SnapRecord:
+    """One captured snap in scan.json: where, when, and where its time went (wall seconds per phase).
+
+    ``points``, ``ack_s`` and ``snap_s`` are known once stereo_matcher acknowledged the snap; a snap
+    without them was captured but never processed (a partial scan).
+    """
+
+    index: int
+    position_steps: int
+    stamp: str                      # image stamp "sec.nanosec" (the key of its images in the bag)
+    skew_s: float                   # left/right capture skew the camera node measured
+    move_s: float
+    settle_s: float
+    stop_to_reply_s: Optional[float]  # driver's stop to the move's reply; None when the driver gave no stamp
+    ack_wait_s: float               # waiting for the previous snap's points before this capture
+    capture_s: float
+    points: Optional[int] = None
+    ack_s: Optional[float] = None   # capture to the arrival of its points
+    snap_s: Optional[float] = None  # start of the snap to the arrival of its points
+
+    @property
+    def acknowledged(self) -> bool:
+        return self.points is not None
+
+    def as_json(self) -> Dict[str, object]:
+        """The scan.json entry: the acknowledgement fields only once they are known."""
+        out = asdict(self)
+        for name in ("points", "ack_s", "snap_s"):
+            if out[name] is None:
+                del out[name]
+        return out

@@ -4,6 +4,11 @@ The coordinator runs its scan in this thread against stand-ins written for the t
 that records every laser request with its arrival time, a camera whose first lit capture answers
 late, and a matcher (the camera stand-in itself) that acknowledges each published capture unless
 told not to. Truth is what the stand-in driver was asked and when, and what the camera returned.
+
+No assertion here bounds a time from above (a busy host may be late on any of them): the tests
+check the order of events (the off came before the late answer, the guard's off before the
+scan's own) and that nothing happened early; the deadline arithmetic itself is unit-tested with
+a fake clock in test_laser_guard.py.
 """
 
 from __future__ import annotations
@@ -141,7 +146,7 @@ def make_coordinator(context: Any, tmp_path: Any, **params: Any) -> ScanCoordina
 def scan_with(coordinator: ScanCoordinatorNode) -> SimpleNamespace:
     handle = GoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
     result = coordinator._scan(handle)
-    return SimpleNamespace(result=result, ended=handle.ended, pauses=list(coordinator._pauses))
+    return SimpleNamespace(result=result, ended=handle.ended, pauses=[p.as_json() for p in coordinator.guard.pauses])
 
 
 def run_scan(context: Any, tmp_path: Any, rig: Rig, **params: Any) -> SimpleNamespace:
@@ -184,7 +189,7 @@ def test_a_late_capture_switches_the_laser_off_and_a_capture_after_the_off_is_ta
     assert scan.ended == "succeeded" and scan.result.snaps == 3, scan.result.status
     late = next(c for c in rig.captures if c["answered"] - c["asked"] > 0.5)
     off = first_guard_off(rig) - late["asked"]
-    assert EXPOSURE_S + PAUSE_S - 0.05 < off < EXPOSURE_S + PAUSE_S + 0.4, f"laser off {off:.3f} s after the capture"
+    assert off > EXPOSURE_S + PAUSE_S - 0.05, f"laser off {off:.3f} s after the capture: before it was late"
     assert off < late["answered"] - late["asked"], "the guard must not wait for the late answer"
     assert len(scan.pauses) == 1 and "stereo/capture" in scan.pauses[0]["why"]
     lit_captures = sum(1 for c in rig.captures if c["lit_when_asked"])
@@ -209,9 +214,10 @@ def test_missing_acknowledgements_switch_the_laser_off_soon_after_the_capture(ro
     assert scan.ended == "aborted" and "not acknowledged by stereo_matcher" in scan.result.status
     assert scan.result.partial and scan.result.snaps == 1
     off = first_guard_off(rig) - rig.captures[1]["answered"]
-    assert PAUSE_S - 0.05 < off < PAUSE_S + 0.4, f"laser off {off:.3f} s after the unacknowledged capture"
+    assert off > PAUSE_S - 0.05, f"laser off {off:.3f} s after the unacknowledged capture: before it was late"
     assert len(scan.pauses) == 1 and "snap 0 not acknowledged" in scan.pauses[0]["why"]
-    assert rig.laser[-1][1] is False
+    # the guard's off, then the scan's own off when it aborted ack_timeout_s after the capture
+    assert [on for _t, on in rig.laser] == [False, True, False, False]
 
 
 def test_a_scan_that_ended_while_the_laser_was_paused_leaves_the_next_scans_guard_armed(
@@ -239,6 +245,7 @@ def test_a_slow_capture_does_not_delay_the_off_for_its_missing_acknowledgement(r
     slow = rig.captures[1]
     assert slow["answered"] - slow["asked"] > 0.2 and slow["lit_when_asked"]
     off = first_guard_off(rig) - slow["asked"]
-    # the points were due from when the exposure was due, not from the slow answer (that would be >= 0.55 s)
-    assert EXPOSURE_S + PAUSE_S - 0.05 < off < EXPOSURE_S + PAUSE_S + 0.15, f"laser off {off:.3f} s after the ask"
+    # due from when the exposure was due (test_laser_guard.py checks that arithmetic): not before that
+    assert off > EXPOSURE_S + PAUSE_S - 0.05, f"laser off {off:.3f} s after the ask: before it was late"
     assert len(scan.pauses) == 1 and "snap 0 not acknowledged" in scan.pauses[0]["why"], scan.pauses
+    assert [on for _t, on in rig.laser] == [False, True, False, False]
