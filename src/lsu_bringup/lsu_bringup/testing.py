@@ -52,11 +52,14 @@ class FaultReport:
 
     def __init__(self, fault: str, test_id: str) -> None:
         self.record: Dict[str, Any] = {"fault": fault, "test": test_id, "error_shown": "", "laser_on_after_s": None,
-                                       "snaps_captured": None, "snaps_lost": 0, "data_kept": ""}
+                                       "laser_goal_s": None, "snaps_captured": None, "snaps_lost": 0,
+                                       "data_kept": ""}
 
     def note(self, **fields: Any) -> None:
         """Record fields: error_shown (text the user saw), laser_on_after_s (time the laser stayed on
-        after the fault, 0.0 if it was off), snaps_captured, snaps_lost, data_kept (what is on disk)."""
+        after the fault, 0.0 if it was off), laser_goal_s (the time it should stay on at most: a
+        measured figure against its goal, reported, not asserted), snaps_captured, snaps_lost,
+        data_kept (what is on disk)."""
         unknown = set(fields) - set(self.record)
         if unknown:
             raise KeyError(f"unknown fault record fields: {sorted(unknown)}")
@@ -90,8 +93,10 @@ def pytest_runtest_makereport(item: pytest.Item, call: Any) -> Any:
 def fault_summary(records: List[Dict[str, Any]]) -> Dict[str, Any]:
     """Totals of the fault records: injected, survived, longest laser-on time after a fault, snaps lost."""
     laser = [r["laser_on_after_s"] for r in records if r.get("laser_on_after_s") is not None]
+    over = [r["fault"] for r in records if r.get("laser_goal_s") is not None
+            and r.get("laser_on_after_s") is not None and r["laser_on_after_s"] > r["laser_goal_s"]]
     return {"faults_injected": len(records), "faults_survived": sum(1 for r in records if r.get("survived")),
-            "max_laser_on_after_fault_s": max(laser) if laser else 0.0,
+            "max_laser_on_after_fault_s": max(laser) if laser else 0.0, "laser_on_over_goal": over,
             "snaps_lost": sum(int(r.get("snaps_lost") or 0) for r in records), "faults": records}
 
 
@@ -107,11 +112,13 @@ def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pyte
     tr.section("LSU fault suite")
     for r in summary["faults"]:
         laser = "-" if r["laser_on_after_s"] is None else f"{r['laser_on_after_s']:.2f} s"
+        if r["fault"] in summary["laser_on_over_goal"]:
+            laser += f" (goal {r['laser_goal_s']:g} s)"
         tr.write_line(f"{'survived' if r.get('survived') else 'FAILED  '}  {r['fault']:<46} laser on after: {laser:>7}  "
                       f"snaps lost: {r['snaps_lost']}  | {str(r['error_shown'])[:90]}")
     tr.write_line(f"{summary['faults_survived']}/{summary['faults_injected']} faults survived; laser on at most "
-                  f"{summary['max_laser_on_after_fault_s']:.2f} s after a fault; {summary['snaps_lost']} snaps lost "
-                  f"-> {path}")
+                  f"{summary['max_laser_on_after_fault_s']:.2f} s after a fault; {summary['snaps_lost']} snaps lost; "
+                  f"{len(summary['laser_on_over_goal'])} over their laser-off goal -> {path}")
 
 
 def pytest_report_header(config: pytest.Config) -> str:

@@ -13,7 +13,7 @@ import pytest
 import rclpy
 from std_srvs.srv import SetBool
 
-from lsu_bringup.coordinator import SHUTDOWN_CALL_S, ScanCoordinatorNode
+from lsu_bringup.coordinator import ScanCoordinatorNode
 
 SIGNAL_AT_S = 0.5
 
@@ -46,5 +46,7 @@ def test_laser_off_gives_up_soon_after_a_shutdown_begins_mid_call(ros_context, t
         if how == "context shut down":
             coordinator.destroy_node()
     assert error, "the mute driver cannot have switched the laser off"
-    assert elapsed < SIGNAL_AT_S + SHUTDOWN_CALL_S + 0.5, f"waited {elapsed:.2f} s after a shutdown began"
+    # the shutdown cut the wait: it ended before the call's own 3 s timeout (typically 0.5 s
+    # after the signal); no tighter bound, a busy host may be late on it
+    assert elapsed < 3.0, f"waited {elapsed:.2f} s: the shutdown did not cut the 3 s wait"
     assert elapsed >= SIGNAL_AT_S - 0.05, "the call should wait while there is no shutdown"
