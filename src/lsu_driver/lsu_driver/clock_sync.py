@@ -7,12 +7,12 @@ times bracket the instant the device read its counter for the reply. So the true
 device reading lies in ``[send, receive]``; its midpoint is off by at most half the round trip.
 
 Model: ``host = offset + scale * device`` (``scale = 1 / (1 + drift)``, drift: how much faster the
-device counts) over a sliding window of samples (300: 30 s of the driver's 10 Hz status polls, long enough to see a drift of tens of ppm through the 1 ms counter).
-The fit uses the samples with the shortest round trips (their midpoints are the tightest brackets; a
-reply delayed by a busy host or USB adapter only widens its own bracket), weighted by the inverse
-square of their half round trip, so a few slow replies cannot pull it. The reported uncertainty is
-the bracket half-width of the best samples plus the fit's own residual scatter: what a stamp mapped
-now can be off by.
+device counts) over a sliding window of samples (300: 30 s of the driver's 10 Hz status polls, long
+enough to see a drift of tens of ppm through the 1 ms counter). The fit uses the samples with the
+shortest round trips (their midpoints are the tightest brackets; a reply delayed by a busy host or
+USB adapter only widens its own bracket), weighted by the inverse square of their half round trip,
+so a few slow replies cannot pull it. The reported uncertainty is the bracket half-width of the best
+samples plus the fit's own residual scatter: what a stamp mapped now can be off by.
 
 Why hand-written: NTP/PTP implementations exist but speak their own protocols to clocks that run
 them; here the "server" is a line-based serial device with a bare millisecond counter (wrapping), and
