@@ -231,3 +231,26 @@ def lsu_cli() -> Callable[..., subprocess.CompletedProcess]:
                               env=None if env is None else {**os.environ, **env})
 
     return run
+
+
+class FakeGoalHandle:
+    """What the scan coordinator uses of rclpy's ServerGoalHandle, for calling its scan directly in a test."""
+
+    def __init__(self, **goal: Any) -> None:
+        from lsu_interfaces.action import Scan
+
+        self.request = Scan.Goal(**goal)
+        self.is_cancel_requested = False
+        self.ended = ""  # "succeeded", "aborted" or "canceled" once the scan ended the goal
+
+    def publish_feedback(self, _fb: Any) -> None:
+        pass
+
+    def succeed(self) -> None:
+        self.ended = "succeeded"
+
+    def abort(self) -> None:
+        self.ended = "aborted"
+
+    def canceled(self) -> None:
+        self.ended = "canceled"

@@ -27,7 +27,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
 
 from lsu_bringup.coordinator import ScanCoordinatorNode
-from lsu_interfaces.action import Scan
+from lsu_bringup.testing import FakeGoalHandle
 from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
@@ -110,27 +110,6 @@ class Rig:
         self.node.destroy_node()
 
 
-class GoalHandle:
-    """What `_scan` uses of rclpy's ServerGoalHandle."""
-
-    def __init__(self, **goal: Any) -> None:
-        self.request = Scan.Goal(**goal)
-        self.is_cancel_requested = False
-        self.ended = ""
-
-    def publish_feedback(self, _fb: Any) -> None:
-        pass
-
-    def succeed(self) -> None:
-        self.ended = "succeeded"
-
-    def abort(self) -> None:
-        self.ended = "aborted"
-
-    def canceled(self) -> None:
-        self.ended = "canceled"
-
-
 def make_coordinator(context: Any, tmp_path: Any, **params: Any) -> ScanCoordinatorNode:
     overrides = {"output_dir": str(tmp_path), "laser_pause_s": PAUSE_S, "exposure_s": EXPOSURE_S,
                  "cloud_timeout_s": 0.1, **params}
@@ -144,7 +123,7 @@ def make_coordinator(context: Any, tmp_path: Any, **params: Any) -> ScanCoordina
 
 
 def scan_with(coordinator: ScanCoordinatorNode) -> SimpleNamespace:
-    handle = GoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
+    handle = FakeGoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
     result = coordinator._scan(handle)
     return SimpleNamespace(result=result, ended=handle.ended, pauses=[p.as_json() for p in coordinator.guard.pauses])
 

@@ -10,6 +10,7 @@ from rclpy.action import GoalResponse
 from rclpy.parameter import Parameter
 
 from lsu_bringup.coordinator import PARAMETERS, ScanCoordinatorNode
+from lsu_bringup.testing import FakeGoalHandle
 from lsu_interfaces.action import Scan
 
 
@@ -80,27 +81,7 @@ def test_of_two_goals_sent_at_the_same_moment_exactly_one_is_accepted(coordinato
             thread.join()
         assert sorted(answer.name for answer in answers) == ["ACCEPT", "REJECT"]
         # the accepted goal ends (here: refused at once, no driver state) and frees the coordinator
-        handle = _Handle()
+        handle = FakeGoalHandle(start_steps=0, end_steps=10, step_steps=2)
         coordinator._execute(handle)
         assert handle.ended == "aborted"
     assert coordinator._on_goal(Scan.Goal()) == GoalResponse.ACCEPT
-
-
-class _Handle:
-    def __init__(self) -> None:
-        self.request = Scan.Goal(start_steps=0, end_steps=10, step_steps=2)
-        self.is_cancel_requested = False
-        self.ended = ""
-
-    def publish_feedback(self, _fb: Any) -> None:
-        pass
-
-    def abort(self) -> None:
-        self.ended = "aborted"
-
-    def succeed(self) -> None:
-        self.ended = "succeeded"
-
-    def canceled(self) -> None:
-        self.ended = "canceled"
-
