@@ -524,16 +524,18 @@ class Gp32Firmware:
             return {"ok": False, "error": str(exc)}
         return {"ok": True}
 
-    def step_jitter_ms(self, rate: float) -> Tuple[float, int]:
-        """Largest deviation of a pulse interval from 1/rate as the board received them [ms], over
-        the pulse trains of the recorded steps (gaps longer than a stop excluded), and the count."""
+    def step_jitter_ms(self, rate: float, firmware_time: bool = False) -> Tuple[float, int]:
+        """Largest deviation of a pulse interval from 1/rate [ms] over the pulse trains of the
+        recorded steps (gaps longer than a stop excluded), and the number of intervals: as the board
+        received them (wall clock), or in the firmware's own milliseconds (``firmware_time``)."""
         nominal = 1000.0 / rate
         worst, n = 0.0, 0
         steps = list(self.steps)
         for a, b in zip(steps, steps[1:]):
             if b.firmware_ms - a.firmware_ms > _FROM_REST_MS or a.direction != b.direction:
                 continue
-            worst = max(worst, abs((b.wall_s - a.wall_s) * 1000.0 - nominal))
+            interval = b.firmware_ms - a.firmware_ms if firmware_time else (b.wall_s - a.wall_s) * 1000.0
+            worst = max(worst, abs(interval - nominal))
             n += 1
         return worst, n
 
