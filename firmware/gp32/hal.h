@@ -4,9 +4,9 @@
  * hal_sim.c runs under the ucsim HC08 simulator, where a host-side board program supplies the
  * millisecond tick, the received bytes and the sensor pins through the simulator interface.
  *
- * Pins (hal_gp32.c): PTA0 = step pulse, PTA1 = direction (1 = away from the start sensor),
- * PTA2 = laser (1 = on), PTB0 = start sensor, PTB1 = end sensor (1 = beam broken, as the thesis'
- * comparator drives them). After a reset every port is an input, so the laser is off until the
+ * Pins (hal_gp32.c): PTD0 = step pulse, PTD1 = direction (1 = away from the start sensor),
+ * PTD2 = laser (1 = on), PTB0 = start sensor, PTB1 = end sensor (1 = beam broken, as the thesis'
+ * comparator drives them). PTA0 stays free for the monitor mode's serial line. After a reset every port is an input, so the laser is off until the
  * firmware switches it on.
  */
 #ifndef LSU_HAL_H

@@ -50,9 +50,10 @@
 #error "LSU_BAUD must be 9600 or 115200"
 #endif
 
-#define STEP_BIT 0x01u    /* PTA0 */
-#define DIR_BIT 0x02u     /* PTA1 */
-#define LASER_BIT 0x04u   /* PTA2 */
+/* outputs on port D: PTA0 is the monitor mode's serial line, so the step line stays off it */
+#define STEP_BIT 0x01u    /* PTD0 */
+#define DIR_BIT 0x02u     /* PTD1 */
+#define LASER_BIT 0x04u   /* PTD2 */
 #define SENSOR_START_BIT 0x01u  /* PTB0 */
 #define SENSOR_END_BIT 0x02u    /* PTB1 */
 
@@ -70,8 +71,8 @@ void hal_init(void)
 {
     CONFIG2 = 0x00;            /* write-once: defaults */
     CONFIG1 = 0x00;            /* write-once: COP on (2^18 - 2^4 crystal cycles: 8 s at 32.768 kHz), LVI on */
-    PTA = 0;                   /* step low, laser off before the pins become outputs */
-    DDRA = STEP_BIT | DIR_BIT | LASER_BIT;
+    PTD = 0;                   /* step low, laser off before the pins become outputs */
+    DDRD = STEP_BIT | DIR_BIT | LASER_BIT;
     DDRB = 0;                  /* sensors are inputs */
 
     PCTL = 0;                  /* PLL off while it is programmed */
@@ -132,25 +133,25 @@ void hal_sci_putc(uint8_t c)
 void hal_step_dir(uint8_t forward)
 {
     if (forward)
-        PTA |= DIR_BIT;
+        PTD |= DIR_BIT;
     else
-        PTA &= (uint8_t)~DIR_BIT;
+        PTD &= (uint8_t)~DIR_BIT;
 }
 
 void hal_step_pulse(void)
 {
     /* the SAA1027 needs a pulse of a few microseconds: several bus cycles of 136 ns */
-    PTA |= STEP_BIT;
+    PTD |= STEP_BIT;
     __asm__("nop\n nop\n nop\n nop\n nop\n nop\n nop\n nop");
-    PTA &= (uint8_t)~STEP_BIT;
+    PTD &= (uint8_t)~STEP_BIT;
 }
 
 void hal_laser(uint8_t on)
 {
     if (on)
-        PTA |= LASER_BIT;
+        PTD |= LASER_BIT;
     else
-        PTA &= (uint8_t)~LASER_BIT;
+        PTD &= (uint8_t)~LASER_BIT;
 }
 
 uint8_t hal_sensors(void)
