@@ -31,6 +31,7 @@ import re
 import select
 import shutil
 import subprocess
+import tempfile
 import termios
 import threading
 import time
@@ -266,7 +267,10 @@ class Gp32Firmware:
         if self._sim is not None:
             self._sim.kill()
             self._sim.wait(timeout=5)
+            if self._sim.stdin is not None:
+                self._sim.stdin.close()
             self._sim = None
+            self._sim_stderr.close()
 
     def _power_on(self) -> None:
         """(Re)start the simulator: the firmware starts from its reset vector with the pins low."""
@@ -282,8 +286,11 @@ class Gp32Firmware:
             init = firmware_dir() / "ucsim.cmd"
             cmd = ["shc08", "-C", str(init), "-I", f"if=rom[0x{SIF_ADDRESS:x}],in={in_path},out={out_path}",
                    "-G", str(self.image)]
+            # stdin stays open (ucsim's console quits on end of input); stderr to a file, never a pipe
+            # that could fill up and stop the simulator
+            self._sim_stderr = tempfile.TemporaryFile()
             self._sim = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                         stderr=subprocess.PIPE, start_new_session=True)
+                                         stderr=self._sim_stderr, start_new_session=True)
             self._write_sim(bytes([IN_SENSORS | self._sensors]))
 
     # ---------------------------------------------------------------------------- physics
@@ -439,7 +446,8 @@ class Gp32Firmware:
                 self._fw_ms += n
                 due -= n
             if self._sim is not None and self._sim.poll() is not None and self._running:
-                err = self._sim.stderr.read().decode(errors="replace") if self._sim.stderr else ""
+                self._sim_stderr.seek(0)
+                err = self._sim_stderr.read().decode(errors="replace")
                 self.log.append(f"! simulator exited ({self._sim.returncode}): {err.strip()[-300:]}")
                 self._sim = None
 
