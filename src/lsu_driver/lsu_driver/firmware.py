@@ -32,7 +32,6 @@ import select
 import shutil
 import subprocess
 import tempfile
-import termios
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -226,11 +225,6 @@ class Gp32Firmware:
             raise FirmwareUnavailable(reason)
         if not self.image.exists():
             raise FirmwareUnavailable(f"no firmware image {self.image}: run `lsu gp32 firmware build` first")
-        in_master, in_slave, in_path = open_pty(None)
-        out_master, out_slave, out_path = open_pty(None)
-        self._sim_fds = [in_master, in_slave, out_master, out_slave]
-        self._sim_in, self._sim_out = in_master, out_master
-        self._sim_paths = (in_path, out_path)
         self._master, self._slave, self.device_path = open_pty(self.link)
         self._running = True
         self._power_on()
@@ -256,6 +250,9 @@ class Gp32Firmware:
         self._stop_sim()
         close_pty(self._master, self._slave, self.link, self.device_path)
         self._master = self._slave = None
+        self._close_sim_link()
+
+    def _close_sim_link(self) -> None:
         for fd in self._sim_fds:
             try:
                 os.close(fd)
@@ -276,13 +273,16 @@ class Gp32Firmware:
         """(Re)start the simulator: the firmware starts from its reset vector with the pins low."""
         with self._lock:
             self._stop_sim()
-            for fd in (self._sim_in, self._sim_out):
-                termios.tcflush(fd, termios.TCIOFLUSH)
+            # a fresh link: bytes the old instance left unread (ticks!) must not reach the new one
+            self._close_sim_link()
+            in_master, in_slave, in_path = open_pty(None)
+            out_master, out_slave, out_path = open_pty(None)
+            self._sim_fds = [in_master, in_slave, out_master, out_slave]
+            self._sim_in, self._sim_out = in_master, out_master
             self._reset_board_state()
             self.boot_count += 1
             self._booted.clear()
             self._line = b""
-            in_path, out_path = self._sim_paths
             init = firmware_dir() / "ucsim.cmd"
             cmd = ["shc08", "-C", str(init), "-I", f"if=rom[0x{SIF_ADDRESS:x}],in={in_path},out={out_path}",
                    "-G", str(self.image)]
@@ -426,9 +426,12 @@ class Gp32Firmware:
         with self._lock:
             next_tick = self._t0 + self._fw_ms / 1000.0 + TICK_PERIOD_S
         timeout = max(0.0, next_tick - time.monotonic())
-        fds = [fd for fd in (self._master, self._sim_out) if fd is not None]
+        with self._lock:
+            fds = [fd for fd in (self._master, self._sim_out) if fd is not None and fd >= 0]
         readable, _, _ = select.select(fds, [], [], timeout)
         with self._lock:
+            if self._sim_out not in fds:
+                return  # power-cycled meanwhile: the link changed
             now = time.monotonic()
             if self._master is not None and self._master in readable:
                 try:
