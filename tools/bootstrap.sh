@@ -2,7 +2,7 @@
 # Bootstrap the LSU workspace on a bare Debian 12 + Python 3.11 machine (run by `make setup`).
 #
 # Steps (each skipped when its inputs did not change, so a second run takes seconds):
-#   1. system packages (apt, only what wheels cannot give: compiler, cmake, venv, libusb)
+#   1. system packages (apt, only what wheels cannot give: compiler, cmake, venv, libusb, sdcc + ucsim)
 #   2. .venv with the pinned requirements.lock
 #   3. path fixes in the ROS wheels' cmake files (they name the wheel builder's Python)
 #   4. colcon build of src/lsu_interfaces straight into .venv (no sourcing needed)
@@ -42,6 +42,9 @@ command -v make >/dev/null || missing+=(make)
 "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 # open3d needs libusb-1.0.so.0 at import time; no wheel ships it
 if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then missing+=(libusb-1.0-0); fi  # no -q: SIGPIPE + pipefail
+# the GP32 firmware: compiler and HC08 simulator (lsu gp32 firmware build|run)
+command -v sdcc >/dev/null || missing+=(sdcc)
+command -v shc08 >/dev/null || missing+=(sdcc-ucsim)
 if [ ${#missing[@]} -gt 0 ]; then
     say "installing Debian packages: ${missing[*]}"
     if [ "$(id -u)" != 0 ]; then

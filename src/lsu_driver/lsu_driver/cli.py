@@ -180,8 +180,46 @@ def cmd_fault(args: argparse.Namespace) -> int:
     return 0 if answer.get("ok") else 1
 
 
+def cmd_firmware_build(args: argparse.Namespace) -> int:
+    from .firmware import FirmwareUnavailable, build
+
+    try:
+        made = build(baud=args.baud)
+    except FirmwareUnavailable as exc:
+        print(f"lsu gp32 firmware build: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"GP32 firmware ({args.baud} baud) in {made.directory}:\n"
+          f"  {made.s19.name}  for the unit (monitor-mode loader), {made.size.flash_bytes} B flash of 32768, "
+          f"{made.size.ram_bytes} B RAM of 512 (+{made.size.stack_bytes} B stack)\n"
+          f"  {made.hex.name}  the same as Intel HEX\n"
+          f"  {made.sim_image.name}  for the simulator (lsu gp32 firmware run)")
+    return 0
+
+
+def cmd_firmware_run(args: argparse.Namespace) -> int:
+    from .firmware import FirmwareUnavailable, Gp32Firmware, build
+
+    config = EmulatorConfig(track_steps=args.track, start_position_steps=args.start_position)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        image = build().sim_image
+        with Gp32Firmware(config, link=args.link, control=args.control or f"{args.link}.ctl", image=image) as unit:
+            print(f"GP32 firmware in the HC08 simulator: {unit.device_path} -> {args.link} "
+                  f"(control {unit.control_path}); Ctrl-C stops", flush=True)
+            try:
+                while not stop.wait(0.2):
+                    pass
+            except KeyboardInterrupt:
+                pass
+    except FirmwareUnavailable as exc:
+        print(f"lsu gp32 firmware run: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
-    """Add `lsu gp32 emulate|send|console|fault`."""
+    """Add `lsu gp32 emulate|send|console|fault|firmware`."""
     gp32 = sub.add_parser("gp32", help="GP32 unit: emulator, console, raw commands, faults").add_subparsers(
         dest="verb", required=True)
     p_em = gp32.add_parser("emulate", help="run a GP32 emulator behind a pty (prints the device path)")
@@ -215,6 +253,18 @@ def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None
     p_fault.add_argument("value", nargs="?", help="bytes / probability / ms / on|off / seconds")
     p_fault.add_argument("--control", default="/tmp/lsu-gp32.ctl", help="control socket (default /tmp/lsu-gp32.ctl)")
     p_fault.set_defaults(func=cmd_fault)
+    p_fw = gp32.add_parser("firmware", help="the unit's own firmware (firmware/gp32): build it, run it in the "
+                                            "HC08 simulator").add_subparsers(dest="fw_verb", required=True)
+    p_fwb = p_fw.add_parser("build", help="compile with SDCC: S19/HEX for the GP32 and the simulator image")
+    p_fwb.add_argument("--baud", type=int, choices=[9600, 115200], default=9600, help="SCI rate of the real unit")
+    p_fwb.set_defaults(func=cmd_firmware_build)
+    p_fwr = p_fw.add_parser("run", help="run the firmware in shc08 with a simulated board behind a pty "
+                                        "(like emulate; use `lsu launch sim unit:=firmware` for /lsu/sim/truth)")
+    p_fwr.add_argument("--link", default="/tmp/lsu-gp32", help="stable symlink to the pty (default /tmp/lsu-gp32)")
+    p_fwr.add_argument("--control", default="", help="control socket for reset/stall/truth (default LINK.ctl)")
+    p_fwr.add_argument("--track", type=int, default=470, help="physical track [steps]")
+    p_fwr.add_argument("--start-position", type=float, default=123.0, help="carriage position at power-on [steps]")
+    p_fwr.set_defaults(func=cmd_firmware_run)
 
 
 __all__: List[str] = ["register"]

@@ -90,6 +90,101 @@ class Truth:
                 * math.cos(2.0 * math.pi * self.vibration_freq_hz * dt))
 
 
+def overstep_gain(config: EmulatorConfig, rate: Optional[float]) -> float:
+    """Travel of one pulse [true steps] at ``rate`` steps/s: 1 below the overstep threshold, rising
+    linearly to 1 + ``overstep_gain_at_max`` at the maximum rate; 1 for ``None`` (from rest)."""
+    if rate is None:
+        return 1.0
+    span = p.RATE_MAX - config.overstep_threshold_steps_per_s
+    x = (rate - config.overstep_threshold_steps_per_s) / span if span > 0 else 0.0
+    return 1.0 + config.overstep_gain_at_max * min(1.0, max(0.0, x))
+
+
+def sensors_at(config: EmulatorConfig, position: float) -> Tuple[bool, bool]:
+    """(start, end) beam broken with the carriage at ``position`` [true steps]."""
+    eps = 1e-6  # 467 pulses x (470/467) must trip the end sensor despite rounding
+    return position <= eps, position >= config.track_steps - eps
+
+
+def pulse_travel(config: EmulatorConfig, position: float, direction: int, rate: Optional[float]) -> float:
+    """The carriage position after one pulse; the sensors at both ends are the mechanical stops."""
+    moved = position + direction * overstep_gain(config, rate)
+    return min(float(config.track_steps), max(0.0, moved))
+
+
+def stop_vibration_amplitude(config: EmulatorConfig, rate: float) -> float:
+    """Residual vibration right after a stop from ``rate`` steps/s [steps]."""
+    return config.vibration_amplitude_steps * rate / 200.0
+
+
+def open_pty(link: Optional[Path]) -> Tuple[int, int, str]:
+    """A raw pty pair (master, slave, slave path); ``link`` (if given) points at the slave."""
+    master, slave = os.openpty()
+    tty.setraw(slave)  # bytes pass unchanged: no echo, no CR/LF translation
+    path = os.ttyname(slave)
+    if link is not None:
+        tmp = link.with_name(link.name + ".tmp")
+        if tmp.is_symlink() or tmp.exists():
+            tmp.unlink()
+        tmp.symlink_to(path)
+        os.replace(tmp, link)  # atomic: a client never sees a missing link during replug
+    return master, slave, path
+
+
+def close_pty(master: Optional[int], slave: Optional[int], link: Optional[Path], path: str) -> None:
+    """Close a pair from `open_pty` and remove ``link`` if it still points at ``path``."""
+    for fd in (master, slave):
+        if fd is not None:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    if link is not None and link.is_symlink() and os.readlink(link) == path:
+        link.unlink()
+
+
+class ControlServer:
+    """A UNIX socket that answers JSON-line requests with ``handler(request)`` (one thread)."""
+
+    def __init__(self, path: Path, handler: Callable[[Dict[str, object]], Dict[str, object]]) -> None:
+        self.path = path
+        self._handler = handler
+        if path.exists() or path.is_symlink():
+            path.unlink()
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.bind(str(path))
+        self._sock.listen(4)
+        self._sock.settimeout(0.2)
+        self._running = True
+        self._thread = threading.Thread(target=self._serve, name="gp32-control", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._running = False
+        self._sock.close()
+        if self.path.exists():
+            self.path.unlink()
+
+    def _serve(self) -> None:
+        while self._running:
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            with conn, conn.makefile("rwb") as stream:
+                for raw in stream:
+                    try:
+                        request = json.loads(raw)
+                        answer = self._handler(request) if isinstance(request, dict) else \
+                            {"ok": False, "error": "send one JSON object per line"}
+                    except json.JSONDecodeError as exc:
+                        answer = {"ok": False, "error": f"not JSON: {exc}"}
+                    stream.write((json.dumps(answer) + "\n").encode())
+                    stream.flush()
+
+
 @dataclass
 class _Motion:
     kind: str                    # "goto", "move", "home", "sweep"
@@ -120,8 +215,7 @@ class Gp32Emulator:
         self._rng = random.Random(self.faults.seed)
         self._running = False
         self._thread: Optional[threading.Thread] = None
-        self._control_thread: Optional[threading.Thread] = None
-        self._control_sock: Optional[socket.socket] = None
+        self._control: Optional[ControlServer] = None
         self._master: Optional[int] = None
         self._slave: Optional[int] = None
         self.device_path = ""
@@ -161,7 +255,7 @@ class Gp32Emulator:
         self._thread = threading.Thread(target=self._loop, name="gp32-emulator", daemon=True)
         self._thread.start()
         if self.control_path is not None:
-            self._start_control()
+            self._control = ControlServer(self.control_path, self.handle_control)
         return self
 
     def __enter__(self) -> "Gp32Emulator":
@@ -175,52 +269,27 @@ class Gp32Emulator:
         self._running = False
         if self._thread is not None:
             self._thread.join(timeout=2.0)
-        if self._control_sock is not None:
-            self._control_sock.close()
-        if self.control_path is not None and self.control_path.exists():
-            self.control_path.unlink()
+        if self._control is not None:
+            self._control.close()
         self._close_pty()
 
     def _open_pty(self) -> None:
-        master, slave = os.openpty()
-        tty.setraw(slave)  # bytes pass unchanged: no echo, no CR/LF translation
-        self._master, self._slave = master, slave
-        self.device_path = os.ttyname(slave)
-        if self.link is not None:
-            tmp = self.link.with_name(self.link.name + ".tmp")
-            if tmp.is_symlink() or tmp.exists():
-                tmp.unlink()
-            tmp.symlink_to(self.device_path)
-            os.replace(tmp, self.link)  # atomic: a client never sees a missing link during replug
+        self._master, self._slave, self.device_path = open_pty(self.link)
 
     def _close_pty(self) -> None:
-        for fd in (self._master, self._slave):
-            if fd is not None:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        close_pty(self._master, self._slave, self.link, self.device_path)
         self._master = self._slave = None
-        if self.link is not None and self.link.is_symlink() and os.readlink(self.link) == self.device_path:
-            self.link.unlink()
 
     # ---------------------------------------------------------------------------- physics
     def _sensors(self) -> Tuple[bool, bool]:
-        eps = 1e-6  # 467 pulses x (470/467) must trip the end sensor despite rounding
-        return self._true <= eps, self._true >= self.config.track_steps - eps
-
-    def _gain(self, rate: float) -> float:
-        span = p.RATE_MAX - self.config.overstep_threshold_steps_per_s
-        x = (rate - self.config.overstep_threshold_steps_per_s) / span if span > 0 else 0.0
-        return 1.0 + self.config.overstep_gain_at_max * min(1.0, max(0.0, x))
+        return sensors_at(self.config, self._true)
 
     def _pulse(self, motion: _Motion) -> Optional[int]:
         """One step pulse; returns the sensor (0/1) that tripped in the direction of travel."""
         self.counter += motion.direction
         motion.sent += 1
         if not self.faults.stalled:
-            self._true += motion.direction * self._gain(motion.rate)
-            self._true = min(float(self.config.track_steps), max(0.0, self._true))  # the sensors are the stops
+            self._true = pulse_travel(self.config, self._true, motion.direction, motion.rate)
         at_start, at_end = self._sensors()
         tripped = None
         if at_start and not self._at_start:
@@ -240,7 +309,7 @@ class Gp32Emulator:
         self._velocity = 0.0
         if motion is not None:
             self._stopped_at_wall = time.time()
-            self._vib_amp = self.config.vibration_amplitude_steps * motion.rate / 200.0
+            self._vib_amp = stop_vibration_amplitude(self.config, motion.rate)
         if done:
             self._send(p.Done(self.counter))
 
@@ -534,38 +603,6 @@ class Gp32Emulator:
             return {"ok": False, "error": str(exc)}
         return {"ok": True}
 
-    def _start_control(self) -> None:
-        assert self.control_path is not None
-        if self.control_path.exists() or self.control_path.is_symlink():
-            self.control_path.unlink()
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        sock.bind(str(self.control_path))
-        sock.listen(4)
-        sock.settimeout(0.2)
-        self._control_sock = sock
-        self._control_thread = threading.Thread(target=self._serve_control, name="gp32-control", daemon=True)
-        self._control_thread.start()
-
-    def _serve_control(self) -> None:
-        assert self._control_sock is not None
-        while self._running:
-            try:
-                conn, _ = self._control_sock.accept()
-            except socket.timeout:
-                continue
-            except OSError:
-                return
-            with conn, conn.makefile("rwb") as stream:
-                for raw in stream:
-                    try:
-                        request = json.loads(raw)
-                        answer = self.handle_control(request) if isinstance(request, dict) else \
-                            {"ok": False, "error": "send one JSON object per line"}
-                    except json.JSONDecodeError as exc:
-                        answer = {"ok": False, "error": f"not JSON: {exc}"}
-                    stream.write((json.dumps(answer) + "\n").encode())
-                    stream.flush()
-
 
 def send_control(path: str, request: Dict[str, object], timeout_s: float = 5.0) -> Dict[str, object]:
     """Send one request to an emulator's control socket and return its answer."""
@@ -582,4 +619,5 @@ def send_control(path: str, request: Dict[str, object], timeout_s: float = 5.0) 
     return json.loads(data)
 
 
-__all__ = ["EmulatorConfig", "Faults", "Gp32Emulator", "Truth", "send_control"]
+__all__ = ["ControlServer", "EmulatorConfig", "Faults", "Gp32Emulator", "Truth", "close_pty", "open_pty",
+           "overstep_gain", "pulse_travel", "send_control", "sensors_at", "stop_vibration_amplitude"]

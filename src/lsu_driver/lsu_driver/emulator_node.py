@@ -1,8 +1,10 @@
-"""`gp32_emulator` node: the GP32 emulator plus its ground truth on ``sim/truth``.
+"""`gp32_emulator` node: a simulated GP32 unit plus its ground truth on ``sim/truth``.
 
-The serial side is the emulator's pty (a stable symlink at ``link``); the ROS side only
-publishes what really happens (true position, vibration, laser) for the simulated cameras,
-and accepts faults on its UNIX control socket (`lsu gp32 fault`).
+``unit`` chooses what answers on the serial side: the Python emulator, or the unit's own
+firmware (firmware/gp32) running in the HC08 simulator behind the host-side board. The serial
+side is a pty (a stable symlink at ``link``); the ROS side only publishes what really happens
+(true position, vibration, laser) for the simulated cameras, and accepts faults on its UNIX
+control socket (`lsu gp32 fault`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from lsu_interfaces.msg import SimTruth
 
 from .emulator import EmulatorConfig, Faults, Gp32Emulator, Truth
+from .firmware import Gp32Firmware, build
 
 
 def _stamp(seconds: float) -> Time:
@@ -48,7 +51,7 @@ def truth_to_msg(truth: Truth) -> SimTruth:
 
 
 class Gp32EmulatorNode(Node):
-    """Runs a `Gp32Emulator` and publishes its truth."""
+    """Runs a `Gp32Emulator` or a `Gp32Firmware` and publishes its truth."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("gp32_emulator", **{"namespace": "/lsu", **kwargs})
@@ -56,6 +59,10 @@ class Gp32EmulatorNode(Node):
         def declare(name: str, default: Any, description: str) -> Any:
             return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
 
+        unit = self.declare_parameter("unit", "emulator", ParameterDescriptor(
+            description="emulator (Python) | firmware (firmware/gp32 in the HC08 simulator)", read_only=True)).value
+        if unit not in ("emulator", "firmware"):
+            raise ValueError(f"unit must be 'emulator' or 'firmware', not '{unit}'")
         link = declare("link", "/tmp/lsu-gp32", "stable symlink to the emulated serial port (what the driver opens)")
         control = declare("control", "", "UNIX socket for run-time faults; empty = <link>.ctl")
         defaults = EmulatorConfig()
@@ -87,11 +94,22 @@ class Gp32EmulatorNode(Node):
         # its velocity and a resting one from its vibration model, so a fast stream would only cost CPU
         # in every subscriber (200 Hz took a fifth of a core per reader).
         self._changed = self.create_guard_condition(self._publish)
-        self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
+        if unit == "firmware":
+            if faults.garbage_probability or faults.drop_probability or faults.reply_delay_s:
+                raise ValueError("the firmware unit simulates no serial-line faults (garbage, drop, late); "
+                                 "set them to 0 or use unit:=emulator")
+            if config.rate_steps_per_s != 200 or config.watchdog_ms != 2000:
+                raise ValueError("the firmware's power-on rate (200 steps/s) and watchdog (2000 ms) are compiled "
+                                 "in (firmware/gp32/lsu.c); leave rate_steps_per_s and watchdog_ms at their "
+                                 "defaults with unit:=firmware, and send S/W commands instead")
+            image = build().sim_image  # make: a no-op when the image is up to date
+            self.emulator = Gp32Firmware(config, faults, link=link, control=control or f"{link}.ctl", image=image)
+        else:
+            self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
         self.emulator.on_change = self._on_change
         self.emulator.start()
         self.timer = self.create_timer(1.0 / rate_hz, self._periodic)
-        self.get_logger().info(f"GP32 emulator on {self.emulator.device_path} (link {link}, control "
+        self.get_logger().info(f"GP32 {unit} on {self.emulator.device_path} (link {link}, control "
                                f"{self.emulator.control_path})")
 
     def _on_change(self) -> None:

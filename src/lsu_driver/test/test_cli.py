@@ -19,3 +19,10 @@ def test_send_to_a_missing_port_is_one_line(tmp_path, lsu_cli):
     result = lsu_cli("gp32", "send", str(tmp_path / "none"), "?", timeout=60)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "lsu gp32 emulate" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_firmware_build_names_the_images_and_their_size(firmware_build, lsu_cli):
+    result = lsu_cli("gp32", "firmware", "build", timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "lsu-gp32.s19" in result.stdout and "lsu-gp32-sim.ihx" in result.stdout
+    assert f"{firmware_build.size.flash_bytes} B flash of 32768" in result.stdout

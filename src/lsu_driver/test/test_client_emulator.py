@@ -1,4 +1,5 @@
-"""Gp32Client against the emulator over a real pty: motion, physics and every serial fault."""
+"""Gp32Client over a real pty against both units (the emulator and the firmware in the HC08
+simulator): motion and physics; and every serial fault against the emulator."""
 
 import os
 import threading
@@ -28,77 +29,85 @@ def client(emulator):
     c.close()
 
 
-def test_home_learns_the_track_and_move_to_takes_real_time(client, emulator):
-    assert client.identity.version == 1 and not client.homed
-    assert client.home() == 470
+@pytest.fixture
+def unit_client(unit):
+    c = Gp32Client(str(unit.link), command_timeout_s=1.0)
+    c.connect()
+    yield c
+    c.close()
+
+
+def test_home_learns_the_track_and_move_to_takes_real_time(unit_client, unit):
+    assert unit_client.identity.version == 1 and not unit_client.homed
+    assert unit_client.home() == 470
     t0 = time.monotonic()
-    result = client.move_to(235)
+    result = unit_client.move_to(235)
     elapsed = time.monotonic() - t0
     assert result.reached and result.position == 235
     assert elapsed >= 235 / 200  # steps / rate: motion takes real time
-    assert abs(emulator.truth().position_steps - 235) < 0.5
+    assert abs(unit.truth().position_steps - 235) < 0.5
 
 
-def test_high_speed_oversteps_like_the_thesis_and_rehoming_restores(client, emulator):
-    client.set_rate(400)
-    assert client.home() == 467  # thesis ch. 3.2.3: 467 pulses instead of 470 at high speed
-    client.set_rate(200)
-    assert client.home() == 470
-    client.set_rate(400)
-    result = client.move_to(470)  # counter believes 470 is reachable; the carriage gets there early
+def test_high_speed_oversteps_like_the_thesis_and_rehoming_restores(unit_client, unit):
+    unit_client.set_rate(400)
+    assert unit_client.home() == 467  # thesis ch. 3.2.3: 467 pulses instead of 470 at high speed
+    unit_client.set_rate(200)
+    assert unit_client.home() == 470
+    unit_client.set_rate(400)
+    result = unit_client.move_to(470)  # counter believes 470 is reachable; the carriage gets there early
     assert not result.reached and result.end_sensor == 1
     assert 466 <= result.position <= 469
-    assert emulator.truth().position_steps == pytest.approx(470.0)
-    client.set_rate(200)
-    assert client.home() == 470 and client.status().position == 0
+    assert unit.truth().position_steps == pytest.approx(470.0)
+    unit_client.set_rate(200)
+    assert unit_client.home() == 470 and unit_client.status().position == 0
 
 
-def test_watchdog_switches_the_laser_off_when_the_host_falls_silent(client, emulator):
-    client.set_watchdog(300)
-    client.laser(True)
-    assert emulator.truth().laser_on
+def test_watchdog_switches_the_laser_off_when_the_host_falls_silent(unit_client, unit):
+    unit_client.set_watchdog(300)
+    unit_client.laser(True)
+    assert unit.truth().laser_on
     time.sleep(0.6)
-    assert not emulator.truth().laser_on
-    assert any(isinstance(e, p.WatchdogFired) for e in client.recent_events())
+    assert not unit.truth().laser_on
+    assert any(isinstance(e, p.WatchdogFired) for e in unit_client.recent_events())
 
 
-def test_moves_need_homing_and_the_range(client):
+def test_moves_need_homing_and_the_range(unit_client):
     with pytest.raises(DeviceError) as info:
-        client.move_to(100)
+        unit_client.move_to(100)
     assert info.value.code == p.ERR_NOT_HOMED and "home the carriage first" in str(info.value)
-    client.home()
+    unit_client.home()
     with pytest.raises(DeviceError) as info:
-        client.move_to(600)
+        unit_client.move_to(600)
     assert info.value.code == p.ERR_RANGE
 
 
-def test_stop_preempts_a_running_move_and_busy_is_reported(client, emulator):
-    client.home()
-    client.set_rate(100)
+def test_stop_preempts_a_running_move_and_busy_is_reported(unit_client, unit):
+    unit_client.home()
+    unit_client.set_rate(100)
     outcome = {}
-    mover = threading.Thread(target=lambda: outcome.setdefault("r", client.move_to(400)))
+    mover = threading.Thread(target=lambda: outcome.setdefault("r", unit_client.move_to(400)))
     mover.start()
     time.sleep(0.3)
     with pytest.raises(DeviceError) as info:
-        client.move_to(10)
+        unit_client.move_to(10)
     assert info.value.code == p.ERR_BUSY
-    client.stop()
+    unit_client.stop()
     mover.join(timeout=5)
     result = outcome["r"]
     assert not result.reached and 10 < result.position < 100
-    assert not emulator.truth().moving
+    assert not unit.truth().moving
 
 
-def test_sweep_runs_between_the_sensors_until_stopped(client, emulator):
-    client.set_rate(400)
-    client.sweep()
+def test_sweep_runs_between_the_sensors_until_stopped(unit_client, unit):
+    unit_client.set_rate(400)
+    unit_client.sweep()
     deadline = time.monotonic() + 4
     while time.monotonic() < deadline and not any(isinstance(e, p.EndSensor) and e.which == 1
-                                                  for e in client.recent_events()):
+                                                  for e in unit_client.recent_events()):
         time.sleep(0.05)
-    client.stop()
-    ends = [e.which for e in client.recent_events() if isinstance(e, p.EndSensor)]
-    assert 1 in ends and not emulator.truth().moving
+    unit_client.stop()
+    ends = [e.which for e in unit_client.recent_events() if isinstance(e, p.EndSensor)]
+    assert 1 in ends and not unit.truth().moving
 
 
 @pytest.mark.fault('serial: garbage bytes')

@@ -1,0 +1,111 @@
+"""Protocol v1 line by line on both units (emulator and firmware in the HC08 simulator): the
+replies the protocol page prescribes for every command form, error codes, over-long lines and
+the power-on ``!BOOT``. Expected lines come from the protocol module's own encoder."""
+
+from __future__ import annotations
+
+import time
+from typing import List
+
+import pytest
+import serial
+
+from lsu_driver import protocol as p
+
+
+class Line:
+    """A raw serial connection: send one command, collect the lines that follow."""
+
+    def __init__(self, path: str) -> None:
+        self.port = serial.Serial(path, 115200, timeout=0.05)
+        self.buffer = b""
+        self.since_command: List[bytes] = []  # every line since the last command was sent
+
+    def read_lines(self, until: float) -> List[bytes]:
+        lines = []
+        while time.monotonic() < until:
+            self.buffer += self.port.read(max(1, self.port.in_waiting))
+            while b"\n" in self.buffer:
+                raw, self.buffer = self.buffer.split(b"\n", 1)
+                lines.append(raw + b"\n")
+        self.since_command += lines
+        return lines
+
+    def ask(self, command: bytes, settle_s: float = 0.4) -> List[bytes]:
+        """The lines within ``settle_s`` after sending ``command``."""
+        self.since_command = []
+        self.port.write(command)
+        return self.read_lines(time.monotonic() + settle_s)
+
+    def wait_for(self, wanted: bytes, timeout_s: float) -> List[bytes]:
+        """Every line since the last command, once ``wanted`` is among them (or the timeout passed)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and wanted not in self.since_command:
+            self.read_lines(time.monotonic() + 0.05)
+        return self.since_command
+
+
+@pytest.fixture
+def line(unit):
+    connection = Line(str(unit.link))
+    connection.read_lines(time.monotonic() + 0.2)  # a !BOOT from the power-on, if it came late
+    yield connection
+    connection.port.close()
+
+
+def err(code: int) -> bytes:
+    return p.encode_line(p.Err(code, p.ERROR_TEXT[code]))
+
+
+def test_identify_status_and_settings_answer_exactly_as_the_protocol_page(line):
+    assert line.ask(b"?\n") == [p.encode_line(p.Ok(p.format_identify(p.IdentifyInfo(1, 470, 200))))]
+    assert line.ask(b"p\r\n") == [p.encode_line(p.Ok(p.format_status(
+        p.StatusInfo(0, False, False, False, False, False))))]  # case-insensitive, CR ignored
+    assert line.ask(b"  S350 \n") == [b"OK S350\n"]
+    assert line.ask(b"W0\n") == [b"OK W0\n"]
+    assert line.ask(b"L1\n") == [b"OK L1\n"]
+    assert line.ask(b"?\n") == [b"OK LSU-GP32 v1 track=470 speed=350\n"]
+    assert line.ask(b"L0\n") == [b"OK L0\n"]
+
+
+@pytest.mark.parametrize("command, code", [
+    (b"Z\n", p.ERR_UNKNOWN), (b"PX\n", p.ERR_UNKNOWN), (b"\xe9\n", p.ERR_UNKNOWN), (b" \n", p.ERR_UNKNOWN),
+    (b"Gx\n", p.ERR_ARGUMENT), (b"L2\n", p.ERR_ARGUMENT), (b"S900\n", p.ERR_ARGUMENT), (b"S19\n", p.ERR_ARGUMENT),
+    (b"M0\n", p.ERR_ARGUMENT), (b"W60001\n", p.ERR_ARGUMENT), (b"M+1234567\n", p.ERR_ARGUMENT),
+    (b"G-4\n", p.ERR_RANGE), (b"G100\n", p.ERR_NOT_HOMED),
+])
+def test_bad_commands_get_their_error_code(line, command, code):
+    if code == p.ERR_NOT_HOMED:
+        assert p.parse_command(command) == p.GoTo(100)
+    else:  # the protocol module's parser agrees on the code
+        with pytest.raises(p.CommandError) as info:
+            p.parse_command(command)
+        assert info.value.code == code
+    assert line.ask(command) == [err(code)]
+
+
+def test_over_long_lines_get_one_error_and_the_next_line_works(line):
+    assert line.ask(b"P" * 32 + b"\n") == [err(p.ERR_UNKNOWN)]  # 32 characters: a command, just not a known one
+    assert line.ask(b"P" * 33 + b"\n") == [err(p.ERR_TOO_LONG)]
+    assert line.ask(b"M+1" + b" " * 100 + b"\n") == [err(p.ERR_TOO_LONG)]
+    assert line.ask(b"P\n")[0].startswith(b"OK P0 ")
+
+
+def test_moves_report_done_and_the_end_sensor(line, unit):
+    assert line.ask(b"M-5\n", 0.2)[0] == b"OK\n"
+    assert line.wait_for(b"!DONE -5\n", 3.0) == [b"OK\n", b"!DONE -5\n"]
+    assert line.ask(b"M-30\n", 0.1)[0] == b"OK\n"  # the carriage started at 20: the start sensor stops it
+    seen = line.wait_for(b"!DONE -20\n", 3.0)  # 15 pulses to the sensor
+    assert seen == [b"OK\n", b"!END 0\n", b"!DONE -20\n"], seen
+    assert line.ask(b"M-1\n") == [err(p.ERR_END_SENSOR)]
+    assert unit.truth().position_steps == pytest.approx(0.0)
+
+
+def test_power_cycle_announces_boot_and_forgets_position(line, unit):
+    assert line.ask(b"M+5\n", 0.1)[0] == b"OK\n"
+    assert line.wait_for(b"!DONE 5\n", 3.0) == [b"OK\n", b"!DONE 5\n"]
+    line.since_command = []
+    unit.reset()
+    assert line.wait_for(b"!BOOT LSU-GP32 v1\n", 5.0) == [b"!BOOT LSU-GP32 v1\n"]
+    assert line.ask(b"P\n") == [b"OK P0 L0 M0 E00 H0\n"]
+    assert unit.truth().position_steps == pytest.approx(25.0, abs=0.01)  # the carriage did not move
