@@ -30,7 +30,7 @@ __all__ = [
     "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
     "CalibrationSwappedError", "CalibrationInconsistentError", "CameraCalibration", "StereoCalibration",
     "CalibrationSet", "skew", "fundamental_from", "rectify", "read_camera_yaml", "read_stereo_yaml",
-    "read_calibration_dir", "write_calibration_dir", "camera_to_dict", "stereo_to_dict",
+    "read_calibration_dir", "write_calibration_dir", "calibration_checksum", "camera_to_dict", "stereo_to_dict",
 ]
 
 # distortion models of sensor_msgs/CameraInfo that OpenCV evaluates, and their coefficient counts
@@ -380,8 +380,20 @@ def read_calibration_dir(directory: os.PathLike | str) -> CalibrationSet:
                                          stereo.translation, stereo.essential, stereo.fundamental, str(paths[2]))
     if stereo.fundamental is None:
         stereo.fundamental = F
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in paths)).hexdigest()[:16]
-    return CalibrationSet(left, right, stereo, digest, str(directory))
+    return CalibrationSet(left, right, stereo, calibration_checksum(directory), str(directory))
+
+
+def calibration_checksum(directory: os.PathLike | str) -> str:
+    """The calibration's id: first 16 hex digits of the SHA-256 over left.yaml, right.yaml and
+    stereo.yaml (those present); '' when none is."""
+    digest = hashlib.sha256()
+    found = False
+    for name in ("left.yaml", "right.yaml", "stereo.yaml"):
+        path = Path(directory) / name
+        if path.is_file():
+            digest.update(path.read_bytes())
+            found = True
+    return digest.hexdigest()[:16] if found else ""
 
 
 # ---------------------------------------------------------------------- writing
