@@ -112,6 +112,7 @@ class StereoCameraNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._lock = threading.Lock()
+        self._publish_lock = threading.Lock()
         self._truth_lock = threading.Lock()
         self._truth_msg: Optional[SimTruth] = None
         self.source: Optional[StereoSource] = None
@@ -281,12 +282,16 @@ class StereoCameraNode(Node):
         return t
 
     def _publish_pair(self, left: Image, right: Image) -> None:
-        if self._info is not None:  # info first: whoever holds an image can already know its camera
-            for pub, info, image in ((self.pub_info_left, self._info[0], left), (self.pub_info_right, self._info[1], right)):
-                info.header = image.header
-                pub.publish(info)
-        self.pub_left.publish(left)
-        self.pub_right.publish(right)
+        # one pair at a time: the capture service and the preview timer may run in parallel (`lsu run`),
+        # and the camera_info messages are reused with each pair's header
+        with self._publish_lock:
+            if self._info is not None:  # info first: whoever holds an image can already know its camera
+                for pub, info, image in ((self.pub_info_left, self._info[0], left),
+                                         (self.pub_info_right, self._info[1], right)):
+                    info.header = image.header
+                    pub.publish(info)
+            self.pub_left.publish(left)
+            self.pub_right.publish(right)
 
     def _on_capture(self, request: CaptureStereo.Request, response: CaptureStereo.Response) -> CaptureStereo.Response:
         timeout = float(request.timeout_s) if request.timeout_s > 0 else float(self.get_parameter("capture_timeout_s").value)
