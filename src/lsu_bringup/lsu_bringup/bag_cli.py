@@ -404,8 +404,8 @@ def cmd_play(args: argparse.Namespace) -> int:
             raise BagError(f"--expect {item}: give TOPIC=N with N >= 1, e.g. --expect /lsu/scan/events=2")
         expect[topic] = int(count)
     with _RosSession("lsu_bag_player") as ros:
-        player = BagPlayer(ros.node, args.bag, topics=args.topics, exclude=args.exclude, rate=args.rate, loop=args.loop,
-                           wait_subscribers_s=args.wait_subscribers, expect=expect, log=_say)
+        player = BagPlayer(ros.node, args.bag, topics=args.topics, exclude=args.exclude, rate=args.rate,
+                           loop=args.loop, wait_subscribers_s=args.wait_subscribers, expect=expect, log=_say)
         _say(f"playing {args.bag}: {len(player.topics)} topic(s)"
              f"{f' ({len(player.skipped)} skipped)' if player.skipped else ''} at rate {args.rate:g}"
              f"{', looping' if args.loop else ''}; Ctrl-C stops")

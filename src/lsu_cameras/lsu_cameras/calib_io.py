@@ -129,9 +129,8 @@ def skew(v: np.ndarray) -> np.ndarray:
 def fundamental_from(left: CameraCalibration, right: CameraCalibration, rotation: np.ndarray,
                      translation: np.ndarray) -> np.ndarray:
     """F for undistorted pixels, x_right^T F x_left = 0, scaled so that ||F|| = 1."""
-    E = skew(translation) @ np.asarray(rotation).reshape(3, 3)
-    F = np.linalg.inv(right.camera_matrix).T @ E @ np.linalg.inv(left.camera_matrix)
-    return F / np.linalg.norm(F)
+    return check_epipolar(left.camera_matrix, right.camera_matrix, np.asarray(rotation, dtype=np.float64).reshape(3, 3),
+                          np.asarray(translation, dtype=np.float64).reshape(3), None, None, "")[1]
 
 
 def rectify(left: CameraCalibration, right: CameraCalibration, stereo: StereoCalibration,

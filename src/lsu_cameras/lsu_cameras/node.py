@@ -1,10 +1,11 @@
 """The ``stereo_camera`` node: a camera source on the ROS graph.
 
 Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair) and with every image its
-``stereo/{left,right}/camera_info`` (same header, same QoS, as ROS camera drivers do), ``stereo/extrinsics``
-(transient-local), ``/tf_static`` (the rig frames of the calibration, see `lsu_cameras.frames`), serves ``stereo/capture`` (a fresh pair, published and/or
-returned) and optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth``
-(the GP32 emulator) and falls back to the ``carriage_position_steps`` parameter without it.
+``stereo/{left,right}/camera_info`` (same header, same QoS, as ROS camera drivers do),
+``stereo/extrinsics`` and ``/tf_static`` (the rig frames of the calibration, see `lsu_cameras.frames`;
+both transient-local), serves ``stereo/capture`` (a fresh pair, published and/or returned) and
+optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth`` (the GP32
+emulator) and falls back to the ``carriage_position_steps`` parameter without it.
 """
 
 from __future__ import annotations
