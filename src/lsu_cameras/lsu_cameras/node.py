@@ -356,11 +356,14 @@ class StereoCameraNode(Node):
 def main(args: Optional[List[str]] = None) -> None:
     """Console script ``stereo_camera``."""
     rclpy.init(args=args)
-    node = StereoCameraNode()
+    node: Optional[StereoCameraNode] = None
     try:
+        # built inside the try: opening the simulated rig takes seconds, and a Ctrl-C meanwhile is a normal end
+        node = StereoCameraNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
