@@ -5,7 +5,7 @@
 #   1. system packages (apt, only what wheels cannot give: compiler, cmake, venv, libusb, sdcc + ucsim)
 #   2. .venv with the pinned requirements.lock
 #   3. path fixes in the ROS wheels' cmake files (they name the wheel builder's Python)
-#   4. colcon build of src/lsu_interfaces straight into .venv (no sourcing needed)
+#   4. colcon build of src/lsu_interfaces and src/tf2_msgs (not on PyPI) straight into .venv (no sourcing needed)
 #   5. editable installs of the ament_python packages (node executables in .venv/bin)
 set -euo pipefail
 
@@ -90,20 +90,20 @@ fi
 
 # ---------------------------------------------------------------- 4. lsu_interfaces
 step="build lsu_interfaces"
-if_hash="$(inputs_hash src/lsu_interfaces requirements.lock)"
-if ! stamp_ok interfaces "$if_hash" || ! "$VENV/bin/python" -c 'import lsu_interfaces.msg' 2>/dev/null; then
-    say "building lsu_interfaces with colcon into .venv (~45 s)"
+if_hash="$(inputs_hash src/lsu_interfaces src/tf2_msgs requirements.lock)"
+if ! stamp_ok interfaces "$if_hash" || ! "$VENV/bin/python" -c 'import lsu_interfaces.msg, tf2_msgs.msg' 2>/dev/null; then
+    say "building lsu_interfaces and tf2_msgs with colcon into .venv (~60 s)"
     mkdir -p "$ROOT/log"
     if ! env -i HOME="${HOME:-/root}" PATH="$VENV/bin:/usr/local/bin:/usr/bin:/bin" LANG=C.UTF-8 \
         VIRTUAL_ENV="$VENV" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" \
-        "$VENV/bin/colcon" --log-base "$ROOT/log" build --base-paths "$ROOT/src/lsu_interfaces" \
+        "$VENV/bin/colcon" --log-base "$ROOT/log" build --base-paths "$ROOT/src/lsu_interfaces" "$ROOT/src/tf2_msgs" \
         --build-base "$ROOT/build" --merge-install --install-base "$VENV" \
-        --packages-select lsu_interfaces --event-handlers console_cohesion- summary- > "$ROOT/log/interfaces-build.txt" 2>&1; then
+        --packages-select lsu_interfaces tf2_msgs --event-handlers console_cohesion- summary- > "$ROOT/log/interfaces-build.txt" 2>&1; then
         tail -n 30 "$ROOT/log/interfaces-build.txt" >&2 || true
         fail "colcon build of lsu_interfaces failed (full log: log/interfaces-build.txt)" \
              "fix the .msg/.srv/.action named in the log, or remove build/ and .venv and make setup again"
     fi
-    env -i "$VENV/bin/python" -c 'from lsu_interfaces.msg import LaserLine; from lsu_interfaces.action import Scan' \
+    env -i "$VENV/bin/python" -c 'from lsu_interfaces.msg import LaserLine; from lsu_interfaces.action import Scan; from tf2_msgs.msg import TFMessage' \
         || fail "lsu_interfaces built but does not import" "remove build/ and make setup again"
     stamp_set interfaces "$if_hash"
 fi

@@ -74,7 +74,7 @@ def _message_class(topic: str, msgtype: str) -> type:
         return get_interface(msgtype, "msg")
     except InterfaceError as exc:
         raise UnknownTypeError(f"topic '{topic}' has type '{msgtype}', which this Python cannot load ({exc}); "
-                               f"install that interface package or leave the topic out") from None
+                               f"install that interface package or leave the topic out (--exclude {topic})") from None
 
 
 # --------------------------------------------------------------------------- recorder
@@ -214,9 +214,9 @@ class BagPlayer:
     """
 
     def __init__(self, node: Any, bag_dir: Path | str, *, topics: Optional[Sequence[str]] = None,
-                 rate: float = 1.0, loop: bool = False, wait_subscribers_s: float = 1.0,
-                 expect: Optional[Dict[str, int]] = None,
-                 log: Optional[Callable[[str], None]] = None) -> None:
+                 exclude: Optional[Sequence[str]] = None, rate: float = 1.0, loop: bool = False,
+                 wait_subscribers_s: float = 1.0, expect: Optional[Dict[str, int]] = None,
+                 types: Optional[bags.BagTypes] = None, log: Optional[Callable[[str], None]] = None) -> None:
         self.node = node
         self.path = Path(bag_dir)
         self.loop = loop
@@ -229,19 +229,38 @@ class BagPlayer:
         self.log = log or (lambda text: node.get_logger().info(text))
         available = bags.bag_topics(self.path)
         selected = list(available) if topics is None else [node.resolve_topic_name(t) for t in topics]
-        if missing := sorted(set(selected) - set(available)):
+        excluded = {node.resolve_topic_name(t) for t in (exclude or [])}
+        if missing := sorted((set(selected) | excluded) - set(available)):
             raise BagError(f"bag {self.path} has no topic {', '.join(missing)} "
                            f"(it has: {', '.join(sorted(available)) or 'none'})")
-        self.topics: List[str] = selected
+        selected = [t for t in selected if t not in excluded]
+        definitions = bags.stored_definitions(self.path)
+        types = types or bags.BagTypes()
+        #: topic -> why it is not played (its type cannot be loaded here, or its definition cannot be translated)
+        self.skipped: Dict[str, str] = {}
+        self.converters: Dict[str, bags.Converter] = {}
         self.publishers: Dict[str, Any] = {}
         try:
             for name in selected:
                 msgtype, offered = available[name]
-                cls = _message_class(name, msgtype)
+                try:
+                    cls = _message_class(name, msgtype)
+                    converter, note = bags.definition_converter(name, msgtype, definitions[name][1], types)
+                except BagError as exc:  # one topic a third-party bag has and we cannot play: the rest still plays
+                    self.skipped[name] = str(exc)
+                    self.log(f"warning: {exc}: skipped")
+                    continue
+                if converter is not None:
+                    self.converters[name] = converter
+                    self.log(f"warning: {note}")
                 self.publishers[name] = node.create_publisher(cls, name, rclpy_qos(bags.playback_qos(offered)))
         except BaseException:
             self.destroy()
             raise
+        if not self.publishers:
+            raise BagError(f"nothing to play in {self.path}: " + "; ".join(self.skipped.values())
+                           if self.skipped else f"nothing to play in {self.path}: every topic was excluded")
+        self.topics: List[str] = list(self.publishers)
         self.published = 0
 
     def wait_for_subscribers(self, stop: Optional[threading.Event] = None) -> bool:
@@ -280,7 +299,8 @@ class BagPlayer:
                     break
                 if stop.is_set():
                     break
-                self.publishers[message.topic].publish(message.data)
+                convert = self.converters.get(message.topic)
+                self.publishers[message.topic].publish(message.data if convert is None else convert(message.data))
                 self.published += 1
             if not self.loop or clock.first_ns is None:
                 break
@@ -384,9 +404,10 @@ def cmd_play(args: argparse.Namespace) -> int:
             raise BagError(f"--expect {item}: give TOPIC=N with N >= 1, e.g. --expect /lsu/scan/events=2")
         expect[topic] = int(count)
     with _RosSession("lsu_bag_player") as ros:
-        player = BagPlayer(ros.node, args.bag, topics=args.topics, rate=args.rate, loop=args.loop,
-                           wait_subscribers_s=args.wait_subscribers, expect=expect, log=_say)
-        _say(f"playing {args.bag}: {len(player.topics)} topic(s) at rate {args.rate:g}"
+        player = BagPlayer(ros.node, args.bag, topics=args.topics, exclude=args.exclude, rate=args.rate,
+                           loop=args.loop, wait_subscribers_s=args.wait_subscribers, expect=expect, log=_say)
+        _say(f"playing {args.bag}: {len(player.topics)} topic(s)"
+             f"{f' ({len(player.skipped)} skipped)' if player.skipped else ''} at rate {args.rate:g}"
              f"{', looping' if args.loop else ''}; Ctrl-C stops")
         try:
             count = player.play(ros.stop)
@@ -442,6 +463,7 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
                    help="playback speed factor (default 1.0)")
     p.add_argument("-l", "--loop", action="store_true", help="play again and again until Ctrl-C")
     p.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
+    p.add_argument("--exclude", nargs="+", default=[], metavar="TOPIC", help="leave these topics out")
     p.add_argument("--wait-subscribers", type=float, default=1.0, metavar="S",
                    help="wait up to S seconds for every topic to have a subscriber before the first "
                         "message (default 1)")

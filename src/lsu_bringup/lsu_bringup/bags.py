@@ -441,16 +441,61 @@ def open_bag(bag_dir: Path | str) -> Iterator[Reader]:
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise BagError(f"{path / 'metadata.yaml'} is missing: not a rosbag2 folder, or its recording was killed "
                        f"before it could close (stop `lsu bag record` with Ctrl-C or SIGTERM)")
-    reader = Reader(path)
     try:
+        reader = Reader(path)
         reader.open()
     except _READ_ERRORS as exc:
+        if path.is_dir() and (problem := _metadata_problem(path, exc)):
+            raise BagError(problem) from None
         raise BagError(f"{_storage_files(path) if path.is_dir() else path}: cannot open the bag, the file is "
                        f"truncated or corrupt ({_cause(exc)})") from None
     try:
         yield reader
     finally:
         reader.close()
+
+
+#: rosbags' words for a metadata.yaml it cannot use (any other open error is the storage's)
+_METADATA_ERRORS = ("Could not load YAML", "A metadata key is missing", "Invalid bag metadata", "Rosbag2 version",
+                    "Storage plugin", "Some database files are missing", "Could not read metadata")
+
+
+def _metadata_problem(path: Path, exc: BaseException) -> Optional[str]:
+    """The message for a bag folder whose metadata.yaml (not its storage) is broken, else None.
+
+    The storage file of a rosbag2 folder holds every message with its topic and type (mcap also
+    the definitions), so it is readable without the metadata: say so, and whether it opens.
+    """
+    meta = path / "metadata.yaml"
+    try:
+        yaml.safe_load(meta.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        cause = f"not valid YAML{f' at line {mark.line + 1}' if mark is not None else ''}: {getattr(err, 'problem', err)}"
+    except (OSError, UnicodeDecodeError) as err:
+        cause = f"cannot be read ({err})"
+    else:
+        if not str(exc).startswith(_METADATA_ERRORS):
+            return None
+        cause = _cause(exc)
+    storage = sorted(p for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+    if not storage:
+        return f"{meta}: {cause}; and the folder holds no .mcap or .db3 storage file to read instead"
+    readable = []
+    for file in storage:
+        try:
+            direct = Reader(file)
+            direct.open()
+            direct.close()
+            readable.append(file)
+        except _READ_ERRORS:
+            continue
+    if readable:
+        return (f"{meta}: {cause}; the storage file can be opened directly: `lsu bag play {readable[0]}` "
+                f"(or `lsu bag info {readable[0]}`)")
+    return (f"{meta}: {cause}; the storage file{'s' if len(storage) > 1 else ''} "
+            f"{', '.join(str(f) for f in storage)} can be given directly, but do{'' if len(storage) > 1 else 'es'} "
+            f"not open either (truncated or corrupt)")
 
 
 def _cause(exc: BaseException) -> str:
@@ -507,6 +552,58 @@ def bag_topics(bag_dir: Path | str) -> Dict[str, Tuple[str, Tuple[Qos, ...]]]:
     with open_bag(bag_dir) as reader:
         return {c.topic: (c.msgtype, tuple(c.ext.offered_qos_profiles) if isinstance(c.ext, ConnectionExtRosbag2)
                           else ()) for c in reader.connections}
+
+
+def stored_definitions(bag_dir: Path | str) -> Dict[str, Tuple[str, str]]:
+    """Topic -> (type, the ``ros2msg`` definition stored in the bag, '' when it holds none or IDL)."""
+    from rosbags.interfaces import MessageDefinitionFormat
+
+    with open_bag(bag_dir) as reader:
+        return {c.topic: (c.msgtype, c.msgdef.data if c.msgdef.format == MessageDefinitionFormat.MSG else "")
+                for c in reader.connections}
+
+
+Converter = Callable[[bytes], bytes]
+
+
+def definition_converter(topic: str, msgtype: str, stored: str, types: BagTypes) -> Tuple[Optional[Converter], str]:
+    """How to play a topic recorded with definition ``stored`` to subscribers of the installed type.
+
+    Returns ``(None, '')`` when both have the same wire format (or the bag stores no definition),
+    ``(converter, note)`` when they differ: the converter (rosbags' message migration) copies the
+    fields both have, gives new fields zeros/empty values and drops removed ones; ``note`` says
+    which. Raises BagError when the stored definition does not parse (the topic cannot be played
+    faithfully).
+    """
+    if not stored:
+        return None, ""
+    from rosbags.convert.converter import is_same_wireformat, migrate_bytes
+
+    types.ensure(msgtype, topic)
+    recorded = get_typestore(Stores.EMPTY)
+    try:
+        recorded.register(get_types_from_msg(stored, msgtype))
+    except (TypesysError, ValueError, KeyError) as exc:
+        raise BagError(f"topic '{topic}': the definition of '{msgtype}' stored in the bag does not parse ({exc}); "
+                       f"leave the topic out with --exclude {topic}") from None
+    installed = types.typestore
+    try:
+        if is_same_wireformat(recorded, installed, msgtype, msgtype):
+            return None, ""
+    except KeyError as exc:  # a nested type only one side defines
+        raise BagError(f"topic '{topic}': the bag's '{msgtype}' uses a type the installed one lacks ({exc})") from None
+    old = {name for name, _ in recorded.fielddefs[msgtype][1]}
+    new = {name for name, _ in installed.fielddefs[msgtype][1]}
+    changes = [f"{what} {', '.join(sorted(names))}" for what, names in
+               (("adds", new - old), ("drops", old - new)) if names]
+    note = (f"topic '{topic}': the bag's {msgtype} differs from the installed one; translated (the installed type "
+            f"{'; '.join(changes) or 'changes nested types'}: added fields are zero)")
+    cache: Dict[str, Any] = {}
+
+    def convert(data: bytes) -> bytes:
+        return bytes(migrate_bytes(recorded, installed, msgtype, msgtype, cache, data, src_is2=True, dst_is2=True))
+
+    return convert, note
 
 
 def bag_info(bag_dir: Path | str) -> BagInfo:

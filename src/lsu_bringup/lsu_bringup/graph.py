@@ -21,6 +21,13 @@ from .rosmsg import InterfaceError, fill, get_interface, parse_yaml_mapping, to_
 _TYPE_RE = re.compile(r"^[A-Za-z_]\w*/(?:(?:msg|srv|action)/)?[A-Z]\w*$")
 
 
+# Fast DDS on localhost: a running graph is discovered within ~1-3 s, in bursts; a second without
+# anything new means it is complete (a lost announcement is repeated within that time too).
+DISCOVERY_QUIET_S = 1.5
+DISCOVERY_MIN_S = 1.0
+DISCOVERY_MAX_S = 10.0
+
+
 class GraphError(RuntimeError):
     """A graph command cannot complete (no such node/topic/service, timeout); one line for the user."""
 
@@ -67,6 +74,35 @@ class GraphClient:
             self.executor.spin_once(timeout_sec=0.05)
         return True
 
+    def graph_snapshot(self) -> Tuple[Any, ...]:
+        """Every node, topic, service and endpoint count this node sees now (hashable)."""
+        n = self.node
+        topics = tuple(sorted((name, tuple(types)) for name, types in n.get_topic_names_and_types()))
+        counts = tuple((name, n.count_publishers(name), n.count_subscribers(name)) for name, _ in topics)
+        return (tuple(sorted(n.get_node_names_and_namespaces())), topics, counts,
+                tuple(sorted((name, tuple(types)) for name, types in n.get_service_names_and_types())))
+
+    def wait_for_discovery(self, max_s: float, quiet_s: float = DISCOVERY_QUIET_S,
+                           min_s: float = DISCOVERY_MIN_S) -> float:
+        """Listen until no node, topic, service or endpoint appeared for ``quiet_s`` (at least ``min_s``,
+        at most ``max_s`` seconds); returns the seconds listened.
+
+        There is no daemon keeping the graph: each command discovers it afresh, and how long that
+        takes depends on how many nodes there are and how busy the host is, so a fixed wait is
+        either too short (entities missed) or too long.
+        """
+        start = time.monotonic()
+        last_change, seen = start, self.graph_snapshot()
+        while self.context.ok():
+            now = time.monotonic()
+            if now - start >= max_s or (now - start >= min_s and now - last_change >= quiet_s):
+                break
+            self.executor.spin_once(timeout_sec=0.05)
+            current = self.graph_snapshot()
+            if current != seen:
+                seen, last_change = current, time.monotonic()
+        return time.monotonic() - start
+
     def wait_for_type(self, name: str, lister: Callable[[], List[Tuple[str, List[str]]]],
                       timeout_s: float, what: str) -> str:
         found: Dict[str, List[str]] = {}
@@ -103,7 +139,7 @@ def _print(text: str) -> None:
 # ----------------------------------------------------------------------------------- nodes
 def cmd_node_list(args: argparse.Namespace) -> int:
     with GraphClient() as g:
-        g.spin_for(args.wait)
+        g.wait_for_discovery(args.wait)
         names = sorted({(ns.rstrip("/") + "/" + n) for n, ns in g.node.get_node_names_and_namespaces()
                         if not n.startswith("_")})
     for name in names:
@@ -116,7 +152,7 @@ def cmd_node_info(args: argparse.Namespace) -> int:
     ns, _, name = target.rpartition("/")
     ns = ns or "/"
     with GraphClient() as g:
-        g.spin_for(args.wait)
+        g.wait_for_discovery(args.wait)
         if (name, ns) not in g.node.get_node_names_and_namespaces():
             raise GraphError(f"node '{target}' not found (see `lsu node list`)")
         sections = [
@@ -135,7 +171,7 @@ def cmd_node_info(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------------- topics
 def cmd_topic_list(args: argparse.Namespace) -> int:
     with GraphClient() as g:
-        g.spin_for(args.wait)
+        g.wait_for_discovery(args.wait)
         topics = sorted(g.node.get_topic_names_and_types())
     for name, types in topics:
         print(f"{name} [{', '.join(types)}]" if args.show_types else name)
@@ -249,7 +285,7 @@ def cmd_topic_pub(args: argparse.Namespace) -> int:
 # -------------------------------------------------------------------------------- services
 def cmd_service_list(args: argparse.Namespace) -> int:
     with GraphClient() as g:
-        g.spin_for(args.wait)
+        g.wait_for_discovery(args.wait)
         services = sorted(g.node.get_service_names_and_types())
     for name, types in services:
         if not args.all and name.rsplit("/", 1)[-1] in _PARAM_SERVICES:
@@ -411,9 +447,10 @@ def cmd_param_dump(args: argparse.Namespace) -> int:
 # ---------------------------------------------------------------------------- registration
 def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
     """Add `node`, `topic`, `service` and `param` to the `lsu` parser."""
-    def wait_opt(p: argparse.ArgumentParser, default: float = 3.0) -> None:
+    def wait_opt(p: argparse.ArgumentParser, default: float = DISCOVERY_MAX_S) -> None:
         p.add_argument("--wait", type=float, default=default, metavar="S",
-                       help=f"seconds to listen for discovery; DDS needs ~2.5 s to see every node (default {default})")
+                       help=f"listen for discovery until nothing new appeared for {DISCOVERY_QUIET_S:g} s, at most "
+                            f"S seconds (default {default:g})")
 
     def timeout_opt(p: argparse.ArgumentParser, default: float = 5.0) -> None:
         p.add_argument("--timeout", type=float, default=default, metavar="S",

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import json
 import platform
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional
+
+from lsu_cameras.calib_io import calibration_checksum as checksum
 
 
 class ScanGoalError(ValueError):
@@ -65,17 +66,8 @@ def new_scan_id(now: Optional[_dt.datetime] = None, counter: int = 1) -> str:
 
 
 def calibration_checksum(directory: Optional[Path]) -> str:
-    """sha256 over left/right/stereo.yaml (first 16 hex), or 'topics' / 'none'."""
-    if directory is None:
-        return "none"
-    digest = hashlib.sha256()
-    found = False
-    for name in ("left.yaml", "right.yaml", "stereo.yaml"):
-        path = directory / name
-        if path.is_file():
-            digest.update(path.read_bytes())
-            found = True
-    return digest.hexdigest()[:16] if found else "none"
+    """The calibration's id (`lsu_cameras.calib_io.calibration_checksum`), or 'none'."""
+    return (checksum(directory) if directory is not None else "") or "none"
 
 
 def software_versions() -> Dict[str, str]:

@@ -3,25 +3,73 @@
     scanner = LsuScanner()
     scanner.home()
     result = scanner.scan(start=0, end=470, step=2)
-    print(result.points, result.output_dir)
+    if result.result == TaskResult.SUCCEEDED:
+        print(result.points, result.output_dir)
 
 or non-blocking: ``scanner.start_scan(...)``, ``while not scanner.is_task_complete():
-fb = scanner.get_feedback()``, ``scanner.cancel_task()``, ``scanner.get_result()``.
+fb = scanner.get_feedback()``, ``scanner.cancel_task()``, ``scanner.get_result()``. Closing is
+optional: `close()` (or ``with LsuScanner() as scanner:``) leaves the graph at once, otherwise it
+happens when the interpreter exits.
 """
 
 from __future__ import annotations
 
 import argparse
+import atexit
+import enum
 import sys
 import threading
 import time
-from typing import Any, Callable, Optional
+from dataclasses import dataclass, field
+from typing import Any, Callable, List, Optional
 
 from . import rosenv
 
 
 class ScannerError(RuntimeError):
     """The scanner graph is not there or did not answer; one line for the user."""
+
+
+class TaskResult(enum.Enum):
+    """How a scan ended (as nav2_simple_commander's TaskResult)."""
+
+    UNKNOWN = 0
+    SUCCEEDED = 1    # every snap captured and matched
+    CANCELED = 2     # canceled; what was captured is kept (``partial``)
+    FAILED = 3       # aborted or incomplete; ``status`` says why, captured data is kept (``partial``)
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """The end of a scan: `result` plus the fields of ``lsu_interfaces/action/Scan`` Result."""
+
+    result: TaskResult
+    success: bool
+    partial: bool
+    scan_id: str
+    snaps: int
+    points: int
+    seconds: float
+    output_dir: str
+    files: List[str] = field(default_factory=list)
+    status: str = ""
+
+    @classmethod
+    def from_action(cls, goal_status: int, result: Any) -> "ScanResult":
+        """From the action's goal status (action_msgs/GoalStatus) and its ``Scan.Result``."""
+        from action_msgs.msg import GoalStatus
+
+        if goal_status == GoalStatus.STATUS_SUCCEEDED:
+            outcome = TaskResult.SUCCEEDED if result.success else TaskResult.FAILED
+        elif goal_status == GoalStatus.STATUS_CANCELED:
+            outcome = TaskResult.CANCELED
+        elif goal_status == GoalStatus.STATUS_ABORTED:
+            outcome = TaskResult.FAILED
+        else:
+            outcome = TaskResult.UNKNOWN
+        return cls(outcome, bool(result.success), bool(result.partial), str(result.scan_id), int(result.snaps),
+                   int(result.points), float(result.seconds), str(result.output_dir), list(result.files),
+                   str(result.status))
 
 
 class LsuScanner:
@@ -58,6 +106,10 @@ class LsuScanner:
         self._goal_handle: Optional[Any] = None
         self._result_future: Optional[Any] = None
         self._feedback: Optional[Any] = None
+        self._closed = False
+        # A script that never calls close() must still end cleanly: at interpreter exit the spin
+        # thread would be inside rclpy's C++ wait set while the context is destroyed (abort, exit 134).
+        atexit.register(self.close)
 
     def _spin_loop(self) -> None:
         while self.context.ok():
@@ -72,7 +124,11 @@ class LsuScanner:
         self._latest_state = msg
 
     def close(self) -> None:
-        """Leave the graph."""
+        """Leave the graph (idempotent; runs by itself at interpreter exit)."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self.close)
         self.executor.shutdown(timeout_sec=1.0)
         self._rclpy.try_shutdown(context=self.context)
         self._spin.join(timeout=2.0)
@@ -178,14 +234,15 @@ class LsuScanner:
             sent = self._in_spin_thread(self._goal_handle.cancel_goal_async, timeout_s, "cancel")
             self._wait_future(sent, timeout_s, "cancel")
 
-    def get_result(self, timeout_s: float = 3600.0) -> Any:
-        """Wait for and return the ``Scan.Result``."""
+    def get_result(self, timeout_s: float = 3600.0) -> ScanResult:
+        """Wait for the scan's end and return it as a `ScanResult`."""
         if self._result_future is None:
             raise ScannerError("no scan was started")
-        return self._wait_future(self._result_future, timeout_s, "scan result").result
+        response = self._wait_future(self._result_future, timeout_s, "scan result")
+        return ScanResult.from_action(response.status, response.result)
 
-    def scan(self, feedback: Optional[Callable[[Any], None]] = None, **goal: Any) -> Any:
-        """Run a scan to the end (keyword arguments of `start_scan`); returns the ``Scan.Result``."""
+    def scan(self, feedback: Optional[Callable[[Any], None]] = None, **goal: Any) -> ScanResult:
+        """Run a scan to the end (keyword arguments of `start_scan`); returns its `ScanResult`."""
         self.start_scan(**goal)
         while not self.is_task_complete():
             if feedback is not None and self._feedback is not None:

@@ -381,21 +381,110 @@ def test_player_keeps_bytes_timing_and_latching(ros_node, tmp_path):
     assert arrivals[-1][0] - arrivals[1][0] >= 2 * 0.150 - 0.02
 
 
-def test_player_rejects_a_type_this_python_cannot_load(ros_node, tmp_path):
-    from lsu_bringup.bag_cli import BagPlayer
+OLD_RANGE = """uint8 ULTRASOUND=0
+uint8 INFRARED=1
+std_msgs/Header header
+uint8 radiation_type
+float32 field_of_view
+float32 min_range
+float32 max_range
+float32 range
+"""
 
-    path = tmp_path / "bag"
+
+def write_third_party_bag(path: Path) -> None:
+    """A bag as another tool might write it: a type nobody here has, an older sensor_msgs/Range
+    (no ``variance``, as before Jazzy) and a std_msgs/String."""
     foreign = "other_msgs/msg/Widget"
-    store = get_typestore(Stores.ROS2_JAZZY)
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg("builtin_interfaces/Time stamp\nstring frame_id\n", "std_msgs/msg/Header"))
+    store.register(get_types_from_msg(OLD_RANGE, "sensor_msgs/msg/Range"))
+    store.register(get_types_from_msg("string data\n", "std_msgs/msg/String"))
     store.register(get_types_from_msg("float64 size\n", foreign))
     writer = Writer(path, version=9)
     writer.open()
-    conn = writer.add_connection("/widgets", foreign, typestore=store)
-    writer.write(conn, 1, bytes(store.serialize_cdr(store.types[foreign](size=2.0), foreign)))
+    widgets = writer.add_connection("/widgets", foreign, typestore=store)
+    ranges = writer.add_connection("/range", "sensor_msgs/msg/Range", typestore=store)
+    chatter = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
+    Time, Header = store.types["builtin_interfaces/msg/Time"], store.types["std_msgs/msg/Header"]
+    t0 = 1_795_000_000_000_000_000
+    for i in range(3):
+        t = t0 + i * 50_000_000
+        writer.write(widgets, t, bytes(store.serialize_cdr(store.types[foreign](size=float(i)), foreign)))
+        old = store.types["sensor_msgs/msg/Range"](header=Header(stamp=Time(sec=i, nanosec=7), frame_id="sonar"),
+                                                   radiation_type=1, field_of_view=0.5, min_range=0.1,
+                                                   max_range=4.0, range=1.0 + i)
+        writer.write(ranges, t + 1, bytes(store.serialize_cdr(old, "sensor_msgs/msg/Range")))
+        writer.write(chatter, t + 2, bytes(store.serialize_cdr(store.types["std_msgs/msg/String"](data=f"hi {i}"),
+                                                               "std_msgs/msg/String")))
     writer.close()
-    with pytest.raises(UnknownTypeError, match=r"topic '/widgets' has type 'other_msgs/msg/Widget'.*install"):
-        BagPlayer(ros_node.node, path)
-    assert bags.bag_info(path).topics[0].msgtype == foreign  # info still works on it
+
+
+def _play(ros_node: Any, player: Any, done_when: Any) -> None:
+    done = threading.Event()
+    worker = threading.Thread(target=lambda: (player.play(), done.set()))
+    worker.start()
+    try:
+        assert ros_node.spin_until(lambda: done.is_set() and done_when(), 15.0)
+    finally:
+        worker.join(5.0)
+        player.destroy()
+
+
+def test_player_skips_what_it_cannot_load_translates_an_older_range_and_plays_the_rest(ros_node, tmp_path):
+    from sensor_msgs.msg import Range
+    from std_msgs.msg import String
+
+    from lsu_bringup.bag_cli import BagPlayer
+
+    path = tmp_path / "bag"
+    write_third_party_bag(path)
+    lines: List[str] = []
+    ranges: List[Any] = []
+    chatter: List[Any] = []
+    ros_node.node.create_subscription(Range, "/range", ranges.append, 10)
+    ros_node.node.create_subscription(String, "/chatter", chatter.append, 10)
+    player = BagPlayer(ros_node.node, path, wait_subscribers_s=10.0, log=lines.append)
+    assert sorted(player.topics) == ["/chatter", "/range"] and list(player.skipped) == ["/widgets"]
+    skipped = [line for line in lines if "/widgets" in line]
+    assert len(skipped) == 1 and "other_msgs/msg/Widget" in skipped[0] and "skipped" in skipped[0]
+    translated = [line for line in lines if "/range" in line]
+    assert len(translated) == 1 and "translated" in translated[0] and "adds variance" in translated[0]
+    _play(ros_node, player, lambda: len(ranges) == 3 and len(chatter) == 3)
+    assert [m.data for m in chatter] == ["hi 0", "hi 1", "hi 2"]
+    # every Range arrives (none dropped for a wrong size), with the recorded values and variance 0
+    assert [m.range for m in ranges] == [1.0, 2.0, 3.0] and {m.variance for m in ranges} == {0.0}
+    assert ranges[2].header.stamp.sec == 2 and ranges[2].header.frame_id == "sonar" and ranges[2].max_range == 4.0
+
+
+def test_player_leaves_out_excluded_topics(ros_node, tmp_path):
+    from lsu_bringup.bag_cli import BagPlayer
+
+    path = tmp_path / "bag"
+    write_third_party_bag(path)
+    lines: List[str] = []
+    player = BagPlayer(ros_node.node, path, exclude=["/widgets", "/range"], wait_subscribers_s=0.0, log=lines.append)
+    try:
+        assert player.topics == ["/chatter"] and lines == []
+    finally:
+        player.destroy()
+    with pytest.raises(BagError, match="has no topic /nope"):
+        BagPlayer(ros_node.node, path, exclude=["/nope"])
+    with pytest.raises(BagError, match=r"nothing to play.*other_msgs/msg/Widget.*--exclude /widgets"):
+        BagPlayer(ros_node.node, path, topics=["/widgets"], log=lines.append)
+
+
+@pytest.mark.parametrize("broken", ["rosbag2_bagfile_information: {version: 9, [unclosed\n", "just: text\n"])
+def test_broken_metadata_is_named_and_the_storage_file_offered(tmp_path, broken):
+    path = tmp_path / "bag"
+    write_laser_bag(path, "mcap", compress=False)
+    (path / "metadata.yaml").write_text(broken)
+    with pytest.raises(BagError) as caught:
+        bags.bag_info(path)
+    text = str(caught.value)
+    assert text.startswith(f"{path / 'metadata.yaml'}: ") and "truncated or corrupt" not in text
+    assert f"can be opened directly: `lsu bag play {path / 'bag.mcap'}`" in text
+    assert bags.bag_info(path / "bag.mcap").message_count == 5  # and it really can
 
 
 def test_file_module_does_not_import_rclpy():

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from lsu_bringup.scanner import LsuScanner, ScannerError
+from lsu_bringup.scanner import LsuScanner, ScannerError, TaskResult
 
 
 @pytest.fixture
@@ -66,6 +66,7 @@ def test_every_instant_answer_reaches_the_caller(instant_server):
             result = scanner.scan(start=0, end=i, step=1, label=f"goal-{i}")
             # each result is this goal's own: a dropped answer would time out, a mixed-up one would not match
             assert result.success and result.scan_id == f"goal-{i}" and result.snaps == i, result
+            assert result.result == TaskResult.SUCCEEDED
     assert instant_server["goals"] == 60
 
 
@@ -78,6 +79,7 @@ def test_rejected_goal_and_cancel(instant_server):
             scanner.cancel_task(timeout_s=10.0)
             result = scanner.get_result(timeout_s=15.0)
             assert result.partial and not result.success and result.status == "canceled"
+            assert result.result == TaskResult.CANCELED
     assert instant_server["canceled"] == 5
 
 
@@ -110,3 +112,23 @@ def test_answers_faster_than_request_bookkeeping_are_kept(instant_server):
         scanner.start_scan(label="wait-for-cancel")
         scanner.cancel_task(timeout_s=10.0)
         assert scanner.get_result(timeout_s=15.0).status == "canceled"
+
+
+SCRIPT_WITHOUT_CLOSE = """
+from lsu_bringup.scanner import LsuScanner
+s = LsuScanner(wait_s=30)
+r = s.scan(start=0, end=3, step=1, label="no-close")
+print(r.result.name, r.scan_id, r.snaps)
+"""
+
+
+@pytest.mark.slow
+def test_a_script_that_never_closes_the_scanner_exits_0(instant_server):
+    import subprocess
+    import sys
+
+    # the README's three lines, no `with`, no close(): the interpreter's exit has to clean up
+    done = subprocess.run([sys.executable, "-c", SCRIPT_WITHOUT_CLOSE], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split() == ["SUCCEEDED", "no-close", "3"]
+    assert "terminate called" not in done.stderr

@@ -15,7 +15,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
@@ -113,6 +113,20 @@ def find_board(image: np.ndarray, board: BoardSpec) -> Optional[np.ndarray]:
     return cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), criteria)
 
 
+def larger_board_visible(image: np.ndarray, board: BoardSpec) -> Optional[Tuple[int, int]]:
+    """(cols, rows) of a board one corner wider or taller than ``board`` when it is found in ``image``.
+
+    findChessboardCorners can lock onto part of a larger board; a calibration with the wrong
+    corner count has the wrong square positions, so it is refused instead.
+    """
+    gray = to_gray(image)
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+    for size in ((board.cols + 1, board.rows), (board.cols, board.rows + 1)):
+        if size[0] != size[1] and cv2.findChessboardCorners(gray, size, flags)[0]:
+            return size
+    return None
+
+
 def _view_errors(obj: List[np.ndarray], img: List[np.ndarray], K: np.ndarray, D: np.ndarray,
                  rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> np.ndarray:
     errs = []
@@ -180,6 +194,13 @@ def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board:
             img_r.append(cr)
             kept.append(view)
         views.append(view)
+    # two views tell (the board is the same in all); a check of every view would double the detection time
+    for name, left, _right in pairs[:2]:
+        larger = larger_board_visible(left, board)
+        if larger is not None:
+            raise CalibrationError(f"a {larger[0]}x{larger[1]} board is visible in {name} (left) but the board "
+                                   f"was given as {board.cols}x{board.rows}: count the inner corners (where four "
+                                   f"squares meet) and give --board {larger[0]}x{larger[1]}")
     if len(obj) < min_views:
         hint = (f" (no board at all: is the board really {board.cols}x{board.rows} inner corners?)"
                 if not obj else "")
@@ -222,22 +243,90 @@ def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board:
                                    (_coverage(img_l, size), _coverage(img_r, size)))
 
 
-def load_pairs(directory: os.PathLike | str) -> List[Tuple[str, np.ndarray, np.ndarray]]:
-    """Read ``left_*.png`` / ``right_*.png`` pairs (matched by suffix) from ``directory``."""
+# left01.png, left_01.png, left-01.png, Left01.JPG, ... (the key is what follows the side's name)
+_SIDE_NAME = re.compile(r"^(left|right)[_-]?(.+)$", re.IGNORECASE)
+
+
+@dataclass
+class PairFolder:
+    """Image pairs read from a folder, and what could not be used, by name."""
+
+    pairs: List[Tuple[str, np.ndarray, np.ndarray]]
+    unpaired: List[str] = field(default_factory=list)
+    unreadable: List[Tuple[str, str]] = field(default_factory=list)   # (file, why)
+
+    def report(self) -> List[str]:
+        """One line per problem, for the user."""
+        lines = [f"skipped {name}: no partner image (expected the same number with the other side's name)"
+                 for name in self.unpaired]
+        lines += [f"skipped {name}: {why}" for name, why in self.unreadable]
+        return lines
+
+
+def _read_image(path: Path) -> Tuple[Optional[np.ndarray], str]:
+    """(BGR image, '') or (None, why). ``cv2.imread`` decodes a truncated JPEG with only a warning
+    (the missing part grey), which later reads as "no board found": such files are named by their
+    missing end-of-image marker here."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        return None, f"cannot be read ({exc.strerror})"
+    if data[:2] == b"\xff\xd8" and b"\xff\xd9" not in data[-64:]:
+        return None, "truncated JPEG (no end-of-image marker): copy it again"
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) if data else None
+    if image is None:
+        return None, "not an image OpenCV can decode (empty, truncated or of an unsupported format)"
+    return image, ""
+
+
+def _side_files(directory: Path) -> Dict[str, Dict[str, Path]]:
+    """{'left': {key: path}, 'right': {key: path}} from left/ + right/ sub-folders or leftNN / left_NN names."""
+    sides: Dict[str, Dict[str, Path]] = {"left": {}, "right": {}}
+    subdirs = {side: directory / side for side in sides if (directory / side).is_dir()}
+    if len(subdirs) == 2:
+        for side, folder in subdirs.items():
+            for path in sorted(folder.iterdir()):
+                if path.is_file() and not path.name.startswith("."):
+                    match = _SIDE_NAME.match(path.stem)
+                    # left/left01.png and left/01.png both pair with right/right01.png or right/01.png
+                    key = match.group(2) if match and match.group(1).lower() == side else path.stem
+                    sides[side][key.lstrip("_-")] = path
+        return sides
+    for path in sorted(directory.iterdir()):
+        match = _SIDE_NAME.match(path.stem)
+        if path.is_file() and match:
+            sides[match.group(1).lower()][match.group(2)] = path
+    return sides
+
+
+def load_pairs(directory: os.PathLike | str) -> PairFolder:
+    """Read stereo pairs from ``directory``: ``leftNN``/``rightNN`` or ``left_NN``/``right_NN`` files, or
+    ``left/`` + ``right/`` sub-folders, in any image format OpenCV reads; pairs match by ``NN``.
+
+    Unpaired and unreadable files are listed (`PairFolder.report`), not silently dropped.
+    """
     directory = Path(directory)
     if not directory.is_dir():
         raise CalibrationError(f"{directory}: image folder not found")
-    lefts = {p.name[len("left_"):]: p for p in directory.glob("left_*") if p.suffix.lower() in (".png", ".jpg", ".bmp")}
-    rights = {p.name[len("right_"):]: p for p in directory.glob("right_*") if p.suffix.lower() in (".png", ".jpg", ".bmp")}
-    common = sorted(set(lefts) & set(rights))
+    sides = _side_files(directory)
+    common = sorted(set(sides["left"]) & set(sides["right"]))
+    unpaired = sorted(str(p.relative_to(directory)) for side, other in (("left", "right"), ("right", "left"))
+                      for key, p in sides[side].items() if key not in sides[other])
     if not common:
-        raise CalibrationError(f"{directory}: no left_*.png / right_*.png pairs (found {len(lefts)} left and "
-                               f"{len(rights)} right images)")
-    pairs = []
+        raise CalibrationError(
+            f"{directory}: no left/right image pairs (found {len(sides['left'])} left and {len(sides['right'])} "
+            f"right images). Name them leftNN.png / rightNN.png or left_NN.png / right_NN.png (any image format), "
+            f"or put them in left/ and right/ sub-folders with equal names")
+    found = PairFolder([], unpaired)
     for key in common:
-        left, right = cv2.imread(str(lefts[key]), cv2.IMREAD_COLOR), cv2.imread(str(rights[key]), cv2.IMREAD_COLOR)
-        for path, image in ((lefts[key], left), (rights[key], right)):
-            if image is None:
-                raise CalibrationError(f"{path}: cannot be read as an image")
-        pairs.append((Path(key).stem, left, right))
-    return pairs
+        left, why_l = _read_image(sides["left"][key])
+        right, why_r = _read_image(sides["right"][key])
+        for path, why in ((sides["left"][key], why_l), (sides["right"][key], why_r)):
+            if why:
+                found.unreadable.append((str(path.relative_to(directory)), why))
+        if left is not None and right is not None:
+            found.pairs.append((key, left, right))
+    if not found.pairs:
+        raise CalibrationError(f"{directory}: none of the {len(common)} pairs could be read:\n  "
+                               + "\n  ".join(found.report()))
+    return found

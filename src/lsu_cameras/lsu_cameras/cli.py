@@ -20,10 +20,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise CalibrationError("give either --live or --pairs DIR, not both")
         return cmd_calibrate_live(args)
     if not args.pairs:
-        raise CalibrationError("give --pairs DIR (a folder of left_*.png/right_*.png) or --live")
+        raise CalibrationError("give --pairs DIR (leftNN/rightNN or left_NN/right_NN images, or left/ + right/ "
+                               "sub-folders) or --live")
     board = BoardSpec.parse(args.board, args.square)
-    pairs = load_pairs(args.pairs)
-    result = calibrate_stereo(pairs, board, min_views=args.min_views)
+    folder = load_pairs(args.pairs)
+    for line in folder.report():
+        print(line, file=sys.stderr)
+    result = calibrate_stereo(folder.pairs, board, min_views=args.min_views)
     write_calibration_dir(args.output, result.left, result.right, result.stereo,
                           header=f"lsu calibrate --pairs {args.pairs} --board {args.board} --square {args.square}\n"
                                  + result.summary().splitlines()[0])
@@ -97,10 +100,12 @@ def cmd_render(args: argparse.Namespace) -> int:
 def register(subparsers: Any) -> None:
     """Add `calibrate` and `render` to the `lsu` command."""
     p = subparsers.add_parser("calibrate", help="stereo calibration from chessboard pairs",
-                              description="Calibrate both cameras and their extrinsics from left_*.png/right_*.png "
-                                          "chessboard pairs (--pairs DIR) or guided from the running camera "
-                                          "node (--live); writes left.yaml, right.yaml, stereo.yaml.")
-    p.add_argument("--pairs", metavar="DIR", help="folder of left_*.png / right_*.png pairs")
+                              description="Calibrate both cameras and their extrinsics from chessboard pairs "
+                                          "(--pairs DIR: leftNN/rightNN, left_NN/right_NN or left/ + right/ folders) or "
+                                          "guided from the running camera node (--live); writes left.yaml, right.yaml "
+                                          "(with the pair's rectification) and stereo.yaml.")
+    p.add_argument("--pairs", metavar="DIR", help="folder of leftNN/rightNN or left_NN/right_NN images (any format "
+                   "OpenCV reads), or with left/ and right/ sub-folders")
     p.add_argument("--board", default="9x6", help="inner corners COLSxROWS (default 9x6)")
     p.add_argument("--square", type=float, default=25.0, help="square size [mm] (default 25)")
     p.add_argument("--min-views", type=int, default=8, help="fewest usable pairs (default 8)")

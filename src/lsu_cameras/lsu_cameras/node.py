@@ -1,9 +1,11 @@
 """The ``stereo_camera`` node: a camera source on the ROS graph.
 
-Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair), ``stereo/{left,right}/camera_info``
-and ``stereo/extrinsics`` (transient-local), serves ``stereo/capture`` (a fresh pair, published and/or
-returned) and optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth``
-(the GP32 emulator) and falls back to the ``carriage_position_steps`` parameter without it.
+Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair) and with every image its
+``stereo/{left,right}/camera_info`` (same header, same QoS, as ROS camera drivers do),
+``stereo/extrinsics`` and ``/tf_static`` (the rig frames of the calibration, see `lsu_cameras.frames`;
+both transient-local), serves ``stereo/capture`` (a fresh pair, published and/or returned) and
+optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth`` (the GP32
+emulator) and falls back to the ``carriage_position_steps`` parameter without it.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import array
 import threading
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any, List, Optional, Tuple
 
 import numpy as np
 import rclpy
@@ -24,11 +26,14 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
+from tf2_msgs.msg import TFMessage
 
 from lsu_interfaces.msg import SimTruth, StereoExtrinsics
 from lsu_interfaces.srv import CaptureStereo
 
-from .calib_io import CalibrationFileError, CalibrationSet, CameraCalibration, read_calibration_dir, read_camera_yaml
+from .calib_io import (CalibrationError, CalibrationSet, CalibrationSizeError, CameraCalibration, read_calibration_dir,
+                       read_camera_yaml)
+from .frames import TrackGeometry, rig_transforms, transform_msg
 from .paths import config_dir
 from .polled import PolledGroup, take_latest
 from .profiles import ProfileError, load_profile
@@ -54,11 +59,11 @@ def image_msg(image: np.ndarray, stamp: Time, frame_id: str) -> Image:
 
 
 def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
-    """sensor_msgs/CameraInfo of a calibration (plumb_bob)."""
+    """sensor_msgs/CameraInfo of a calibration."""
     msg = CameraInfo()
     msg.header.frame_id = frame_id
     msg.width, msg.height = cal.image_size
-    msg.distortion_model = "plumb_bob"
+    msg.distortion_model = cal.distortion_model
     msg.d = [float(x) for x in cal.distortion_coefficients]
     msg.k = [float(x) for x in cal.camera_matrix.reshape(-1)]
     msg.r = [float(x) for x in cal.rectification_matrix.reshape(-1)]
@@ -88,6 +93,15 @@ class StereoCameraNode(Node):
         d("right_camera_info_url", "", ParameterDescriptor(description="overrides right.yaml (file:// URL or path)"))
         d("left_frame_id", "lsu_left_optical", ParameterDescriptor(description="frame of the left images"))
         d("right_frame_id", "lsu_right_optical", ParameterDescriptor(description="frame of the right images"))
+        fixed = dict(read_only=True)
+        d("base_frame_id", "lsu_base", ParameterDescriptor(
+            description="rig frame of /tf_static (x forward, y left, z up; origin between the optical centres)", **fixed))
+        d("track_step_m", TrackGeometry.step_m, ParameterDescriptor(
+            description="laser track: metres per carriage step (for the laser origin on /tf_static)", **fixed))
+        d("track_center_step", TrackGeometry.center_step, ParameterDescriptor(
+            description="laser track: the carriage step in line with the rig centre", **fixed))
+        d("laser_forward_m", TrackGeometry.laser_forward_m, ParameterDescriptor(
+            description="laser track: laser exit ahead (+) of the camera baseline [m]", **fixed))
         d("preview_rate_hz", 0.0, ParameterDescriptor(description="free-running publish rate; 0 = capture only"))
         d("capture_timeout_s", 2.0, ParameterDescriptor(description="default capture timeout [s]"))
         d("sim_scene", "head", ParameterDescriptor(description="sim: plane | sphere | board | head | head:SEED | mesh file"))
@@ -99,6 +113,7 @@ class StereoCameraNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._lock = threading.Lock()
+        self._publish_lock = threading.Lock()
         self._truth_lock = threading.Lock()
         self._truth_msg: Optional[SimTruth] = None
         self.source: Optional[StereoSource] = None
@@ -110,10 +125,14 @@ class StereoCameraNode(Node):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_left = self.create_publisher(Image, "stereo/left/image_raw", sensor_qos)
         self.pub_right = self.create_publisher(Image, "stereo/right/image_raw", sensor_qos)
-        self.pub_info_left = self.create_publisher(CameraInfo, "stereo/left/camera_info", latched)
-        self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", latched)
+        # camera_info goes out with every image (same header and QoS), never latched alone: its stamp
+        # then always names an image, as image pipelines expect
+        self.pub_info_left = self.create_publisher(CameraInfo, "stereo/left/camera_info", sensor_qos)
+        self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", sensor_qos)
+        self._info: Optional[Tuple[CameraInfo, CameraInfo]] = None
         self.pub_extrinsics = self.create_publisher(StereoExtrinsics, "stereo/extrinsics", latched)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", latched)  # tf2's static QoS
 
         self._open_source()
         self._load_calibration()
@@ -208,13 +227,13 @@ class StereoCameraNode(Node):
                 if url:
                     setattr(cal, side, read_camera_yaml(_url_to_path(url)))
             if cal.left.image_size != cal.right.image_size:
-                raise CalibrationFileError(f"left camera_info is {cal.left.image_size} but right is {cal.right.image_size}")
+                raise CalibrationSizeError(f"left camera_info is {cal.left.image_size} but right is {cal.right.image_size}")
             if self.source is not None and cal.left.image_size != tuple(self.source.image_size):
                 w, h = cal.left.image_size
                 sw, sh = self.source.image_size
-                raise CalibrationFileError(f"calibration '{directory}' is for {w}x{h} images but the cameras give "
+                raise CalibrationSizeError(f"calibration '{directory}' is for {w}x{h} images but the cameras give "
                                            f"{sw}x{sh}: recalibrate at this size or change the image size")
-        except CalibrationFileError as exc:
+        except CalibrationError as exc:
             self._fail(f"calibration not published: {exc}")
             return
         self.calibration = cal
@@ -225,10 +244,7 @@ class StereoCameraNode(Node):
             return
         stamp = self.get_clock().now().to_msg()
         left_id, right_id = str(self.get_parameter("left_frame_id").value), str(self.get_parameter("right_frame_id").value)
-        for pub, cam, frame in ((self.pub_info_left, cal.left, left_id), (self.pub_info_right, cal.right, right_id)):
-            msg = camera_info_msg(cam, frame)
-            msg.header.stamp = stamp
-            pub.publish(msg)
+        self._info = (camera_info_msg(cal.left, left_id), camera_info_msg(cal.right, right_id))
         ext = StereoExtrinsics()
         ext.header.stamp = stamp
         ext.header.frame_id = left_id
@@ -242,6 +258,11 @@ class StereoCameraNode(Node):
         ext.image_width, ext.image_height = cal.image_size
         ext.calibration_id = cal.calibration_id
         self.pub_extrinsics.publish(ext)
+        g = lambda name: float(self.get_parameter(name).value)  # noqa: E731
+        track = TrackGeometry(g("track_step_m"), g("track_center_step"), g("laser_forward_m"))
+        s.left_frame_id, s.right_frame_id = left_id, right_id
+        transforms = rig_transforms(s, track, str(self.get_parameter("base_frame_id").value))
+        self.pub_tf_static.publish(TFMessage(transforms=[transform_msg(t, stamp) for t in transforms]))
 
     # ------------------------------------------------------------------ runtime
     def grab(self, timeout_s: float) -> StereoPair:
@@ -262,8 +283,16 @@ class StereoCameraNode(Node):
         return t
 
     def _publish_pair(self, left: Image, right: Image) -> None:
-        self.pub_left.publish(left)
-        self.pub_right.publish(right)
+        # one pair at a time: the capture service and the preview timer may run in parallel (`lsu run`),
+        # and the camera_info messages are reused with each pair's header
+        with self._publish_lock:
+            if self._info is not None:  # info first: whoever holds an image can already know its camera
+                for pub, info, image in ((self.pub_info_left, self._info[0], left),
+                                         (self.pub_info_right, self._info[1], right)):
+                    info.header = image.header
+                    pub.publish(info)
+            self.pub_left.publish(left)
+            self.pub_right.publish(right)
 
     def _on_capture(self, request: CaptureStereo.Request, response: CaptureStereo.Response) -> CaptureStereo.Response:
         timeout = float(request.timeout_s) if request.timeout_s > 0 else float(self.get_parameter("capture_timeout_s").value)
@@ -327,11 +356,14 @@ class StereoCameraNode(Node):
 def main(args: Optional[List[str]] = None) -> None:
     """Console script ``stereo_camera``."""
     rclpy.init(args=args)
-    node = StereoCameraNode()
+    node: Optional[StereoCameraNode] = None
     try:
+        # built inside the try: opening the simulated rig takes seconds, and a Ctrl-C meanwhile is a normal end
+        node = StereoCameraNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from lsu_cameras.calib_io import CalibrationFileError, read_calibration_dir, read_camera_yaml
+from lsu_cameras.calib_io import CalibrationParseError, CalibrationSizeError, read_calibration_dir, read_camera_yaml
 from lsu_cameras.paths import config_dir
 from lsu_cameras.profiles import V4L2_CONTROLS, Profile, ProfileError, apply_profile, load_profile
 from lsu_cameras.sources import CameraError, FolderSource, V4l2Source
@@ -86,11 +86,11 @@ def test_calibration_files_bad_yaml_and_size_mismatch(tmp_path):
         (tmp_path / name).write_text((sim / name).read_text())
     assert read_calibration_dir(tmp_path).image_size == (640, 480)
     (tmp_path / "right.yaml").write_text((sim / "right.yaml").read_text().replace("image_width: 640", "image_width: 320"))
-    with pytest.raises(CalibrationFileError, match="image sizes differ.*right.yaml 320x480"):
+    with pytest.raises(CalibrationSizeError, match="image sizes differ.*right.yaml 320x480"):
         read_calibration_dir(tmp_path)
     (tmp_path / "left.yaml").write_text("camera_matrix: [1, 2\n")
-    with pytest.raises(CalibrationFileError, match="left.yaml: not valid YAML"):
+    with pytest.raises(CalibrationParseError, match="left.yaml: not valid YAML"):
         read_camera_yaml(tmp_path / "left.yaml")
     (tmp_path / "left.yaml").write_text("image_width: 640\nimage_height: 480\ncamera_matrix: {data: [1, 2, 3]}\n")
-    with pytest.raises(CalibrationFileError, match="'camera_matrix' has 3 numbers, expected 9"):
+    with pytest.raises(CalibrationParseError, match="'camera_matrix' has 3 numbers, expected 9"):
         read_camera_yaml(tmp_path / "left.yaml")

@@ -17,7 +17,9 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
+from geometry_msgs.msg import TransformStamped
 from std_srvs.srv import SetBool, Trigger
+from tf2_msgs.msg import TFMessage
 
 from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import MoveTo, Step
@@ -45,6 +47,13 @@ class Gp32DriverNode(Node):
                             integer_range=[IntegerRange(from_value=p.RATE_MIN, to_value=p.RATE_MAX, step=1)])
         self.watchdog_ms = declare("watchdog_ms", 2000, "firmware laser watchdog [ms]; 0 disables it",
                                    integer_range=[IntegerRange(from_value=0, to_value=p.WATCHDOG_MAX_MS, step=1)])
+        # the moving laser frame on /tf; the static frames (rig, cameras, laser origin) come from the camera node
+        self.laser_frame = declare("laser_frame_id", "lsu_laser", "TF frame of the laser at the carriage position",
+                                   read_only=True)
+        self.laser_origin_frame = declare("laser_origin_frame_id", "lsu_laser_origin",
+                                          "TF parent of laser_frame_id: the laser at step 0", read_only=True)
+        self.step_m = declare("track_step_m", 0.00042333, "metres per carriage step (1/60 inch)", read_only=True,
+                              floating_point_range=[FloatingPointRange(from_value=1e-6, to_value=0.01)])
         state_hz = declare("state_rate_hz", 10.0, "status poll and state publish rate [Hz] (>= 5)",
                            floating_point_range=[FloatingPointRange(from_value=5.0, to_value=50.0)])
 
@@ -64,6 +73,7 @@ class Gp32DriverNode(Node):
 
         services = ReentrantCallbackGroup()  # a move may block while stop and state keep going
         self.state_pub = self.create_publisher(ScannerState, "driver/state", 10)
+        self.tf_pub = self.create_publisher(TFMessage, "/tf", 100)  # tf2's TransformBroadcaster QoS
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(SetBool, "laser/set", self._srv_laser, callback_group=services)
         self.create_service(MoveTo, "carriage/move_to", self._srv_move_to, callback_group=services)
@@ -179,6 +189,18 @@ class Gp32DriverNode(Node):
             self._last_state = key
         if (force or changed) and self.context.ok():  # reader-thread events may race with shutdown
             self.state_pub.publish(msg)
+            if msg.homed:  # before homing the position means nothing
+                self.tf_pub.publish(TFMessage(transforms=[self._laser_tf(msg)]))
+
+    def _laser_tf(self, state: ScannerState) -> TransformStamped:
+        """The laser at the carriage position: -y of the laser origin (steps increase towards the right camera)."""
+        tf = TransformStamped()
+        tf.header.stamp = state.header.stamp
+        tf.header.frame_id = self.laser_origin_frame
+        tf.child_frame_id = self.laser_frame
+        tf.transform.translation.y = -float(state.position_steps) * float(self.step_m)
+        tf.transform.rotation.w = 1.0
+        return tf
 
     def _diagnostics(self) -> None:
         c = self.client

@@ -175,3 +175,31 @@ def test_emulator_node_publishes_truth(ros_node, tmp_path):
     assert truths[-1].position_steps == pytest.approx(42.5) and not truths[-1].laser_on
     assert truths[-1].vibration_tau_s == pytest.approx(0.04) and link.is_symlink()
     assert emu_node.emulator.device_path.startswith("/dev/pts/")
+
+
+def test_laser_frame_on_tf_follows_the_carriage_once_homed(rig):
+    from tf2_msgs.msg import TFMessage
+
+    h, _, states, c = rig
+    tf = []
+    h.node.create_subscription(TFMessage, "/tf", tf.append, 100)
+    h.spin_until(lambda: False, 0.5)
+    assert tf == []  # not homed: the position means nothing yet
+    assert h.call(c["home"], Trigger.Request(), timeout_s=20).success
+    assert h.call(c["move_to"], MoveTo.Request(position_steps=100), timeout_s=10).success
+    assert h.spin_until(lambda: any(t.transforms[0].transform.translation.y < -0.04 for t in tf), 5.0)
+    def key(stamp):
+        return (stamp.sec, stamp.nanosec)
+
+    received = list(tf)
+    assert h.spin_until(lambda: {key(m.transforms[0].header.stamp) for m in received}
+                        <= {key(s.header.stamp) for _, s in states}, 5.0)
+    stamps = {key(s.header.stamp): s.position_steps for _, s in states}
+    for message in received:
+        (t,) = message.transforms
+        assert (t.header.frame_id, t.child_frame_id) == ("lsu_laser_origin", "lsu_laser")
+        # each transform is a published state: same stamp, -y by position * 1/60 inch
+        position = stamps[key(t.header.stamp)]
+        assert t.transform.translation.y == pytest.approx(-position * 0.00042333)
+        assert (t.transform.translation.x, t.transform.translation.z, t.transform.rotation.w) == (0.0, 0.0, 1.0)
+    assert tf[-1].transforms[0].transform.translation.y == pytest.approx(-100 * 0.00042333)

@@ -188,9 +188,12 @@ class StereoMatcherNode(Node):
             depth=IMAGES_KEPT, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST),
             callback_group=PolledGroup(), raw=True)
         if self.get_parameter("calibration_source").value == "topics":
-            self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), LATCHED)
+            # camera_info comes with every image (volatile, like the images); a volatile reader also
+            # matches latched publishers (older bags), so either kind of camera is heard
+            info_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+            self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), info_qos)
             self.create_subscription(CameraInfo, "stereo/right/camera_info", lambda m: self.on_info("right", m),
-                                     LATCHED)
+                                     info_qos)
             self.create_subscription(StereoExtrinsics, "stereo/extrinsics", self.on_extrinsics, LATCHED)
             self.calibration_error = "waiting for stereo/{left,right}/camera_info and stereo/extrinsics"
             self.get_logger().info(self.calibration_error)
@@ -244,9 +247,12 @@ class StereoMatcherNode(Node):
                                f"{self.model.baseline_m * 1000:.1f} mm")
 
     def on_info(self, side: str, msg: CameraInfo) -> None:
-        """Latched camera_info of one side; builds the model when both and the extrinsics are in."""
+        """camera_info of one side (one per image); (re)builds the model when it changed and all parts are in."""
+        previous = self._camera_info.get(side)
         self._camera_info[side] = msg
-        self._model_from_topics()
+        if previous is None or (previous.width, previous.height, list(previous.k), list(previous.d)) != (
+                msg.width, msg.height, list(msg.k), list(msg.d)):
+            self._model_from_topics()
 
     def on_extrinsics(self, msg: StereoExtrinsics) -> None:
         """Latched stereo extrinsics."""

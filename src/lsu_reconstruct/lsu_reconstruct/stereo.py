@@ -20,15 +20,18 @@ arrays with :meth:`StereoModel.from_arrays`, the offline tools from a calibratio
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Optional, Tuple
 
 import cv2
 import numpy as np
-import yaml
+
+# The calibration files have one reader, in lsu_cameras; its errors are this module's errors.
+from lsu_cameras.calib_io import (CalibrationError, CalibrationFileError, CalibrationInconsistentError,
+                                  CalibrationParseError, CalibrationSizeError, CalibrationSwappedError,
+                                  check_camera_matrix, check_epipolar, check_extrinsics, read_calibration_dir, skew)
 
 __all__ = [
     "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
@@ -40,110 +43,9 @@ __all__ = [
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
 
 
-class CalibrationError(ValueError):
-    """A calibration cannot be used; the message says what is wrong and what to do."""
-
-
-class CalibrationFileError(CalibrationError, FileNotFoundError):
-    """A calibration file is missing."""
-
-
-class CalibrationParseError(CalibrationError):
-    """A calibration file does not parse or lacks a field."""
-
-
-class CalibrationSizeError(CalibrationError):
-    """Image sizes of the calibration files (or of the data) disagree."""
-
-
-class CalibrationSwappedError(CalibrationError):
-    """Left and right cameras are swapped (the baseline points the wrong way)."""
-
-
-class CalibrationInconsistentError(CalibrationError):
-    """Stored E/F disagree with R, T and the intrinsics, or a matrix is not what it claims to be."""
-
-
-def skew(t: np.ndarray) -> np.ndarray:
-    """The cross-product matrix ``[t]x`` with ``[t]x @ v == cross(t, v)``."""
-    tx, ty, tz = (float(x) for x in np.asarray(t, dtype=float).reshape(3))
-    return np.array([[0.0, -tz, ty], [tz, 0.0, -tx], [-ty, tx, 0.0]])
-
-
 def fundamental_from(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, T: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Essential ``E = [T]x R`` and fundamental ``F = K2^-T E K1^-1`` (F scaled to unit Frobenius norm)."""
-    E = skew(T) @ R
-    F = np.linalg.inv(K2).T @ E @ np.linalg.inv(K1)
-    return E, F / np.linalg.norm(F)
-
-
-def _same_up_to_scale(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
-    a = a / np.linalg.norm(a)
-    b = b / np.linalg.norm(b)
-    return min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol
-
-
-def _matrix(doc: Dict[str, Any], key: str, shape: Tuple[int, int], path: Path) -> np.ndarray:
-    """Read a ``{rows, cols, data}`` block (or a flat list) of the camera_calibration format."""
-    if key not in doc:
-        raise CalibrationParseError(f"{path}: missing '{key}'; write it as {{rows: {shape[0]}, cols: {shape[1]}, "
-                                    f"data: [...]}} (ROS camera_calibration format)")
-    block = doc[key]
-    data = block.get("data") if isinstance(block, dict) else block
-    try:
-        arr = np.asarray(data, dtype=float).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise CalibrationParseError(f"{path}: '{key}' must hold numbers ({exc})") from None
-    if arr.size != shape[0] * shape[1]:
-        raise CalibrationParseError(f"{path}: '{key}' has {arr.size} values, expected {shape[0] * shape[1]} "
-                                    f"({shape[0]}x{shape[1]})")
-    if not np.all(np.isfinite(arr)):
-        raise CalibrationParseError(f"{path}: '{key}' contains NaN or infinity")
-    return arr.reshape(shape)
-
-
-def _load_yaml(path: Path) -> Dict[str, Any]:
-    if not path.is_file():
-        raise CalibrationFileError(f"calibration file {path} not found; run `lsu calibrate` or point "
-                                   f"calibration_dir at a folder with left.yaml, right.yaml and stereo.yaml")
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        raise CalibrationParseError(f"{path}:{where} YAML syntax error ({getattr(exc, 'problem', exc)})") from None
-    if not isinstance(doc, dict):
-        raise CalibrationParseError(f"{path}: expected a mapping of calibration fields, got {type(doc).__name__}")
-    return doc
-
-
-def _image_size(doc: Dict[str, Any], path: Path) -> Tuple[int, int]:
-    try:
-        w, h = int(doc["image_width"]), int(doc["image_height"])
-    except KeyError as exc:
-        raise CalibrationParseError(f"{path}: missing {exc.args[0]}") from None
-    except (TypeError, ValueError):
-        raise CalibrationParseError(f"{path}: image_width/image_height must be integers") from None
-    if w <= 0 or h <= 0:
-        raise CalibrationParseError(f"{path}: image size {w}x{h} must be positive")
-    return w, h
-
-
-def _camera_file(path: Path) -> Tuple[np.ndarray, np.ndarray, Tuple[int, int], Dict[str, Any]]:
-    doc = _load_yaml(path)
-    size = _image_size(doc, path)
-    K = _matrix(doc, "camera_matrix", (3, 3), path)
-    model = str(doc.get("distortion_model", "plumb_bob"))
-    if model not in ("plumb_bob", "rational_polynomial"):
-        raise CalibrationParseError(f"{path}: distortion_model '{model}' is not supported; use plumb_bob "
-                                    f"([k1, k2, p1, p2, k3])")
-    dist = doc.get("distortion_coefficients", {"data": []})
-    data = dist.get("data") if isinstance(dist, dict) else dist
-    try:
-        D = np.asarray(data if data is not None else [], dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise CalibrationParseError(f"{path}: distortion_coefficients must hold numbers") from None
-    return K, D, size, doc
+    return check_epipolar(K1, K2, R, T, None, None, "")
 
 
 @dataclass(frozen=True)
@@ -196,9 +98,7 @@ class StereoModel:
         D1a, D2a = arr("D1", D1).reshape(-1), arr("D2", D2).reshape(-1)
         Ra, Ta = arr("R", R, (3, 3)), arr("T", T, (3,))
         for name, K in (("K1", K1a), ("K2", K2a)):
-            if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or np.any(K[1:, 0] != 0) or K[2, 1] != 0:
-                raise CalibrationParseError(f"{source}: {name} is not a camera matrix [[fx, s, cx], [0, fy, cy], "
-                                            f"[0, 0, 1]] with positive focal lengths: {K.tolist()}")
+            check_camera_matrix(K, source, name)
         for name, D in (("D1", D1a), ("D2", D2a)):
             if D.size not in (0, 4, 5, 8, 12, 14):
                 raise CalibrationParseError(f"{source}: {name} has {D.size} coefficients; plumb_bob needs 5 "
@@ -209,84 +109,21 @@ class StereoModel:
         if right_image_size is not None and tuple(int(x) for x in right_image_size) != (w, h):
             raise CalibrationSizeError(f"{source}: left camera is {w}x{h} but right camera is "
                                        f"{right_image_size[0]}x{right_image_size[1]}; calibrate both at the same size")
-        if not np.allclose(Ra @ Ra.T, np.eye(3), atol=1e-5) or np.linalg.det(Ra) < 0.99:
-            raise CalibrationInconsistentError(f"{source}: R is not a rotation matrix (R R^T != I or det != 1); "
-                                               f"check that 'rotation' holds the 3x3 matrix row-major, not a Rodrigues vector")
-        baseline = float(np.linalg.norm(Ta))
-        if baseline < 1e-6:
-            raise CalibrationInconsistentError(f"{source}: baseline |T| = {baseline} m; the cameras cannot coincide")
-        centre = -Ra.T @ Ta
-        if centre[0] <= 0.0:
-            raise CalibrationSwappedError(
-                f"{source}: left/right cameras look swapped: the right camera centre -R^T T = "
-                f"{np.round(centre * 1000, 1).tolist()} mm lies at x <= 0 (left of the left camera; T_x = "
-                f"{Ta[0] * 1000:.1f} mm should be negative for X_right = R X_left + T). Exchange left.yaml and "
-                f"right.yaml (or the camera devices) and recalibrate the extrinsics")
-        if baseline > 5.0:
-            raise CalibrationInconsistentError(f"{source}: baseline {baseline:.3f} m is implausible; T must be in "
-                                               f"metres (the LSU's is ~0.122 m)")
-        Ed, Fd = fundamental_from(K1a, K2a, Ra, Ta)
-        if E is not None and np.any(np.asarray(E, dtype=float) != 0):
-            if not _same_up_to_scale(arr("E", E, (3, 3)), Ed, 1e-3):
-                raise CalibrationInconsistentError(f"{source}: the stored essential matrix does not equal [T]x R; "
-                                                   f"re-export the stereo calibration")
-        if F is not None and np.any(np.asarray(F, dtype=float) != 0):
-            if not _same_up_to_scale(arr("F", F, (3, 3)), Fd, 1e-3):
-                raise CalibrationInconsistentError(f"{source}: the stored fundamental matrix does not equal "
-                                                   f"K2^-T [T]x R K1^-1 (for undistorted pixels); re-export the "
-                                                   f"stereo calibration")
+        check_extrinsics(Ra, Ta, source)
+        Ed, Fd = check_epipolar(K1a, K2a, Ra, Ta, None if E is None else arr("E", E, (3, 3)),
+                                None if F is None else arr("F", F, (3, 3)), source)
         return cls(K1=K1a, D1=D1a, K2=K2a, D2=D2a, R=Ra, T=Ta, image_size=(w, h), E=Ed, F=Fd, source=source, **meta)
 
     @classmethod
     def from_folder(cls, folder: "str | Path") -> "StereoModel":
         """Load ``left.yaml``, ``right.yaml`` and ``stereo.yaml`` (CONTRIBUTING.md format) from ``folder``."""
-        folder = Path(folder)
-        if not folder.is_dir():
-            raise CalibrationFileError(f"calibration folder {folder} not found; it must hold left.yaml, right.yaml "
-                                       f"and stereo.yaml (run `lsu calibrate`)")
-        K1, D1, size1, left_doc = _camera_file(folder / "left.yaml")
-        K2, D2, size2, right_doc = _camera_file(folder / "right.yaml")
-        stereo_path = folder / "stereo.yaml"
-        sdoc = _load_yaml(stereo_path)
-        R = _matrix(sdoc, "rotation", (3, 3), stereo_path)
-        T = _matrix(sdoc, "translation", (3, 1), stereo_path).reshape(3)
-        E = _matrix(sdoc, "essential", (3, 3), stereo_path) if "essential" in sdoc else None
-        F = _matrix(sdoc, "fundamental", (3, 3), stereo_path) if "fundamental" in sdoc else None
-        if size1 != size2:
-            raise CalibrationSizeError(f"{folder}: left.yaml is {size1[0]}x{size1[1]} but right.yaml is "
-                                       f"{size2[0]}x{size2[1]}; calibrate both cameras at the same resolution")
-        if "image_width" in sdoc or "image_height" in sdoc:
-            ssize = _image_size(sdoc, stereo_path)
-            if ssize != size1:
-                raise CalibrationSizeError(f"{stereo_path}: image size {ssize[0]}x{ssize[1]} differs from the "
-                                           f"cameras' {size1[0]}x{size1[1]}")
-        # The camera_calibration files say which camera they describe: a right projection matrix
-        # carries -fx*B in P[0,3], a left one 0. A non-zero P[0,3] in left.yaml means swapped files.
-        for doc, path, expect_left in ((left_doc, folder / "left.yaml", True), (right_doc, folder / "right.yaml", False)):
-            name = str(doc.get("camera_name", "")).lower()
-            other = "right" if expect_left else "left"
-            if name and other in name and ("left" if expect_left else "right") not in name:
-                raise CalibrationSwappedError(f"{path}: camera_name '{doc['camera_name']}' says this is the {other} "
-                                              f"camera; left.yaml and right.yaml look swapped")
-            if "projection_matrix" in doc:
-                P = _matrix(doc, "projection_matrix", (3, 4), path)
-                if expect_left and P[0, 3] < -1e-9:
-                    raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {P[0, 3]:.3f} (a left "
-                                                  f"camera has 0, a right one -fx*baseline); left.yaml and right.yaml "
-                                                  f"look swapped")
-                if not expect_left and P[0, 3] > 1e-9:
-                    raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {P[0, 3]:.3f} > 0, i.e. this "
-                                                  f"camera sits left of the other; left/right look swapped")
-        digest = hashlib.sha1()
-        for name in ("left.yaml", "right.yaml", "stereo.yaml"):
-            digest.update((folder / name).read_bytes())
-        meta = {
-            "left_frame_id": str(sdoc.get("left_frame_id", "lsu_left_optical")),
-            "right_frame_id": str(sdoc.get("right_frame_id", "lsu_right_optical")),
-            "rms_px": float(sdoc.get("rms_px", 0.0) or 0.0),
-            "calibration_id": digest.hexdigest()[:12],
-        }
-        return cls.from_arrays(K1, D1, K2, D2, R, T, size1, E=E, F=F, source=str(folder), **meta)
+        cal = read_calibration_dir(folder)
+        s = cal.stereo
+        return cls.from_arrays(cal.left.camera_matrix, cal.left.distortion_coefficients, cal.right.camera_matrix,
+                               cal.right.distortion_coefficients, s.rotation, s.translation, cal.image_size,
+                               E=s.essential, F=s.fundamental, source=str(folder), left_frame_id=s.left_frame_id,
+                               right_frame_id=s.right_frame_id, rms_px=float(s.rms_px),
+                               calibration_id=cal.calibration_id)
 
     # ------------------------------------------------------------------ geometry
     @property

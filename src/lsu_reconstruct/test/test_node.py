@@ -196,8 +196,12 @@ def test_calibration_from_topics_and_unpaired_lines_on_diagnostics(ros_node, rig
     ext = StereoExtrinsics(rotation=rig.R.reshape(-1).tolist(), translation=rig.T.tolist(),
                            image_width=640, image_height=480, right_frame_id="lsu_right_optical")
     ext.header.frame_id = "lsu_left_optical"
-    h.create_publisher(CameraInfo, f"{ns}/stereo/left/camera_info", LATCHED).publish(info_l)
-    h.create_publisher(CameraInfo, f"{ns}/stereo/right/camera_info", LATCHED).publish(info_r)
+    # as the camera node does: camera_info with each image (volatile), the extrinsics latched
+    info_pubs = [(h.create_publisher(CameraInfo, f"{ns}/stereo/{side}/camera_info", 10), info)
+                 for side, info in (("left", info_l), ("right", info_r))]
+    assert ros_node.spin_until(lambda: all(p.get_subscription_count() > 0 for p, _ in info_pubs), 10)
+    for p, info in info_pubs:
+        p.publish(info)
     h.create_publisher(StereoExtrinsics, f"{ns}/stereo/extrinsics", LATCHED).publish(ext)
     assert ros_node.spin_until(lambda: node.model is not None, 10), node.calibration_error
     assert node.model.baseline_m == pytest.approx(np.linalg.norm(rig.T))

@@ -31,7 +31,7 @@ def test_folder_loads_the_rig_it_was_written_from(calib, rig):
     assert model.image_size == (640, 480)
     assert model.baseline_m == pytest.approx(np.linalg.norm([0.1218, 0.0018, 0.0045]), abs=1e-9)
     assert model.T[0] < 0  # right camera of a left-world rig
-    assert len(model.calibration_id) == 12
+    assert len(model.calibration_id) == 16
 
 
 def test_undistortion_inverts_opencv_projection(calib, rig):
