@@ -268,7 +268,7 @@ class Gp32Firmware:
             try:
                 os.close(fd)
             except OSError:
-                pass
+                pass  # already closed: nothing left to release
         self._sim_fds = []
 
     def _stop_sim(self) -> None:
@@ -358,7 +358,7 @@ class Gp32Firmware:
         try:
             os.write(self._sim_in, data)
         except OSError:
-            pass
+            pass  # no simulator running (power-cycling or exited, which the loop reports): the pins are dead
 
     def _from_host(self, data: bytes) -> None:
         """Client bytes to the firmware's SCI (bytes >= 0x80 escaped, see hal_sim.c)."""
