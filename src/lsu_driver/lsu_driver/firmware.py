@@ -10,8 +10,9 @@ module is the board around the microcontroller:
   firmware's time is real time (ucsim itself runs the HC08 faster than real time);
 - it is the mechanics: the step and direction pins move a carriage with the emulator's physics
   (`emulator.pulse_travel`, overstep above 180 steps/s, vibration after a stop), and the
-  end-sensor pins follow the carriage (the firmware waits for them after each pulse); the laser
-  pin is reported in `truth`.
+  end-sensor pins follow the carriage (near the ends the firmware waits for them after each pulse,
+  elsewhere the board grants pulses that cannot reach a sensor); the laser pin is reported in
+  `truth`.
 
 Each pulse carries the firmware millisecond it was sent in, so the rate that decides the
 overstep is measured in firmware time (the mean of the last four intervals) however late the
