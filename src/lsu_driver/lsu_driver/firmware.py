@@ -507,6 +507,17 @@ class Gp32Firmware:
             raise FirmwareUnavailable(f"the firmware did not boot within {wait_s:g} s in the simulator; "
                                       f"last lines: {self.log[-5:]}")
 
+    def power_off(self) -> None:
+        """Unpower the microcontroller until the next `reset`: the simulator stops (no replies, the
+        pins go low). Tests keep one board per module and switch the simulator off between their
+        tests, since a running ucsim takes a host core."""
+        with self._lock:
+            self._stop_sim()
+            self._close_sim_link()
+            self._sim_in = self._sim_out = -1
+            self._pins = 0
+            self._stopped()
+
     def wait_booted(self, timeout_s: float = 10.0) -> bool:
         """True once the firmware has sent ``!BOOT`` after the last power-on."""
         return self._booted.wait(timeout_s)
