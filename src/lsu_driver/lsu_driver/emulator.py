@@ -138,7 +138,7 @@ def close_pty(master: Optional[int], slave: Optional[int], link: Optional[Path],
             try:
                 os.close(fd)
             except OSError:
-                pass
+                pass  # already closed: nothing left to release
     if link is not None and link.is_symlink() and os.readlink(link) == path:
         link.unlink()
 

@@ -10,8 +10,9 @@ module is the board around the microcontroller:
   firmware's time is real time (ucsim itself runs the HC08 faster than real time);
 - it is the mechanics: the step and direction pins move a carriage with the emulator's physics
   (`emulator.pulse_travel`, overstep above 180 steps/s, vibration after a stop), and the
-  end-sensor pins follow the carriage (the firmware waits for them after each pulse); the laser
-  pin is reported in `truth`.
+  end-sensor pins follow the carriage (near the ends the firmware waits for them after each pulse,
+  elsewhere the board grants pulses that cannot reach a sensor); the laser pin is reported in
+  `truth`.
 
 Each pulse carries the firmware millisecond it was sent in, so the rate that decides the
 overstep is measured in firmware time (the mean of the last four intervals) however late the
@@ -25,11 +26,13 @@ No rclpy here: `emulator_node.py` publishes the truth on ROS for either unit.
 from __future__ import annotations
 
 import collections
+import ctypes
 import os
 import random
 import re
 import select
 import shutil
+import signal
 import subprocess
 import tempfile
 import threading
@@ -59,6 +62,14 @@ STACK_RESERVE_BYTES = 64      # the deepest call chain plus an interrupt frame, 
 
 _RATE_WINDOW = 4              # pulse intervals averaged for the rate that decides the overstep
 _FROM_REST_MS = 60            # a pulse later than this after the previous one starts from rest (20 steps/s = 50 ms)
+
+
+def _die_with_parent_thread() -> None:
+    """In the simulator's child process: SIGKILL when the board's thread ends. ucsim spins while it
+    waits for input, so an orphan would take a core for ever. (The board starts it from its own
+    thread, which lives as long as the board.)"""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 class FirmwareUnavailable(RuntimeError):
@@ -195,6 +206,7 @@ class Gp32Firmware:
         self.on_change: Optional[Callable[[], None]] = None
         self._position = float(self.config.start_position_steps)
         self._booted = threading.Event()  # the firmware's !BOOT line since the last power-on
+        self._power_request = threading.Event()  # (re)start the simulator, from the board's own thread
         self._line = b""
         self._host_line = b""
         self._reset_board_state()
@@ -227,7 +239,7 @@ class Gp32Firmware:
             raise FirmwareUnavailable(f"no firmware image {self.image}: run `lsu gp32 firmware build` first")
         self._master, self._slave, self.device_path = open_pty(self.link)
         self._running = True
-        self._power_on()
+        self._power_request.set()
         self._thread = threading.Thread(target=self._loop, name="gp32-board", daemon=True)
         self._thread.start()
         if self.control_path is not None:
@@ -257,7 +269,7 @@ class Gp32Firmware:
             try:
                 os.close(fd)
             except OSError:
-                pass
+                pass  # already closed: nothing left to release
         self._sim_fds = []
 
     def _stop_sim(self) -> None:
@@ -290,7 +302,8 @@ class Gp32Firmware:
             # that could fill up and stop the simulator
             self._sim_stderr = tempfile.TemporaryFile()
             self._sim = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
-                                         stderr=self._sim_stderr, start_new_session=True)
+                                         stderr=self._sim_stderr, start_new_session=True,
+                                         preexec_fn=_die_with_parent_thread)
             self._write_sim(bytes([IN_SENSORS | self._sensors]))
 
     # ---------------------------------------------------------------------------- physics
@@ -346,7 +359,7 @@ class Gp32Firmware:
         try:
             os.write(self._sim_in, data)
         except OSError:
-            pass
+            pass  # no simulator running (power-cycling or exited, which the loop reports): the pins are dead
 
     def _from_host(self, data: bytes) -> None:
         """Client bytes to the firmware's SCI (bytes >= 0x80 escaped, see hal_sim.c)."""
@@ -416,6 +429,9 @@ class Gp32Firmware:
     def _loop(self) -> None:
         while self._running:
             try:
+                if self._power_request.is_set():
+                    self._power_request.clear()
+                    self._power_on()
                 self._iterate()
             except OSError:
                 if self._running:
@@ -485,10 +501,22 @@ class Gp32Firmware:
         with self._lock:
             if carriage_at is not None:
                 self._position = float(carriage_at)
-            self._power_on()
+            self._booted.clear()
+            self._power_request.set()
         if not self._booted.wait(wait_s):
             raise FirmwareUnavailable(f"the firmware did not boot within {wait_s:g} s in the simulator; "
                                       f"last lines: {self.log[-5:]}")
+
+    def power_off(self) -> None:
+        """Unpower the microcontroller until the next `reset`: the simulator stops (no replies, the
+        pins go low). Tests keep one board per module and switch the simulator off between their
+        tests, since a running ucsim takes a host core."""
+        with self._lock:
+            self._stop_sim()
+            self._close_sim_link()
+            self._sim_in = self._sim_out = -1
+            self._pins = 0
+            self._stopped()
 
     def wait_booted(self, timeout_s: float = 10.0) -> bool:
         """True once the firmware has sent ``!BOOT`` after the last power-on."""

@@ -29,6 +29,7 @@ def firmware_unit(firmware_build, tmp_path_factory):
     unit = Gp32Firmware(EmulatorConfig(start_position_steps=START_POSITION), Faults(seed=1), link=str(link),
                         image=firmware_build.sim_image).start()
     assert unit.wait_booted(), unit.log
+    unit.power_off()  # each test powers it on (`unit`)
     yield unit
     unit.close()
 
@@ -46,3 +47,4 @@ def unit(request, tmp_path):
         firmware.clear_faults()
         firmware.reset(carriage_at=START_POSITION)
         yield firmware
+        firmware.power_off()  # a running simulator takes a core: not while other tests run

@@ -31,11 +31,16 @@ class Line:
         self.since_command += lines
         return lines
 
-    def ask(self, command: bytes, settle_s: float = 0.4) -> List[bytes]:
-        """The lines within ``settle_s`` after sending ``command``."""
+    def ask(self, command: bytes, settle_s: float = 0.1, timeout_s: float = 3.0) -> List[bytes]:
+        """The lines after sending ``command``: up to its reply (OK/ERR), then ``settle_s`` more (so a
+        second reply would show)."""
         self.since_command = []
         self.port.write(command)
-        return self.read_lines(time.monotonic() + settle_s)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and not any(x.startswith((b"OK", b"ERR")) for x in self.since_command):
+            self.read_lines(time.monotonic() + 0.02)
+        self.read_lines(time.monotonic() + settle_s)
+        return self.since_command
 
     def wait_for(self, wanted: bytes, timeout_s: float) -> List[bytes]:
         """Every line since the last command, once ``wanted`` is among them (or the timeout passed)."""
@@ -92,9 +97,9 @@ def test_over_long_lines_get_one_error_and_the_next_line_works(line):
 
 
 def test_moves_report_done_and_the_end_sensor(line, unit):
-    assert line.ask(b"M-5\n", 0.2)[0] == b"OK\n"
+    assert line.ask(b"M-5\n", 0.0)[0] == b"OK\n"
     assert line.wait_for(b"!DONE -5\n", 3.0) == [b"OK\n", b"!DONE -5\n"]
-    assert line.ask(b"M-30\n", 0.1)[0] == b"OK\n"  # the carriage started at 20: the start sensor stops it
+    assert line.ask(b"M-30\n", 0.0)[0] == b"OK\n"  # the carriage started at 20: the start sensor stops it
     seen = line.wait_for(b"!DONE -20\n", 3.0)  # 15 pulses to the sensor
     assert seen == [b"OK\n", b"!END 0\n", b"!DONE -20\n"], seen
     assert line.ask(b"M-1\n") == [err(p.ERR_END_SENSOR)]
@@ -102,7 +107,7 @@ def test_moves_report_done_and_the_end_sensor(line, unit):
 
 
 def test_power_cycle_announces_boot_and_forgets_position(line, unit):
-    assert line.ask(b"M+5\n", 0.1)[0] == b"OK\n"
+    assert line.ask(b"M+5\n", 0.0)[0] == b"OK\n"
     assert line.wait_for(b"!DONE 5\n", 3.0) == [b"OK\n", b"!DONE 5\n"]
     line.since_command = []
     unit.reset()
