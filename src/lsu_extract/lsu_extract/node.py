@@ -39,6 +39,8 @@ SCAN_DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability
 _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
     "min_contrast": ("laser signal above the local background needed to accept a row [DN]", (1.0, 255.0)),
+    "contrast_sigmas": ("on a frame quieter than that, accept this many of its noise sigmas instead (measured in "
+                        "every frame, never below 10 DN); 0 = min_contrast always", (0.0, 100.0)),
     "ambiguity_ratio": ("a second peak at least this fraction of the first competes with it (reflection)",
                         (0.05, 1.0)),
     "min_width_px": ("smallest accepted laser FWHM [px]", (0.0, 64.0)),
@@ -46,7 +48,10 @@ _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "window_px": ("tracking window half-width around the line of the neighbouring rows [px]; 0 = full rows",
                   (0, 128)),
     "coarse_step_rows": ("rows between the full-row searches that seed the tracking [rows]", (1, 64)),
-    "saturation_level": ("red value at which the sensor clips [DN]", (1, 255)),
+    "saturation_level": ("red value from which the sensor clips [DN] (JPEG-softened cameras top out at 250-254)",
+                         (1, 255)),
+    "clipped_centre": ("where red clips: centre midway between the half-maximum crossings of the signal's flanks "
+                       "('signal') or of red's ('red')", None),
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }
