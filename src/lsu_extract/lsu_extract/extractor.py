@@ -44,7 +44,7 @@ from .detectors import BLAIS_RIOUX_ORDER, METHOD_SUPPORT_PX, METHODS, SUBPIXEL_M
 from .detectors import clamp as _clamp
 from .detectors import blais_rioux_crossing, blais_rioux_kernel, half_max_crossings, thesis_detector
 from .image import ImageFormatError
-from .signal import LaserSignal
+from .signal import LaserSignal, contrast_noise
 from .tracking import BLANK, coarse_track, decide, row_candidates
 
 # Chosen by bench/bench_extract.py: the lowest RMS column error on the simulated rig (plane and
@@ -64,10 +64,10 @@ CLIPPED_CENTRE = ("signal", "red")
 # The contrast threshold of a frame. A fixed one (min_contrast, 30 DN) loses a faint line on a
 # quiet frame (real photographs: 14 DN on dark surfaces), and lowered for every frame it accepts
 # texture on a busy one. So each frame measures the noise of the very contrast it thresholds
-# (`LaserSignal.contrast_noise`, a robust sigma over 16 of the coarse rows) and accepts
-# contrast_sigmas (8) of it where that is below min_contrast; never below NOISE_FLOOR_DN, under
-# which the 8-bit quantisation of smoothed webcam pictures (a sigma of 0-1 DN) says nothing.
-NOISE_FLOOR_DN = 10.0
+# (`contrast_noise`, a robust sigma over a quarter of the coarse rows, which the coarse search reads
+# anyway) and accepts contrast_sigmas (8) of it where that is below min_contrast; never below
+# NOISE_FLOOR_DN, under which the 8-bit quantisation of smoothed webcam pictures says nothing.
+NOISE_FLOOR_DN = 12.0
 
 
 class ExtractorConfigError(ValueError):
@@ -479,15 +479,6 @@ def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: Extra
     return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True, shape=shape)
 
 
-@lru_cache(maxsize=16)
-def _noise_rows(height: int, step: int) -> np.ndarray:
-    """At most 16 rows of the coarse pass, evenly spread, for the noise estimate (cached, read-only)."""
-    coarse = _coarse_rows(height, step)
-    rows = coarse[np.linspace(0, coarse.size - 1, min(16, coarse.size)).astype(np.int64)]
-    rows.setflags(write=False)
-    return rows
-
-
 @lru_cache(maxsize=64)
 def _at_contrast(params: ExtractorParams, min_contrast: float) -> ExtractorParams:
     """``params`` with the frame's threshold (rounded to 0.5 DN by the caller, so the cache holds)."""
@@ -554,8 +545,14 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
                                f"(or a smaller max_width_px)")
     step = params.coarse_step_rows
     on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
+    coarse_rows = _coarse_rows(height, step)
+    coarse = sig.rows_clipped(slice(coarse_rows[0], height, step)) if params.window_px > 0 else None
     if params.contrast_sigmas > 0.0:
-        sigma = sig.contrast_noise(_noise_rows(height, step), half)
+        # every 4th coarse row: ~10^4 samples pin the median down; more only cost time
+        if sig.texture is not None:
+            sigma = contrast_noise(sig.rows(coarse_rows[::4]), half)  # unclipped: see contrast_noise
+        else:
+            sigma = contrast_noise(sig.rows_clipped(coarse_rows[::4]) if coarse is None else coarse[::4], half)
         threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)
         if threshold < params.min_contrast:
             params = _at_contrast(params, threshold)
@@ -564,9 +561,7 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
     pending: Optional[np.ndarray] = None  # None = every row
     if params.window_px > 0:
         w = params.window_px
-        coarse_rows = _coarse_rows(height, step)
-        cand = row_candidates(sig.rows_clipped(slice(coarse_rows[0], height, step)), coarse_rows, half,
-                              params.min_contrast)
+        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)
         rows_w, guess = coarse_track(height, coarse_rows, pick.column, step)

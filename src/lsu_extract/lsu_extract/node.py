@@ -50,7 +50,7 @@ _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
     "min_contrast": ("laser signal above the local background needed to accept a row [DN]", (1.0, 255.0)),
     "contrast_sigmas": ("on a frame quieter than that, accept this many of its noise sigmas instead (measured in "
-                        "every frame, never below 10 DN); 0 = min_contrast always", (0.0, 100.0)),
+                        "every frame, never below 12 DN); 0 = min_contrast always", (0.0, 100.0)),
     "ambiguity_ratio": ("a second peak at least this fraction of the first competes with it (reflection)",
                         (0.05, 1.0)),
     "min_width_px": ("smallest accepted laser FWHM [px]", (0.0, 64.0)),

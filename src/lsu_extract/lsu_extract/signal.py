@@ -76,36 +76,6 @@ class LaserSignal:
         # numpy: its uint8 max is vectorised; OpenCV's row reduction of uint8 runs ~100x slower
         return pixels.max(axis=1) >= min_contrast
 
-    def contrast_noise(self, rows: RowSelection, half: int) -> float:
-        """Robust sigma [DN] of the contrast the extractor thresholds, measured at every pixel of ``rows``.
-
-        The contrast of a row is its signal's height above the window ends ``half`` px away; the
-        same statistic at every pixel is, away from the few laser pixels, what texture and noise
-        give it. Its scale is 1.4826 x the median of its absolute value (a MAD: the laser pixels
-        do not move it), read off a 256-bin histogram (OpenCV), which costs a fraction of a
-        median. Pixel-to-pixel differences would not do: webcams smooth the picture, and their
-        median difference is often 0 DN.
-        """
-        pixels = self.image[rows]
-        if pixels.shape[0] == 0 or self.width <= 2 * half:
-            return 0.0
-        texture = None if self.texture is None else self.texture[rows]
-        if self.colour:
-            blue, green, red = cv2.split(pixels)
-            if texture is None:
-                signal = cv2.subtract(red, cv2.max(green, blue), dtype=cv2.CV_16S)
-            else:
-                signal = cv2.subtract(cv2.subtract(red, cv2.extractChannel(texture, 2), dtype=cv2.CV_16S),
-                                      self._other_rise(green, blue, texture), dtype=cv2.CV_16S)
-        else:
-            signal = pixels.astype(np.int16) if texture is None else cv2.subtract(pixels, texture, dtype=cv2.CV_16S)
-        ends = cv2.add(signal[:, :-2 * half], signal[:, 2 * half:])
-        contrast = cv2.subtract(cv2.multiply(signal[:, half:-half], 2), ends)  # twice the height: no rounding
-        hist = cv2.calcHist([cv2.convertScaleAbs(contrast)], [0], None, [256], [0, 256]).ravel()
-        cumulative = np.cumsum(hist)
-        median = float(np.searchsorted(cumulative, 0.5 * cumulative[-1]))
-        return 1.4826 * 0.5 * median
-
     def rows(self, rows: RowSelection) -> np.ndarray:
         """Signal of whole ``rows`` (indices or a slice): (n, W) float32."""
         pixels = self.image[rows]
@@ -216,3 +186,27 @@ class LaserSignal:
             return cv2.subtract(red, cv2.max(green, blue), dtype=cv2.CV_32F), red
         rise = cv2.subtract(red, cv2.extractChannel(texture, 2), dtype=cv2.CV_32F)
         return cv2.subtract(rise, self._other_rise(green, blue, texture), dtype=cv2.CV_32F), red
+
+
+def contrast_noise(clipped: np.ndarray, half: int) -> float:
+    """Robust sigma [DN] of the contrast the coarse search thresholds, at every pixel of ``clipped`` rows.
+
+    ``clipped`` is (n, W) uint8, the signal clipped at 0 (`LaserSignal.rows_clipped`): what the
+    coarse search reads; or the signal itself (any integer-valued dtype) where clipping would hide
+    the noise: a difference from a laser-off frame is noise around 0 everywhere. The contrast of a pixel is its height above the mean of the samples
+    ``half`` px to either side; away from the few laser pixels that is what texture and noise
+    give it. Its scale is 1.4826 x the median of its absolute value (a MAD: the laser pixels do
+    not move it), read off a 256-bin histogram (OpenCV), which costs a fraction of a median.
+    Pixel-to-pixel differences would not do: webcams smooth the picture, and their median is
+    often 0 DN. Where the signal is negative (white, grey, blue surfaces) the clipped signal is
+    0 and so is its contrast: no noise peak can rise there, and the estimate is lower.
+    """
+    if clipped.shape[0] == 0 or clipped.shape[1] <= 2 * half:
+        return 0.0
+    if clipped.dtype != np.uint8:
+        clipped = clipped.astype(np.int16)
+    twice = cv2.subtract(cv2.add(clipped[:, half:-half], clipped[:, half:-half], dtype=cv2.CV_16S),
+                         cv2.add(clipped[:, :-2 * half], clipped[:, 2 * half:], dtype=cv2.CV_16S))
+    hist = cv2.calcHist([cv2.convertScaleAbs(twice)], [0], None, [256], [0, 256]).ravel()
+    cumulative = np.cumsum(hist)
+    return 1.4826 * 0.5 * float(np.searchsorted(cumulative, 0.5 * cumulative[-1]))
