@@ -34,23 +34,42 @@ A pure module: numpy and OpenCV, no ROS.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .detectors import BLAIS_RIOUX_ORDER, METHOD_SUPPORT_PX, METHODS, SUBPIXEL_METHODS, THESIS
+from .detectors import ADAPTIVE_WIDTH_PX, BLAIS_RIOUX_ORDER, METHOD_SUPPORT_PX, METHODS, SUBPIXEL_METHODS, THESIS
 from .detectors import clamp as _clamp
 from .detectors import blais_rioux_crossing, blais_rioux_kernel, half_max_crossings, thesis_detector
 from .image import ImageFormatError
-from .signal import LaserSignal
+from .signal import LaserSignal, contrast_noise
 from .tracking import BLANK, coarse_track, decide, row_candidates
 
-# Chosen by bench/bench_extract.py: the lowest RMS column error on the simulated rig (plane and
-# head, default noise; see bench/results/extract.json). On the analytic lines blais_rioux8 is
-# marginally better, but its +-5 px support picks up the curvature and albedo changes of a face.
-DEFAULT_METHOD = "blais_rioux4"
+# Chosen by bench/bench_extract.py on a mix of simulated frames and real photographs (see
+# bench/results/extract.json): blais_rioux4 is best on the rig's narrow lines (3-4 px FWHM) and
+# blais_rioux8 on the wider lines of real photographs (0.28 vs 0.32 px from a smooth fit), where
+# the short filter sees only the flat top; the adaptive blais_rioux takes each where it is best.
+# com is as precise on real lines but costs ~1.6x the time.
+DEFAULT_METHOD = "blais_rioux"
+# Where red clips, how the centre is found on a colour frame without a laser-off frame. The sensor's
+# colour crosstalk lifts green and blue in proportion to the laser (a few to 15 % of red), which only
+# scales red - max(green, blue) while red follows the laser; once red clips, green and blue still
+# rise and the signal's top bends into a plateau or a dip (real photographs: +20-50 DN in the core),
+# which no peak fit can centre. Such rows are centred midway between the half-maximum crossings of
+# the flanks: "signal": the signal's (robust where red clips on a bright white background too),
+# "red": red's own, which crosstalk does not bend (better on the saturated real photograph, worse
+# where daylight clips red around the line; bench/results/extract.json). JPEG-softened cameras top
+# out at 250-254 instead of 255, hence the default saturation_level of 250.
+CLIPPED_CENTRE = ("signal", "red")
+# The contrast threshold of a frame. A fixed one (min_contrast, 30 DN) loses a faint line on a
+# quiet frame (real photographs: 14 DN on dark surfaces), and lowered for every frame it accepts
+# texture on a busy one. So each frame measures the noise of the very contrast it thresholds
+# (`contrast_noise`, a robust sigma over a quarter of the coarse rows, which the coarse search reads
+# anyway) and accepts contrast_sigmas (8) of it where that is below min_contrast; never below
+# NOISE_FLOOR_DN, under which the 8-bit quantisation of smoothed webcam pictures says nothing.
+NOISE_FLOOR_DN = 12.0
 
 
 class ExtractorConfigError(ValueError):
@@ -62,13 +81,15 @@ class ExtractorParams:
     """Tuning of the extractor (the ``laser_extractor`` node's parameters have the same names)."""
 
     method: str = DEFAULT_METHOD
-    min_contrast: float = 30.0       # laser signal above the local background to accept a row [DN]
+    min_contrast: float = 30.0       # laser signal above the local background to accept a row [DN] ...
+    contrast_sigmas: float = 8.0     # ... lowered to this many noise sigmas of a quieter frame (0: fixed), `NOISE_FLOOR_DN`
     ambiguity_ratio: float = 0.6     # a second peak this strong relative to the first competes with it
     min_width_px: float = 1.0        # accepted FWHM range of the laser profile [px]
     max_width_px: float = 16.0
     window_px: int = 12              # tracking window half-width [px]; 0 = search every row in full
     coarse_step_rows: int = 8        # row spacing of the coarse full-row pass
-    saturation_level: int = 255      # red value at which the sensor clips [DN]
+    saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
+    clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
 
@@ -89,6 +110,9 @@ def param_problems(values: Dict[str, object]) -> List[str]:
     method = values.get("method", DEFAULT_METHOD)
     if method not in METHODS:
         problems.append(f"method '{method}' is unknown; must be one of: {', '.join(METHODS)}")
+    clipped = values.get("clipped_centre", "signal")
+    if clipped not in CLIPPED_CENTRE:
+        problems.append(f"clipped_centre '{clipped}' is unknown; must be one of: {', '.join(CLIPPED_CENTRE)}")
 
     def number(name: str, low: float, high: float) -> None:
         if name not in values:
@@ -100,6 +124,7 @@ def param_problems(values: Dict[str, object]) -> List[str]:
             problems.append(f"{name} must be within [{low:g}, {high:g}], got {value!r}")
 
     number("min_contrast", 1.0, 255.0)
+    number("contrast_sigmas", 0.0, 100.0)
     number("ambiguity_ratio", 0.05, 1.0)
     number("min_width_px", 0.0, 64.0)
     number("max_width_px", 2.0, 64.0)
@@ -260,8 +285,8 @@ def _linear_features(method: str, half: int, min_width: float, max_width: float)
     rows[5] = 4.0 * rows[1] - 3.0 * rows[0]
     rows[6] = rows[2] - min_width * rows[3]
     rows[7] = max_width * rows[3] - rows[2]
-    if method in BLAIS_RIOUX_ORDER:
-        g = blais_rioux_kernel(BLAIS_RIOUX_ORDER[method], size).T.astype(np.float64)  # g(-1), g(0), g(+1)
+    for order in BLAIS_RIOUX_ORDER.get(method, ()):
+        g = blais_rioux_kernel(order, size).T.astype(np.float64)  # g(-1), g(0), g(+1)
         rows = np.concatenate([rows, [-g[1], g[1] - g[0], g[2] - g[1]]])
     matrix = rows.astype(np.float32)
     matrix.setflags(write=False)
@@ -280,13 +305,17 @@ def _shortcut_widths(params: ExtractorParams) -> Tuple[float, float]:
 
 
 def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray], params: ExtractorParams,
-         image_width: int, accept: Optional[np.ndarray] = None, inside: bool = False) -> Dict[str, Optional[np.ndarray]]:
+         image_width: int, accept: Optional[np.ndarray] = None, inside: bool = False,
+         shape: Optional[np.ndarray] = None) -> Dict[str, Optional[np.ndarray]]:
     """Sub-pixel centre, peak, width and contrast quality of each row's profile around its integer peak.
 
     ``profile`` is (n, 2 * half + 1) float32, the signal around image column ``column`` (its
     centre sample); ``saturated`` flags rows whose peak is a clipped plateau (None: none is);
     ``accept``: rows the caller has already rejected are False (None: all accepted);
-    ``inside``: the caller knows every column is at least ``half`` from both borders.
+    ``inside``: the caller knows every column is at least ``half`` from both borders;
+    ``shape``: the red channel around the same columns, given where red clips (``saturated``):
+    those rows are centred on its flanks (`CLIPPED_CENTRE`); contrast, width and acceptance are
+    always the signal's.
     Returns per-row arrays (see `_FIELDS`) and ``valid`` (None: every row is valid).
 
     Width: walking out to the half-maximum crossings costs a dozen numpy calls, so the usual
@@ -307,7 +336,8 @@ def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray
     - rows near the image border, whose crossings must lie inside the image.
     """
     half = params.refine_half_px
-    features = _linear_features(params.method, half, *_shortcut_widths(params)) @ profile.T
+    matrix = _linear_features(params.method, half, *_shortcut_widths(params))
+    features = matrix @ profile.T
     # height above the local background, the lower of the two window ends, so that a
     # neighbouring bright patch on one side does not eat the contrast
     peak = np.maximum(features[0], features[1])
@@ -322,6 +352,9 @@ def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray
     width = features[2] / np.maximum(features[3], _TINY)
     if params.method in BLAIS_RIOUX_ORDER:
         offset = blais_rioux_crossing(features[8], features[9], features[10])
+        if len(BLAIS_RIOUX_ORDER[params.method]) == 2:  # blais_rioux: the 8th order on the wider lines
+            offset = np.where(width > ADAPTIVE_WIDTH_PX, blais_rioux_crossing(features[11], features[12], features[13]),
+                              offset)
     else:
         offset = SUBPIXEL_METHODS[params.method](profile - (profile[:, half] - peak)[:, None])
     n = valid.size
@@ -345,7 +378,11 @@ def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray
             ok = found & (np.abs(width[sub] - _mid(params)) <= _span(params))
             if saturated is not None:
                 # A clipped top has no shape to fit; the flanks are intact and symmetric, so the
-                # centre is midway between the half-maximum crossings.
+                # centre is midway between the half-maximum crossings: of red's flanks when given
+                # (`CLIPPED_CENTRE`), whose shape the sensor's crosstalk does not bend.
+                if shape is not None:
+                    red_peak = np.maximum.reduce(matrix[:2] @ shape[sub].T)
+                    left, right, _ = half_max_crossings(shape[sub], shape[sub, half] - red_peak)
                 offset[sub] = np.where(saturated[sub], 0.5 * (left + right), offset[sub])
             if near_border:
                 # nearer the border the profile is cut and its centre is not observable
@@ -371,41 +408,49 @@ def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray
 
 
 def _refine(signal: np.ndarray, red: np.ndarray, first: np.ndarray, peak_idx: np.ndarray,
-            params: ExtractorParams, image_width: int, accept: Optional[np.ndarray] = None
-            ) -> Dict[str, Optional[np.ndarray]]:
+            params: ExtractorParams, image_width: int, accept: Optional[np.ndarray] = None,
+            on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
     """`_fit` of each row's peak within its window: ``signal``/``red`` are (n, L) windows from image column ``first``.
 
-    ``peak_idx`` is the integer peak in each window. The general (row-major) path: windows
-    shifted at a border, and the fallback rows.
+    ``peak_idx`` is the integer peak in each window; ``on_red``: rows where red clips are centred on
+    red's flanks (`CLIPPED_CENTRE`). The general (row-major) path: windows shifted at a border, and
+    the fallback rows.
     """
     profile = _profiles(signal, peak_idx, params.refine_half_px)
+    shape = None
     saturated = None
     # The signal's argmax can sit just beside the clipped red pixels (green/blue noise), so look
     # at the peak's neighbours too; the exact test only runs when the windows clip at all.
     if red.size and red.max() >= params.saturation_level:
         near = _clamp(peak_idx[:, None] + np.arange(-1, 2)[None, :], 0, red.shape[1] - 1)
         saturated = np.take_along_axis(red, near, axis=1).max(axis=1) >= params.saturation_level
-    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept)
+        if on_red:
+            shape = _profiles(red.astype(np.float32), peak_idx, params.refine_half_px)
+    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape)
 
 
 def _refine_columns(sig: LaserSignal, rows: np.ndarray, column: np.ndarray, params: ExtractorParams,
-                    image_width: int) -> Dict[str, Optional[np.ndarray]]:
+                    image_width: int, on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
     """`_fit` of the peak at ``column`` in each of ``rows`` (the fallback rows), every window inside the image.
 
     The window of +-half around the peak is the profile itself: gathered column-major, it is
     already the transposed profile the matrix product of `_fit` wants, with no second gather.
+    ``on_red``: as in `_refine`.
     """
     half = params.refine_half_px
     signal, red = sig.window_columns(rows * image_width + (column - half), 2 * half + 1)
+    shape = None
     saturated = None
     if red.max() >= params.saturation_level:
         # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
         saturated = np.maximum.reduce(red[half - 1:half + 2], axis=0) >= params.saturation_level
-    return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True)
+        if on_red:
+            shape = red.astype(np.float32).T
+    return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True, shape=shape)
 
 
 def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: ExtractorParams,
-           image_width: int) -> Dict[str, Optional[np.ndarray]]:
+           image_width: int, on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
     """`_fit` of the strongest peak within ``window_px`` of ``centre`` in each row (every window inside the image).
 
     The fast path of the tracking stage: the windows (search region +- window_px, plus the
@@ -425,6 +470,7 @@ def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: Extra
     # the profile runs from window row j, i.e. half rows before the peak
     flat = _peak_search(signal[half:half + 2 * w + 1], codes, bits)
     profile = _column_profiles(signal, flat, 2 * half + 1)
+    shape = None
     column = centre + offset[flat]
     saturated = None
     if red.max() >= params.saturation_level:
@@ -432,8 +478,16 @@ def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: Extra
         peak_row = flat // n + half
         near = red[peak_row[None, :] + np.arange(-1, 2)[:, None], np.arange(n)[None, :]]
         saturated = near.max(axis=0) >= params.saturation_level
+        if on_red:
+            shape = _column_profiles(np.ascontiguousarray(red), flat, 2 * half + 1)
     # a peak on the region's edge may be a slope rising towards something outside: search the row
-    return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True)
+    return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True, shape=shape)
+
+
+@lru_cache(maxsize=64)
+def _at_contrast(params: ExtractorParams, min_contrast: float) -> ExtractorParams:
+    """``params`` with the frame's threshold (rounded to 0.5 DN by the caller, so the cache holds)."""
+    return replace(params, min_contrast=min_contrast)
 
 
 @lru_cache(maxsize=16)
@@ -495,14 +549,24 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
         raise ImageFormatError(f"image is {width} px wide; the extractor needs at least {2 * half + 1} px "
                                f"(or a smaller max_width_px)")
     step = params.coarse_step_rows
+    on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
+    coarse_rows = _coarse_rows(height, step)
+    coarse = sig.rows_clipped(slice(coarse_rows[0], height, step)) if params.window_px > 0 else None
+    if params.contrast_sigmas > 0.0:
+        # every 4th coarse row: ~10^4 samples pin the median down; more only cost time
+        if sig.texture is not None:
+            sigma = contrast_noise(sig.rows(coarse_rows[::4]), half)  # unclipped: see contrast_noise
+        else:
+            sigma = contrast_noise(sig.rows_clipped(coarse_rows[::4]) if coarse is None else coarse[::4], half)
+        threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)
+        if threshold < params.min_contrast:
+            params = _at_contrast(params, threshold)
     chunks: List[Dict[str, np.ndarray]] = []
     full_searched = 0
     pending: Optional[np.ndarray] = None  # None = every row
     if params.window_px > 0:
         w = params.window_px
-        coarse_rows = _coarse_rows(height, step)
-        cand = row_candidates(sig.rows_clipped(slice(coarse_rows[0], height, step)), coarse_rows, half,
-                              params.min_contrast)
+        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)
         rows_w, guess = coarse_track(height, coarse_rows, pick.column, step)
@@ -511,14 +575,15 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
             reach = w + half  # the window holds the search region (+-w) and, beyond it, the refinement's +-half
             if reach <= centre.min() and centre.max() <= width - 1 - reach:
                 # no window reaches a border (the usual case): column-major windows, fewest calls
-                fit = _track(sig, rows_w, centre, params, width)
+                fit = _track(sig, rows_w, centre, params, width, on_red)
             else:
                 s, red, first = sig.windows(rows_w, centre - reach, 2 * reach + 1)
                 rel = centre - first  # windows at a border were shifted inside the image
                 region = np.abs(np.arange(s.shape[1])[None, :] - rel[:, None]) <= w
                 peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
                 # a peak on the region's edge may be a slope rising towards something outside: search the row
-                fit = _refine(s, red, first, peak_idx, params, width, accept=np.abs(peak_idx - rel) < w)
+                fit = _refine(s, red, first, peak_idx, params, width, accept=np.abs(peak_idx - rel) < w,
+                              on_red=on_red)
             chunks.append(_keep(rows_w, fit))
         if chunks and chunks[0]["v"].size == height:
             pending = np.zeros(0, np.int64)
@@ -546,10 +611,10 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
         if rows_f.size:
             column = pick.column[ok]
             if half <= column.min() and column.max() <= width - 1 - half:
-                fit = _refine_columns(sig, rows_f, column, params, width)
+                fit = _refine_columns(sig, rows_f, column, params, width, on_red)
             else:  # some window is cut by the border: shifted inside the image, edge samples repeated
                 s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
-                fit = _refine(s, red, first, column - first, params, width)
+                fit = _refine(s, red, first, column - first, params, width, on_red=on_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
     if len(chunks) == 1:

@@ -5,11 +5,18 @@ Subscribes ``stereo/{left,right}/image_raw`` (sensor_msgs/Image), publishes
 the matcher pairs left and right by stamp. A frame it cannot read (unsupported encoding, a
 size different from the first frame of that camera, a short buffer) is dropped with one
 error line per distinct problem and an ERROR status on ``/diagnostics``; the node keeps running.
+
+With ``background: texture`` it also follows ``scan/events``: the laser-off pair that a scan's
+TEXTURE event names (by stamp, among the last `FRAMES_KEPT` frames of each camera, or the next
+ones) becomes the background of that scan's frames: the extractor's signal is then the
+difference from it (ambient light and red objects cancel). A new scan starts without one, and
+until the pair is in, frames are extracted without it.
 """
 
 from __future__ import annotations
 
 import array
+import collections
 import sys
 from dataclasses import fields
 from typing import Any, Dict, List, Optional, Tuple
@@ -26,7 +33,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from lsu_interfaces.msg import LaserLine
+from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
 from .extractor import ExtractorParams, LaserLineResult, extract_laser_line, param_problems
@@ -35,10 +42,15 @@ from .image import ImageFormatError, decode_image, parse_image_cdr
 SIDES = ("left", "right")
 # scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
 SCAN_DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)
+EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+BACKGROUNDS = ("none", "texture")
+FRAMES_KEPT = 8  # newest frames per camera kept while a TEXTURE event may still name one of them
 
 _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
     "min_contrast": ("laser signal above the local background needed to accept a row [DN]", (1.0, 255.0)),
+    "contrast_sigmas": ("on a frame quieter than that, accept this many of its noise sigmas instead (measured in "
+                        "every frame, never below 12 DN); 0 = min_contrast always", (0.0, 100.0)),
     "ambiguity_ratio": ("a second peak at least this fraction of the first competes with it (reflection)",
                         (0.05, 1.0)),
     "min_width_px": ("smallest accepted laser FWHM [px]", (0.0, 64.0)),
@@ -46,7 +58,10 @@ _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "window_px": ("tracking window half-width around the line of the neighbouring rows [px]; 0 = full rows",
                   (0, 128)),
     "coarse_step_rows": ("rows between the full-row searches that seed the tracking [rows]", (1, 64)),
-    "saturation_level": ("red value at which the sensor clips [DN]", (1, 255)),
+    "saturation_level": ("red value from which the sensor clips [DN] (JPEG-softened cameras top out at 250-254)",
+                         (1, 255)),
+    "clipped_centre": ("where red clips: centre midway between the half-maximum crossings of the signal's flanks "
+                       "('signal') or of red's ('red')", None),
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }
@@ -87,7 +102,17 @@ class LaserExtractorNode(Node):
         for spec in fields(ExtractorParams):
             value = getattr(defaults, spec.name)
             self.declare_parameter(spec.name, value, _descriptor(spec.name, value))
+        self.declare_parameter("background", "none", ParameterDescriptor(
+            description="none: each frame alone; texture: minus the laser-off frame of the scan's TEXTURE event "
+                        "(ambient light and red objects cancel)"))
         self.params = self._read_params({})
+        self.background = str(self.get_parameter("background").value)
+        if self.background not in BACKGROUNDS:
+            raise ValueError(f"background '{self.background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
+        self._recent: Dict[str, "collections.deque[Tuple[int, np.ndarray]]"] = {
+            side: collections.deque(maxlen=FRAMES_KEPT) for side in SIDES}
+        self._texture_key: Optional[int] = None  # stamp (ns) of the current scan's laser-off pair
+        self.textures: Dict[str, np.ndarray] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self._sizes: Dict[str, Tuple[int, int]] = {}
@@ -103,6 +128,7 @@ class LaserExtractorNode(Node):
             self.create_subscription(Image, f"stereo/{side}/image_raw",
                                      lambda raw, side=side: self.on_image(side, raw), SCAN_DATA_QOS, raw=True)
             for side in SIDES]
+        self.subscriptions_.append(self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS))
 
     def _read_params(self, overrides: Dict[str, Any]) -> ExtractorParams:
         values = {spec.name: overrides.get(spec.name, self.get_parameter(spec.name).value)
@@ -114,12 +140,16 @@ class LaserExtractorNode(Node):
         current = {name: self.get_parameter(name).value for name in names}
         current.update({p.name: p.value for p in changed if p.name in names})
         problems = param_problems(current)
+        for p in changed:
+            if p.name == "background" and p.value not in BACKGROUNDS:
+                problems.append(f"background '{p.value}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
         if problems:
             return SetParametersResult(successful=False, reason="; ".join(problems))
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, changed: List[Parameter]) -> None:
         self.params = self._read_params({})
+        self.background = str(self.get_parameter("background").value)
         self.get_logger().info(f"parameters now: method={self.params.method}, "
                                f"min_contrast={self.params.min_contrast}, window_px={self.params.window_px}")
 
@@ -140,7 +170,16 @@ class LaserExtractorNode(Node):
                     "new size are dropped (the calibration is for the first size): restart the camera with "
                     "the calibrated size or restart the extractor")
             image = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
-            result = extract_laser_line(image, self.params)
+            texture = None
+            if self.background == "texture":
+                key = msg.sec * 1_000_000_000 + msg.nanosec
+                self._recent[side].append((key, np.array(image)))  # a copy: the message buffer is reused
+                if key == self._texture_key:
+                    self.textures[side] = self._recent[side][-1][1]
+                texture = self.textures.get(side)
+                if texture is not None and texture.shape != image.shape:
+                    texture = None  # a mono laser-off frame for a colour one, or the like: extract alone
+            result = extract_laser_line(image, self.params, texture=texture)
         except ImageFormatError as exc:
             self.dropped[side] += 1
             self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
@@ -150,6 +189,19 @@ class LaserExtractorNode(Node):
         self.publishers_[side].publish(result_to_msg(result, header))
         if side in self._reported:
             self._report(side, DiagnosticStatus.OK, f"{side} camera: extracting again")
+
+    def on_event(self, msg: ScanEvent) -> None:
+        """STARTED, FINISHED, ABORTED: forget the laser-off pair; TEXTURE: take the pair it names."""
+        if msg.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
+            self._texture_key = None
+            self.textures.clear()
+        elif msg.type == ScanEvent.TEXTURE:
+            self._texture_key = msg.image_stamp.sec * 1_000_000_000 + msg.image_stamp.nanosec
+            self.textures.clear()
+            for side in SIDES:  # the pair usually came before its event; otherwise on_image takes it
+                for key, image in self._recent[side]:
+                    if key == self._texture_key:
+                        self.textures[side] = image
 
     def _report(self, side: str, level: bytes, message: str) -> None:
         if self._reported.get(side) == message:

@@ -3,9 +3,12 @@
 Laser light (671 nm) is almost pure red, white light is not (thesis 6.1.5). The signal is
 ``red - max(green, blue)`` for a colour frame: white and grey surfaces give ~0, the laser a
 strong positive peak, reddish skin a small offset. When a laser-off texture frame of the
-same view is given, the signal is ``red - red_off`` instead: everything that is not the
-laser cancels. Mono frames have no colour, so their signal is the intensity (minus the
-texture frame's, if given).
+same view is given, the signal is the rise of red between the two frames less the larger
+rise of green or blue (never less than 0): ``(red - red_off) - max(green - green_off,
+blue - blue_off, 0)``. A static scene cancels; the laser adds red (and the few per cent of it
+that crosstalk puts into green and blue); a person moving between the two frames changes
+every channel, and mostly cancels too. Mono frames have no colour, so their signal is the
+intensity (minus the texture frame's, if given).
 
 Computing the signal for a whole 640x480 frame costs several times a copy of the frame, so
 `LaserSignal` computes it lazily: for a set of full rows (coarse search, fallback) or for a
@@ -92,8 +95,10 @@ class LaserSignal:
         if not self.colour:
             return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
         blue, green, red = cv2.split(pixels)
-        other = cv2.max(green, blue) if self.texture is None else cv2.extractChannel(self.texture[rows], 2)
-        return cv2.subtract(red, other)
+        if self.texture is None:
+            return cv2.subtract(red, cv2.max(green, blue))
+        return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
+                            self._other_rise(green, blue, self.texture[rows]))
 
     def windows(self, rows: np.ndarray, first_cols: np.ndarray, length: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Signal and red channel of ``length`` columns per row, starting near ``first_cols``.
@@ -135,7 +140,12 @@ class LaserSignal:
         if other is None:
             return red.astype(np.int16), red
         # numpy: int16 - uint8 stays int16, and on these strided views it beats cv2.subtract's conversion
-        return red.astype(np.int16) - other, red
+        signal = red.astype(np.int16) - other
+        if self.colour and texture is not None:
+            planes = cv2.transpose(pixels.reshape(len(starts), 3 * length)).reshape(length, 3, len(starts))
+            tex = cv2.transpose(texture.reshape(len(starts), 3 * length)).reshape(length, 3, len(starts))
+            signal -= cv2.max(cv2.subtract(planes[:, 1], tex[:, 1]), cv2.subtract(planes[:, 0], tex[:, 0]))
+        return signal, red
 
     def _planes(self, pixels: np.ndarray, texture: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """(red, other) of (n, L, 3) colour pixels, each (L, n) uint8; other = max(green, blue) or the texture's red.
@@ -148,6 +158,12 @@ class LaserSignal:
         if texture is None:
             return planes[:, 2], cv2.max(planes[:, 1], planes[:, 0])
         return planes[:, 2], cv2.transpose(texture.reshape(n, 3 * length)).reshape(length, 3, n)[:, 2]
+
+    @staticmethod
+    def _other_rise(green: np.ndarray, blue: np.ndarray, texture: np.ndarray) -> np.ndarray:
+        """max(green - green_off, blue - blue_off, 0) of (n, L) planes and their (n, L, 3) laser-off pixels, uint8."""
+        tex_blue, tex_green, _ = cv2.split(texture)
+        return cv2.max(cv2.subtract(green, tex_green), cv2.subtract(blue, tex_blue))
 
     def _sliding(self, image: np.ndarray, length: int) -> np.ndarray:
         # A (pixels - length + 1, length[, 3]) view whose entry k is the `length` pixels from flat
@@ -166,8 +182,31 @@ class LaserSignal:
                 return cv2.subtract(pixels, texture, dtype=cv2.CV_32F), pixels
             return pixels.astype(np.float32), pixels
         blue, green, red = cv2.split(pixels)
-        if texture is not None:
-            other = cv2.extractChannel(texture, 2)
-        else:
-            other = cv2.max(green, blue)
-        return cv2.subtract(red, other, dtype=cv2.CV_32F), red
+        if texture is None:
+            return cv2.subtract(red, cv2.max(green, blue), dtype=cv2.CV_32F), red
+        rise = cv2.subtract(red, cv2.extractChannel(texture, 2), dtype=cv2.CV_32F)
+        return cv2.subtract(rise, self._other_rise(green, blue, texture), dtype=cv2.CV_32F), red
+
+
+def contrast_noise(clipped: np.ndarray, half: int) -> float:
+    """Robust sigma [DN] of the contrast the coarse search thresholds, at every pixel of ``clipped`` rows.
+
+    ``clipped`` is (n, W) uint8, the signal clipped at 0 (`LaserSignal.rows_clipped`): what the
+    coarse search reads; or the signal itself (any integer-valued dtype) where clipping would hide
+    the noise: a difference from a laser-off frame is noise around 0 everywhere. The contrast of a pixel is its height above the mean of the samples
+    ``half`` px to either side; away from the few laser pixels that is what texture and noise
+    give it. Its scale is 1.4826 x the median of its absolute value (a MAD: the laser pixels do
+    not move it), read off a 256-bin histogram (OpenCV), which costs a fraction of a median.
+    Pixel-to-pixel differences would not do: webcams smooth the picture, and their median is
+    often 0 DN. Where the signal is negative (white, grey, blue surfaces) the clipped signal is
+    0 and so is its contrast: no noise peak can rise there, and the estimate is lower.
+    """
+    if clipped.shape[0] == 0 or clipped.shape[1] <= 2 * half:
+        return 0.0
+    if clipped.dtype != np.uint8:
+        clipped = clipped.astype(np.int16)
+    twice = cv2.subtract(cv2.add(clipped[:, half:-half], clipped[:, half:-half], dtype=cv2.CV_16S),
+                         cv2.add(clipped[:, :-2 * half], clipped[:, 2 * half:], dtype=cv2.CV_16S))
+    hist = cv2.calcHist([cv2.convertScaleAbs(twice)], [0], None, [256], [0, 256]).ravel()
+    cumulative = np.cumsum(hist)
+    return 1.4826 * 0.5 * float(np.searchsorted(cumulative, 0.5 * cumulative[-1]))

@@ -9,6 +9,7 @@ from lsu_extract.detectors import METHODS
 from lsu_extract.extractor import (DEFAULT_METHOD, ExtractorConfigError, ExtractorParams, LaserLineResult,
                                    extract_laser_line)
 from lsu_extract.image import ImageFormatError
+from lsu_extract.signal import LaserSignal, contrast_noise
 from lsu_extract.synthetic import LineScene, render_line
 
 CLEAN = LineScene(textured=False, read_noise_dn=0.0, shot_gain=0.0)
@@ -250,3 +251,40 @@ def test_tracking_and_full_search_agree_on_mono_and_texture_frames(method):
         np.testing.assert_allclose(tracked.u, full.u, atol=1e-4)
         np.testing.assert_allclose(tracked.width, full.width, atol=1e-4)
         assert np.max(np.abs(errors(tracked, truth))) <= 1.0  # on the line (mono frames clip: gaussian3 is coarse there)
+
+
+def test_frame_noise_is_the_robust_sigma_of_the_thresholded_contrast():
+    # mono frame of pure Gaussian noise sigma 4: a height above the mean of two samples 11 px away
+    # has sigma 4 * sqrt(1 + 1/2)
+    rng = np.random.default_rng(11)
+    image = np.clip(np.rint(100.0 + 4.0 * rng.standard_normal((480, 640))), 0, 255).astype(np.uint8)
+    sigma = contrast_noise(LaserSignal(image).rows_clipped(np.arange(4, 480, 8)), 11)
+    assert abs(sigma - 4.0 * np.sqrt(1.5)) <= 0.1 * 4.0 * np.sqrt(1.5)
+
+
+def test_a_faint_line_on_a_quiet_frame_is_found_below_the_fixed_threshold():
+    # 18 DN of laser on a quiet uniform background: under the fixed 30 DN, over 8 sigmas of this frame's noise
+    scene = CLEAN.with_(amplitude_dn=18.0, read_noise_dn=0.8, seed=2)
+    image, truth, _ = render_line(scene)
+    fixed = extract_laser_line(image, ExtractorParams(contrast_sigmas=0.0))
+    adaptive = extract_laser_line(image)
+    assert len(fixed) < 0.1 * image.shape[0]
+    assert len(adaptive) == image.shape[0]
+    assert np.sqrt(np.mean(errors(adaptive, truth) ** 2)) <= 0.15
+
+
+def test_noisier_frames_keep_the_fixed_threshold():
+    # at 50 % ambient on reddish texture the frame's 8 sigmas exceed 30 DN: min_contrast holds
+    scene = LineScene(ambient=0.5, first_row=100, last_row=380, reflection=0.3, seed=8)
+    image, _, _ = render_line(scene)
+    a, b = extract_laser_line(image), extract_laser_line(image, ExtractorParams(contrast_sigmas=0.0))
+    np.testing.assert_array_equal(a.u, b.u)
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("clipped_centre", "middle", "clipped_centre 'middle' is unknown; must be one of: signal, red"),
+    ("contrast_sigmas", -1.0, r"contrast_sigmas must be within \[0, 100\]"),
+])
+def test_real_light_parameters_are_checked(name, value, message):
+    with pytest.raises(ExtractorConfigError, match=message):
+        ExtractorParams(**{name: value})

@@ -9,9 +9,10 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
 from lsu_extract.extractor import DEFAULT_METHOD
-from lsu_extract.node import SCAN_DATA_QOS, LaserExtractorNode
+from lsu_extract.node import EVENTS_QOS, SCAN_DATA_QOS, LaserExtractorNode
 from lsu_extract.synthetic import LineScene, render_line
-from lsu_interfaces.msg import LaserLine
+from builtin_interfaces.msg import Time
+from lsu_interfaces.msg import LaserLine, ScanEvent
 
 
 def image_msg(bgr: np.ndarray, sec: int, frame: str = "lsu_left_optical", encoding: str = "bgr8") -> Image:
@@ -79,3 +80,34 @@ def test_parameters_are_validated_with_a_readable_reason(ros_node):
     good = extractor.set_parameters([Parameter("method", value="thesis"), Parameter("min_contrast", value=20.0)])
     assert all(r.successful for r in good)
     assert extractor.params.method == "thesis" and extractor.params.min_contrast == 20.0
+
+
+def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_names(ros_node):
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    assert extractor.set_parameters([Parameter("background", value="texture")])[0].successful
+    assert not extractor.set_parameters([Parameter("background", value="dark")])[0].successful
+    lines: List[LaserLine] = []
+    ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
+    pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
+    events = ros_node.node.create_publisher(ScanEvent, "/lsu/scan/events", EVENTS_QOS)
+    assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and events.get_subscription_count() > 0 and
+                               extractor.publishers_["left"].get_subscription_count() > 0, 10)
+    # the laser only in rows 100..380; a red bar (a red object, not laser) at column 500 in every row
+    scene = LineScene(first_row=100, last_row=380, seed=3, texture_seed=3)
+    lit, truth, visible = render_line(scene)
+    off, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=4))
+    for frame in (lit, off):
+        frame[:, 499:502] = (30, 30, 220)
+    pub.publish(image_msg(lit, 1))  # no laser-off frame yet: the bar is taken for the laser
+    pub.publish(image_msg(off, 10))
+    assert ros_node.spin_until(lambda: len(lines) >= 2, 10)
+    assert np.count_nonzero(~visible[np.asarray(lines[0].v).astype(int)]) > 100
+    events.publish(ScanEvent(type=ScanEvent.TEXTURE, scan_id="s1", image_stamp=Time(sec=10, nanosec=12345)))
+    assert ros_node.spin_until(lambda: "left" in extractor.textures, 10)
+    pub.publish(image_msg(lit, 11))
+    assert ros_node.spin_until(lambda: len(lines) >= 3, 10)
+    u, v = np.asarray(lines[2].u), np.asarray(lines[2].v).astype(int)
+    assert np.all(visible[v]) and len(v) >= 0.99 * np.count_nonzero(visible)
+    assert np.max(np.abs(u - truth[v])) < 0.5
+    events.publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s2"))  # a new scan: its own laser-off pair
+    assert ros_node.spin_until(lambda: not extractor.textures, 10)

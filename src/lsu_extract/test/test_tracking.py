@@ -32,10 +32,20 @@ def test_clipped_row_signal_is_red_minus_the_brighter_other_channel_floored_at_z
     expected = np.clip(r - np.maximum(g, b), 0, 255)
     np.testing.assert_array_equal(sig.rows_clipped(slice(1, 20, 4)), expected[1::4])
     np.testing.assert_array_equal(sig.rows(np.array([2, 7])), (r - np.maximum(g, b))[[2, 7]])
-    texture = rng.integers(0, 256, image.shape, dtype=np.uint8)
-    with_texture = LaserSignal(image, texture)
-    np.testing.assert_array_equal(with_texture.rows_clipped(slice(None)), np.clip(r - texture[..., 2].astype(int), 0, 255))
 
+
+def test_signal_with_a_laser_off_frame_is_the_red_rise_less_the_larger_green_or_blue_rise():
+    rng = np.random.default_rng(4)
+    image = rng.integers(0, 256, (20, 50, 3), dtype=np.uint8)
+    texture = rng.integers(0, 256, image.shape, dtype=np.uint8)
+    rise = image.astype(int) - texture.astype(int)
+    expected = rise[..., 2] - np.maximum(np.maximum(rise[..., 1], rise[..., 0]), 0)
+    sig = LaserSignal(image, texture)
+    np.testing.assert_array_equal(sig.rows_clipped(slice(None)), np.clip(expected, 0, 255))
+    np.testing.assert_array_equal(sig.rows(np.array([2, 7])), expected[[2, 7]])
+    signal, red = sig.window_columns(np.array([3 * 50 + 4, 11 * 50 + 30]), 9)  # rows 3 and 11
+    np.testing.assert_array_equal(signal.T, np.stack([expected[3, 4:13], expected[11, 30:39]]))
+    np.testing.assert_array_equal(red.T, np.stack([image[3, 4:13, 2], image[11, 30:39, 2]]))
 
 def test_rows_dark_in_every_channel_cannot_hold_the_laser():
     image = np.zeros((4, 30, 3), np.uint8)

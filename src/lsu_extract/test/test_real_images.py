@@ -1,0 +1,82 @@
+"""The extractor on real laser photographs (``<repo>/../shared/devdata``), against references no extractor made.
+
+Truth: hand-drawn stripe masks (weld_laser_stripes_gk), laser-on minus laser-off pairs
+(semiteleporter_turntable), a hand-checked polyline (laser_photos_mit_misc); see
+`lsu_extract.devdata`. Skipped, saying where the folder is expected, only when it is absent.
+"""
+
+import numpy as np
+import pytest
+
+from lsu_extract import devdata
+from lsu_extract.extractor import ExtractorParams, extract_laser_line
+
+try:
+    devdata.devdata_dir()
+except devdata.DevDataMissing as exc:
+    pytestmark = pytest.mark.skip(reason=str(exc))
+
+# the defaults before the extractor met real photographs: blais_rioux4, a fixed 30 DN threshold, clipping at 255 only
+PREVIOUS = ExtractorParams(method="blais_rioux4", contrast_sigmas=0.0, saturation_level=255)
+
+
+def score(images, params=None, texture=False):
+    def run(dev):
+        result = extract_laser_line(dev.image, params, texture=dev.texture if texture else None)
+        return result.v, result.u
+    return devdata.score_images(images, run)
+
+
+@pytest.fixture(scope="module")
+def globe():
+    return devdata.globe_images()
+
+
+def test_weld_stripes_are_found_in_their_masks_rows_and_nowhere_else_in_them():
+    views = devdata.weld_images(samples=(4, 7))  # two parallel stripes each, one view per stripe
+    assert len(views) >= 4
+    for view in views:
+        s = score([view])
+        assert s.clear_rows >= 100, view.name
+        assert s.missed_pct <= 3.0, view.name
+        assert s.false == 0, view.name
+        # sub-pixel, smooth along the stripe (the panels were upscaled ~2.4x: the lines are ~10 px wide,
+        # with flat tops on which the zero crossing sometimes ends on a whole pixel)
+        assert s.rms_px <= 0.35, view.name
+        assert s.whole_pct <= 20.0, view.name
+
+
+def test_a_clipped_line_with_crosstalk_is_centred_between_its_flanks_not_on_whole_pixels():
+    # capopaul: red tops out at 251-255 (a JPEG-softened clip), green and blue rise 20-50 DN in its core
+    photo = [p for p in devdata.photo_images() if p.name.startswith("capopaul")]
+    now, before = score(photo), score(photo, PREVIOUS)
+    assert now.clear_rows >= 500 and now.missed == 0 and now.false == 0
+    assert now.whole_pct <= 8.0 < 15.0 <= before.whole_pct
+    assert now.rms_px <= 0.2 < before.rms_px
+
+
+def test_a_frame_own_noise_threshold_finds_the_faint_line_a_fixed_30_dn_loses(globe):
+    now, fixed = score(globe), score(globe, ExtractorParams(contrast_sigmas=0.0))
+    assert now.clear_rows >= 3500
+    assert now.missed_pct <= 0.6 * fixed.missed_pct
+    assert now.false_pct <= fixed.false_pct + 0.5  # at the price of a few rows of daylight texture
+
+
+def test_the_laser_off_frame_leaves_no_false_rows_on_static_pairs():
+    static = devdata.box_images(pairs=(2, 9, 16, 23, 30))
+    plain, diff = score(static), score(static, texture=True)
+    assert diff.rows == 5 * 480
+    assert diff.false == 0 < plain.false
+
+
+def test_a_person_walking_behind_between_the_two_frames_gives_few_false_rows():
+    # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met)
+    moving = devdata.box_images(pairs=devdata.BOX_MOVING_PAIRS)
+    diff = score(moving, texture=True)
+    assert diff.false_pct <= 2.5
+
+
+def test_laser_off_frame_keeps_the_globe_line_centred(globe):
+    s = score(globe, texture=True)
+    assert s.false_pct <= 0.5
+    assert s.rms_px <= 0.3
