@@ -87,24 +87,33 @@ def _airy2(r: np.ndarray, k: float) -> np.ndarray:
     return out
 
 
-def row_correlation_integral_m(wavelength_m: float, na: float, height_m: float) -> float:
+def row_correlation_integral_m(wavelength_m: float, na: float, height_m: float, blur_sigma_m: float = 0.0) -> float:
     """Integral across the line of the speckle correlation averaged over a row of ``height_m``.
 
-    ``(1/h) * integral K(dy) (1 - |dy|/h)+ d(dy)``, ``K(dy) = integral [2 J1(v)/v]^2 d(dx)``: hand-written
-    quadrature (no library integrates this kernel); tends to ``lambda^2 / (pi NA'^2 h)`` for ``h`` >> grain.
+    ``integral K(dy) A(dy) d(dy)``, ``K(dy) = integral [2 J1(v)/v]^2 d(dx)``, ``A`` the autocorrelation of
+    the row's vertical weight: the pixel's box (a triangle ``(1 - |dy|/h)+ / h``), convolved with a
+    Gaussian of ``sqrt(2) blur_sigma_m`` when an intensity blur of ``blur_sigma_m`` acts after the
+    speckle (it averages neighbouring rows). Hand-written quadrature (no library integrates this
+    kernel); tends to ``lambda^2 / (pi NA'^2 h)`` for ``h`` >> grain and no blur.
     """
     k = 2.0 * math.pi * na / wavelength_m
     ell = 1.0 / k
     # the Airy^2 tail falls as v^-3: integrate dx out to 400/k and add the analytic tail beyond
     xmax = 400.0 * ell
     x = np.linspace(0.0, xmax, 8001)
-    dy = np.linspace(0.0, height_m, 401)
+    reach = height_m + 6.0 * math.sqrt(2.0) * blur_sigma_m
+    dy = np.linspace(0.0, reach, int(401 * reach / height_m))
     r = np.hypot(x[None, :], dy[:, None])
     K = 2.0 * np.trapezoid(_airy2(r, k), x, axis=1)
     # tail over |dx| > xmax: [2 J1(v)/v]^2 averages to 4 / (pi v^3), which integrates to 2 / (pi k^3 xmax^2) a side
     K += 4.0 / (math.pi * k ** 3 * xmax ** 2)
-    w = 1.0 - dy / height_m
-    return float(2.0 * np.trapezoid(K * w, dy) / height_m)
+    A = np.clip(1.0 - dy / height_m, 0.0, None) / height_m
+    if blur_sigma_m > 0:
+        step = dy[1] - dy[0]
+        full = np.concatenate([A[:0:-1], A])
+        g = np.exp(-0.5 * (np.arange(-len(dy) + 1, len(dy)) * step / (math.sqrt(2.0) * blur_sigma_m)) ** 2)
+        A = np.convolve(full, g / g.sum(), mode="same")[len(dy) - 1:]
+    return float(2.0 * np.trapezoid(K * A, dy))
 
 
 def pixel_contrast(wavelength_m: float, na: float, pixel_m: float) -> float:
@@ -119,17 +128,22 @@ def pixel_contrast(wavelength_m: float, na: float, pixel_m: float) -> float:
 
 
 def speckle_limit(wavelength_nm: float, f_number: float, focal_px: float, pixel_size_m: float, baseline_m: float,
-                  distance_m: float, line_sigma_m: float, contrast: float = 1.0) -> SpeckleLimit:
+                  distance_m: float, line_sigma_m: float, contrast: float = 1.0,
+                  row_blur_px: float = 0.0) -> SpeckleLimit:
     """Speckle-limited sigma of a row's line centre [px] and of a stereo point's depth [mm].
 
     ``line_sigma_m``: Gaussian sigma of the laser sheet's intensity at the subject (FWHM / 2.355);
-    ``contrast``: speckle contrast C (1 = fully developed on a rough surface).
+    ``contrast``: speckle contrast C (1 = fully developed on a rough surface); ``row_blur_px``: sigma
+    of an intensity blur acting after the speckle (the simulated rig's Gaussian lens PSF), which
+    averages neighbouring rows (0: the optics' own limit).
     """
     for name, value in (("wavelength_nm", wavelength_nm), ("f_number", f_number), ("focal_px", focal_px),
                         ("pixel_size_m", pixel_size_m), ("baseline_m", baseline_m), ("distance_m", distance_m),
                         ("line_sigma_m", line_sigma_m)):
         if not value > 0:
             raise ValueError(f"speckle_limit: {name} must be positive, got {value}")
+    if not row_blur_px >= 0.0:
+        raise ValueError(f"speckle_limit: row_blur_px must be >= 0, got {row_blur_px}")
     if not 0.0 <= contrast <= 1.0:
         raise ValueError(f"speckle_limit: contrast must be in [0, 1], got {contrast}")
     lam = wavelength_nm * 1e-9
@@ -137,7 +151,7 @@ def speckle_limit(wavelength_nm: float, f_number: float, focal_px: float, pixel_
     mag = f_m / max(distance_m - f_m, 1e-9)
     na = image_aperture(f_number, mag)
     w = line_sigma_m * mag                                   # line sigma at the sensor
-    cov = row_correlation_integral_m(lam, na, pixel_size_m)
+    cov = row_correlation_integral_m(lam, na, pixel_size_m, row_blur_px * pixel_size_m)
     line_m = contrast * math.sqrt(w / (4.0 * math.sqrt(math.pi)) * cov)
     dorsch_m = contrast * lam / (2.0 * math.pi * na)
     line_px = line_m / pixel_size_m

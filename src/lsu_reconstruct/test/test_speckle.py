@@ -29,6 +29,9 @@ def test_closed_forms_match_the_literature_numbers():
     assert wide.line_px / lim.line_px == pytest.approx(2.0, rel=1e-9)
     # stereo depth: z^2 / (f B) * sqrt 2 * line error
     assert lim.depth_mm == pytest.approx(0.3 ** 2 / (812.4 * 0.1226) * math.sqrt(2) * lim.line_px * 1000, rel=1e-9)
+    # an intensity blur after the speckle averages rows: lower, and at 0 the same
+    assert speckle_limit(671, 2.0, 812.4, 7.5e-6, 0.1226, 0.30, 0.001 / 2.3548, row_blur_px=0.5).line_px < lim.line_px
+    assert speckle_limit(671, 2.0, 812.4, 7.5e-6, 0.1226, 0.30, 0.001 / 2.3548, row_blur_px=0.0) == lim
     with pytest.raises(ValueError, match="f_number"):
         speckle_limit(671, 0.0, 812.4, 7.5e-6, 0.1226, 0.30, 0.0004)
 
@@ -74,8 +77,9 @@ def test_rendered_speckle_scatters_the_line_centre_as_the_speckle_limit_says():
     """Speckled plane at 300 mm: per-row centroid scatter against the renderer's true line vs `speckle_limit`.
 
     The renderer's speckle is built from first principles (random phases through the lens pupil),
-    the limit from the closed form: an independent check of both. The same scene without speckle
-    shows the estimator's own error is far below the limit.
+    the limit from the closed form: an independent check of both. The rig's lens blur acts on the
+    intensity after the speckle and averages neighbouring rows, so the limit is taken with it. The
+    same scene without speckle shows the estimator's own error is far below the limit.
     """
     positions = (150.0, 200.0, 235.0, 270.0, 320.0)
     geometry, errs, depth, peak = _line_errors(1.0, positions, seed=11)
@@ -86,7 +90,8 @@ def test_rendered_speckle_scatters_the_line_centre_as_the_speckle_limit_says():
         assert len(e) > 1500
         lim = speckle_limit(geometry.laser.wavelength_nm, geometry.sensor.f_number, float(geometry.left.K[0, 0]),
                             geometry.sensor.pixel_size_m, float(np.linalg.norm(geometry.translation)),
-                            float(np.median(depth[side])), geometry.laser.sheet_sigma_m, 1.0)
+                            float(np.median(depth[side])), geometry.laser.sheet_sigma_m, 1.0,
+                            row_blur_px=geometry.sensor.psf_sigma_px)
         clean_sd = float(np.std(c))
         measured = float(np.sqrt(max(np.var(e) - clean_sd ** 2, 0.0)))
         assert clean_sd < 0.3 * lim.line_px, (side, clean_sd, lim.line_px)
