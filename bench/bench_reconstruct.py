@@ -347,6 +347,7 @@ def main() -> None:
     limit = rig_speckle_limit(load_rig(), 0.30)
     figures["speckle_limit_px_300"] = limit["line_px"]
     figures["speckle_limit_mm_300"] = limit["depth_mm"]
+    figures["speckle_limit_mm_300_with_lens_blur"] = rig_speckle_limit(load_rig(), 0.30, with_lens_blur=True)["depth_mm"]
     figures["plane_sigma_over_speckle_limit_300"] = figures["plane_sigma_mm_300"] / limit["depth_mm"]
     figures["plane_sigma_unsmoothed_over_speckle_limit_300"] = figures["plane_sigma_mm_300_unsmoothed"] / limit["depth_mm"]
     figures["rig_extract_rms_over_speckle_limit_300"] = figures["rig_extract_rms_px_300_default"] / limit["line_px"]
@@ -371,7 +372,8 @@ def main() -> None:
              f"renderer's exact 3D laser points (the mesh's own deviation from the nominal 60 mm sphere); sphere_radius_err_mm_facing60: fit over the part of the cap facing the rig "
              f"(normal within 60 deg of the rig centre); '_extract_<method>': the other lsu_extract sub-pixel "
              f"methods through the same matcher. speckle_limit_*_300: lsu_reconstruct.speckle for the rig's optics "
-             f"(one row's line centre, one stereo point's depth; row smoothing averages below it). Timing: match + triangulate one extracted rig snap (plane 300 mm, "
+             f"(one row's line centre, one stereo point's depth; row smoothing averages below it; _with_lens_blur: with the "
+             f"rig's PSF, which the renderer applies to the intensity after the speckle). Timing: match + triangulate one extracted rig snap (plane 300 mm, "
              f"first snap at/after the track centre), single thread, shared 2-core machine. "
              + "; ".join(rig_notes) + ". "
              f"SYNTHETIC figures (prefix synthetic_): lsu_reconstruct.synthetic (analytic, independent of the "
