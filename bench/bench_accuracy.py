@@ -1,6 +1,9 @@
 """Benchmark of the accuracy study (thesis ch. 9) on the simulated rig: `lsu accuracy --sim` defaults.
 
-Figures (the ARCHITECTURE.md names): ``three_sigma_mm_300_smoothed`` (ours: |bias| + 3 sigma of the
+The renders carry the rig's physics (laser speckle, crosstalk, blooming; config/sim_rig.yaml).
+Figures (the ARCHITECTURE.md names): ``speckle_limit_mm_300`` (one stereo point's speckle-limited
+depth sigma, `lsu_reconstruct.speckle`), ``plane_sigma_mm_300`` (ours, raw, board at 300 mm facing the
+rig, distances to the TRUE plane), ``plane_sigma_over_speckle_limit`` (their ratio), ``three_sigma_mm_300_smoothed`` (ours: |bias| + 3 sigma of the
 distances to the TRUE plane after our default mesh smoothing, board at 300 mm facing the rig),
 ``thesis_three_sigma_mm_300`` (the thesis chain in the same run, with the thesis' Laplacian 30 x 0.1),
 ``gaussian_{1,2,3}sigma_pct`` (our chain, all poses pooled, per-pose normalised residuals), and
@@ -48,6 +51,10 @@ def unit_of(name: str) -> str:
     """Unit of a figure, from its name."""
     if name.endswith("_pct"):
         return "%"
+    if name.endswith("_px"):
+        return "px"
+    if "_over_" in name:
+        return "ratio"
     if name.endswith("_mm_per_m"):
         return "mm/m"
     if "_mm" in name:
@@ -71,6 +78,13 @@ def main() -> None:
              f"(default MatchParams) + default lsu_faces smoothing (Taubin 30) of the image-plane mesh; thesis = "
              f"thesis pixel extraction + nearest-pixel match + Laplacian 30 x 0.1. three_sigma figures = |bias| + 3 "
              f"sigma of the distances to the TRUE (renderer's) plane, as the thesis quoted 1.4 mm (ch. 9.4). "
+             f"Renders with the rig's physics (laser speckle contrast 1 at f/2, crosstalk, blooming). speckle_limit_*: "
+             f"lsu_reconstruct.speckle for the rig's optics at 300 mm (speckle_limit_px: one row's line centre; "
+             f"speckle_limit_mm_300: one stereo point's depth); speckle_limit_mm_300_with_lens_blur: the same with the "
+             f"rig's Gaussian PSF, which the renderer applies to the intensity after the speckle (averages rows; the "
+             f"limit of the rendered images); plane_sigma_mm_300: ours, raw, at the 300 mm pose; "
+             f"plane_sigma_over_speckle_limit below 1 = the lens blur and the matcher's row smoothing averaging "
+             f"independent rows. "
              f"Gaussian: fractions of all poses' residuals (normalised per pose) within 1/2/3 sigma. "
              f"sigma_slope: linear fit of raw sigma against mean distance from the left camera. curved_rms: "
              f"RMS distance of the meshed {config.curved_scene} scan from the rendered surface (detail loss). "

@@ -340,10 +340,25 @@ def main() -> None:
     assert sweep300.timing_lines is not None
     timing_figures(model, sweep300.timing_lines, figures)
     synthetic_figures(figures)
+    # the physical limit beside the rig figures (the renders carry laser speckle): one row's line centre
+    # and one stereo point's depth at 300 mm (lsu_reconstruct.speckle)
+    from lsu_bringup.accuracy import rig_speckle_limit
+
+    limit = rig_speckle_limit(load_rig(), 0.30)
+    figures["speckle_limit_px_300"] = limit["line_px"]
+    figures["speckle_limit_mm_300"] = limit["depth_mm"]
+    figures["speckle_limit_mm_300_with_lens_blur"] = rig_speckle_limit(load_rig(), 0.30, with_lens_blur=True)["depth_mm"]
+    figures["plane_sigma_over_speckle_limit_300"] = figures["plane_sigma_mm_300"] / limit["depth_mm"]
+    figures["plane_sigma_unsmoothed_over_speckle_limit_300"] = figures["plane_sigma_mm_300_unsmoothed"] / limit["depth_mm"]
+    figures["rig_extract_rms_over_speckle_limit_300"] = figures["rig_extract_rms_px_300_default"] / limit["line_px"]
     units = {k: unit_of(k) for k in figures}
+    for k in ("plane_sigma_over_speckle_limit_300", "plane_sigma_unsmoothed_over_speckle_limit_300",
+              "rig_extract_rms_over_speckle_limit_300"):
+        units[k] = "ratio"
     default = MatchParams()
     notes = (f"RIG figures (unprefixed, the ARCHITECTURE.md names): lsu_cameras.sim with config/sim_rig.yaml "
-             f"(default sensor noise, settled carriage, render seed {RIG_SEED} + step), carriage at steps "
+             f"(its physics on: laser speckle, crosstalk, blooming; default sensor noise, settled carriage, render "
+             f"seed {RIG_SEED} + step), carriage at steps "
              f"{RIG_STEPS.start}..{RIG_STEPS.stop - 1} every {RIG_STEPS.step} (snaps where the laser misses the "
              f"object skipped), plane facing the rig at 250/300/350 mm from the rig centre, the 6 cm sphere at "
              f"300 mm. Lines by lsu_extract (default method '{DEFAULT_METHOD}'; thesis chain: 'thesis' pixel "
@@ -356,7 +371,9 @@ def main() -> None:
              f"alone); '_unsmoothed': smooth_window_rows=0; sphere_mesh_radius_err_mm: sphere fit to the "
              f"renderer's exact 3D laser points (the mesh's own deviation from the nominal 60 mm sphere); sphere_radius_err_mm_facing60: fit over the part of the cap facing the rig "
              f"(normal within 60 deg of the rig centre); '_extract_<method>': the other lsu_extract sub-pixel "
-             f"methods through the same matcher. Timing: match + triangulate one extracted rig snap (plane 300 mm, "
+             f"methods through the same matcher. speckle_limit_*_300: lsu_reconstruct.speckle for the rig's optics "
+             f"(one row's line centre, one stereo point's depth; row smoothing averages below it; _with_lens_blur: with the "
+             f"rig's PSF, which the renderer applies to the intensity after the speckle). Timing: match + triangulate one extracted rig snap (plane 300 mm, "
              f"first snap at/after the track centre), single thread, shared 2-core machine. "
              + "; ".join(rig_notes) + ". "
              f"SYNTHETIC figures (prefix synthetic_): lsu_reconstruct.synthetic (analytic, independent of the "

@@ -46,6 +46,9 @@ def _finish(result: dict, output: Path) -> int:
     f = result["figures"]
     print(f"[lsu accuracy] {result['reference_pose']}: |bias| + 3 sigma after smoothing: ours "
           f"{f['three_sigma_mm_300_smoothed']:.3f} mm, thesis chain {f['thesis_three_sigma_mm_300']:.3f} mm (thesis quote {f['thesis_quote_mm_300']} mm)")
+    if "speckle_limit_mm_300" in f:
+        print(f"[lsu accuracy] point sigma at 300 mm, raw: ours {f['plane_sigma_mm_300']:.4f} mm, speckle limit "
+              f"{f['speckle_limit_mm_300']:.4f} mm, ratio {f['plane_sigma_over_speckle_limit']:.2f}")
     print(f"[lsu accuracy] Gaussian table (ours): {f['gaussian_1sigma_pct']:.1f} / {f['gaussian_2sigma_pct']:.1f} / "
           f"{f['gaussian_3sigma_pct']:.1f} % within 1/2/3 sigma (normal 68.2 / 95.4 / 99.7)")
     for path in files:

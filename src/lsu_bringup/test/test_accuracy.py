@@ -109,7 +109,35 @@ def test_every_pose_ours_beats_the_thesis_chain(small_study):
         assert pose["ours"]["free_fit"]["sigma_mm"] <= pose["ours"]["raw"]["rms_mm"] + 1e-9
     f = r["figures"]
     assert f["three_sigma_mm_300_smoothed"] < f["thesis_three_sigma_mm_300"]
-    assert f["three_sigma_mm_300_smoothed"] <= 0.15  # the issue's target (thesis: 1.4 mm)
+    # The renders carry laser speckle: one point cannot beat the speckle limit (about 0.10 mm at 300 mm,
+    # f/2), so the clean rig's 0.15 mm target for |bias| + 3 sigma is out of reach and not asserted.
+    # What physics allows: smoothing helps, and the raw sigma sits within the issue's goal of 1.5 x
+    # the optics' limit and above what averaging independent rows can take from speckle: the
+    # renderer's lens blur (limit with it / without: 0.73) times the matcher's row smoothing (a
+    # quadratic fit over 9 rows keeps 0.255 of the variance of independent rows, std 0.505): 0.37.
+    assert f["three_sigma_mm_300_smoothed"] < f["three_sigma_mm_300_raw"]
+    assert 0.37 <= f["plane_sigma_over_speckle_limit"] <= 1.5
+    assert f["speckle_limit_mm_300_with_lens_blur"] == pytest.approx(0.727 * f["speckle_limit_mm_300"], rel=0.01)
+
+
+def test_speckle_limit_is_reported_beside_the_measured_sigma(small_study):
+    import yaml
+
+    from lsu_cameras.paths import config_dir
+    from lsu_reconstruct.speckle import speckle_limit
+
+    out, r = small_study
+    f = r["figures"]
+    # the closed form from the YAML's own numbers (not through the study's code)
+    rig = yaml.safe_load((config_dir() / "sim_rig.yaml").read_text())
+    lim = speckle_limit(rig["laser"]["wavelength_nm"], rig["sensor"]["f_number"], rig["left"]["camera_matrix"][0],
+                        rig["sensor"]["pixel_size_m"], float(np.linalg.norm(rig["stereo"]["translation_m"])), 0.30,
+                        rig["laser"]["sheet_fwhm_m"] / (2 * math.sqrt(2 * math.log(2))), rig["speckle"]["contrast"])
+    assert f["speckle_limit_mm_300"] == pytest.approx(lim.depth_mm, rel=1e-9)
+    assert f["speckle_limit_px"] == pytest.approx(lim.line_px, rel=1e-9)
+    assert f["plane_sigma_over_speckle_limit"] == pytest.approx(f["plane_sigma_mm_300"] / lim.depth_mm, rel=1e-9)
+    text = (out / "report.md").read_text()
+    assert "## Speckle limit (300 mm)" in text and f"{f['plane_sigma_over_speckle_limit']:.2f}" in text
 
 
 def test_gaussian_fractions_are_sensible(small_study):
@@ -201,7 +229,14 @@ def test_accuracy_from_board_bags_end_to_end(board_bags, tmp_path, capsys):
         assert abs(pose["ours"]["raw"]["mean_mm"]) < 0.05  # no bias against the detected board
     f = r["figures"]
     assert 280 < f["reference_distance_mm"] < 330
-    assert f["three_sigma_mm_300_smoothed"] <= 0.15 < f["thesis_three_sigma_mm_300"]
+    assert f["three_sigma_mm_300_smoothed"] < f["thesis_three_sigma_mm_300"]
+    # the bags carry laser speckle: the raw sigma at the reference pose within 1.5 x the rig's speckle
+    # limit at that distance (the 0.15 mm target of the clean rig is below what speckle allows)
+    from lsu_cameras.sim import load_rig
+
+    limit = A.rig_speckle_limit(load_rig(), f["reference_distance_mm"] / 1000.0)["depth_mm"]
+    reference = next(p for p in r["poses"] if p["label"] == r["reference_pose"])
+    assert reference["ours"]["raw"]["sigma_mm"] <= 1.5 * limit
     assert r["trends"]["thesis_raw_sigma_mm"]["slope_per_mm"] > 0
     assert "thesis chain" in capsys.readouterr().out
 

@@ -3,6 +3,9 @@
 - `geometry`: cameras, extrinsics, track and laser sheet from ``config/sim_rig.yaml`` (`load_rig`).
 - `scenes`: plane, sphere, calibration chessboard, mesh files; `head`: procedural synthetic heads.
 - `rig`: `SimulatedRig.render(carriage, capture_time_s)` -> `StereoFrame` (+ exact `LaserTruth`).
+- `physics`: what real laser-line images have: laser speckle (per camera, a new realisation per
+  capture), subsurface scattering on skin (objects with ``material="skin"``: the head scenes),
+  blooming, an optional Bayer mosaic; each camera's own exposure start (``sensor.capture_offset_s``).
 
 ``build_scene(name, geometry)`` makes the named scenes of `lsu render --scene` and the node's
 ``sim_scene`` parameter: ``plane``, ``sphere``, ``board``, ``head`` (``head:SEED``) or a mesh file path.

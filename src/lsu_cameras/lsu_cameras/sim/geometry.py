@@ -24,6 +24,7 @@ import yaml
 
 from ..calib_io import CameraCalibration, StereoCalibration, fundamental_from, write_calibration_dir
 from ..paths import config_dir
+from .physics import BAYER_PATTERNS, SkinModel, SpeckleModel
 
 
 class RigConfigError(ValueError):
@@ -105,6 +106,12 @@ class SensorModel:
     full_well_e: float = 6000.0
     read_noise_dn: float = 1.2
     psf_sigma_px: float = 0.5
+    f_number: float = 2.0
+    pixel_size_m: float = 7.5e-6
+    blooming: float = 0.5              # share of the charge above full well that spills up/down the column
+    bayer: str = "none"                # "none" or a Bayer pattern (RGGB, BGGR, GRBG, GBRG)
+    capture_offset_s: float = 0.0      # right camera's exposure start minus the left's
+    capture_jitter_s: float = 0.0      # std of each camera's exposure start
 
 
 @dataclass
@@ -121,6 +128,14 @@ class RigGeometry:
     laser: LaserModel = field(default_factory=lambda: LaserModel(0.0010 / 2.3548, 0.95, np.array([0.02, 0.07, 1.0])))
     lighting: Lighting = field(default_factory=Lighting)
     sensor: SensorModel = field(default_factory=SensorModel)
+    speckle: SpeckleModel = field(default_factory=SpeckleModel)
+    skin: SkinModel = field(default_factory=SkinModel)
+
+    @property
+    def magnification(self) -> float:
+        """Lateral magnification at the subject distance (left camera's focal length)."""
+        f_m = float(self.left.K[0, 0]) * self.sensor.pixel_size_m
+        return f_m / max(self.subject_distance_m - f_m, 1e-9)
 
     @property
     def image_size(self) -> Tuple[int, int]:
@@ -225,12 +240,37 @@ def rig_from_dict(data: Dict[str, Any]) -> RigGeometry:
                      float(_get(data, "lighting.background", 0.03)))
     sensor = SensorModel(float(_get(data, "sensor.exposure_s", 0.02)), int(_get(data, "sensor.sub_exposures", 8)),
                          float(_get(data, "sensor.full_well_e", 6000.0)),
-                         float(_get(data, "sensor.read_noise_dn", 1.2)), float(_get(data, "sensor.psf_sigma_px", 0.5)))
+                         float(_get(data, "sensor.read_noise_dn", 1.2)), float(_get(data, "sensor.psf_sigma_px", 0.5)),
+                         float(_get(data, "sensor.f_number", 2.0)), float(_get(data, "sensor.pixel_size_m", 7.5e-6)),
+                         float(_get(data, "sensor.blooming", 0.5)), str(_get(data, "sensor.bayer", "none")),
+                         float(_get(data, "sensor.capture_offset_s", 0.0)),
+                         float(_get(data, "sensor.capture_jitter_s", 0.0)))
     if sensor.sub_exposures < 1 or sensor.exposure_s <= 0:
         raise RigConfigError("sensor.sub_exposures must be >= 1 and sensor.exposure_s > 0")
+    if sensor.f_number <= 0 or sensor.pixel_size_m <= 0:
+        raise RigConfigError("sensor.f_number and sensor.pixel_size_m must be positive")
+    if not 0.0 <= sensor.blooming <= 1.0:
+        raise RigConfigError(f"sensor.blooming must be in [0, 1] (share of the excess charge), got {sensor.blooming}")
+    if sensor.bayer != "none" and sensor.bayer not in BAYER_PATTERNS:
+        raise RigConfigError(f"sensor.bayer must be none or one of {', '.join(BAYER_PATTERNS)}, got {sensor.bayer!r}")
+    if sensor.capture_jitter_s < 0:
+        raise RigConfigError(f"sensor.capture_jitter_s must be >= 0, got {sensor.capture_jitter_s}")
+    speckle = SpeckleModel(float(_get(data, "speckle.contrast", 1.0)), int(_get(data, "speckle.tiles", 2)),
+                           int(_get(data, "speckle.tile_cols", 32)))
+    if not 0.0 <= speckle.contrast <= 1.0 or speckle.tiles < 1 or speckle.tile_cols < 8:
+        raise RigConfigError("speckle.contrast must be in [0, 1] (0 = off), speckle.tiles >= 1, speckle.tile_cols >= 8")
+    skin = SkinModel(float(_get(data, "skin.diffusion_length_m", 0.001)),
+                     float(_get(data, "skin.subsurface_fraction", 0.9)),
+                     float(_get(data, "skin.mu_s_prime_per_mm", 1.5)) * 1000.0,
+                     float(_get(data, "skin.mu_a_per_mm", 0.03)) * 1000.0,
+                     float(_get(data, "skin.refractive_index", 1.4)))
+    if skin.diffusion_length_m <= 0 or not 0.0 <= skin.subsurface_fraction <= 1.0 or skin.mu_s_prime_per_m <= 0 \
+            or skin.mu_a_per_m < 0 or skin.refractive_index < 1.0:
+        raise RigConfigError("skin: diffusion_length_m > 0, subsurface_fraction in [0, 1], mu_s_prime_per_mm > 0, "
+                             "mu_a_per_mm >= 0 and refractive_index >= 1 are required")
     return RigGeometry(left, right, int(_get(data, "track.steps", 470)), float(_get(data, "track.step_m", 0.00042333)),
                        float(_get(data, "track.center_step", 235.0)), float(_get(data, "track.laser_forward_m", 0.0)),
-                       float(_get(data, "subject.distance_m", 0.30)), laser, light, sensor)
+                       float(_get(data, "subject.distance_m", 0.30)), laser, light, sensor, speckle, skin)
 
 
 def default_rig_path() -> Path:

@@ -193,4 +193,5 @@ def head_object(head: Head, translation: np.ndarray, name: str = "head") -> Scen
     mesh = o3d.geometry.TriangleMesh(head.mesh)
     mesh.translate(t)
     return SceneObject(name, mesh, head.albedo_in(t), 0.25,
-                       {"nose_tip_m": head.nose_tip_m + t, "identity_seed": head.identity_seed, "head_center_m": t})
+                       {"nose_tip_m": head.nose_tip_m + t, "identity_seed": head.identity_seed, "head_center_m": t},
+                       material="skin")

@@ -6,8 +6,10 @@ lamp + highlight image, and the hit points' signed distance to the sheet's norma
 light sheet keeps its orientation along the track, so a new carriage position only changes the
 sheet's offset ``c``: the laser term is a Gaussian of ``n . P - c`` evaluated on the few pixels
 near the sheet. A capture integrates that term over the exposure (``sub_exposures`` offsets
-following the post-stop vibration), then adds lens blur, shot + read noise, 8-bit quantisation
-and saturation.
+following the post-stop vibration, from each camera's own exposure start: ``capture_offset_s`` and
+``capture_jitter_s``), multiplies it by the camera's laser speckle, broadens and shifts it on skin,
+then adds lens blur, saturation with blooming, the optional Bayer mosaic, shot + read noise, 8-bit
+quantisation (and demosaicing). `physics` documents each effect and its sources.
 
 Pixel integration: the laser sheet is only ~2.5 px thick, so sampling it at pixel centres would
 alias. Over one pixel ``n . P`` is close to linear (slope g per pixel), and the box average of a
@@ -23,16 +25,18 @@ The truth describes the sheet at the carriage's rest position: vibration is an e
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Union
+from typing import Dict, List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 import open3d as o3d
 
 from .geometry import CameraModel, RigGeometry
+from .physics import SpeckleField, bloom, demosaic, mosaic, skin_profile
 from .scenes import SceneObject
 
 
@@ -109,8 +113,11 @@ class StereoFrame:
     position_steps: float
     laser_on: bool
     capture_time_s: Optional[float]
-    laser_offset_steps: float = 0.0           # mean vibration displacement over the exposure
+    laser_offset_steps: float = 0.0           # mean vibration displacement over the left camera's exposure
     truth: Optional[LaserTruth] = None
+    # per camera (left, right): exposure start [s] and mean carriage displacement over that exposure
+    exposure_start_s: Tuple[Optional[float], Optional[float]] = (None, None)
+    laser_offsets_steps: Tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass
@@ -129,6 +136,9 @@ class _View:
     base: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     pn: np.ndarray = field(default_factory=lambda: np.zeros(0))          # n . P per pixel
     sigma2: np.ndarray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
+    reach: np.ndarray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
+    skin: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
+    speckle: Optional[SpeckleField] = None
 
 
 def _footprints(points: np.ndarray, ok: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:
@@ -182,6 +192,11 @@ class SimulatedRig:
         self._view_rngs = self.rng.spawn(2)
         self._pool: Optional[ThreadPoolExecutor] = None
         self._views = [_View(cam, cam.center, _grid_rays(cam)) for cam in (geometry.left, geometry.right)]
+        for k, view in enumerate(self._views):
+            # a bank per camera (seeded by the camera index: scene-independent, shared by every rig of
+            # the process); the realisation of each capture comes from the capture's generator
+            view.speckle = SpeckleField(geometry.speckle, geometry.laser.wavelength_nm * 1e-9, geometry.sensor.f_number,
+                                        geometry.magnification, geometry.sensor.pixel_size_m, geometry.image_size[1], k)
         self.objects: List[SceneObject] = []
         self.set_scene(objects)
 
@@ -260,7 +275,17 @@ class SimulatedRig:
         slope2 = (du @ n) ** 2 + (dv @ n) ** 2
         # grazing pixels have huge footprints along n: cap so they stay in the band test but contribute ~0
         sigma2 = g.laser.sheet_sigma_m ** 2 + np.minimum(slope2, (50.0 * g.laser.sheet_sigma_m) ** 2) / 12.0
+        skin = np.zeros(H * W, bool)
+        for gid, obj in enumerate(self.objects):
+            if obj.material == "skin":
+                skin |= geom == gid
+        # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_profile`) and its
+        # centre shift (at most |n . N| / (n_skin (mu_a + mu_s'))) reach further from the sheet
+        nN = np.abs(normals @ g.laser_normal)
+        reach = 5.0 * np.sqrt(sigma2) + skin * (6.0 * g.skin.diffusion_length_m * np.sqrt(np.clip(1.0 - nN * nN, 0, 1))
+                                                + g.skin.centre_shift_per_sin_t * nN / g.skin.refractive_index)
         view.hit, view.t, view.geom, view.points, view.normals = hit, t, geom, points, normals
+        view.skin, view.reach = skin, reach
         view.red_albedo = albedo[:, 2]
         view.base = radiance.reshape(H, W, 3).astype(np.float32)
         view.pn = np.where(hit, points @ n, np.nan)
@@ -280,9 +305,8 @@ class SimulatedRig:
         """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``."""
         g = self.geometry
         lo, hi = float(offsets_m.min()), float(offsets_m.max())
-        reach = 5.0 * np.sqrt(view.sigma2)
         with np.errstate(invalid="ignore"):
-            band = (view.pn > lo - reach) & (view.pn < hi + reach)
+            band = (view.pn > lo - view.reach) & (view.pn < hi + view.reach)
         idx = np.flatnonzero(band)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
@@ -292,11 +316,45 @@ class SimulatedRig:
         pts = view.points[idx]
         to_laser = origin - pts
         dist = np.linalg.norm(to_laser, axis=1)
-        incidence = np.clip(np.einsum("ij,ij->i", view.normals[idx], to_laser) / dist, 0.0, None)
+        normals = view.normals[idx]
+        cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
+        incidence = np.clip(cos_i, 0.0, None)
+        on_skin = view.skin[idx]
+        if np.any(on_skin):
+            profile[on_skin] = self._skin_profile(d[:, on_skin], s2[on_skin], normals[on_skin], cos_i[on_skin])
+            # the skin band is wide for the kernel's tail: drop pixels it leaves below 1e-3 of the peak
+            # (< 0.2 DN at full power) before the shadow rays, the costly part
+            keep = profile > 1e-3
+            idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
         power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts)
         value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
+
+    def _skin_profile(self, d: np.ndarray, s2: np.ndarray, normals: np.ndarray, cos_i: np.ndarray) -> np.ndarray:
+        """Laser profile of skin pixels (`physics.skin_profile`), averaged over the sheet offsets (rows of ``d``).
+
+        Across the line on the surface, ``n . P`` changes at ``sin psi = |n - (n.N) N|`` per metre: the
+        kernel's length and the centre shift are scaled by it to sheet-offset units. The shift points
+        along the surface away from the laser (the tangential part of the incident ray), length
+        ``sin(alpha_t) / (mu_a + mu_s')`` with ``sin(alpha_t) = sin(alpha_i) / n_skin``.
+        """
+        g = self.geometry
+        n = g.laser_normal
+        nN = normals @ n
+        sin_psi = np.sqrt(np.clip(1.0 - nN * nN, 0.0, 1.0))
+        sin_i = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0))
+        # incident direction u = -to_laser/|to_laser| lies in the sheet (u . n = 0), so its tangential part
+        # u - (u.N) N has the sheet-normal component -(u.N)(N.n) = cos_i (N.n); per unit of it the shift is
+        # shift_length / sin_i
+        shift_len = g.skin.centre_shift_per_sin_t * sin_i / g.skin.refractive_index
+        with np.errstate(invalid="ignore", divide="ignore"):
+            shift_d = np.where(sin_i > 1e-9, shift_len / np.maximum(sin_i, 1e-9) * np.clip(cos_i, 0.0, None) * nN, 0.0)
+        width_d = g.skin.diffusion_length_m * np.maximum(sin_psi, 1e-3)
+        prof = np.zeros(d.shape[1])
+        for row in d:
+            prof += skin_profile(row, s2, g.laser.sheet_sigma_m, width_d, shift_d, g.skin.subsurface_fraction)
+        return prof / len(d)
 
     # ------------------------------------------------------------------ render
     def render(self, carriage: Union[CarriageState, float], capture_time_s: Optional[float] = None,
@@ -309,47 +367,75 @@ class SimulatedRig:
         state = carriage if isinstance(carriage, CarriageState) else CarriageState(float(carriage))
         g = self.geometry
         sensor = g.sensor
-        mean_offset = 0.0
-        offsets = origin = np.zeros(0)
-        if state.laser_on:
-            if capture_time_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
-                disp = np.zeros(1)
-            else:
-                times = capture_time_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
-                disp = state.displacement_steps(times)
-            mean_offset = float(disp.mean())
-            n = g.laser_normal
-            offsets = np.array([n.dot(g.laser_origin(state.position_steps + d)) for d in disp])
-            origin = g.laser_origin(state.position_steps + mean_offset)
         rngs = np.random.default_rng(seed).spawn(2) if seed is not None else self._view_rngs
+        starts: List[Optional[float]] = [None, None]
+        if capture_time_s is not None:
+            # each camera's own exposure start (drawn first, so the noise stream does not depend on it)
+            jitter = [float(r.standard_normal()) * sensor.capture_jitter_s for r in rngs]
+            starts = [capture_time_s + jitter[0], capture_time_s + sensor.capture_offset_s + jitter[1]]
+        laser = [self._laser_exposure(state, t0) for t0 in starts]
 
         def expose(k: int) -> np.ndarray:
             view = self._views[k]
+            rng = rngs[k]
             img = view.base.copy()
             if state.laser_on:
+                _, offsets, origin = laser[k]
                 idx, value = self._laser_radiance(view, offsets, origin)
+                speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rng)
+                if speckle is not None:
+                    value *= speckle[:, None]
                 img.reshape(-1, 3)[idx] += value.astype(np.float32)
             if sensor.psf_sigma_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
+            bloom(img, sensor.blooming)
+            if sensor.bayer != "none":
+                img = mosaic(img, sensor.bayer)
             # shot + read noise, sigma^2 = max(img, 0) / full_well + read^2; in place, float32: this runs
             # at every capture and the temporaries of the plain expression cost ~40 % of the render
             sigma = np.maximum(img, np.float32(0.0))
             sigma *= np.float32(1.0 / sensor.full_well_e)
             sigma += np.float32((sensor.read_noise_dn / 255.0) ** 2)
             np.sqrt(sigma, out=sigma)
-            noise = rngs[k].standard_normal(img.shape, dtype=np.float32)
+            noise = rng.standard_normal(img.shape, dtype=np.float32)
             noise *= sigma
             img += noise  # img is this capture's own copy of the base image
             img *= np.float32(255.0)
             np.rint(img, out=img)
             np.clip(img, 0, 255, out=img)
-            return img.astype(np.uint8)
+            out = img.astype(np.uint8)
+            return demosaic(out, sensor.bayer) if sensor.bayer != "none" else out
 
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lsu-sim-render")
         images = list(self._pool.map(expose, range(2)))
         truth = self.laser_truth(state.position_steps) if with_truth and state.laser_on else None
-        return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, mean_offset, truth)
+        return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, laser[0][0], truth,
+                           (starts[0], starts[1]), (laser[0][0], laser[1][0]))
+
+    def _laser_exposure(self, state: CarriageState, start_s: Optional[float]):
+        """(mean displacement [steps], sheet offsets [m] of the sub-exposures, laser origin) of one exposure."""
+        g = self.geometry
+        sensor = g.sensor
+        if not state.laser_on:
+            return 0.0, np.zeros(0), np.zeros(0)
+        if start_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
+            disp = np.zeros(1)
+        else:
+            times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
+            disp = state.displacement_steps(times)
+        mean_offset = float(disp.mean())
+        n = g.laser_normal
+        offsets = np.array([n.dot(g.laser_origin(state.position_steps + d)) for d in disp])
+        return mean_offset, offsets, g.laser_origin(state.position_steps + mean_offset)
+
+    def set_capture_timing(self, offset_s: float, jitter_s: float) -> None:
+        """Exposure start of the right camera relative to the left, and each start's jitter (std), seconds."""
+        if not (np.isfinite(offset_s) and np.isfinite(jitter_s)) or jitter_s < 0:
+            raise ValueError(f"capture offset must be finite and jitter >= 0 (got {offset_s}, {jitter_s})")
+        # a copy: the geometry may be shared with other rigs
+        self.geometry = dataclasses.replace(self.geometry, sensor=dataclasses.replace(
+            self.geometry.sensor, capture_offset_s=float(offset_s), capture_jitter_s=float(jitter_s)))
 
     # ------------------------------------------------------------------ ground truth
     def _cast_pixels(self, view: _View, u: np.ndarray, v: np.ndarray):

@@ -17,6 +17,7 @@ import numpy as np
 import open3d as o3d
 
 AlbedoFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+MATERIALS = ("surface", "skin")
 
 
 class SceneError(ValueError):
@@ -32,6 +33,13 @@ class SceneObject:
     albedo: AlbedoFn
     specularity: float = 0.3   # scales the rig's highlight strength
     extra: dict = field(default_factory=dict)  # e.g. board corners, nose tip (left frame)
+    # "surface": the laser line is the sheet's profile (paper, plaster, boards); "skin": red light
+    # scatters below the surface (`physics.skin_profile`): wider line, centre shifted
+    material: str = "surface"
+
+    def __post_init__(self) -> None:
+        if self.material not in MATERIALS:
+            raise SceneError(f"{self.name}: material must be one of {', '.join(MATERIALS)}, got {self.material!r}")
 
 
 def uniform_albedo(bgr: Sequence[float]) -> AlbedoFn:

@@ -1,0 +1,204 @@
+"""Physics of real laser-line images for the simulated rig (pure numpy/OpenCV): speckle, skin, sensor.
+
+Speckle. The laser is coherent: the image of a rough surface lit by it is the sum of many
+random-phase wavelets passed through the lens pupil, i.e. a circular complex Gaussian field whose
+amplitude correlation is the Airy pattern of the image-side aperture ``NA' = 1 / (2 N (1 + M))``.
+`speckle_tiles` builds that field from first principles (white complex Gaussian scatterers, an ideal circular
+pupil in the Fourier domain, ``|field|^2``, box-averaged over each pixel from ``q x q``
+sub-samples that resolve the field), normalised to mean 1: the pixel-integrated speckle, whose
+contrast falls below 1 when a pixel holds several grains (grain diameter ``2.44 lambda N (1 + M)``).
+Each camera has its own bank of tiles (the two cameras look from different directions, so their
+patterns are independent). A capture multiplies the laser irradiance by one realisation: a
+tile, a row and column offset and a flip drawn from the capture's seeded generator. A new carriage
+position lights a different patch of the surface microstructure (0.42 mm per step against grains
+of a few micrometres on the surface), so every snap gets a new, independent realisation; within one
+exposure the pattern is fixed. ``contrast`` C < 1 (partially developed speckle: surfaces smoother
+than the wavelength, depolarising volume scatter) scales the fluctuation: ``1 + C (s - 1)``.
+
+Skin. Red light enters skin and remits around its entry point: the line is the sheet profile
+convolved across the line with a diffusion kernel, and under oblique incidence its centre moves
+along the surface away from the laser by ``sin(alpha_t) / (mu_a + mu_s')`` (oblique-incidence
+reflectometry, Wang and Jacques, Applied Optics 34(13), 1995; optical properties near 650-670 nm:
+Jacques, Phys. Med. Biol. 58, 2013). `skin_profile` models the remitted part with a two-sided
+exponential kernel (an exponentially modified Gaussian in closed form) plus a surface part that keeps
+the sheet's own profile.
+
+Sensor. `bloom` spills the charge above full well into the pixels above and below (a CCD's
+vertical register); `mosaic` / `demosaic` give a Bayer sensor with OpenCV's demosaicing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+import cv2
+import numpy as np
+import scipy.fft
+from scipy.special import erfcx
+
+__all__ = ["SpeckleModel", "SkinModel", "speckle_tiles", "SpeckleField", "skin_profile", "bloom", "BAYER_PATTERNS",
+           "mosaic", "demosaic"]
+
+
+@dataclass
+class SpeckleModel:
+    """Laser speckle of the rig's cameras (see the module docstring)."""
+
+    contrast: float = 1.0          # C: 1 = fully developed (rough surface), 0 = no speckle
+    tiles: int = 2                 # independent tiles per camera
+    tile_cols: int = 32            # tile width [px] (> a row's line window); tiles span the image height
+
+
+@dataclass
+class SkinModel:
+    """Subsurface scattering of the laser in skin (objects with ``material == "skin"``)."""
+
+    diffusion_length_m: float = 0.0010     # scale b of the two-sided exponential kernel across the line
+    subsurface_fraction: float = 0.9       # share of the remitted laser light that went through the tissue
+    mu_s_prime_per_m: float = 1500.0       # reduced scattering coefficient (1.5 / mm)
+    mu_a_per_m: float = 30.0               # absorption coefficient (0.03 / mm)
+    refractive_index: float = 1.40
+
+    @property
+    def centre_shift_per_sin_t(self) -> float:
+        """Shift of the remitted light's centre per sin(refraction angle) [m]: 1 / (mu_a + mu_s')."""
+        return 1.0 / (self.mu_a_per_m + self.mu_s_prime_per_m)
+
+
+_TILE_CACHE: Dict[Tuple, np.ndarray] = {}
+
+
+def speckle_tiles(wavelength_m: float, f_number: float, magnification: float, pixel_m: float, rows: int, cols: int,
+                  count: int, seed: int) -> np.ndarray:
+    """``count`` pixel-integrated speckle intensity tiles (count, rows, cols), float32, mean 1 each.
+
+    The rough surface sends a circular complex Gaussian field (many random scatterers per sample)
+    through the pupil (``|f| <= NA' / lambda``); ``|field|^2`` on a grid of ``q x q`` sub-samples
+    per pixel, box-averaged. ``q`` puts the pupil's cut-off below 0.95 of the sub-grid's Nyquist
+    frequency: the field is resolved, and the pixel statistics agree with the closed forms of
+    `lsu_reconstruct.speckle` (contrast, correlation integral) within a few percent. Periodic (FFT),
+    so offsets wrap around. Cached per arguments (the tiles do not depend on the scene).
+    """
+    key = (round(wavelength_m * 1e12), round(f_number * 1e6), round(magnification * 1e9), round(pixel_m * 1e12),
+           rows, cols, count, seed)
+    if key in _TILE_CACHE:
+        return _TILE_CACHE[key]
+    na = 1.0 / (2.0 * f_number * (1.0 + magnification))
+    kc = na / wavelength_m                                   # amplitude cut-off [cycles / m]
+    q = int(min(max(math.ceil(2.0 * kc * pixel_m / 0.95), 1), 24))
+    rng = np.random.default_rng(np.random.SeedSequence([0x5BEC, int(seed)]))
+    fy = np.fft.fftfreq(rows * q, pixel_m / q)
+    fx = np.fft.fftfreq(cols * q, pixel_m / q)
+    pupil = ((fy[:, None] ** 2 + fx[None, :] ** 2) <= kc * kc).astype(np.float32)
+    out = np.empty((count, rows, cols), np.float32)
+    for k in range(count):
+        field = np.empty((rows * q, cols * q), np.complex64)
+        field.real = rng.standard_normal(field.shape, dtype=np.float32)
+        field.imag = rng.standard_normal(field.shape, dtype=np.float32)
+        field = scipy.fft.ifft2(scipy.fft.fft2(field, overwrite_x=True) * pupil, overwrite_x=True)
+        inten = (field.real ** 2 + field.imag ** 2).reshape(rows, q, cols, q).mean(axis=(1, 3))
+        out[k] = inten / inten.mean()
+    out.setflags(write=False)
+    if len(_TILE_CACHE) > 8:
+        _TILE_CACHE.clear()
+    _TILE_CACHE[key] = out
+    return out
+
+
+class SpeckleField:
+    """One camera's speckle: draws a realisation per capture and samples it at pixels."""
+
+    def __init__(self, model: SpeckleModel, wavelength_m: float, f_number: float, magnification: float,
+                 pixel_m: float, height: int, seed: int) -> None:
+        self.model = model
+        self.height = height
+        self.tiles = (speckle_tiles(wavelength_m, f_number, magnification, pixel_m, height, model.tile_cols,
+                                    model.tiles, seed) if model.contrast > 0 else None)
+
+    def sample(self, rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> Optional[np.ndarray]:
+        """Speckle factors (mean 1) at pixels (rows, cols) for a new realisation; None when off."""
+        if self.tiles is None:
+            return None
+        count, H, Wt = self.tiles.shape
+        k = int(rng.integers(count))
+        dy, dx = int(rng.integers(H)), int(rng.integers(Wt))
+        flip_r, flip_c = bool(rng.integers(2)), bool(rng.integers(2))
+        r = (rows + dy) % H
+        c = (cols + dx) % Wt
+        s = self.tiles[k, H - 1 - r if flip_r else r, Wt - 1 - c if flip_c else c]
+        if self.model.contrast != 1.0:
+            s = 1.0 + self.model.contrast * (s - 1.0)
+        return s
+
+
+def _emg_two_sided(x: np.ndarray, sigma: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Density of a Gaussian (sigma) convolved with a two-sided exponential exp(-|x|/b) / (2 b).
+
+    Each side is an exponentially modified Gaussian; written with erfcx so no term overflows:
+    ``exp(s^2/2b^2 -+ x/b) erfc(z)`` with ``z = (s/b -+ x/s)/sqrt 2`` equals ``exp(-x^2/2s^2) erfcx(z)``
+    for z >= 0 and ``2 exp(s^2/2b^2 -+ x/b) - exp(-x^2/2s^2) erfcx(-z)`` for z < 0.
+    """
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    total = np.zeros_like(x)
+    for sign in (1.0, -1.0):
+        z = (sigma / b - sign * x / sigma) / math.sqrt(2.0)
+        a = 0.5 * (sigma / b) ** 2 - sign * x / b
+        with np.errstate(over="ignore"):
+            term = np.where(z >= 0, g * erfcx(np.abs(z)), 2.0 * np.exp(np.minimum(a, 700.0)) - g * erfcx(np.abs(z)))
+        total += term
+    return total / (4.0 * b)
+
+
+def skin_profile(d: np.ndarray, s2: np.ndarray, sheet_sigma_m: float, width_d: np.ndarray, shift_d: np.ndarray,
+                 fraction: float) -> np.ndarray:
+    """Laser profile on skin at sheet offsets ``d`` (same normalisation as the surface profile).
+
+    ``s2``: pixel-integrated sheet variance; ``width_d``: the diffusion length along the sheet normal;
+    ``shift_d``: the remitted light's centre shift along the sheet normal. The surface profile is
+    ``exp(-d^2/2 s2) * sheet_sigma / sqrt(s2)`` (integral ``sheet_sigma sqrt(2 pi)``); the remitted
+    part has the same integral.
+    """
+    sigma = np.sqrt(s2)
+    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / sigma)
+    b = np.maximum(width_d, 1e-9)
+    remitted = _emg_two_sided(d - shift_d, sigma, b) * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
+    return (1.0 - fraction) * surface + fraction * remitted
+
+
+def bloom(img: np.ndarray, fraction: float) -> None:
+    """Saturation with blooming, in place on an (H, W[, C]) float image in full-scale units (1 = full well).
+
+    The charge above full well is clipped; ``fraction`` of it spills, half up and half down the
+    column (a CCD's vertical transfer register; anti-blooming drains drain the rest). One pass:
+    a spill that fills a neighbour is clipped by quantisation.
+    """
+    if fraction <= 0.0 or float(img.max()) <= 1.0:
+        return
+    excess = np.maximum(img - np.float32(1.0), np.float32(0.0))
+    np.minimum(img, np.float32(1.0), out=img)
+    excess *= np.float32(0.5 * fraction)
+    img[1:] += excess[:-1]
+    img[:-1] += excess[1:]
+
+
+# Bayer pattern name (colours of the top-left 2x2, row-major) -> OpenCV demosaicing code to BGR.
+# OpenCV names its codes after the 2x2 starting at the second row and column, hence the crossing.
+BAYER_PATTERNS = {"RGGB": cv2.COLOR_BayerBG2BGR, "BGGR": cv2.COLOR_BayerRG2BGR, "GRBG": cv2.COLOR_BayerGB2BGR,
+                  "GBRG": cv2.COLOR_BayerGR2BGR}
+_CHANNEL = {"B": 0, "G": 1, "R": 2}
+
+
+def mosaic(img: np.ndarray, pattern: str) -> np.ndarray:
+    """The single-channel Bayer image (H, W) a colour sensor records of a BGR image (H, W, 3)."""
+    out = np.empty(img.shape[:2], img.dtype)
+    for k, colour in enumerate(pattern):
+        r, c = divmod(k, 2)
+        out[r::2, c::2] = img[r::2, c::2, _CHANNEL[colour]]
+    return out
+
+
+def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
+    """BGR uint8 from a Bayer uint8 image (OpenCV's bilinear demosaicing)."""
+    return cv2.cvtColor(raw, BAYER_PATTERNS[pattern])
