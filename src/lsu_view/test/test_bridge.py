@@ -173,3 +173,15 @@ def test_images_are_thinned_to_image_max_hz_and_the_parameter_takes_effect(ros_n
 def test_a_negative_rate_is_refused_with_a_reason(ros_node, bridge):
     result = bridge.set_parameters([Parameter("image_max_hz", value=-1.0)])[0]
     assert not result.successful and result.reason
+
+
+def test_our_own_types_get_their_definitions_from_the_msg_files():
+    from lsu_bringup.bags import BagTypes
+    from lsu_view.channels import ros2msg_schema
+
+    types = BagTypes()
+    state = ros2msg_schema("lsu_interfaces/msg/ScannerState", types)
+    line = ros2msg_schema("lsu_interfaces/msg/LaserLine", types)
+    # the first block is the type itself, then every type it uses, each after a MSG: line
+    assert "laser_on" in state.split("=" * 80)[0] and "MSG: std_msgs/Header" in state
+    assert "MSG: std_msgs/Header" in line
