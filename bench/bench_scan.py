@@ -271,7 +271,8 @@ def only(parts: set) -> int:
     old = json.loads(path.read_text()) if path.is_file() else {"figures": {}, "units": {}, "notes": ""}
     merged = {**old["figures"], **figures}
     note = (f" {VIEW_NOTES} [{', '.join(sorted(parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
-            f"`bench_scan.py --only {','.join(sorted(parts))}`; the others on {old.get('when', '?')}]")
+            f"`bench_scan.py --only {','.join(sorted(parts))}`, load average {os.getloadavg()[0]:.1f} on "
+            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
     write_result("scan", merged, {**old["units"], **UNITS}, notes=old.get("notes", "").split(" bridge: a default")[0] + note)
     return 0
 
