@@ -22,6 +22,8 @@ needs_namespaces = pytest.mark.skipif(UNAVAILABLE is not None,
                                       reason=f"two hosts need network namespaces here: {UNAVAILABLE}")
 # the middle of the track, where the laser crosses the synthetic head; 11 snaps
 SCAN = ["--start", "200", "--end", "240", "--step", "4"]
+# a capture crossing the link on a loaded host can take longer than the default 1 s abort limit
+LAUNCH = ["capture_timeout_s:=5.0"]
 
 
 def cloud_by_pixel(folder: Path) -> dict:
@@ -36,9 +38,9 @@ def cloud_by_pixel(folder: Path) -> dict:
 
 @needs_namespaces
 def test_scan_across_two_hosts_gives_the_cloud_and_bag_of_one_host(tmp_path):
-    one = split_scan(tmp_path / "one", None, scan_args=SCAN)
+    one = split_scan(tmp_path / "one", None, scan_args=SCAN, launch_args=LAUNCH)
     with TwoHosts() as hosts:
-        two = split_scan(tmp_path / "two", hosts, scan_args=SCAN)
+        two = split_scan(tmp_path / "two", hosts, scan_args=SCAN, launch_args=LAUNCH)
     assert not any(hosts.namespaces[h] in subprocess.run(["ip", "netns", "list"], capture_output=True,
                                                           text=True).stdout for h in hosts.namespaces)
     a, b = cloud_by_pixel(one), cloud_by_pixel(two)
