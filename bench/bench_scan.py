@@ -63,9 +63,11 @@ def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
             if baseline:
                 full_scan("recording", True)
             if view:
-                with watching_client() as client:
+                with watching_client() as (client, view_pid):
+                    cpu0 = _cpu_s(view_pid)
                     full_scan("bridge", False)
-                    runs["bridge"]["client"] = {"messages": client.messages_received, "bytes": client.bytes_received}
+                    runs["bridge"]["client"] = {"messages": client.messages_received, "bytes": client.bytes_received,
+                                                "bridge_cpu_s": _cpu_s(view_pid) - cpu0}
                 full_scan("after_bridge", False)
     finally:
         graph.interrupt(timeout_s=30)
@@ -88,7 +90,7 @@ def watching_client():
             client.wait_for_topics(wanted, timeout_s=60)
             client.subscribe(sorted({c.topic for c in client.channels.values()}))
             time.sleep(1.0)  # the bridge subscribes on its next poll
-            yield client
+            yield client, view.process.pid
     finally:
         view.interrupt(timeout_s=20)
         view.kill()
@@ -228,12 +230,12 @@ def replay(bag: Path, window: int = 4) -> dict:
 VIEW_NOTES = (
     "bridge: a default scan with `lsu view` and a Foxglove WebSocket client "
     "subscribed to every channel (images at the bridge's default 5 Hz per camera), then one without; "
-    "bridge_overhead_pct against the mean of the default scan and that one. two_host (root only): the "
+    "bridge_overhead_pct against the mean of the default scan and that one; bridge_cpu_ms_per_snap: CPU time (all threads) of the lsu view process during the watched scan per snap. two_host (root only): the "
     "graph split by `lsu launch sim --group rig|processing`, default full scans (no bag), both halves here "
     "with localhost settings vs each in its own network namespace joined by a veth pair (SUBNET discovery "
     "+ static peer, UDPv4 only); _lines: the extractor on the rig host (rig_extract / processing_lines).")
 UNITS = {"bridge_overhead_pct": "%", "scan_wall_s_bridge": "s", "scan_wall_s_after_bridge": "s",
-         "bridge_client_mb": "MB", "bridge_client_messages": "messages",
+         "bridge_client_mb": "MB", "bridge_client_messages": "messages", "bridge_cpu_ms_per_snap": "ms",
          "two_host_scan_wall_over_one_host": "x", "two_host_lines_scan_wall_over_one_host": "x",
          "one_host_split_scan_wall_s": "s", "two_host_scan_wall_s": "s", "two_host_lines_scan_wall_s": "s"}
 
@@ -244,7 +246,8 @@ def view_figures(runs: dict) -> dict:
     bridge = runs["bridge"]
     return {"bridge_overhead_pct": 100.0 * (bridge["result"].seconds / without - 1.0),
             "scan_wall_s_bridge": bridge["result"].seconds, "scan_wall_s_after_bridge": runs["after_bridge"]["result"].seconds,
-            "bridge_client_mb": bridge["client"]["bytes"] / 1e6, "bridge_client_messages": bridge["client"]["messages"]}
+            "bridge_client_mb": bridge["client"]["bytes"] / 1e6, "bridge_client_messages": bridge["client"]["messages"],
+            "bridge_cpu_ms_per_snap": 1000 * bridge["client"]["bridge_cpu_s"] / max(1, bridge["result"].snaps)}
 
 
 def two_host_figures(walls: dict) -> dict:
