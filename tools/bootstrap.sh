@@ -14,7 +14,7 @@ cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.lsu-stamps"
 PYTHON="${PYTHON:-python3}"
-PY_PACKAGES=(lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup)
+PY_PACKAGES=(lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup lsu_view)
 
 step=""
 fail() {
@@ -39,6 +39,8 @@ missing=()
 command -v cmake >/dev/null || missing+=(cmake)
 command -v c++ >/dev/null || missing+=(g++)
 command -v make >/dev/null || missing+=(make)
+# ip (iproute2): the two-host test makes network namespaces with it
+command -v ip >/dev/null || missing+=(iproute2)
 "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
 # open3d needs libusb-1.0.so.0 at import time; no wheel ships it
 if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then missing+=(libusb-1.0-0); fi  # no -q: SIGPIPE + pipefail

@@ -41,10 +41,15 @@ def resolve_launch_file(name: str) -> Path:
 
 
 def _load(args: argparse.Namespace):
-    from .launch_file import load_launch, parse_cli_arguments
+    from .launch_file import load_groups, load_launch, parse_cli_arguments, select_nodes
     from .nodes_index import resolve_executable
 
-    return load_launch(resolve_launch_file(args.file), parse_cli_arguments(args.arguments), resolve_executable)
+    description = load_launch(resolve_launch_file(args.file), parse_cli_arguments(args.arguments), resolve_executable)
+    groups = [g for item in (args.group or []) for g in item.split(",") if g]
+    exclude = [g for item in (args.exclude or []) for g in item.split(",") if g]
+    if not groups and not exclude:
+        return description
+    return select_nodes(description, groups, exclude, load_groups(config_dir() / "launch" / "groups.yaml"))
 
 
 def cmd_launch(args: argparse.Namespace) -> int:
@@ -63,12 +68,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     return run_in_process(_load(args), executor=args.executor)
 
 
+def _selection_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--group", action="append", metavar="NAME[,NAME]",
+                   help="start only these groups of config/launch/groups.yaml (rig, processing, view) or nodes "
+                        "(by name); e.g. --group rig on the PC wired to the unit, --group processing on another")
+    p.add_argument("--exclude", action="append", metavar="NAME[,NAME]",
+                   help="leave these groups or nodes out")
+
+
 def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
     p = sub.add_parser("launch", help="start the nodes of a YAML launch file, one process each",
                        description="Start every node of a ROS 2 YAML launch file as its own process. "
                                    "Ctrl-C stops them all (SIGINT, then SIGTERM, then SIGKILL).")
     p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
     p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    _selection_options(p)
     p.add_argument("--sigint-timeout", type=float, default=2.5, metavar="S",
                    help="grace after SIGINT before SIGTERM (default 2.5)")
     p.set_defaults(func=cmd_launch)
@@ -77,6 +91,7 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
                                    "executor.")
     p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
     p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    _selection_options(p)
     p.add_argument("--executor", choices=("multi", "single"), default="multi",
                    help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "
                         "callback (the scan coordinator); single: one thread, lower overhead per callback, "

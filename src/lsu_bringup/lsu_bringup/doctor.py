@@ -11,11 +11,15 @@ import glob
 import importlib
 import importlib.metadata as metadata
 import os
+import ipaddress
 import platform
+import socket
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
-from typing import Callable, List, Optional
+from pathlib import Path
+from typing import Callable, Dict, List, Mapping, Optional
 
 from .rosenv import DISCOVERY_VAR, DOMAIN_VAR, LOCALHOST, EnvReport
 
@@ -28,7 +32,8 @@ INTERFACES = [
     "diagnostic_msgs/msg/DiagnosticArray", "visualization_msgs/msg/Marker", "shape_msgs/msg/Mesh",
 ]
 LIBRARIES = [("numpy", "numpy"), ("scipy", "scipy"), ("opencv", "cv2"), ("open3d", "open3d"),
-             ("pyserial", "serial"), ("rosbags", "rosbags"), ("yaml", "yaml")]
+             ("pyserial", "serial"), ("rosbags", "rosbags"), ("yaml", "yaml"), ("foxglove-sdk", "foxglove"),
+             ("websockets", "websockets")]
 
 
 @dataclass
@@ -104,6 +109,114 @@ def _env(report: Optional[EnvReport]) -> List[Check]:
     return checks
 
 
+PEERS_VAR = "ROS_STATIC_PEERS"
+TRANSPORTS_VAR = "FASTDDS_BUILTIN_TRANSPORTS"
+_IFF_UP, _IFF_MULTICAST = 0x1, 0x1000
+#: a port in the DDS range, only used to ask the kernel for a route (connect() on UDP sends nothing)
+_PROBE_PORT = 7400
+
+
+def local_addresses() -> Dict[str, str]:
+    """IPv4 address -> interface name of this machine (``ip -o -4 addr``)."""
+    try:
+        out = subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True, text=True, timeout=5).stdout
+    except (OSError, subprocess.SubprocessError):
+        return {}
+    found = {}
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) > 3 and parts[2] == "inet":
+            found[parts[3].split("/")[0]] = parts[1].split("@")[0]
+    return found
+
+
+def _interface_flags(name: str) -> int:
+    try:
+        return int(Path(f"/sys/class/net/{name}/flags").read_text().strip(), 16)
+    except (OSError, ValueError):
+        return 0
+
+
+def route_to(address: str) -> Optional[str]:
+    """The local IPv4 address the kernel would send from to reach ``address`` (nothing is sent)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.connect((address, _PROBE_PORT))
+            return sock.getsockname()[0]
+        except OSError:
+            return None
+
+
+def multi_host_checks(env: Mapping[str, str], report: Optional[EnvReport] = None) -> List[Check]:
+    """Settings a graph spread over two PCs needs (README "Rig PC and processing PC").
+
+    On LOCALHOST without peers this is a single line; otherwise: the domain id chosen explicitly
+    (both PCs need the same one), discovery that reaches the other PC, each static peer resolved
+    and routed through a non-loopback interface that is up, and a transport that crosses machines.
+    """
+    rng = env.get(DISCOVERY_VAR, "") or "SYSTEM_DEFAULT"
+    peers = [p.strip() for p in env.get(PEERS_VAR, "").replace(",", ";").split(";") if p.strip()]
+    if rng == LOCALHOST and not peers:
+        return [Check("OK", "multi-host", "off: DDS stays on this machine (LOCALHOST, no ROS_STATIC_PEERS); "
+                      "README 'Rig PC and processing PC' says what to set for two PCs")]
+    checks: List[Check] = []
+    if rng == "OFF":
+        checks.append(Check("FAIL", "multi-host discovery", f"{DISCOVERY_VAR}=OFF finds no node, not even the "
+                            "static peers; use SUBNET"))
+    elif rng == LOCALHOST:
+        checks.append(Check("WARN", "multi-host discovery", f"{DISCOVERY_VAR}=LOCALHOST: only the static peers "
+                            f"{', '.join(peers)} are looked for beyond this machine; SUBNET also finds them by multicast"))
+    else:
+        checks.append(Check("OK", "multi-host discovery", f"{DISCOVERY_VAR}={rng}" +
+                            (f", static peers {', '.join(peers)}" if peers else ", by multicast only (no "
+                             f"{PEERS_VAR}; set it where multicast does not pass, e.g. Wi-Fi)")))
+    if report is not None and report.domain_set_by_lsu:
+        checks.append(Check("WARN", "multi-host domain", f"{DOMAIN_VAR} was unset (lsu uses {env.get(DOMAIN_VAR)}); "
+                            "set the same ROS_DOMAIN_ID on both PCs, so the graph is yours alone"))
+    else:
+        checks.append(Check("OK", "multi-host domain", f"{DOMAIN_VAR}={env.get(DOMAIN_VAR, '')}: use the same on "
+                            "the other PC"))
+    transports = env.get(TRANSPORTS_VAR, "")
+    if transports.upper() == "SHM":
+        checks.append(Check("FAIL", "multi-host transport", f"{TRANSPORTS_VAR}=SHM: shared memory carries nothing "
+                            "to another PC; unset it or use UDPv4"))
+    addresses = local_addresses()
+    for peer in peers:
+        try:
+            target = socket.getaddrinfo(peer, None, socket.AF_INET)[0][4][0]
+        except (socket.gaierror, IndexError):
+            checks.append(Check("FAIL", "multi-host peer", f"{peer} does not resolve to an IPv4 address; write "
+                                f"the other PC's address in {PEERS_VAR}"))
+            continue
+        source = route_to(target)
+        if source is None:
+            checks.append(Check("FAIL", "multi-host peer", f"{peer} ({target}): no route from this machine; "
+                                "connect the network / check the address"))
+            continue
+        if ipaddress.ip_address(source).is_loopback:
+            checks.append(Check("WARN", "multi-host peer", f"{peer} ({target}) is this machine itself"))
+            continue
+        iface = addresses.get(source, "")
+        flags = _interface_flags(iface) if iface else 0
+        up = bool(flags & _IFF_UP)
+        detail = f"{peer} ({target}) via {iface or '?'} {source}"
+        if iface and not up:
+            checks.append(Check("FAIL", "multi-host peer", f"{detail}: the interface is down"))
+        elif iface and rng not in (LOCALHOST, "OFF") and not flags & _IFF_MULTICAST:
+            checks.append(Check("WARN", "multi-host peer", f"{detail}: no multicast on it, so discovery relies on "
+                                f"{PEERS_VAR} (set it on both PCs)"))
+        else:
+            checks.append(Check("OK", "multi-host peer", detail))
+    if not peers and rng not in (LOCALHOST, "OFF"):
+        usable = sorted(name for addr, name in addresses.items()
+                        if not ipaddress.ip_address(addr).is_loopback
+                        and _interface_flags(name) & (_IFF_UP | _IFF_MULTICAST) == _IFF_UP | _IFF_MULTICAST)
+        checks.append(Check("OK" if usable else "FAIL", "multi-host interface",
+                            f"multicast discovery on {', '.join(usable)}" if usable else
+                            "no network interface with multicast is up: nothing reaches another PC"))
+    return checks
+
+
 def _devices() -> List[Check]:
     ports = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
     videos = sorted(glob.glob("/dev/video*"))
@@ -150,6 +263,7 @@ def run_checks(report: Optional[EnvReport], graph: bool) -> List[Check]:
     """All checks, in the order they are printed."""
     checks = [Check("OK", "python", f"{platform.python_version()} at {sys.executable}")]
     checks += _env(report)
+    checks += multi_host_checks(os.environ, report)
     checks += _libraries()
     checks.append(_interfaces())
     checks.append(_rclpy())

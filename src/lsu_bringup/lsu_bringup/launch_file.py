@@ -24,6 +24,10 @@ Substitutions: ``$(var NAME)``, ``$(env NAME [DEFAULT])``, ``$(optenv NAME [DEFA
 ``$(dirname)``, ``$(find-pkg-share PKG)``.
 
 Every problem is a `LaunchError` that names the file, the line and the key, in one line.
+
+Running part of a file on one machine (`lsu launch sim --group rig` on the PC wired to the unit,
+`--group processing` on another): :func:`select_nodes` keeps the nodes of named groups, which
+``config/launch/groups.yaml`` defines as lists of node names (a node name itself is a group too).
 """
 
 from __future__ import annotations
@@ -433,3 +437,51 @@ def parse_cli_arguments(items: List[str]) -> Dict[str, str]:
         name, value = item.split(":=", 1)
         out[name.strip()] = value
     return out
+
+
+def load_groups(path: Path | str) -> Dict[str, List[str]]:
+    """``group -> node names`` from a groups file (a YAML mapping of lists); LaunchError when malformed."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        raise LaunchError(path, mark.line + 1 if mark else None, "", "not valid YAML") from None
+    if not isinstance(data, dict) or not all(isinstance(v, list) and all(isinstance(n, str) for n in v)
+                                             for v in data.values()):
+        raise LaunchError(path, None, "", "expected a mapping of group name -> list of node names")
+    return {str(k): list(v) for k, v in data.items()}
+
+
+def select_nodes(description: LaunchDescription, groups: List[str], exclude: List[str],
+                 known_groups: Mapping[str, List[str]]) -> LaunchDescription:
+    """The nodes of ``groups`` (group or node names; empty: all) less those named in ``exclude``.
+
+    Raises:
+        LaunchError: a name is neither a group nor a node of the file, or nothing is left.
+    """
+    labels = [n.label for n in description.nodes]
+
+    def expand(names: List[str], what: str) -> set:
+        out: set = set()
+        for name in names:
+            if name in labels:
+                out.add(name)
+            elif name in known_groups:
+                out.update(n for n in known_groups[name] if n in labels)
+            else:
+                raise LaunchError(description.file, None, what,
+                                  f"'{name}' is neither a group ({', '.join(sorted(known_groups)) or 'none defined'}) "
+                                  f"nor a node of this file ({', '.join(labels)})")
+        return out
+
+    keep = expand(groups, "--group") if groups else set(labels)
+    keep -= expand(exclude, "--exclude")
+    nodes = [n for n in description.nodes if n.label in keep]
+    if not nodes:
+        raise LaunchError(description.file, None, "--group",
+                          f"no node of this file is in {', '.join(groups) or 'the selection'}"
+                          f"{' less ' + ', '.join(exclude) if exclude else ''} (nodes: {', '.join(labels)})")
+    return LaunchDescription(description.file, description.arguments, nodes)

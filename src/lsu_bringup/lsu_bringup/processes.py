@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Mapping, Optional, Sequence
 
 LSU = str(Path(sys.executable).parent / "lsu")
 
@@ -38,12 +38,16 @@ class ProcessWaitError(AssertionError):
 class LaunchedProcess:
     """A running `lsu ...` subprocess whose output is collected in the background."""
 
-    def __init__(self, args: List[str], cwd: Optional[str] = None) -> None:
+    def __init__(self, args: List[str], cwd: Optional[str] = None, prefix: Sequence[str] = (),
+                 env: Optional[Mapping[str, str]] = None) -> None:
+        """``prefix``: a command that execs `lsu` (``ip netns exec NS``), so the pid stays `lsu`'s;
+        ``env``: the whole environment (default: this process's)."""
         self.args = args
         self.lines: List[str] = []
         self._lock = threading.Lock()
-        self.process = subprocess.Popen([LSU, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                        stdin=subprocess.DEVNULL, text=True, cwd=cwd, start_new_session=True)
+        self.process = subprocess.Popen([*prefix, LSU, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL, text=True, cwd=cwd, start_new_session=True,
+                                        env=None if env is None else dict(env))
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -83,6 +87,13 @@ class LaunchedProcess:
             time.sleep(0.05)
         raise ProcessWaitError(f"no line /{pattern}/ from `lsu {' '.join(self.args)}` within {timeout_s} s:\n"
                                f"{self.output}")
+
+    def wait(self, timeout_s: float) -> int:
+        """Wait for the process to end by itself and for its output to be read; returns the exit code."""
+        try:
+            return self.process.wait(timeout=timeout_s)
+        finally:
+            self._reader.join(timeout=2.0)
 
     def interrupt(self, timeout_s: float = 10.0) -> int:
         """SIGINT (like Ctrl-C) and wait; returns the exit code."""
