@@ -141,7 +141,7 @@ def test_same_enrol_identify_result_in_two_processes(tmp_path):
     import sys
 
     for name, seed, kw in (("a", 13, {}), ("b", 14, {}), ("probe", 13, {"yaw_deg": 20.0, "expression": "smile"})):
-        _write_cloud(tmp_path / f"{name}.ply", _person_cloud(seed, step=10, **kw)[0])
+        _write_cloud(tmp_path / f"{name}.ply", _person_cloud(seed, step=5, **kw)[0])
     # both processes at once, with different hash seeds: nothing may depend on process state or timing
     runs = [subprocess.Popen([sys.executable, "-c", _TWO_PROCESS, str(tmp_path), str(tmp_path / f"gallery{k}")],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

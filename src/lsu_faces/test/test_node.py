@@ -56,7 +56,7 @@ def test_cloud_in_mesh_and_nose_out_then_enroll_identify(ros_node, tmp_path, hea
     h.create_subscription(PointStamped, "/lsu/face/nose", lambda m: got.setdefault("nose", m), 10)
     pub = h.create_publisher(PointCloud2, "/lsu/scan/cloud", latched)
     pub.publish(_msg(columns))
-    assert ros_node.spin_until(lambda: {"marker", "shape", "nose"} <= set(got), 60.0), f"got only {sorted(got)}"
+    assert ros_node.spin_until(lambda: {"marker", "shape", "nose"} <= set(got), 180.0), f"got only {sorted(got)}"
     marker = got["marker"]
     assert marker.type == Marker.TRIANGLE_LIST and len(marker.points) % 3 == 0 and len(marker.points) > 0
     assert len(marker.colors) == len(marker.points)
