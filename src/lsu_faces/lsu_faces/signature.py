@@ -33,7 +33,7 @@ from scipy.special import ndtr, ndtri
 from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
 
-__all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare", "score_from_distance",
+__all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
            "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
@@ -58,9 +58,8 @@ class SignatureParams:
     map_cols: int = 64             # spherical map: azimuth bins
     max_elevation_deg: float = 60.0
     fft_orders: int = 16           # azimuth harmonics kept
-    trim: float = 0.1              # fraction of the largest height differences ignored (hair, occlusion rims)
+    trim: float = 0.25             # fraction of the largest height differences ignored (expressions, hair, rims)
     min_overlap: float = 0.3       # maps sharing fewer valid cells than this fraction do not match
-    scale_m: float = 0.0005        # distance giving score exp(-1)
 
     def __post_init__(self) -> None:
         if self.method not in SIGNATURE_METHODS:
@@ -261,11 +260,6 @@ def _fft_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
     return float(np.sqrt(np.mean(d ** 2))), overlap
 
 
-def score_from_distance(distance_m: float, scale_m: float) -> float:
-    """Similarity in [0, 1]: exp(-distance / scale); 0 for no overlap."""
-    return float(np.exp(-distance_m / scale_m)) if np.isfinite(distance_m) else 0.0
-
-
 def compare(probe: Signature, ref: Signature, model: Optional["ImpostorModel"] = None) -> Tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
@@ -329,5 +323,5 @@ class ImpostorModel:
 
 # prior impostor model: distances between different synthetic people (MakeHuman morphs with hair and
 # expressions) scanned by the LSU rig, measured by bench/bench_faces.py; it counts as _PRIOR_WEIGHT pairs
-_PRIOR = {"depthmap": (float(np.log(0.0032)), 0.30), "fft": (float(np.log(0.0008)), 0.45)}
+_PRIOR = {"depthmap": (float(np.log(0.0013)), 0.30), "fft": (float(np.log(0.0008)), 0.45)}
 _PRIOR_WEIGHT = 20
