@@ -303,6 +303,29 @@ def _roughness(samples: np.ndarray, tree: cKDTree, normals: np.ndarray) -> float
     return float(np.median(np.abs(off)))
 
 
+def _refine_tip(local: np.ndarray, smooth: bool, radius: float = 0.008) -> np.ndarray:
+    """Nose tip in the fitted face frame: the mean of the 5 highest points within ``radius`` of the frame's
+    z axis; with ``smooth`` (a noisy sensor: depth steps of millimetres pull the highest points outwards)
+    the peak of a quadric z(x, y) fitted to those points by least squares, where it has one there."""
+    near = local[np.linalg.norm(local[:, :2], axis=1) <= radius]
+    if len(near) < 3:
+        return np.zeros(3)
+    top = near[np.argsort(-near[:, 2], kind="stable")[:5]].mean(axis=0)
+    if not smooth or len(near) < 12:
+        return top
+    x, y, z = near[:, 0], near[:, 1], near[:, 2]
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    c, *_ = np.linalg.lstsq(A, z, rcond=None)
+    H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    if not np.all(np.linalg.eigvalsh(H) < 0):
+        return top
+    xy = np.linalg.solve(H, -c[1:3])
+    if np.linalg.norm(xy) > radius:
+        return top
+    zp = c[0] + c[1] * xy[0] + c[2] * xy[1] + c[3] * xy[0] ** 2 + c[4] * xy[0] * xy[1] + c[5] * xy[1] ** 2
+    return np.array([xy[0], xy[1], zp])
+
+
 def _relief(local: np.ndarray, inner: float = 0.025, outer: float = 0.045) -> float:
     """Height of the nose (highest point within 8 mm of the z axis) over the median of the inner..outer ring [m]."""
     r = np.linalg.norm(local[:, :2], axis=1)
@@ -351,7 +374,8 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
     snormals = estimate_normals(samples, tree=tree)
     core = np.isin(tpl.region, [REGIONS.index(r) for r in ("nose", "eyes", "mouth", "cheeks", "forehead")])
     # a fit as good as the sensor allows scores 1: scale by the measured surface's own roughness
-    rms_scale = 0.003 + 2.0 * _roughness(samples, tree, snormals)
+    noise_m = _roughness(samples, tree, snormals)
+    rms_scale = 0.003 + 2.0 * noise_m
     sub = np.arange(0, len(tpl.points), 3)          # coarse stage: a third of the template
 
     def verify(T0: np.ndarray, idx: np.ndarray, distances: Tuple[float, ...]) -> Tuple[float, object, Dict[str, float]]:
@@ -402,13 +426,7 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
     if not sym <= params.max_symmetry_mm:
         raise NotAFaceError(f"no face: the surface around the best nose candidate is not mirror-symmetric "
                             f"(median residual {sym:.1f} mm, a face: <= {params.max_symmetry_mm:.1f} mm)")
-    near = local[np.linalg.norm(local[:, :2], axis=1) <= 0.008]
-    if len(near) >= 3:
-        top = near[np.argsort(-near[:, 2], kind="stable")[:5]]
-        tip_local = top.mean(axis=0)
-    else:
-        tip_local = np.zeros(3)
-    tip = origin + tip_local @ axes
+    tip = origin + _refine_tip(local, smooth=noise_m > 0.0003) @ axes
     frame = FaceFrame(tip, axes)
     return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame)
 
