@@ -1,11 +1,16 @@
-"""`lsu mesh` and `lsu face`: the face_processor's chain and gallery offline, on PLY files (no ROS graph needed).
+"""`lsu mesh` and `lsu face`: the face_processor's chain and gallery offline, on PLY/NPY files (no ROS graph needed).
 
     lsu mesh scans/20261123-0641/cloud.ply                 # mesh.ply, mesh.obj, renders next to the cloud
     lsu mesh cloud.ply -o out/ --smoothing laplacian
+    lsu mesh depth.npy --units mm                          # a plain x y z cloud (no u/v): ball pivoting
     lsu face enroll alice cloud.ply                        # gallery: ~/.lsu/faces/gallery.db (or --gallery)
-    lsu face identify probe.ply
+    lsu face identify probe.ply --false-accept 0.001
     lsu face list
     lsu face remove alice            |  lsu face remove --id 7
+
+Clouds: metres (or ``--units mm``; ``auto`` decides from the size) in the sensor's optical frame (x right,
+y down, z away from the sensor). Options go before or after the action (``lsu face --gallery G list`` or
+``lsu face list --gallery G``).
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import argparse
 from pathlib import Path
 
 from .face import NOSE_METHODS, FaceParams
+from .gallery import DEFAULT_FALSE_ACCEPT
+from .plyio import UNITS
 from .mesh import MeshParams
 from typing import TYPE_CHECKING
 
@@ -23,10 +30,9 @@ from .signature import SIGNATURE_METHODS, SignatureParams
 from .smoothing import METHODS as SMOOTH_METHODS
 from .smoothing import SmoothParams
 
-__all__ = ["register", "DEFAULT_GALLERY", "DEFAULT_THRESHOLD"]
+__all__ = ["register", "DEFAULT_GALLERY"]
 
 DEFAULT_GALLERY = "~/.lsu/faces/gallery.db"
-DEFAULT_THRESHOLD = 0.33
 
 
 def _params(args: argparse.Namespace) -> "ProcessParams":
@@ -36,7 +42,7 @@ def _params(args: argparse.Namespace) -> "ProcessParams":
     return ProcessParams(mesh=MeshParams(),
                          smoothing=SmoothParams(method=getattr(args, "smoothing", sp.method),
                                                 iterations=getattr(args, "iterations", sp.iterations)),
-                         face=FaceParams(nose_method=getattr(args, "nose_method", "protrusion")),
+                         face=FaceParams(nose_method=getattr(args, "nose_method", FaceParams().nose_method)),
                          signature=SignatureParams(method=getattr(args, "signature_method", "depthmap")))
 
 
@@ -44,7 +50,7 @@ def _process(path: str, args: argparse.Namespace):
     # the pipeline pulls in open3d (renders): imported when a command runs, not when `lsu` starts
     from .pipeline import load_cloud_file, process_cloud
 
-    loaded = load_cloud_file(path)
+    loaded = load_cloud_file(path, getattr(args, "units", "auto"))
     return process_cloud(loaded["columns"], _params(args), loaded["faces"])  # type: ignore[arg-type]
 
 
@@ -75,7 +81,7 @@ def run_face(args: argparse.Namespace) -> int:
     """`lsu face enroll|identify|list|remove`."""
     from .gallery import Gallery
 
-    gallery = Gallery(args.gallery)
+    gallery = Gallery(getattr(args, "gallery", DEFAULT_GALLERY))
     if args.action == "list":
         entries = gallery.list()
         if not entries:
@@ -96,15 +102,23 @@ def run_face(args: argparse.Namespace) -> int:
         entry = gallery.enroll(args.name, result.signature, str(Path(args.cloud).expanduser().resolve()))
         print(f"enrolled '{args.name}' as entry {entry} ({result.signature.points_used} face points) in {gallery.path}")
         return 0
-    matches = gallery.identify(result.signature, args.max_results)
-    if not matches:
+    ident = gallery.identify(result.signature, args.max_results, args.false_accept)
+    if not ident.matches:
         print(f"gallery {gallery.path} is empty; enrol faces first")
         return 1
-    accepted = matches[0].score >= args.threshold
-    print(f"best: {matches[0].name if accepted else '(rejected: no score >= %.2f)' % args.threshold}")
-    for rank, m in enumerate(matches, 1):
-        print(f"  {rank}. {m.name:<24s} score {m.score:.3f}  distance {m.distance_m * 1000:.3f} mm  entry {m.entry_id}")
-    return 0 if accepted else 1
+    best = ident.matches[0]
+    if ident.accepted:
+        print(f"best: {best.name}")
+    else:
+        print(f"best: (rejected: the nearest face, {best.name}, is {best.distance_m * 1000:.3f} mm away; accepting "
+              f"needs < {ident.threshold_m * 1000:.3f} mm for a {args.false_accept:g} false-accept rate)")
+    model = ident.model
+    print(f"  scores calibrated on {model.samples} impostor distances of this gallery (+ the prior): a stranger "
+          f"comes within {model.threshold_m(0.5) * 1000:.2f} mm half of the time")
+    for rank, m in enumerate(ident.matches, 1):
+        print(f"  {rank}. {m.name:<24s} score {m.score:.6f}  stranger chance {m.false_accept:.3e}  "
+              f"distance {m.distance_m * 1000:.3f} mm  entry {m.entry_id}")
+    return 0 if ident.accepted else 1
 
 
 def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
@@ -112,7 +126,9 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     m = subparsers.add_parser("mesh", help="scan cloud (PLY with u v) -> textured mesh, renders, nose tip",
                               description="Mesh an LSU scan cloud like the face_processor: Delaunay on the left-image "
                                           "pixels, cull jumps, smooth, write mesh.ply, mesh.obj and front/side renders.")
-    m.add_argument("cloud", metavar="CLOUD.ply", help="cloud written by lsu reconstruct or a scan (x y z rgb u v)")
+    m.add_argument("cloud", metavar="CLOUD", help="PLY or NPY cloud (x y z, optional rgb u v) or mesh, sensor frame")
+    m.add_argument("--units", choices=UNITS, default="auto",
+                   help="length unit of the file (default: auto from the size)")
     m.add_argument("-o", "--output", metavar="DIR", help="folder for the files (default: the cloud's folder)")
     m.add_argument("--smoothing", choices=SMOOTH_METHODS, default=SmoothParams().method, help="smoothing method")
     m.add_argument("--iterations", type=int, default=SmoothParams().iterations, help="smoothing iterations/passes")
@@ -123,20 +139,28 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     f = subparsers.add_parser("face", help="face gallery: enroll, identify, list, remove",
                               description="Enrol and identify faces from PLY scan clouds in the SQLite gallery the "
                                           "face_processor node uses.")
-    f.add_argument("--gallery", default=DEFAULT_GALLERY, metavar="FILE", help=f"gallery file (default {DEFAULT_GALLERY})")
+    gallery_help = f"gallery file (default {DEFAULT_GALLERY}; private: 0600 in a 0700 folder)"
+    f.add_argument("--gallery", default=DEFAULT_GALLERY, metavar="FILE", help=gallery_help)
+    # the same option after the action: SUPPRESS keeps the value given before it when absent here
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--gallery", default=argparse.SUPPRESS, metavar="FILE", help=gallery_help)
     actions = f.add_subparsers(dest="action", required=True, metavar="ACTION")
-    e = actions.add_parser("enroll", help="add a face under a name")
+    e = actions.add_parser("enroll", help="add a face under a name", parents=[common])
     e.add_argument("name")
-    e.add_argument("cloud", metavar="CLOUD.ply")
-    i = actions.add_parser("identify", help="rank the gallery against a face (exit 1 when rejected)")
-    i.add_argument("cloud", metavar="CLOUD.ply")
+    e.add_argument("cloud", metavar="CLOUD")
+    i = actions.add_parser("identify", help="rank the gallery against a face (exit 1 when rejected)", parents=[common])
+    i.add_argument("cloud", metavar="CLOUD")
     i.add_argument("--max-results", type=int, default=5)
-    i.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD, help="reject below this score (0..1)")
+    i.add_argument("--false-accept", type=float, default=DEFAULT_FALSE_ACCEPT, metavar="RATE",
+                   help=f"accept the best match only when a stranger would come as close with at most this chance "
+                        f"(default {DEFAULT_FALSE_ACCEPT:g})")
     for p in (e, i):
-        p.add_argument("--nose-method", choices=NOSE_METHODS, default="protrusion")
+        p.add_argument("--units", choices=UNITS, default="auto", help="length unit of the file (default: auto)")
+        p.add_argument("--nose-method", choices=NOSE_METHODS, default=FaceParams().nose_method)
         p.add_argument("--signature-method", choices=SIGNATURE_METHODS, default="depthmap")
-    actions.add_parser("list", help="show the entries")
-    r = actions.add_parser("remove", help="remove a name (all its samples) or one entry")
+    actions.add_parser("list", help="show the entries", parents=[common])
+    r = actions.add_parser("remove", help="remove a name (all its samples) or one entry; nothing of it stays in "
+                                          "the file", parents=[common])
     r.add_argument("name", nargs="?")
     r.add_argument("--id", type=int, help="entry id to remove")
     f.set_defaults(func=run_face)

@@ -1,13 +1,18 @@
 """Face geometry (thesis ch. 11): crop, nose tip, radial vector, spherical embedding, parametric map.
 
-Nose tip, two methods:
+Nose tip, three methods:
 
 - ``svd`` (thesis ch. 11.1.2): centroid of the facial surface, the points within a sphere around it,
   their principal directions by SVD; the direction of least spread is the normal of the facial plane
   through the centroid and the point farthest in front of that plane is the tip. (The thesis text
   says "maximally weighted principal direction"; only the least-spread direction makes the nose the
   farthest point from the plane, which is what its Figure 51 shows.)
-- ``protrusion`` (ours, the default because it measures better, see bench/bench_faces.py): the nose is
+- ``template`` (the default; `nose_tip_template`): the protrusion candidates below, each verified by
+  registering the generic face (`lsu_faces.template`) on the surface around it; the candidate whose
+  surroundings match a face's layout (eyes above, mouth below, a narrow nose, mirror symmetry) wins
+  with a confidence, and nothing face-like enough gives "no face". Real scenes have collars, chins,
+  fists, hair and crop edges that protrude as much as a nose; only the layout tells them apart.
+- ``protrusion`` (the default before, kept for comparison in bench/bench_faces.py): the nose is
   the point that stands out most from its *own* surroundings, whatever the pose. For candidates on a
   coarse voxel grid, a plane is fitted to the ring of surface 15-35 mm around each one and the height
   of the candidate above it is its protrusion; the best candidates are then re-scored against a
@@ -16,9 +21,12 @@ Nose tip, two methods:
   edge-on), and the tip is refined on the full-resolution points along the ring's normal. A nose must
   protrude ``min_prominence_m`` above the quadric: a plane or a ball is reported as "no face".
 
-Face frame (`embed_face`): the ring normal, then `symmetric_frame` (mirror-symmetry plane by ICP of
-the mirrored face, which removes the bias of a turned head's hidden cheek) and the profile line
-(forehead to chin) for the nod; the tip is moved onto the symmetry plane.
+Face frame (`embed_face`): with ``template``, the registered generic face's axes (mirror-symmetric,
+so its x = 0 plane is the face's symmetry plane) with the origin on the measured nose tip. With the
+other methods: the ring normal, then `symmetric_frame` (mirror-symmetry plane by ICP of the mirrored
+face, which removes the bias of a turned head's hidden cheek) and the profile line (forehead to chin)
+for the nod; the tip is moved onto the symmetry plane. Every registration is `lsu_faces.register`'s
+deterministic ICP: the same cloud gives the same frame in every process.
 
 Radial vector (ch. 11.2.1): the normal of the plane fitted to the points within ``radial_radius_m``
 of the tip, pointing out of the face (towards the camera). Spherical embedding (ch. 11.2.2): the
@@ -31,17 +39,18 @@ parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
 __all__ = ["FaceError", "NotAFaceError", "FaceParams", "NoseResult", "FaceFrame", "depth_window", "nose_tip_svd",
-           "nose_tip_protrusion", "nose_tip", "radial_vector", "face_frame", "crop_face", "spherical_embedding",
+           "nose_tip_protrusion", "nose_tip_template", "nose_tip", "radial_vector", "face_frame", "crop_face",
+           "spherical_embedding",
            "parametric_map", "NOSE_METHODS"]
 
-NOSE_METHODS = ("protrusion", "svd")
+NOSE_METHODS = ("template", "protrusion", "svd")
 
 
 class FaceError(ValueError):
@@ -56,7 +65,7 @@ class NotAFaceError(FaceError):
 class FaceParams:
     """Settings of the face geometry (node parameters of the same names)."""
 
-    nose_method: str = "protrusion"
+    nose_method: str = "template"
     depth_window_m: float = 0.20       # keep points within this depth of the nearest surface (drops background)
     svd_sphere_m: float = 0.07         # thesis: radius of the reduced cloud around the centroid
     ring_inner_m: float = 0.015        # protrusion ring around a candidate: inner radius
@@ -69,6 +78,10 @@ class FaceParams:
     sphere_radius_m: float = 0.09      # spherical embedding radius (about a head's half depth)
     max_symmetry_shift_m: float = 0.003  # the symmetry plane may move the nose tip at most this far
     min_points: int = 200
+    ring_min_fraction: float = 0.5     # a nose candidate needs this much of its ring present (crop edges, rims)
+    candidates: int = 12               # template stage: distinct candidates verified
+    min_confidence: float = 0.45       # below this the best candidate is "no face"
+    max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: "no face"
 
     def __post_init__(self) -> None:
         if self.nose_method not in NOSE_METHODS:
@@ -89,6 +102,9 @@ class NoseResult:
     normal: np.ndarray
     prominence_m: float
     method: str
+    confidence: float = 1.0           # 0..1: how face-like the surroundings are (template method)
+    symmetry_mm: float = float("nan")   # median mirror residual of the face around the tip
+    frame: Optional["FaceFrame"] = None  # the verified face frame (template method)
 
 
 @dataclass
@@ -146,11 +162,14 @@ def nose_tip_svd(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseR
 
 
 def _voxel_means(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Mean of the points in each occupied voxel (ordered by voxel key: deterministic)."""
     keys = np.floor(points / voxel).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    sums = np.zeros((len(counts), 3))
-    np.add.at(sums, inverse, points)
+    sums = np.stack([np.bincount(inverse, weights=points[:, k], minlength=len(counts)) for k in range(3)], axis=1)
     return sums / counts[:, None]
 
 
@@ -234,11 +253,191 @@ def nose_tip_protrusion(points: np.ndarray, params: FaceParams = FaceParams(), t
     return NoseResult(tip, n, float(prominence), "protrusion")
 
 
+def _candidates(p: np.ndarray, samples: np.ndarray, params: FaceParams) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nose candidates: (centres, ring normals, quadric protrusion) best first, one per 15 mm."""
+    candidates = _voxel_means(p, params.candidate_voxel_m)
+    # ring statistics on candidate-sized samples: the ring's plane and quadric need no finer surface
+    samples = _voxel_means(p, params.candidate_voxel_m / 1.5)
+    mean, normal, count = _ring_planes(candidates, samples, params.ring_inner_m, params.ring_outer_m)
+    full_ring = np.pi * (params.ring_outer_m ** 2 - params.ring_inner_m ** 2) / (params.candidate_voxel_m / 1.5) ** 2
+    ok = count >= params.ring_min_fraction * full_ring
+    if not np.any(ok):
+        raise NotAFaceError("no part of the surface is wide enough for a face (every 35 mm neighbourhood is "
+                            "mostly empty): is the cloud in metres (--units), and the whole face in it?")
+    height = np.einsum("ij,ij->i", candidates - mean, normal)
+    height[~ok] = -np.inf
+    order = np.argsort(-height, kind="stable")[: 8 * params.candidates]
+    tree = cKDTree(samples)
+    scored = []
+    for i in order:
+        if not np.isfinite(height[i]):
+            continue
+        around = samples[tree.query_ball_point(candidates[i], params.ring_outer_m)]
+        ring = around[np.linalg.norm(around - candidates[i], axis=1) > params.ring_inner_m]
+        q = _quadric_height(candidates[i], normal[i], ring)
+        facing = max(float(np.dot(normal[i], -candidates[i]) / np.linalg.norm(candidates[i])), 0.0)
+        scored.append((-q * facing, int(i), q))
+    scored.sort()
+    chosen: list = []
+    for _, i, q in scored:
+        if q < 0.5 * params.min_prominence_m:
+            break
+        if all(np.linalg.norm(candidates[i] - candidates[j]) > 0.015 for j, _ in chosen):
+            chosen.append((i, q))
+        if len(chosen) >= params.candidates:
+            break
+    if not chosen:
+        raise NotAFaceError(f"no nose: nothing stands {params.min_prominence_m * 500:.0f} mm out of its "
+                            f"surroundings; is a face in front of the scanner?")
+    idx = np.array([i for i, _ in chosen])
+    return candidates[idx], normal[idx], np.array([q for _, q in chosen])
+
+
+def _roughness(samples: np.ndarray, tree: cKDTree, normals: np.ndarray) -> float:
+    """Median distance of the samples from their neighbours' tangent plane (sensor noise, depth steps) [m]."""
+    step = max(1, len(samples) // 2000)
+    probe = samples[::step]
+    _, idx = tree.query(probe, k=8)
+    nb = samples[idx[:, 1:]]
+    off = np.einsum("nkj,nj->nk", nb - nb.mean(axis=1, keepdims=True), normals[::step])
+    return float(np.median(np.abs(off)))
+
+
+def _refine_tip(local: np.ndarray, smooth: bool, radius: float = 0.008) -> np.ndarray:
+    """Nose tip in the fitted face frame: the mean of the 5 highest points within ``radius`` of the frame's
+    z axis; with ``smooth`` (a noisy sensor: depth steps of millimetres pull the highest points outwards)
+    the peak of a quadric z(x, y) fitted to those points by least squares, where it has one there."""
+    near = local[np.linalg.norm(local[:, :2], axis=1) <= radius]
+    if len(near) < 3:
+        return np.zeros(3)
+    top = near[np.argsort(-near[:, 2], kind="stable")[:5]].mean(axis=0)
+    if not smooth or len(near) < 12:
+        return top
+    x, y, z = near[:, 0], near[:, 1], near[:, 2]
+    A = np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    c, *_ = np.linalg.lstsq(A, z, rcond=None)
+    H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
+    if not np.all(np.linalg.eigvalsh(H) < 0):
+        return top
+    xy = np.linalg.solve(H, -c[1:3])
+    if np.linalg.norm(xy) > radius:
+        return top
+    zp = c[0] + c[1] * xy[0] + c[2] * xy[1] + c[3] * xy[0] ** 2 + c[4] * xy[0] * xy[1] + c[5] * xy[1] ** 2
+    return np.array([xy[0], xy[1], zp])
+
+
+def _relief(local: np.ndarray, inner: float = 0.025, outer: float = 0.045) -> float:
+    """Height of the nose (highest point within 8 mm of the z axis) over the median of the inner..outer ring [m]."""
+    r = np.linalg.norm(local[:, :2], axis=1)
+    tip, ring = local[r <= 0.008, 2], local[(r >= inner) & (r <= outer), 2]
+    if len(tip) < 3 or len(ring) < 10:
+        return 0.0
+    return float(np.max(tip) - np.median(ring))
+
+
+def _symmetry_mm(local: np.ndarray) -> float:
+    """Median distance of the mirrored face (x -> -x) to the face, over the mirrored points that overlap it."""
+    near = local[np.linalg.norm(local[:, :2], axis=1) < 0.06]
+    if len(near) < 30:
+        return float("inf")
+    d, _ = cKDTree(near).query(near * np.array([-1.0, 1.0, 1.0]), distance_upper_bound=0.01)
+    d = d[np.isfinite(d)]
+    return float(np.median(d) * 1000.0) if len(d) > 0.3 * len(near) else float("inf")
+
+
+def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+    """Nose tip verified by the whole face: shape candidates, then the generic face registered on each.
+
+    Candidates are the points that protrude most above a quadric fitted to their 15-35 mm ring (with
+    at least ``ring_min_fraction`` of the ring present: crop edges and silhouettes have one-sided
+    rings), one per 15 mm. The generic face (`lsu_faces.template`: nose, eye sockets, brows, mouth,
+    chin in their usual layout) is registered onto the surface around each candidate; a candidate wins
+    by how much of the face's layout the surface matches (``confidence`` = covered fraction of the
+    template x closeness of the fit). A chin, a fist, a knuckle or a lock of hair protrudes too but
+    has no eyes above and no mouth below it. The winner must also be mirror-symmetric
+    (``max_symmetry_mm``). The tip is then the most prominent measured point along the fitted face
+    normal within 8 mm of the template's nose.
+
+    Raises:
+        NotAFaceError: no candidate reaches ``min_confidence`` (a plane, a ball, a hand alone, a back
+            of a head, a profile whose face is hidden).
+    """
+    from .register import apply, estimate_normals, icp_point_to_plane
+    from .template import REGIONS, face_template
+
+    p = _check(points, params)
+    p = p[depth_window(p, params)]
+    samples = _voxel_means(p, params.sample_voxel_m)
+    centres, normals, prominence = _candidates(p, samples, params)
+    tpl = face_template()
+    tree = cKDTree(samples)
+    snormals = estimate_normals(samples, tree=tree)
+    core = np.isin(tpl.region, [REGIONS.index(r) for r in ("nose", "eyes", "mouth", "cheeks", "forehead")])
+    # a fit as good as the sensor allows scores 1: scale by the measured surface's own roughness
+    noise_m = _roughness(samples, tree, snormals)
+    rms_scale = 0.003 + 2.0 * noise_m
+    sub = np.arange(0, len(tpl.points), 3)          # coarse stage: a third of the template
+
+    def verify(T0: np.ndarray, idx: np.ndarray, distances: Tuple[float, ...]) -> Tuple[float, object, Dict[str, float]]:
+        reg = icp_point_to_plane(tpl.points[idx], samples, snormals, T0, distances=distances, iterations=6,
+                                 tree=tree, trim=0.2)
+        out = reg.T[:3, 2]           # the fitted face must look at the scanner (its z axis towards the camera)
+        if float(np.dot(out, -reg.T[:3, 3])) <= 0.0 or not np.isfinite(reg.rms_m):
+            return -1.0, reg, {}
+        cover = {r: float(reg.inliers[tpl.region[idx] == k].mean()) for k, r in enumerate(REGIONS)
+                 if np.any(tpl.region[idx] == k)}
+        conf = float(reg.inliers[core[idx]].mean()) * float(np.exp(-(reg.rms_m / rms_scale) ** 2))
+        if min(cover["nose"], max(cover["eyes"], cover["cheeks"])) < 0.35:
+            conf = min(conf, 0.0)        # no nose, or nothing of the face beside it
+        # the measured surface itself must hold a nose where the face has one: relief of the tip over the
+        # ring 25-45 mm around it, along the fitted face normal (a chest or a shoulder fits loosely but is flat)
+        local = (samples - reg.T[:3, 3]) @ reg.T[:3, :3]
+        cover["relief_ratio"] = _relief(local) / tpl_relief
+        # and the nose is narrow: most of its height is lost within 12-20 mm (a shoulder or a ball is a dome)
+        cover["narrow_ratio"] = _relief(local, 0.012, 0.02) / tpl_narrow
+        if not (0.55 <= cover["relief_ratio"] <= 1.8 and cover["narrow_ratio"] >= 0.5):
+            conf = min(conf, 0.0)
+        return conf, reg, cover
+
+    tpl_relief, tpl_narrow = _relief(tpl.points), _relief(tpl.points, 0.012, 0.02)
+    rough = []
+    for c, n, q in zip(centres, normals, prominence):
+        frame = face_frame(c, n)
+        T0 = np.eye(4)
+        T0[:3, :3] = frame.axes.T
+        T0[:3, 3] = c
+        conf, reg, _ = verify(T0, sub, (0.02, 0.008))
+        rough.append((-conf, len(rough), reg.T, q))
+    rough.sort(key=lambda r: (r[0], r[1]))
+    best = None
+    for _, _, T0, q in rough[:3]:
+        conf, reg, cover = verify(T0, np.arange(len(tpl.points)), (0.008, 0.004))
+        if best is None or conf > best[0]:
+            best = (conf, reg, q)
+    if best is None or best[0] < params.min_confidence:
+        got = 0.0 if best is None else best[0]
+        raise NotAFaceError(f"no face: the best nose candidate matches a face's layout with confidence {got:.2f} "
+                            f"(a face: >= {params.min_confidence:.2f}); is a face turned towards the scanner?")
+    conf, reg, q = best
+    axes = reg.T[:3, :3].T
+    origin = reg.T[:3, 3]
+    local = (p - origin) @ axes.T
+    sym = _symmetry_mm(local)
+    if not sym <= params.max_symmetry_mm:
+        raise NotAFaceError(f"no face: the surface around the best nose candidate is not mirror-symmetric "
+                            f"(median residual {sym:.1f} mm, a face: <= {params.max_symmetry_mm:.1f} mm)")
+    tip = origin + _refine_tip(local, smooth=noise_m > 0.0003) @ axes
+    frame = FaceFrame(tip, axes)
+    return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame)
+
+
 def nose_tip(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
     """Nose tip with ``params.nose_method``."""
     if params.nose_method == "svd":
         return nose_tip_svd(points, params)
-    return nose_tip_protrusion(points, params)
+    if params.nose_method == "protrusion":
+        return nose_tip_protrusion(points, params)
+    return nose_tip_template(points, params)
 
 
 def radial_vector(points: np.ndarray, tip: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
@@ -268,11 +467,12 @@ def symmetric_frame(points: np.ndarray, frame: FaceFrame, params: FaceParams = F
 
     The plane fitted around the nose is biased towards the side the scanner sees best (a turned head
     hides one cheek). Faces are mirror-symmetric: the face points mirrored in the frame's x = 0
-    plane are aligned back onto the face by ICP (open3d, point-to-plane); the composed reflection
-    is a reflection about the true symmetry plane, whose normal becomes the new x axis. The radial
+    plane are aligned back onto the face by ICP (`lsu_faces.register`, point-to-plane, deterministic);
+    the composed reflection is a reflection about the true symmetry plane, whose normal becomes the
+    new x axis. The radial
     vector is kept in that plane, and the tip is moved onto it.
     """
-    import open3d as o3d
+    from .register import estimate_normals, icp_point_to_plane
 
     p = np.asarray(points, dtype=np.float64)
     local_all = frame.to_local(p)
@@ -282,17 +482,9 @@ def symmetric_frame(points: np.ndarray, frame: FaceFrame, params: FaceParams = F
     for _ in range(rounds):
         local = frame.to_local(p[sel])
         local = _voxel_means(local, params.sample_voxel_m)
-        target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local))
-        target.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * params.sample_voxel_m, max_nn=20))
-        target.orient_normals_towards_camera_location(np.array([0.0, 0.0, 1.0]))
+        normals = estimate_normals(local, towards=np.array([0.0, 0.0, 1.0]))
         M = np.diag([-1.0, 1.0, 1.0])
-        source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(local @ M))
-        T = np.eye(4)
-        est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
-        for dist in (0.012, 0.005, 0.0025):
-            T = o3d.pipelines.registration.registration_icp(
-                source, target, dist, T, est, o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30)
-            ).transformation
+        T = icp_point_to_plane(local @ M, local, normals, distances=(0.012, 0.005, 0.0025), iterations=15).T
         S = T[:3, :3] @ M                     # a reflection: its -1 eigenvector is the plane normal
         vals, vecs = np.linalg.eig(S)
         k = int(np.argmin(np.real(vals)))
@@ -385,6 +577,8 @@ def embed_face(points: np.ndarray, params: FaceParams = FaceParams(),
     """Nose tip, face frame and the mask of the cropped face points, in one call."""
     p = _check(points, params)
     nose = nose or nose_tip(p, params)
+    if nose.frame is not None:       # the template method's frame is already the symmetric face frame
+        return nose, nose.frame, crop_face(p, nose.frame.origin, params)
     frame = face_frame(nose.tip, nose.normal if nose.method == "protrusion" else radial_vector(p, nose.tip, params))
     frame = symmetric_frame(p, frame, params)
     return nose, frame, crop_face(p, frame.origin, params)

@@ -6,20 +6,36 @@ date (ISO 8601, UTC), mesh_file, points_used. Every write runs in its own transa
 leaves a partial row and never touches existing entries. A gallery file that another process holds
 locked gives `GalleryLockedError` after ``timeout_s``; a file that is not an SQLite gallery gives
 `GalleryCorruptError` and is left exactly as it was (never overwritten or "repaired").
+
+Privacy: a gallery is biometric data. Its folder is created 0700 and the file 0600; opening a gallery
+file that other local users can read or write, or one in a folder they can write, is refused with
+`GalleryPermissionError` (as ssh refuses a private key others can read) until the owner runs ``chmod``.
+Removal runs with SQLite's ``secure_delete`` on and then ``VACUUM``s the file, so no byte of the removed person's signature or name
+stays in the file (free pages are zeroed and dropped).
+
+Scores (`identify`) are calibrated on the gallery's own impostor distances: every pair of entries of
+different names is compared once (kept for the life of this object, keyed by the entry ids, and
+recomputed only when entries change), and `lsu_faces.signature.ImpostorModel.fit` turns them into the
+chance that a stranger comes that close.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import sqlite3
+import stat
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Iterator, List, Optional
 
-from .signature import Signature, SignatureError, compare
+from .signature import ImpostorModel, Signature, SignatureError, compare
 
-__all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryEntry", "Match", "Gallery"]
+__all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryPermissionError", "GalleryEntry",
+           "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT"]
+
+DEFAULT_FALSE_ACCEPT = 0.01      # open-set decision: chance that an unenrolled person is accepted as someone
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS faces (
@@ -47,6 +63,10 @@ class GalleryCorruptError(GalleryError):
     """The gallery file is not a readable SQLite gallery; it has been left untouched."""
 
 
+class GalleryPermissionError(GalleryError):
+    """The gallery file or its folder is readable or writable by other users: refused until fixed."""
+
+
 @dataclass
 class GalleryEntry:
     """One enrolled sample."""
@@ -64,10 +84,25 @@ class Match:
     """One ranked candidate of an identification."""
 
     name: str
-    score: float
+    score: float                 # 1 - false_accept: calibrated on the gallery's impostor distances
     entry_id: int
     distance_m: float
+    false_accept: float = 1.0    # chance that a different person comes this close (one comparison)
 
+
+@dataclass
+class Identification:
+    """Ranked matches and the open-set decision."""
+
+    matches: List[Match]
+    accepted: bool               # the best match's false_accept x people compared <= the stated rate
+    false_accept_rate: float     # the stated rate
+    threshold_m: float           # distance the best match had to beat
+    model: ImpostorModel
+
+    @property
+    def best(self) -> Optional[Match]:
+        return self.matches[0] if self.matches and self.accepted else None
 
 class Gallery:
     """An SQLite face gallery at ``path`` (created on first write; the folder must exist or is created)."""
@@ -75,8 +110,31 @@ class Gallery:
     def __init__(self, path: "str | Path", timeout_s: float = 2.0) -> None:
         self.path = Path(path).expanduser()
         self.timeout_s = float(timeout_s)
-        self._cache: Dict[int, object] = {}
         self._signatures: Dict[int, Signature] = {}
+        self._impostor: Dict[tuple, ImpostorModel] = {}
+
+    # ------------------------------------------------------------------ privacy
+    def _check_private(self) -> None:
+        """Refuse a gallery others can read or write, or a folder others can write (they could swap the file)."""
+        checks = ((self.path.parent, 0o022, "700"), (self.path, 0o077, "600"))
+        for path, forbidden, want in checks:
+            if not path.exists():
+                continue
+            mode = stat.S_IMODE(path.stat().st_mode)
+            if mode & forbidden:
+                what = "folder" if path.is_dir() else "gallery"
+                raise GalleryPermissionError(
+                    f"{what} {path} is {'writable' if path.is_dir() else 'accessible'} by other users (mode {mode:o}); "
+                    f"a face gallery holds biometric data and must be private: run 'chmod {want} {path}' and retry")
+
+    def _make_private(self) -> None:
+        if not self.path.parent.exists():
+            self.path.parent.mkdir(parents=True, mode=0o700)
+            os.chmod(self.path.parent, 0o700)     # mkdir's mode is masked by the umask
+        if not self.path.exists():
+            fd = os.open(self.path, os.O_CREAT | os.O_WRONLY, 0o600)
+            os.close(fd)
+            os.chmod(self.path, 0o600)
 
     # ------------------------------------------------------------------ connection
     def _translate(self, exc: sqlite3.Error) -> GalleryError:
@@ -93,10 +151,12 @@ class Gallery:
     def _connect(self, write: bool) -> Iterator[sqlite3.Connection]:
         if not write and not self.path.exists():
             raise FileNotFoundError(f"gallery {self.path} does not exist yet; enrol a face first")
+        self._check_private()
         if write:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._make_private()
         try:
             conn = sqlite3.connect(str(self.path), timeout=self.timeout_s, isolation_level=None)
+            conn.execute("PRAGMA secure_delete = ON")
         except sqlite3.Error as exc:
             raise self._translate(exc) from None
         try:
@@ -160,11 +220,31 @@ class Gallery:
                 n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id),)).rowcount
         if n == 0:
             raise LookupError(f"gallery {self.path} has no entry {'named ' + repr(name) if name else entry_id}")
+        self._vacuum()
+        self._signatures.clear()     # ids may be reused; drop every per-entry state
+        self._impostor.clear()
         return int(n)
+
+    def _vacuum(self) -> None:
+        """Rewrite the file without free pages (secure_delete zeroed them; VACUUM also drops the index's)."""
+        try:
+            conn = sqlite3.connect(str(self.path), timeout=self.timeout_s, isolation_level=None)
+        except sqlite3.Error as exc:
+            raise self._translate(exc) from None
+        try:
+            conn.execute("PRAGMA secure_delete = ON")
+            conn.execute("VACUUM")
+        except sqlite3.Error as exc:
+            raise self._translate(exc) from None
+        finally:
+            conn.close()
 
     def _load(self) -> List[tuple]:
         with self._connect(write=False) as conn:
             rows = conn.execute("SELECT id, name, signature FROM faces ORDER BY id").fetchall()
+        present = {int(r[0]) for r in rows}
+        for stale in [k for k in self._signatures if k not in present]:   # removed by another process
+            del self._signatures[stale]
         out = []
         for entry_id, name, blob in rows:
             sig = self._signatures.get(entry_id)
@@ -177,16 +257,43 @@ class Gallery:
             out.append((int(entry_id), name, sig))
         return out
 
-    def identify(self, probe: Signature, max_results: int = 5) -> List[Match]:
-        """Candidates ranked by score (best first), one per name (its best sample)."""
+    def impostor_model(self, method: str = "depthmap", entries: Optional[List[tuple]] = None) -> ImpostorModel:
+        """Impostor distances of this gallery (every pair of different names, once) fitted as a log-normal."""
+        entries = self._load() if entries is None else entries
+        entries = [e for e in entries if e[2].method == method]
+        key = (method, tuple(e[0] for e in entries))
+        if key not in self._impostor:
+            distances = []
+            for i, (_, name_a, a) in enumerate(entries):
+                for _, name_b, b in entries[i + 1:]:
+                    if name_a != name_b:
+                        distances.append(compare(a, b)[1])
+            self._impostor.clear()    # one model per gallery state: never grows with the scans
+            self._impostor[key] = ImpostorModel.fit(distances, method)
+        return self._impostor[key]
+
+    def identify(self, probe: Signature, max_results: int = 5,
+                 false_accept_rate: float = DEFAULT_FALSE_ACCEPT) -> Identification:
+        """Candidates ranked by distance (best first), one per name (its best sample), and the open-set decision.
+
+        The best match is accepted when its chance of being a stranger (`ImpostorModel.false_accept`),
+        times the number of names compared, is at most ``false_accept_rate``.
+        """
+        if not 0 < false_accept_rate < 1:
+            raise GalleryError(f"false_accept_rate must be in (0, 1) (got {false_accept_rate})")
         if not self.path.exists():
-            return []
+            return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method))
+        entries = self._load()
+        model = self.impostor_model(probe.method, entries)
         best: Dict[str, Match] = {}
-        for entry_id, name, ref in self._load():
+        for entry_id, name, ref in entries:
             if ref.method != probe.method:
                 continue
-            score, dist, _ = compare(probe, ref, self._cache)
-            if name not in best or score > best[name].score:
-                best[name] = Match(name, score, entry_id, dist)
-        ranked = sorted(best.values(), key=lambda m: (-m.score, m.distance_m))
-        return ranked[:max(1, int(max_results))] if max_results else ranked
+            _, dist, _ = compare(probe, ref, model)
+            if name not in best or dist < best[name].distance_m:
+                best[name] = Match(name, model.score(dist), entry_id, dist, model.false_accept(dist))
+        ranked = sorted(best.values(), key=lambda m: (m.distance_m, m.name))
+        per_comparison = false_accept_rate / max(len(ranked), 1)
+        accepted = bool(ranked) and ranked[0].false_accept <= per_comparison
+        ranked = ranked[:max(1, int(max_results))] if max_results else ranked
+        return Identification(ranked, accepted, false_accept_rate, model.threshold_m(per_comparison), model)

@@ -228,3 +228,33 @@ def triangulate_image_plane(xyz: np.ndarray, uv: np.ndarray, colors: Optional[np
              "median_edge_m": median_edge, "median_stretch": median_stretch}
     cols = None if colors is None else np.asarray(colors, dtype=np.uint8).reshape(-1, 3)
     return FaceMesh(xyz.copy(), tri, cols, uv.copy(), stats)
+
+
+def mesh_plain_cloud(xyz: np.ndarray, colors: Optional[np.ndarray] = None, viewpoint: Optional[np.ndarray] = None
+                     ) -> FaceMesh:
+    """Mesh a cloud without a pixel grid (no u/v) by ball pivoting (open3d, Bernardini et al. 1999).
+
+    Normals are estimated from the 16 nearest neighbours and turned towards ``viewpoint`` (default the
+    origin: the sensor of a cloud in its optical frame); the balls' radii are 1.5, 3 and 6 times the
+    median point spacing, so the method needs no scale setting.
+    """
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(xyz, dtype=np.float64)
+    if len(p) < 10:
+        raise MeshError(f"{len(p)} points are too few to mesh")
+    d, _ = cKDTree(p).query(p, k=2)
+    spacing = float(np.median(d[:, 1]))
+    if not spacing > 0:
+        raise MeshError("the cloud's points coincide; nothing to mesh")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(16))
+    cloud.orient_normals_towards_camera_location(np.zeros(3) if viewpoint is None else np.asarray(viewpoint, float))
+    radii = o3d.utility.DoubleVector([1.5 * spacing, 3.0 * spacing, 6.0 * spacing])
+    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(cloud, radii)
+    tris = np.asarray(mesh.triangles, dtype=np.int64)
+    if len(tris) == 0:
+        raise MeshError("ball pivoting made no triangle (points too sparse or noisy)")
+    # open3d keeps the input vertices in order: the triangles index the given points and colours
+    return FaceMesh(p, tris, colors)

@@ -8,8 +8,11 @@ A thin adapter over :mod:`lsu_faces.pipeline` and :mod:`lsu_faces.gallery`:
   (shape_msgs/Mesh), both transient-local, and ``face/nose`` (PointStamped);
 - writes mesh.ply, mesh.obj and front/side renders into the scan's folder (``output_dir`` of the
   scan events, else ``<output_dir>/<scan id or time>``);
-- serves ``face/enroll`` and ``face/identify`` (lsu_interfaces/srv/Enroll, Identify) on an SQLite
-  gallery (``gallery_file``).
+- serves ``face/identify`` and, only when the read-only parameter ``allow_enrolment`` is true,
+  ``face/enroll`` (lsu_interfaces/srv/Enroll, Identify) on a private SQLite gallery (``gallery_file``;
+  any process on the DDS domain can call a service, and a gallery is biometric data). Identify
+  accepts the best match at the stated ``false_accept_rate`` (scores calibrated on the gallery's own
+  impostor distances, see :mod:`lsu_faces.gallery`).
 
 Bad input (empty or tiny cloud, no u/v, not a face, unreadable files, locked or corrupt gallery) is
 logged as one line and returned in the service message; no exception escapes a callback.
@@ -39,7 +42,7 @@ from lsu_interfaces.msg import ScanEvent
 from lsu_interfaces.srv import Enroll, Identify
 
 from .face import NOSE_METHODS, FaceParams
-from .gallery import Gallery, GalleryError
+from .gallery import DEFAULT_FALSE_ACCEPT, Gallery, GalleryError
 from .mesh import FaceMesh, MeshParams
 from .pipeline import ProcessParams, ScanResult, load_cloud_file, process_cloud, write_outputs
 from .signature import SIGNATURE_METHODS, SignatureParams
@@ -88,8 +91,8 @@ class FaceProcessorNode(Node):
         super().__init__("face_processor", **{"namespace": "/lsu", **kwargs})
         mp, sp, fp, gp = MeshParams(), SmoothParams(), FaceParams(), SignatureParams()
 
-        def declare(name: str, default: Any, description: str) -> None:
-            self.declare_parameter(name, default, ParameterDescriptor(description=description))
+        def declare(name: str, default: Any, description: str, read_only: bool = False) -> None:
+            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=read_only))
 
         declare("output_dir", "~/.lsu/faces", "folder for mesh.ply, mesh.obj and renders when the scan events name "
                 "no folder (a sub-folder per scan)")
@@ -104,9 +107,13 @@ class FaceProcessorNode(Node):
         declare("laplacian_factor", sp.factor, "Laplacian step towards the neighbour centroid (thesis: 0.1)")
         declare("taubin_lambda", sp.taubin_lambda, "Taubin shrink step (0..1)")
         declare("taubin_mu", sp.taubin_mu, "Taubin inflate step (< -taubin_lambda)")
-        declare("nose_method", fp.nose_method, "nose tip finder: protrusion (robust) or svd (thesis)")
+        declare("allow_enrolment", False, "serve face/enroll (biometric data: off unless the lab decides; set at "
+                "launch only). face/identify is always served", read_only=True)
+        declare("nose_method", fp.nose_method, "nose tip finder: template (verified by the face's layout), "
+                "protrusion or svd (thesis)")
         declare("signature_method", gp.method, "face signature: depthmap (ICP-aligned) or fft (thesis)")
-        declare("reject_threshold", 0.33, "identify accepts the best match only at or above this score (0..1)")
+        declare("false_accept_rate", DEFAULT_FALSE_ACCEPT, "identify accepts the best match only when the chance "
+                "that a stranger comes as close (gallery impostor statistics) is at most this (0..1)")
         declare("marker_max_triangles", 60000, "triangles sent in the scan/mesh Marker (0 = all)")
         self.add_on_set_parameters_callback(self._check_parameters)
 
@@ -133,8 +140,9 @@ class FaceProcessorNode(Node):
             if p.name in choices and p.value not in choices[p.name]:
                 return SetParametersResult(successful=False, reason=f"{p.name} must be one of "
                                                                     f"{', '.join(choices[p.name])}")
-            if p.name == "reject_threshold" and not 0.0 <= p.value <= 1.0:
-                return SetParametersResult(successful=False, reason="reject_threshold must be between 0 and 1")
+            if p.name == "false_accept_rate" and not 0.0 < p.value < 1.0:
+                return SetParametersResult(successful=False, reason="false_accept_rate must be between 0 and 1 "
+                                                                    "(e.g. 0.01 for 1 %)")
             if p.name in ("max_edge_factor", "max_stretch") and p.value <= 1.0:
                 return SetParametersResult(successful=False, reason=f"{p.name} must be greater than 1")
             if p.name in ("smoothing_iterations", "render_size_px", "marker_max_triangles") and p.value < 0:
@@ -258,6 +266,10 @@ class FaceProcessorNode(Node):
     def on_enroll(self, request: Enroll.Request, response: Enroll.Response) -> Enroll.Response:
         """face/enroll: add the face of a cloud (file, scan id or the latest scan) under ``name``."""
         try:
+            if not bool(self._value("allow_enrolment")):
+                raise PermissionError("enrolment through the ROS services is off (parameter allow_enrolment, set at "
+                                      "launch); enrol with 'lsu face enroll' as the gallery's owner, or launch the "
+                                      "face_processor with allow_enrolment:=true")
             if not request.name.strip():
                 raise ValueError("name is empty; give the person's name")
             result = self._result_for(request.cloud_file, request.scan_id)
@@ -283,12 +295,13 @@ class FaceProcessorNode(Node):
             result = self._result_for(request.cloud_file, request.scan_id)
             if result.signature is None:
                 raise ValueError("; ".join(result.messages) or "no face in this cloud")
-            matches = self.gallery().identify(result.signature, int(request.max_results or 5))
+            ident = self.gallery().identify(result.signature, int(request.max_results or 5),
+                                            float(self._value("false_accept_rate")))
+            matches = ident.matches
             response.names = [m.name for m in matches]
             response.scores = [float(m.score) for m in matches]
             response.entry_ids = [int(m.entry_id) for m in matches]
-            threshold = float(self._value("reject_threshold"))
-            response.accepted = bool(matches) and matches[0].score >= threshold
+            response.accepted = ident.accepted
             response.best_name = matches[0].name if response.accepted else ""
             response.success = True
             if not matches:

@@ -1,9 +1,16 @@
 """What the face_processor does with one scan cloud, without ROS: mesh, smooth, texture, files, face, signature.
 
 `process_cloud` takes the PointCloud2 columns (x y z, and rgb u v when present) and returns a
-`ScanResult`; each stage that fails (no u/v -> no mesh; not a face -> no nose) records a one-line
-message and the stages that can still run do. `load_cloud_file` reads a PLY cloud or mesh for
-`lsu mesh` and the enrol/identify services.
+`ScanResult`; each stage that fails (not a face -> no nose) records a one-line message and the
+stages that can still run do. Meshing: the given triangles, else Delaunay on the pixel grid (u, v),
+else ball pivoting of the plain cloud. `load_cloud_file` reads a PLY cloud or mesh, or an NPY array,
+for `lsu mesh`, `lsu face` and the enrol/identify services.
+
+Units and axes: clouds are in metres in the sensor's optical frame (x right, y down, z forward,
+away from the sensor; the LSU's left camera, or any depth camera's), the face looking back at the
+sensor. Files in millimetres are read with ``units="mm"``; ``units="auto"`` decides from the cloud's
+size (a head and shoulders span 0.1-1 m), and a size implausible in the stated unit is an error
+that says which unit it looks like.
 """
 
 from __future__ import annotations
@@ -15,13 +22,14 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from .face import FaceError, FaceFrame, FaceParams, NoseResult, embed_face
-from .mesh import FaceMesh, MeshError, MeshParams, triangulate_image_plane
-from .plyio import read_ply
+from .mesh import FaceMesh, MeshError, MeshParams, mesh_plain_cloud, triangulate_image_plane
+from .plyio import UNITS, read_ply
 from .signature import Signature, SignatureError, SignatureParams, make_signature
 from .smoothing import SmoothParams, smooth
 from .texture import render_views, unpack_rgb, write_mesh
 
-__all__ = ["ProcessParams", "ScanResult", "process_cloud", "load_cloud_file", "write_outputs", "CloudFileError"]
+__all__ = ["ProcessParams", "ScanResult", "process_cloud", "load_cloud_file", "write_outputs", "CloudFileError",
+           "to_metres", "UNITS"]
 
 
 class CloudFileError(ValueError):
@@ -86,8 +94,10 @@ def process_cloud(columns: Dict[str, np.ndarray], params: ProcessParams = Proces
         except MeshError as exc:
             result.messages.append(f"no mesh: {exc}")
     else:
-        result.messages.append("no mesh: the cloud has no u/v fields (left-image pixel of each point), which "
-                               "meshing needs; use the stereo_matcher's /lsu/scan/cloud or a cloud.ply of a scan")
+        try:
+            raw = mesh_plain_cloud(xyz, colors)
+        except MeshError as exc:
+            result.messages.append(f"no mesh: {exc}")
     if raw is not None and raw.n_triangles:
         result.raw_mesh = raw
         smoothed = raw.with_vertices(smooth(raw.vertices, raw.triangles, params.smoothing))
@@ -108,12 +118,63 @@ def process_cloud(columns: Dict[str, np.ndarray], params: ProcessParams = Proces
     return result
 
 
-def load_cloud_file(path: "str | Path") -> Dict[str, object]:
-    """Columns (and ``faces`` when the file is a mesh) of a PLY cloud/mesh, as `process_cloud` takes them."""
+def to_metres(xyz: np.ndarray, units: str = "auto", what: str = "the cloud") -> float:
+    """Factor that takes ``xyz`` in ``units`` to metres; raises `CloudFileError` for an implausible size."""
+    if units not in UNITS:
+        raise CloudFileError(f"units must be one of {', '.join(UNITS)} (got {units!r})")
+    p = np.asarray(xyz, dtype=np.float64)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if len(p) < 2:
+        return 1.0 if units != "mm" else 0.001
+    lo, hi = np.percentile(p, [1, 99], axis=0)
+    size = float(np.max(hi - lo))
+    if units == "auto":
+        units = "mm" if size > 20.0 else "m"
+    factor = 0.001 if units == "mm" else 1.0
+    metres = size * factor
+    if not 0.02 <= metres <= 10.0:
+        guess = ("millimetres (--units mm)" if 20.0 <= size <= 10000.0 else
+                 "metres (--units m)" if 0.02 <= size <= 10.0 else "neither metres nor millimetres")
+        raise CloudFileError(f"{what} spans {size:.4g} {units}, which is {metres:.4g} m: not a head-sized scene "
+                             f"(0.02-10 m); it looks like {guess}")
+    return factor
+
+
+def load_cloud_file(path: "str | Path", units: str = "auto") -> Dict[str, object]:
+    """Columns in metres (and ``faces`` when the file is a mesh) of a PLY cloud/mesh or an NPY array.
+
+    NPY: an (N, 3) array of x y z, (N, 5) of x y z u v, or a structured array with fields x y z (and
+    optionally u v, rgb). ``units``: "m", "mm" or "auto" (see the module doc).
+    """
     path = Path(path).expanduser()
-    if path.suffix.lower() != ".ply":
-        raise CloudFileError(f"{path}: only PLY clouds and meshes are read (lsu reconstruct and scans write PLY)")
-    vertices, faces = read_ply(path)
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        vertices, faces = read_ply(path)
+    elif suffix == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise CloudFileError(f"{path}: not a readable NPY array ({exc})") from None
+        faces = None
+        if arr.dtype.names:
+            vertices = {n: np.asarray(arr[n]) for n in arr.dtype.names}
+        elif arr.ndim == 2 and arr.shape[1] in (3, 5, 6):
+            names = {3: "xyz", 5: ("x", "y", "z", "u", "v"), 6: ("x", "y", "z", "nx", "ny", "nz")}[arr.shape[1]]
+            vertices = {n: arr[:, k].astype(np.float64) for k, n in enumerate(names)}
+        else:
+            raise CloudFileError(f"{path}: an NPY cloud is an (N, 3) array of x y z in rows, (N, 5) x y z u v, or a "
+                                 f"structured array with fields x y z; this one has shape {arr.shape}")
+    else:
+        raise CloudFileError(f"{path}: only PLY clouds/meshes and NPY arrays are read (lsu reconstruct and scans "
+                             f"write PLY)")
+    for c in "xyz":
+        if c not in vertices:
+            raise CloudFileError(f"{path}: no '{c}' field; the fields are {', '.join(vertices) or 'none'}")
+    xyz = np.stack([np.asarray(vertices[c], dtype=np.float64) for c in "xyz"], axis=1)
+    factor = to_metres(xyz, units, str(path))
+    if factor != 1.0:
+        for c in "xyz":
+            vertices[c] = np.asarray(vertices[c], dtype=np.float64) * factor
     return {"columns": vertices, "faces": faces}
 
 

@@ -21,6 +21,9 @@ _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2
           "double": "f8", "float64": "f8"}
 
 
+UNITS = ("auto", "m", "mm")   # length units of cloud files (lsu_faces.pipeline.to_metres)
+
+
 class PlyError(ValueError):
     """The file is not a PLY this reader understands; the message names the file and the problem."""
 

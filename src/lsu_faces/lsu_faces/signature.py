@@ -6,31 +6,39 @@ radial vector, y from the camera's down direction), so a turned or nodding head 
 - ``depthmap`` (default): the face's height along the radial vector sampled on a regular grid
   (``grid`` x ``grid`` cells over +-``extent_m``; mean of the points in each cell, NaN where the scanner
   saw nothing, e.g. behind the nose of a turned head). Two maps are compared after a rigid alignment
-  (open3d point-to-plane ICP, from the frame's own alignment), by the trimmed RMS of the height
-  differences where both maps have data. The frame's residual errors (a few degrees of radial
-  vector, a millimetre of nose tip) are what ICP removes.
+  (`align_to_depthmap`: deterministic point-to-plane steps, from the frame's own alignment), by the
+  trimmed, region-weighted RMS of the height differences where both maps have data: the rigid parts
+  of a face (nose, eye sockets, forehead) count more than the parts that move with expressions
+  (mouth, chin); see ``REGION_WEIGHTS``. Missing cells (occlusion, hair, a hand) simply do not count.
 - ``fft`` (the thesis' proposal): the spherical parametric map (elevation x azimuth, see
   `lsu_faces.face.parametric_map`) and the magnitudes of its Fourier coefficients along the azimuth,
   which do not change when the face rolls about the radial vector. Compared by the RMS difference.
 
-A score in (0, 1] is ``exp(-distance / scale)``: 1 for identical faces.
+Scores are calibrated, not fixed: `ImpostorModel` is a log-normal fitted to the distances between
+different people actually seen (a gallery's own entries, shrunk towards a prior measured on synthetic
+people with the LSU rig), and a match's score is ``1 - P(an impostor is this close)``. An open-set
+decision accepts the best match when that chance, times the number of people compared, is at most
+the stated false-accept rate.
 """
 
 from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Dict, Optional, Tuple
-
-if TYPE_CHECKING:  # open3d costs ~1 s to import: only the functions that use it load it
-    import open3d as o3d
+from typing import Dict, Optional, Tuple
 
 import numpy as np
+from scipy.special import ndtr, ndtri
 
 from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
+from .register import apply, rotation_from_vector
 
-__all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare", "score_from_distance",
-           "SIGNATURE_METHODS"]
+__all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
+           "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap"]
+
+SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
+# weight of each face region in the depth-map distance (rigid regions up, expression regions down)
+REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
 
 SIGNATURE_METHODS = ("depthmap", "fft")
 
@@ -50,9 +58,8 @@ class SignatureParams:
     map_cols: int = 64             # spherical map: azimuth bins
     max_elevation_deg: float = 60.0
     fft_orders: int = 16           # azimuth harmonics kept
-    trim: float = 0.1              # fraction of the largest height differences ignored (hair, occlusion rims)
+    trim: float = 0.25             # fraction of the largest height differences ignored (expressions, hair, rims)
     min_overlap: float = 0.3       # maps sharing fewer valid cells than this fraction do not match
-    scale_m: float = 0.0005        # distance giving score exp(-1)
 
     def __post_init__(self) -> None:
         if self.method not in SIGNATURE_METHODS:
@@ -76,7 +83,7 @@ class Signature:
         buf = io.BytesIO()
         fields = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
         np.savez_compressed(buf, data=self.data.astype(np.float32), points_used=np.array(self.points_used),
-                            version=np.array(1), **{f"p_{k}": v for k, v in fields.items()})
+                            version=np.array(SIGNATURE_VERSION), **{f"p_{k}": v for k, v in fields.items()})
         return buf.getvalue()
 
     @classmethod
@@ -84,12 +91,19 @@ class Signature:
         """Inverse of `to_bytes`; raises `SignatureError` for a blob that is not a signature."""
         try:
             with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+                version = int(z["version"]) if "version" in z.files else 1
+                if version != SIGNATURE_VERSION:
+                    raise SignatureError(f"stored signature has version {version}, this software makes version "
+                                         f"{SIGNATURE_VERSION}; the two are not comparable: remove the entry and "
+                                         f"enrol the person again")
                 kw = {}
                 for k, f in SignatureParams.__dataclass_fields__.items():
                     value = z[f"p_{k}"]
                     kw[k] = str(value) if f.type in ("str", str) else value.item()
                 params = SignatureParams(**kw)
                 return cls(params.method, z["data"].astype(np.float64), params, int(z["points_used"]))
+        except SignatureError:
+            raise
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise SignatureError(f"stored signature cannot be read ({exc.__class__.__name__}: {exc})") from None
 
@@ -159,43 +173,82 @@ def _sample(sig: Signature, xy: np.ndarray) -> np.ndarray:
     return out
 
 
-def _depthmap_distance(probe: Signature, ref: Signature, ref_cloud: Optional["o3d.geometry.PointCloud"] = None
-                       ) -> Tuple[float, float]:
-    import open3d as o3d
+def _sample_gradient(sig: Signature, xy: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bilinear height of a depth map at local (x, y) and its x, y slopes; NaN outside or next to a hole."""
+    g, e = sig.params.grid, sig.params.extent_m
+    cell = 2 * e / g
+    f = (xy + e) / cell - 0.5
+    i0 = np.floor(f).astype(np.int64)
+    w = f - i0
+    h, hx, hy = (np.full(len(xy), np.nan) for _ in range(3))
+    ok = np.all((i0 >= 0) & (i0 < g - 1), axis=1)
+    c, r, wx, wy = i0[ok, 0], i0[ok, 1], w[ok, 0], w[ok, 1]
+    d = sig.data
+    a, b, cc, dd = d[r, c], d[r, c + 1], d[r + 1, c], d[r + 1, c + 1]
+    h[ok] = (1 - wx) * (1 - wy) * a + wx * (1 - wy) * b + (1 - wx) * wy * cc + wx * wy * dd
+    hx[ok] = ((1 - wy) * (b - a) + wy * (dd - cc)) / cell
+    hy[ok] = ((1 - wx) * (cc - a) + wx * (dd - b)) / cell
+    return h, hx, hy
 
-    pp, _ = _grid_points(probe)
-    rp, _ = _grid_points(ref)
-    if len(pp) < 20 or len(rp) < 20:
-        return float("inf"), 0.0
-    if ref_cloud is None:
-        ref_cloud = _cloud_with_normals(rp, ref.params)
-    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pp))
+
+def align_to_depthmap(points: np.ndarray, ref: Signature, weights: np.ndarray,
+                      distances: Tuple[float, ...], iterations: int = 8, trim: float = 0.1) -> np.ndarray:
+    """4 x 4 rigid transform taking face-frame ``points`` onto the surface of the depth map ``ref``.
+
+    Point-to-plane Gauss-Newton like `lsu_faces.register.icp_point_to_plane`, but the correspondence of
+    a point is the map's surface straight below or above it (bilinear height and slope of the grid), so
+    no nearest-neighbour search is needed: the maps are already in the same face frame and only small
+    corrections remain. Deterministic: fixed numpy operations, same input, same bits.
+    """
+    p0 = np.asarray(points, dtype=np.float64)
     T = np.eye(4)
+    for dist in distances:
+        for _ in range(iterations):
+            p = apply(T, p0)
+            h, hx, hy = _sample_gradient(ref, p[:, :2])
+            n = np.stack([-hx, -hy, np.ones_like(hx)], axis=1)
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            r = (p[:, 2] - h) * n[:, 2]              # distance to the tangent plane at the vertical foot point
+            ok = np.isfinite(r) & (np.abs(r) <= dist)
+            if ok.sum() < 20:
+                return T
+            r, n, pk, w = r[ok], n[ok], p[ok], weights[ok]
+            if trim > 0:
+                w = w * (np.abs(r) <= np.quantile(np.abs(r), 1.0 - trim))
+            J = np.concatenate([np.cross(pk, n), n], axis=1)
+            A = (J * w[:, None]).T @ J + 1e-12 * np.eye(6)
+            x = np.linalg.solve(A, -(J * w[:, None]).T @ r)
+            step = np.eye(4)
+            step[:3, :3] = rotation_from_vector(x[:3])
+            step[:3, 3] = x[3:]
+            T = step @ T
+            if np.linalg.norm(x[3:]) < 1e-6 and np.linalg.norm(x[:3]) < 1e-5:
+                break
+    return T
+
+
+def _depthmap_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
+    pp, _ = _grid_points(probe)
+    if len(pp) < 20 or np.isfinite(ref.data).sum() < 20:
+        return float("inf"), 0.0
     cell = 2 * ref.params.extent_m / ref.params.grid
-    est = o3d.pipelines.registration.TransformationEstimationPointToPlane()
-    for dist in (4 * cell, 1.5 * cell):   # coarse then fine: the frame is already close
-        reg = o3d.pipelines.registration.registration_icp(
-            src, ref_cloud, dist, T, est, o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=20))
-        T = reg.transformation
-    moved = pp @ T[:3, :3].T + T[:3, 3]
+    T = align_to_depthmap(pp, ref, _region_weights(pp), (4 * cell, 1.5 * cell), trim=probe.params.trim)
+    moved = apply(T, pp)
     diff = moved[:, 2] - _sample(ref, moved[:, :2])
-    diff = np.abs(diff[np.isfinite(diff)])
-    overlap = len(diff) / max(len(pp), 1)
-    if overlap < probe.params.min_overlap or len(diff) < 20:
+    ok = np.isfinite(diff)
+    overlap = float(ok.sum()) / max(len(pp), 1)
+    if overlap < probe.params.min_overlap or ok.sum() < 20:
         return float("inf"), overlap
-    diff.sort()
-    kept = diff[: max(1, int(round(len(diff) * (1.0 - probe.params.trim))))]
-    return float(np.sqrt(np.mean(kept ** 2))), overlap
+    d, wd = np.abs(diff[ok]), _region_weights(moved[ok])
+    keep = d <= np.quantile(d, 1.0 - probe.params.trim)
+    return float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap
 
 
-def _cloud_with_normals(points: np.ndarray, params: SignatureParams) -> "o3d.geometry.PointCloud":
-    import open3d as o3d
+def _region_weights(local: np.ndarray) -> np.ndarray:
+    from .template import REGIONS, region_of
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cell = 2 * params.extent_m / params.grid
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * cell, max_nn=16))
-    cloud.orient_normals_towards_camera_location(np.array([0.0, 0.0, 1.0]))
-    return cloud
+    table = np.array([REGION_WEIGHTS[r] for r in REGIONS])
+    return table[region_of(local)]
 
 
 def _fft_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
@@ -207,16 +260,10 @@ def _fft_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
     return float(np.sqrt(np.mean(d ** 2))), overlap
 
 
-def score_from_distance(distance_m: float, scale_m: float) -> float:
-    """Similarity in [0, 1]: exp(-distance / scale); 0 for no overlap."""
-    return float(np.exp(-distance_m / scale_m)) if np.isfinite(distance_m) else 0.0
-
-
-def compare(probe: Signature, ref: Signature, cache: Optional[Dict[int, o3d.geometry.PointCloud]] = None
-            ) -> Tuple[float, float, float]:
+def compare(probe: Signature, ref: Signature, model: Optional["ImpostorModel"] = None) -> Tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
-    ``cache`` (keyed by ``id(ref)``) keeps the reference's normal-estimated cloud between calls.
+    The score is ``model.score(distance)`` (default model: the prior).
     """
     if probe.method != ref.method:
         raise SignatureError(f"cannot compare a '{probe.method}' signature with a '{ref.method}' one; "
@@ -224,13 +271,57 @@ def compare(probe: Signature, ref: Signature, cache: Optional[Dict[int, o3d.geom
     if probe.data.shape != ref.data.shape:
         raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); re-enrol the gallery")
     if probe.method == "depthmap":
-        cloud = None
-        if cache is not None:
-            cloud = cache.get(id(ref))
-            if cloud is None:
-                rp, _ = _grid_points(ref)
-                cloud = cache[id(ref)] = _cloud_with_normals(rp, ref.params) if len(rp) >= 20 else None
-        dist, overlap = _depthmap_distance(probe, ref, cloud)
+        dist, overlap = _depthmap_distance(probe, ref)
     else:
         dist, overlap = _fft_distance(probe, ref)
-    return score_from_distance(dist, probe.params.scale_m), dist, overlap
+    model = model or ImpostorModel.prior(probe.method)
+    return model.score(dist), dist, overlap
+
+
+@dataclass(frozen=True)
+class ImpostorModel:
+    """Log-normal model of the distances between DIFFERENT people: ln d ~ N(mu, sigma)."""
+
+    log_mu: float
+    log_sigma: float
+    samples: int = 0                 # impostor distances it was fitted to (0: the prior alone)
+
+    @classmethod
+    def prior(cls, method: str = "depthmap") -> "ImpostorModel":
+        mu, sigma = _PRIOR[method]
+        return cls(mu, sigma, 0)
+
+    @classmethod
+    def fit(cls, distances: "np.ndarray | list", method: str = "depthmap") -> "ImpostorModel":
+        """Model from impostor ``distances`` [m], shrunk towards the prior (which dominates small samples)."""
+        d = np.asarray([x for x in distances if np.isfinite(x) and x > 0], dtype=np.float64)
+        mu0, s0 = _PRIOR[method]
+        if len(d) == 0:
+            return cls(mu0, s0, 0)
+        ln = np.log(d)
+        n, k = len(ln), _PRIOR_WEIGHT
+        mu = (k * mu0 + n * ln.mean()) / (k + n)
+        var = (k * s0 ** 2 + n * ln.var() + k * n / (k + n) * (ln.mean() - mu0) ** 2) / (k + n)
+        return cls(float(mu), float(np.sqrt(max(var, 1e-6))), int(n))
+
+    def false_accept(self, distance_m: float) -> float:
+        """Chance that a different person comes within ``distance_m`` of a face."""
+        if not np.isfinite(distance_m):
+            return 1.0
+        if distance_m <= 0:
+            return 0.0
+        return float(ndtr((np.log(distance_m) - self.log_mu) / self.log_sigma))
+
+    def score(self, distance_m: float) -> float:
+        """1 - `false_accept`: near 1 for the same person, near 0 for anybody."""
+        return 1.0 - self.false_accept(distance_m)
+
+    def threshold_m(self, false_accept_rate: float) -> float:
+        """Distance below which a single comparison falsely accepts with ``false_accept_rate``."""
+        return float(np.exp(self.log_mu + self.log_sigma * ndtri(false_accept_rate)))
+
+
+# prior impostor model: distances between different synthetic people (MakeHuman morphs with hair and
+# expressions) scanned by the LSU rig, measured by bench/bench_faces.py; it counts as _PRIOR_WEIGHT pairs
+_PRIOR = {"depthmap": (float(np.log(0.0013)), 0.30), "fft": (float(np.log(0.0008)), 0.45)}
+_PRIOR_WEIGHT = 20
