@@ -443,7 +443,9 @@ def person_objects(person: Person, translation: Sequence[float], name: str = "pe
             extra = {"nose_tip_m": person.landmarks["nose_tip"] + t,
                      "landmarks_m": {k: v + t for k, v in person.landmarks.items()},
                      "identity_seed": person.spec.identity_seed, "head_center_m": t}
-        out.append(SceneObject(f"{name}_{part}", m, fn, spec, extra))
+        # skin and the raised hand scatter red light below the surface; hair, glasses and clothes do not
+        material = "skin" if part in ("skin", "hand") else "surface"
+        out.append(SceneObject(f"{name}_{part}", m, fn, spec, extra, material=material))
     return out
 
 
