@@ -151,3 +151,30 @@ def test_the_clock_restarts_with_the_device(emulator):
         assert after < before  # it restarted from its power-on value (it would have counted on otherwise)
     finally:
         client.close()
+
+
+def test_the_drift_of_a_fast_device_clock_is_estimated_and_taken_out(tmp_path):
+    """800 ppm (a poor crystal): over 3 s of polls the device gains 2.4 ms, more than the mapping's
+    uncertainty, so a stamp is only placed right if the drift is estimated."""
+    config = EmulatorConfig(start_position_steps=20.0, clock_drift_ppm=800.0, clock_seed=7)
+    with Gp32Emulator(config, link=str(tmp_path / "gp32"), control=str(tmp_path / "gp32.ctl")) as emulator:
+        client = Gp32Client(str(emulator.link), command_timeout_s=1.0)
+        client.connect()
+        try:
+            recorder = Recorder(client)
+            stop = threading.Event()
+            poller = threading.Thread(target=poll, args=(client, stop), daemon=True)
+            poller.start()
+            try:
+                time.sleep(3.0)
+                result = client.step(+20)
+            finally:
+                stop.set()
+                poller.join()
+            drift = client.clock_drift_ppm()
+        finally:
+            client.close()
+        truth = truth_by_line(str(emulator.control_path))
+    assert drift == pytest.approx(800.0, abs=300.0), drift
+    event, stamp, uncertainty, _ = next(m for m in recorder.mapped if m[0] == p.Done(20, result.stopped_device_ms))
+    assert abs(stamp - truth[p.encode_line(event).decode().strip()]) <= uncertainty
