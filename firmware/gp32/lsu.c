@@ -1,4 +1,4 @@
-/* LSU GP32 firmware: protocol v1 of docs/GP32_PROTOCOL.md on the MC68HC908GP32.
+/* LSU GP32 firmware: protocol v2 of docs/GP32_PROTOCOL.md on the MC68HC908GP32.
  *
  * One main loop, no blocking: received bytes are assembled into lines and answered at once;
  * every millisecond of the HAL's tick the sensors are read, motion phases advance and the step
@@ -13,7 +13,7 @@
 
 #include "hal.h"
 
-#define PROTOCOL_VERSION 1
+#define PROTOCOL_VERSION 2
 #define MAX_LINE 32u           /* longest command; longer lines get ERR 6 at their newline */
 #define RATE_MIN 20
 #define RATE_MAX 400
@@ -21,6 +21,7 @@
 #define DEFAULT_RATE 200u
 #define DEFAULT_WATCHDOG_MS 2000u
 #define NOMINAL_TRACK 470      /* reported by '?' until homing has measured the track */
+#define POS_RATE_MAX 50        /* !POS events per second at most */
 
 enum {
     ERR_UNKNOWN = 1, ERR_ARGUMENT, ERR_NOT_HOMED, ERR_BUSY, ERR_RANGE, ERR_TOO_LONG, ERR_END_SENSOR
@@ -48,6 +49,9 @@ static uint16_t watchdog_ms;
 static uint16_t silent_ms;       /* since the last command line, saturating */
 static uint8_t laser_on;
 static uint8_t sensors;          /* HAL_SENSOR_* seen at the last tick */
+static uint32_t now_ms;          /* milliseconds since power-on: the stamp of T, P, !DONE, !POS, !HOME */
+static uint16_t pos_period_ms;   /* between !POS events during motion; 0 = off (R0, the power-on value) */
+static uint16_t pos_elapsed_ms;  /* since the last !POS; a motion starts with one */
 
 static char line[MAX_LINE];
 static uint8_t line_len;
@@ -60,19 +64,30 @@ static void put_str(const char *s)
         hal_sci_putc((uint8_t)*s++);
 }
 
-static void put_int(int32_t value)
+static void put_uint(uint32_t magnitude)
 {
-    char digits[11];
+    char digits[10];
     uint8_t n = 0;
-    uint32_t magnitude = value < 0 ? (uint32_t)(-value) : (uint32_t)value;
-    if (value < 0)
-        hal_sci_putc('-');
     do {
         digits[n++] = (char)('0' + (uint8_t)(magnitude % 10u));
         magnitude /= 10u;
     } while (magnitude);
     while (n)
         hal_sci_putc((uint8_t)digits[--n]);
+}
+
+static void put_int(int32_t value)
+{
+    if (value < 0)
+        hal_sci_putc('-');
+    put_uint(value < 0 ? (uint32_t)(-value) : (uint32_t)value);
+}
+
+/* " <ms>": the instant a reply or event reports, on the millisecond counter */
+static void put_stamp(void)
+{
+    hal_sci_putc(' ');
+    put_uint(now_ms);
 }
 
 static void put_end(void)
@@ -99,6 +114,7 @@ static void event_done(void)
 {
     put_str("!DONE ");
     put_int(counter);
+    put_stamp();
     put_end();
 }
 
@@ -111,6 +127,7 @@ static void start_motion(uint8_t kind, int8_t dir)
     step_acc = 0;
     motion_fresh = 1;
     phase_pulses = 0;
+    pos_elapsed_ms = 0;
     hal_step_dir(dir > 0);
 }
 
@@ -163,6 +180,7 @@ static void motion_tick(void)
             motion = MO_IDLE;
             put_str("!HOME ");
             put_int(track);
+            put_stamp();
             put_end();
             return;
         case MO_SWEEP:
@@ -198,6 +216,21 @@ static void sensor_tick(void)
         put_str("!END 1");
         put_end();
     }
+}
+
+/* after motion_tick: the counter as it stands at the end of this millisecond */
+static void position_tick(void)
+{
+    if (motion == MO_IDLE || !pos_period_ms)
+        return;
+    if (pos_elapsed_ms == 0) {
+        put_str("!POS ");
+        put_int(counter);
+        put_stamp();
+        put_end();
+    }
+    if (++pos_elapsed_ms >= pos_period_ms)
+        pos_elapsed_ms = 0;
 }
 
 static void watchdog_tick(void)
@@ -238,6 +271,25 @@ static void cmd_status(void)
     hal_sci_putc((sensors & HAL_SENSOR_START) ? '1' : '0');
     hal_sci_putc((sensors & HAL_SENSOR_END) ? '1' : '0');
     put_str(homed ? " H1" : " H0");
+    put_str(" T");
+    put_uint(now_ms);
+    put_end();
+}
+
+static void cmd_clock(void)
+{
+    put_str("OK T");
+    put_uint(now_ms);
+    put_end();
+}
+
+static void cmd_position_rate(void)
+{
+    uint8_t hz = (uint8_t)arg;
+    pos_period_ms = hz ? (uint16_t)(1000u / hz) : 0u;
+    pos_elapsed_ms = 0;
+    put_str("OK R");
+    put_int(hz);
     put_end();
 }
 
@@ -355,6 +407,8 @@ static const struct command commands[] = {
     {'M', ARG_INT, 0, -999999L, 999999L, cmd_move},
     {'H', ARG_NONE, 0, 0, 0, cmd_home},
     {'C', ARG_NONE, 0, 0, 0, cmd_sweep},
+    {'T', ARG_NONE, BUSY_OK, 0, 0, cmd_clock},                       /* v2 */
+    {'R', ARG_INT, BUSY_OK, 0, POS_RATE_MAX, cmd_position_rate},     /* v2 */
 };
 #define N_COMMANDS (sizeof(commands) / sizeof(commands[0]))
 
@@ -500,8 +554,10 @@ void main(void)
             receive((uint8_t)c);
         while (last_ms != hal_ms()) {
             last_ms++;
+            now_ms++;
             sensor_tick();
             motion_tick();
+            position_tick();
             watchdog_tick();
         }
     }

@@ -36,7 +36,8 @@ def _describe(raw: bytes) -> str:
 
 def cmd_emulate(args: argparse.Namespace) -> int:
     config = EmulatorConfig(track_steps=args.track, rate_steps_per_s=args.rate,
-                            start_position_steps=args.start_position, watchdog_ms=args.watchdog)
+                            start_position_steps=args.start_position, watchdog_ms=args.watchdog,
+                            protocol_version=args.protocol, clock_drift_ppm=args.clock_drift_ppm)
     faults = Faults(garbage_probability=args.garbage, drop_probability=args.drop,
                     reply_delay_s=args.late_ms / 1000.0, stalled=args.stall, seed=args.seed)
     if not args.no_ros:
@@ -49,7 +50,8 @@ def cmd_emulate(args: argparse.Namespace) -> int:
                      "-p", f"rate_steps_per_s:={args.rate}", "-p", f"start_position_steps:={float(args.start_position)}",
                      "-p", f"watchdog_ms:={args.watchdog}", "-p", f"fault_garbage_probability:={float(args.garbage)}",
                      "-p", f"fault_drop_probability:={float(args.drop)}", "-p", f"fault_reply_delay_ms:={args.late_ms}",
-                     "-p", f"fault_stalled:={str(args.stall).lower()}", "-p", f"fault_seed:={args.seed}"]
+                     "-p", f"fault_stalled:={str(args.stall).lower()}", "-p", f"fault_seed:={args.seed}",
+                     "-p", f"protocol_version:={args.protocol}", "-p", f"clock_drift_ppm:={float(args.clock_drift_ppm)}"]
         if args.control:
             overrides += ["-p", f"control:={args.control}"]
         rclpy.init()
@@ -234,6 +236,10 @@ def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None
     p_em.add_argument("--late-ms", type=int, default=0, help="delay every sent line [ms]")
     p_em.add_argument("--stall", action="store_true", help="the motor does not move")
     p_em.add_argument("--seed", type=int, default=0, help="seed of the fault random generator")
+    p_em.add_argument("--protocol", type=int, choices=p.SUPPORTED_VERSIONS, default=p.PROTOCOL_VERSION,
+                      help="GP32 protocol the unit speaks (1: the v1 firmware, without the device clock)")
+    p_em.add_argument("--clock-drift-ppm", type=float, default=150.0,
+                      help="how much faster the unit's millisecond clock runs than the host's [ppm]")
     p_em.add_argument("--no-ros", action="store_true", help="do not publish /lsu/sim/truth")
     p_em.set_defaults(func=cmd_emulate)
     p_send = gp32.add_parser("send", help="send commands and print replies and events: lsu gp32 send PORT ? P G235")

@@ -1,4 +1,4 @@
-"""A pyserial client for the GP32 (protocol v1), usable without ROS.
+"""A pyserial client for the GP32 (protocol v1 and v2), usable without ROS.
 
     with Gp32Client("/dev/ttyUSB0") as unit:
         unit.home()
@@ -17,6 +17,10 @@
   sends ``X``.
 - When the port vanishes, the client marks itself disconnected, fails waiting calls, and
   reconnects with backoff (the emulator and USB adapters come back under the same path).
+- The version comes from ``?``: with a v2 device every stamped reply (``P``, ``T``) is a round trip
+  that feeds `clock` (a `DeviceClock`), so the device's stamps in ``!DONE``, ``!POS`` and ``!HOME``
+  map to host time (`map_device_ms`); with a v1 device the client uses v1 commands only and stamps a
+  stop by the arrival of its ``!DONE``.
 """
 
 from __future__ import annotations
@@ -27,11 +31,12 @@ import termios
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Union
+from typing import Callable, List, Optional, Tuple, Union
 
 import serial
 
 from . import protocol as p
+from .clock_sync import ClockSample, ClockSyncError, DeviceClock
 
 # What a serial port that vanishes can raise: pyserial's own error, OSError from read/ioctl, and
 # termios.error from tcdrain/tcflush (flush(), reset_input_buffer()), which is not an OSError.
@@ -49,7 +54,11 @@ class NotConnected(Gp32Error):
 
 
 class VersionMismatch(Gp32Error):
-    """The device does not speak protocol v1."""
+    """The device speaks no protocol version this client knows."""
+
+
+class NotSupported(Gp32Error):
+    """The command needs a newer protocol version than the device speaks."""
 
 
 class CommandTimeout(Gp32Error):
@@ -87,7 +96,11 @@ class MotionResult:
     position: int                 # step counter when it stopped
     target: Optional[int]         # requested absolute target (None for a sweep)
     end_sensor: Optional[int]     # sensor (0 start / 1 end) that tripped during the motion, if any
-    stopped_at_s: Optional[float] = None  # wall-clock time the !DONE arrived (the carriage stopped)
+    # host (wall-clock) time the carriage stopped: v2, the !DONE's device stamp mapped through `clock`;
+    # v1 (or no round trip yet), the arrival of the !DONE
+    stopped_at_s: Optional[float] = None
+    stopped_device_ms: Optional[int] = None   # v2: the device's counter when it stopped
+    stopped_uncertainty_s: Optional[float] = None  # how far stopped_at_s can be off (None: arrival time)
 
     @property
     def reached(self) -> bool:
@@ -117,13 +130,18 @@ class Gp32Client:
         self.position: Optional[int] = None   # step counter as last reported (status or !DONE)
         self.malformed_lines = 0
         self.stale_replies = 0
+        self.position_rate_hz = 0             # !POS events per second during motion (v2), set at every connect
+        self.clock = DeviceClock()            # the device's ms counter -> host time (v2; renewed at !BOOT)
+        self._clock_lock = threading.Lock()
         self._serial: Optional[serial.Serial] = None
         self._cmd_lock = threading.Lock()
-        self._replies: "queue.Queue[Union[p.Ok, p.Err]]" = queue.Queue()
+        # replies with the host time their line was complete
+        self._replies: "queue.Queue[Tuple[Union[p.Ok, p.Err], float]]" = queue.Queue()
         self._state = threading.Condition()
         self._event_seq = 0
         self._events: List[p.Line] = []       # recent events (bounded), newest last
-        self.last_stop_s: Optional[float] = None  # wall-clock arrival of the last !DONE
+        self.last_stop_s: Optional[float] = None  # host time of the last stop (see MotionResult.stopped_at_s)
+        self.last_stop_uncertainty_s: Optional[float] = None
         self._listeners: List[Listener] = []
         self._error_listeners: List[Callable[[p.MalformedLine], None]] = []
         self._connection_listeners: List[Callable[[bool, str], None]] = []
@@ -151,13 +169,53 @@ class Gp32Client:
         """True while the port is open and the device passed the version check."""
         return self._connected
 
+    @property
+    def version(self) -> int:
+        """Protocol version of the connected device (0 before the first ``?``)."""
+        return self.identity.version if self.identity else 0
+
+    # ------------------------------------------------------------------------------ device clock
+    def _add_clock_sample(self, sent_s: float, recv_s: float, device_ms: Optional[int]) -> None:
+        if device_ms is None:
+            return
+        with self._clock_lock:
+            self.clock.add(ClockSample(sent_s, recv_s, device_ms))
+
+    def _reset_clock(self) -> None:
+        with self._clock_lock:
+            self.clock = DeviceClock()
+
+    def map_device_ms(self, device_ms: int) -> Optional[Tuple[float, float]]:
+        """(host time [s], uncertainty [s]) of a device stamp, or None before the first round trip."""
+        with self._clock_lock:
+            try:
+                return self.clock.to_host(device_ms), self.clock.uncertainty_s
+            except ClockSyncError:
+                return None
+
+    def clock_uncertainty_s(self) -> Optional[float]:
+        """How far a mapped device stamp can be off now [s], or None before the first round trip."""
+        with self._clock_lock:
+            try:
+                return self.clock.uncertainty_s
+            except ClockSyncError:
+                return None
+
+    def clock_drift_ppm(self) -> Optional[float]:
+        """Estimated drift of the device clock [ppm], or None before the first round trip."""
+        with self._clock_lock:
+            try:
+                return self.clock.drift_ppm
+            except ClockSyncError:
+                return None
+
     # ------------------------------------------------------------------------------ connection
     def connect(self) -> p.IdentifyInfo:
         """Open the port, flush it, check the version; start reconnect supervision.
 
         Raises:
             NotConnected: the port cannot be opened (message names the port and the fix).
-            VersionMismatch: the device is not an LSU-GP32 v1.
+            VersionMismatch: the device is not an LSU-GP32 v1 or v2.
         """
         self._closing = False
         self._open()
@@ -208,10 +266,17 @@ class Gp32Client:
 
     def _handshake(self) -> p.IdentifyInfo:
         info = self.identify()
-        if info.version != p.PROTOCOL_VERSION:
+        if info.version not in p.SUPPORTED_VERSIONS:
+            known = " or ".join(f"v{v}" for v in p.SUPPORTED_VERSIONS)
             raise VersionMismatch(f"{self.port} speaks {p.DEVICE_NAME} v{info.version}; this driver needs "
-                                  f"v{p.PROTOCOL_VERSION} (update the firmware or the driver)")
+                                  f"{known} (update the firmware or the driver)")
         self.rate_steps_per_s = info.rate_steps_per_s
+        self._reset_clock()  # a new connection may be a new power-on: the counter restarted
+        if info.version >= 2:
+            for _ in range(5):  # a first mapping before any stamped event can arrive
+                self.read_clock()
+            self._command(p.SetPositionRate(self.position_rate_hz),
+                          accept=lambda ok: ok.payload == f"R{self.position_rate_hz}")
         status = self.status()
         self.homed = status.homed
         if status.homed:
@@ -296,24 +361,30 @@ class Gp32Client:
             callback(error)
 
     def _dispatch(self, raw: bytes) -> None:
+        arrived = time.time()
         try:
             line = p.parse_line(raw)
         except p.MalformedLine as exc:
             self._malformed(exc)
             return
         if not p.is_event(line):
-            self._replies.put(line)  # type: ignore[arg-type]
+            self._replies.put((line, arrived))  # type: ignore[arg-type]
             return
         if isinstance(line, p.Boot):
             self.homed = False
             self.position = None
+            self._reset_clock()  # the device's counter restarted
         elif isinstance(line, p.HomeDone):
             self.homed = True
             self.track_steps = line.track
             self.position = 0
         elif isinstance(line, p.Done):
             self.position = line.position
-            self.last_stop_s = time.time()  # stamped on arrival: settling counts from the stop, not the reply
+            # settling counts from the stop, not the reply: the device's stamp (v2) or the arrival (v1)
+            mapped = self.map_device_ms(line.device_ms) if line.device_ms is not None else None
+            self.last_stop_s, self.last_stop_uncertainty_s = mapped if mapped else (arrived, None)
+        elif isinstance(line, p.Position):
+            self.position = line.position
         with self._state:
             self._event_seq += 1
             self._events.append(line)
@@ -326,9 +397,18 @@ class Gp32Client:
     def _command(self, cmd: p.Command, accept: Callable[[p.Ok], bool] = lambda ok: True,
                  retry: bool = True) -> p.Ok:
         """Send ``cmd`` and return its ``OK``; raises on ERR, timeout or a lost port."""
+        return self._command_timed(cmd, accept, retry)[0]
+
+    def _command_timed(self, cmd: p.Command, accept: Callable[[p.Ok], bool] = lambda ok: True,
+                       retry: bool = True) -> Tuple[p.Ok, float, float]:
+        """`_command` and the host times that bracket the device's handling of it: (reply, sent, received).
+
+        ``sent`` is the first attempt's: a reply to an earlier attempt, delayed, stays inside the bracket.
+        """
         line = p.encode_command(cmd)
         text = line.decode().strip()
         attempts = 1 + (self.retries if retry else 0)
+        sent_s: Optional[float] = None
         with self._cmd_lock:
             for attempt in range(attempts):
                 ser = self._serial
@@ -337,6 +417,8 @@ class Gp32Client:
                 while not self._replies.empty():  # replies that arrived after their command timed out
                     self._replies.get_nowait()
                     self.stale_replies += 1
+                if sent_s is None:
+                    sent_s = time.time()
                 try:
                     ser.write(line)
                     ser.flush()
@@ -348,17 +430,17 @@ class Gp32Client:
                     if remaining <= 0:
                         break
                     try:
-                        reply = self._replies.get(timeout=min(remaining, 0.05))
+                        reply, received_s = self._replies.get(timeout=min(remaining, 0.05))
                     except queue.Empty:
                         if self._lost.is_set():
                             raise PortLost(f"serial port {self.port} vanished while waiting for '{text}'") from None
                         continue
                     if isinstance(reply, p.Err):
                         if attempt > 0 and reply.code == p.ERR_BUSY and isinstance(cmd, (p.GoTo, p.Home)):
-                            return p.Ok()  # our first try was accepted; only its reply was lost
+                            return p.Ok(), sent_s, received_s  # our first try was accepted; only its reply was lost
                         raise DeviceError(reply.code, reply.text, text)
                     if accept(reply):
-                        return reply
+                        return reply, sent_s, received_s
                     self.stale_replies += 1  # an answer to something else: keep waiting for ours
                 log.warning("%s: no valid reply to '%s' within %.2f s (attempt %d/%d)", self.port, text,
                             self.command_timeout_s, attempt + 1, attempts)
@@ -383,14 +465,43 @@ class Gp32Client:
         return self.identity
 
     def status(self) -> p.StatusInfo:
-        """``P`` -> position, laser, moving, sensors, homed."""
+        """``P`` -> position, laser, moving, sensors, homed (v2: and the device's counter)."""
+        return self.status_timed()[0]
+
+    def status_timed(self) -> Tuple[p.StatusInfo, float, float]:
+        """``P`` and the host times bracketing the device's reading of it: (status, sent, received).
+
+        With a v2 device the reply's stamp feeds `clock`.
+        """
         seq = self._event_seq
-        reply = self._command(p.Status(), accept=self._parses(p.parse_status))
-        self.last_status = p.parse_status(reply.payload)
+        reply, sent_s, received_s = self._command_timed(p.Status(), accept=self._parses(p.parse_status))
+        self.last_status = status = p.parse_status(reply.payload)
+        self._add_clock_sample(sent_s, received_s, status.device_ms)
         if self._event_seq == seq:  # an event after the reply (e.g. !HOME) is newer than this snapshot
-            self.homed = self.last_status.homed
-            self.position = self.last_status.position
-        return self.last_status
+            self.homed = status.homed
+            self.position = status.position
+        return status, sent_s, received_s
+
+    def _need_v2(self, what: str) -> None:
+        if self.version < 2:
+            raise NotSupported(f"{what} needs GP32 protocol v2; {self.port} speaks v{self.version} "
+                               "(update the firmware for timed carriage positions)")
+
+    def read_clock(self) -> int:
+        """``T`` (v2): the device's millisecond counter; the round trip feeds `clock`."""
+        self._need_v2("reading the device clock (T)")
+        reply, sent_s, received_s = self._command_timed(p.ReadClock(), accept=self._parses(p.parse_clock))
+        device_ms = p.parse_clock(reply.payload)
+        self._add_clock_sample(sent_s, received_s, device_ms)
+        return device_ms
+
+    def set_position_rate(self, hz: int) -> None:
+        """``R<hz>`` (v2): ``!POS`` events per second during motion (0 = off); kept for reconnects."""
+        if hz and self.connected:
+            self._need_v2("!POS position events (R)")
+        if self.connected and self.version >= 2:
+            self._command(p.SetPositionRate(hz), accept=lambda ok: ok.payload == f"R{hz}")
+        self.position_rate_hz = hz
 
     def laser(self, on: bool) -> None:
         """Switch the laser."""
@@ -458,7 +569,8 @@ class Gp32Client:
         event = self._wait_event(since, done, timeout_s or self._motion_timeout(distance), what)
         assert isinstance(event, p.Done)
         # one motion at a time: the latest !DONE is this one
-        return MotionResult(event.position, target, sensor[-1] if sensor else None, self.last_stop_s)
+        return MotionResult(event.position, target, sensor[-1] if sensor else None, self.last_stop_s,
+                            event.device_ms, self.last_stop_uncertainty_s)
 
     def move_to(self, position: int, timeout_s: Optional[float] = None) -> MotionResult:
         """``G<pos>`` and wait until the carriage stopped; returns where it stopped.

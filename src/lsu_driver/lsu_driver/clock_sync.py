@@ -12,7 +12,8 @@ enough to see a drift of tens of ppm through the 1 ms counter). The fit uses the
 shortest round trips (their midpoints are the tightest brackets; a reply delayed by a busy host or
 USB adapter only widens its own bracket), weighted by the inverse square of their half round trip,
 so a few slow replies cannot pull it. The reported uncertainty is the bracket half-width of the best
-samples plus the fit's own residual scatter: what a stamp mapped now can be off by.
+samples plus the fit's own residual scatter plus one counter tick (a reading k means "somewhere in
+[k, k+1) ms", for the round trips as for the stamp being mapped): what a stamp mapped now can be off by.
 
 Why hand-written: NTP/PTP implementations exist but speak their own protocols to clocks that run
 them; here the "server" is a line-based serial device with a bare millisecond counter (wrapping), and
@@ -57,13 +58,14 @@ class DeviceClock:
     """Maps device milliseconds to host seconds from recent round trips (see the module text)."""
 
     def __init__(self, window: int = 300, best_fraction: float = 0.5, wrap_ms: int = WRAP_MS,
-                 max_drift: float = 1e-3) -> None:
+                 max_drift: float = 1e-3, resolution_ms: float = 1.0) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
         self._samples: Deque[Tuple[float, float, float]] = deque(maxlen=window)  # (device s unwrapped, mid, half rtt)
         self._best_fraction = best_fraction
         self._wrap_ms = wrap_ms
         self._max_drift = max_drift
+        self._resolution_s = resolution_ms / 1000.0
         self._last_raw: Optional[int] = None
         self._wraps = 0
         self._fit: Optional[Tuple[float, float, float]] = None  # (offset, 1 + drift, uncertainty)
@@ -104,7 +106,7 @@ class DeviceClock:
             scale = float(np.clip(coef[1], 1.0 - self._max_drift, 1.0 + self._max_drift))
             offset = float(coef[0] - scale * d0)
             spread = float(np.sqrt(np.average((mid - (offset + scale * device)) ** 2, weights=w)))
-        uncertainty = float(np.min(half) + spread)
+        uncertainty = float(np.min(half) + spread + self._resolution_s)
         return offset, scale, uncertainty
 
     def _current(self) -> Tuple[float, float, float]:
@@ -128,7 +130,7 @@ class DeviceClock:
 
     @property
     def uncertainty_s(self) -> float:
-        """How far a mapped stamp can be off [s]: the best bracket's half width plus the fit's scatter."""
+        """How far a mapped stamp can be off [s]: the best bracket's half width, the fit's scatter, one tick."""
         return self._current()[2]
 
     @property

@@ -1,4 +1,4 @@
-"""A GP32 behind a pseudo-terminal: protocol v1 with the unit's physics and faults on demand.
+"""A GP32 behind a pseudo-terminal: protocol v2 (or v1) with the unit's physics and faults on demand.
 
 Nobody else has the original board, so this is the unit for developers, CI, the demo and the
 simulated cameras. It models what the thesis observed (ch. 3.2.3-3.3):
@@ -11,6 +11,9 @@ simulated cameras. It models what the thesis observed (ch. 3.2.3-3.3):
 - residual vibration after each stop, decaying with a time constant (the reason for
   stop-snap scanning), exposed with the true position for the simulated cameras;
 - homing that measures the track, sweep mode, the laser watchdog and ``!BOOT`` on reset;
+- a millisecond counter of its own (protocol v2), with an offset (a seeded random start) and a
+  drift (+150 ppm by default), like a microcontroller's crystal, so the host's clock mapping is
+  exercised; the true host time of every stamped event is kept for tests (`timed_events`);
 - faults: garbage bytes, dropped bytes, late replies, reset (also mid-motion), a stalled
   motor and the port vanishing and coming back.
 
@@ -19,6 +22,7 @@ No rclpy here: `emulator_node.py` publishes the truth on ROS.
 
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -30,7 +34,7 @@ import time
 import tty
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Deque, Dict, List, Optional, Tuple
 
 from . import protocol as p
 
@@ -51,6 +55,10 @@ class EmulatorConfig:
     vibration_amplitude_steps: float = 0.6      # residual displacement right after a stop at 200 steps/s
     vibration_tau_s: float = 0.040              # decay time constant of the residual vibration
     vibration_freq_hz: float = 22.0             # oscillation frequency of the carriage on its belt
+    protocol_version: int = p.PROTOCOL_VERSION  # 1: the v1 firmware (no T, R, !POS or stamps)
+    clock_start_ms: Optional[int] = None        # device counter at power-on; None: seeded random 32-bit value
+    clock_drift_ppm: float = 150.0              # how much faster the device counts than the host
+    clock_seed: int = 0                         # seeds the random clock start
 
 
 @dataclass
@@ -225,6 +233,13 @@ class Gp32Emulator:
         self.log: List[str] = []          # every line in and out, for tests and debugging
         self.boot_count = 0
         self._true = float(self.config.start_position_steps)
+        if self.config.protocol_version not in p.SUPPORTED_VERSIONS:
+            raise ValueError(f"protocol_version {self.config.protocol_version} is not one of {p.SUPPORTED_VERSIONS}")
+        self._clock_start_ms = (self.config.clock_start_ms if self.config.clock_start_ms is not None
+                                else random.Random(self.config.clock_seed).randrange(p.MS_WRAP))
+        # stamped events with the true host time of the instant they report: {"line", "device_ms", "wall_s"}
+        self.timed_events: Deque[Dict[str, object]] = collections.deque(maxlen=512)
+        self._stamp_wall = 0.0
         # called (from the firmware thread) whenever the discrete state changes: motion started or
         # stopped, laser, homing, reset; the ROS node publishes the truth at once instead of polling
         self.on_change: Optional[Callable[[], None]] = None
@@ -246,12 +261,40 @@ class Gp32Emulator:
         self._velocity = 0.0
         self.boot_count += 1
         self._at_start, self._at_end = self._sensors()
+        self.pos_rate_hz = 0
+        self._next_pos = 0.0
+        self._clock_mono0 = time.monotonic()  # the counter restarts at every power-on
+
+    @property
+    def v2(self) -> bool:
+        return self.config.protocol_version >= 2
+
+    def device_ms(self, mono: Optional[float] = None) -> int:
+        """The device's millisecond counter at monotonic time ``mono`` (now by default)."""
+        elapsed = (time.monotonic() if mono is None else mono) - self._clock_mono0
+        ticks = math.floor(elapsed * 1000.0 * (1.0 + self.config.clock_drift_ppm * 1e-6))
+        return (self._clock_start_ms + ticks) % p.MS_WRAP
+
+    def _stamp(self) -> Optional[int]:
+        """The counter now (None for a v1 unit), with the true host time logged by `_send_timed`."""
+        if not self.v2:
+            return None
+        self._stamp_wall = time.time()
+        return self.device_ms()
+
+    def _send_timed(self, line: p.Line) -> None:
+        """Send an event stamped by `_stamp` and remember when it really happened."""
+        self._send(line)
+        device_ms = getattr(line, "device_ms", None)
+        if device_ms is not None:
+            self.timed_events.append({"line": p.encode_line(line).decode().strip(), "device_ms": device_ms,
+                                      "wall_s": self._stamp_wall})
 
     def start(self) -> "Gp32Emulator":
         """Open the pty (and link, control socket) and start the firmware thread; sends ``!BOOT``."""
         self._open_pty()
         self._running = True
-        self._send(p.Boot(p.PROTOCOL_VERSION))
+        self._send(p.Boot(self.config.protocol_version))
         self._thread = threading.Thread(target=self._loop, name="gp32-emulator", daemon=True)
         self._thread.start()
         if self.control_path is not None:
@@ -311,7 +354,7 @@ class Gp32Emulator:
             self._stopped_at_wall = time.time()
             self._vib_amp = stop_vibration_amplitude(self.config, motion.rate)
         if done:
-            self._send(p.Done(self.counter))
+            self._send_timed(p.Done(self.counter, self._stamp()))
 
     def _advance(self, now: float) -> None:
         motion = self._motion
@@ -335,6 +378,9 @@ class Gp32Emulator:
                 return
         if motion.pulses is not None and motion.sent >= motion.pulses:
             self._finish_motion()
+        elif self.pos_rate_hz and self._motion is not None and now >= self._next_pos:
+            self._send_timed(p.Position(self.counter, int(self._stamp() or 0)))
+            self._next_pos = max(self._next_pos + 1.0 / self.pos_rate_hz, now)
 
     def _homing_phase(self, tripped: int, now: float) -> None:
         motion = self._motion
@@ -344,7 +390,7 @@ class Gp32Emulator:
             if motion.phase == "return":
                 self.homed = True
                 self._finish_motion(done=False)
-                self._send(p.HomeDone(self.track_measured))
+                self._send_timed(p.HomeDone(self.track_measured, self._stamp()))
                 return
             self._motion = _Motion("home", +1, None, motion.rate, now, phase="measure")
         elif motion.phase == "measure" and tripped == 1:
@@ -362,6 +408,7 @@ class Gp32Emulator:
         self._motion = _Motion(kind, direction, pulses, float(self.rate), time.monotonic(), phase=phase)
         self._velocity = direction * self.rate
         self._stopped_at_wall = 0.0
+        self._next_pos = self._motion.started  # the first !POS at the start, then one every 1 / R s
 
     def _handle(self, raw: bytes) -> None:
         self.log.append("< " + raw.decode("ascii", "replace").rstrip())
@@ -369,15 +416,25 @@ class Gp32Emulator:
         try:
             cmd = p.parse_command(raw)
         except p.CommandError as exc:
-            self._send(p.Err(exc.code, p.ERROR_TEXT[exc.code]))
+            code = exc.code
+            if not self.v2 and raw.strip().upper()[:1] in (b"T", b"R"):
+                code = p.ERR_UNKNOWN  # a v1 firmware has no T or R command at all
+            self._send(p.Err(code, p.ERROR_TEXT[code]))
             return
         busy = self._motion is not None
-        if isinstance(cmd, p.Identify):
-            self._send(p.Ok(p.format_identify(p.IdentifyInfo(p.PROTOCOL_VERSION, self.track_measured or
+        if not self.v2 and isinstance(cmd, (p.ReadClock, p.SetPositionRate)):
+            self._send(p.Err(p.ERR_UNKNOWN, p.ERROR_TEXT[p.ERR_UNKNOWN]))  # what a v1 firmware answers
+        elif isinstance(cmd, p.Identify):
+            self._send(p.Ok(p.format_identify(p.IdentifyInfo(self.config.protocol_version, self.track_measured or
                                                                self.config.track_steps, self.rate))))
         elif isinstance(cmd, p.Status):
             self._send(p.Ok(p.format_status(p.StatusInfo(self.counter, self.laser_on, busy, self._at_start,
-                                                           self._at_end, self.homed))))
+                                                           self._at_end, self.homed, self._stamp()))))
+        elif isinstance(cmd, p.ReadClock):
+            self._send(p.Ok(f"T{self.device_ms()}"))
+        elif isinstance(cmd, p.SetPositionRate):
+            self.pos_rate_hz = cmd.hz
+            self._send(p.Ok(f"R{cmd.hz}"))
         elif isinstance(cmd, p.Laser):
             self.laser_on = cmd.on
             self._send(p.Ok("L1" if cmd.on else "L0"))
@@ -427,7 +484,7 @@ class Gp32Emulator:
             self._start_motion("sweep", -1 if self._at_end else 1, None)
 
     def _finish_motion_now(self) -> None:
-        self._send(p.Done(self.counter))
+        self._send_timed(p.Done(self.counter, self._stamp()))
 
     # ---------------------------------------------------------------------------- output
     def _send(self, line: p.Line) -> None:
@@ -533,7 +590,7 @@ class Gp32Emulator:
         """Power-cycle the firmware: motion stops where it is, laser off, position lost, ``!BOOT``."""
         with self._lock:
             self._power_on()
-            self._send(p.Boot(p.PROTOCOL_VERSION))
+            self._send(p.Boot(self.config.protocol_version))
 
     def unplug(self, duration_s: float) -> None:
         """The port vanishes for ``duration_s`` (pty closed, link removed), then a new one appears."""
@@ -548,7 +605,7 @@ class Gp32Emulator:
         self._unplugged_until = None
         self._power_on()
         self._open_pty()
-        self._send(p.Boot(p.PROTOCOL_VERSION))
+        self._send(p.Boot(self.config.protocol_version))
 
     def inject_garbage(self, n_bytes: int) -> None:
         """Send ``n_bytes`` random bytes followed by a newline right now."""
@@ -575,11 +632,15 @@ class Gp32Emulator:
         ``{"fault": "garbage", "bytes": 20}``, ``{"fault": "garbage_rate", "probability": 0.2}``,
         ``{"fault": "drop", "probability": 0.1}``, ``{"fault": "late", "delay_ms": 800}``,
         ``{"fault": "reset"}``, ``{"fault": "stall", "on": true}``,
-        ``{"fault": "unplug", "duration_s": 1.0}``, ``{"fault": "clear"}``, ``{"get": "truth"}``.
+        ``{"fault": "unplug", "duration_s": 1.0}``, ``{"fault": "clear"}``, ``{"get": "truth"}``,
+        ``{"get": "events"}`` (the stamped events with the true host time of what they report).
         """
         try:
             if request.get("get") == "truth":
                 return {"ok": True, "truth": asdict(self.truth())}
+            if request.get("get") == "events":
+                with self._lock:
+                    return {"ok": True, "events": list(self.timed_events)}
             fault = request.get("fault")
             if fault == "garbage":
                 self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]

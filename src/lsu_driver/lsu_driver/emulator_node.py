@@ -76,6 +76,10 @@ class Gp32EmulatorNode(Node):
                                               "residual vibration right after a stop at 200 steps/s [steps]"),
             vibration_tau_s=declare("vibration_tau_s", defaults.vibration_tau_s, "vibration decay constant [s]"),
             vibration_freq_hz=declare("vibration_freq_hz", defaults.vibration_freq_hz, "vibration frequency [Hz]"),
+            protocol_version=declare("protocol_version", defaults.protocol_version,
+                                     "GP32 protocol the unit speaks: 2, or 1 (the v1 firmware, no device clock)"),
+            clock_drift_ppm=declare("clock_drift_ppm", defaults.clock_drift_ppm,
+                                    "how much faster the unit's millisecond clock runs than the host's [ppm]"),
         )
         faults = Faults(
             garbage_probability=declare("fault_garbage_probability", 0.0, "chance of garbage before each line"),

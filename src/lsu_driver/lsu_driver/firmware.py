@@ -1,7 +1,7 @@
 """The unit's own firmware (firmware/gp32) running in the ucsim HC08 simulator behind a pty.
 
 `Gp32Firmware` looks to a client exactly like `Gp32Emulator`: a pty (with a stable symlink)
-speaking protocol v1. Behind it, ``shc08`` executes the firmware image built with SDCC and this
+speaking protocol v2. Behind it, ``shc08`` executes the firmware image built with SDCC and this
 module is the board around the microcontroller:
 
 - it owns the simulator interface's input and output (two ptys, see ``hal_sim.c`` for the byte

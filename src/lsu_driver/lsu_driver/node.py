@@ -1,4 +1,9 @@
-"""`gp32_driver` node: the GP32 on the ROS graph (services, state topic, diagnostics).
+"""`gp32_driver` node: the GP32 on the ROS graph (services, state and carriage topics, diagnostics).
+
+``driver/carriage`` carries where the carriage was and when: with a protocol v2 unit every ``!POS``
+(at ``position_rate_hz`` during motion), ``!DONE`` and status reply, its device stamp mapped to ROS
+time through the client's `DeviceClock` (fed by the status polls, which are round trips); with a v1
+unit only the status replies, stamped at the middle of their round trip.
 
 A thin adapter around `Gp32Client`. Safety: the laser is switched off and motion stopped on
 shutdown; on ``!BOOT`` or a lost port the laser is considered off, the position unknown and
@@ -21,7 +26,7 @@ from geometry_msgs.msg import TransformStamped
 from std_srvs.srv import SetBool, Trigger
 from tf2_msgs.msg import TFMessage
 
-from lsu_interfaces.msg import ScannerState
+from lsu_interfaces.msg import CarriagePosition, ScannerState
 from lsu_interfaces.srv import MoveTo, Step
 
 from . import protocol as p
@@ -56,8 +61,13 @@ class Gp32DriverNode(Node):
                               floating_point_range=[FloatingPointRange(from_value=1e-6, to_value=0.01)])
         state_hz = declare("state_rate_hz", 10.0, "status poll and state publish rate [Hz] (>= 5)",
                            floating_point_range=[FloatingPointRange(from_value=5.0, to_value=50.0)])
+        self.position_rate_hz = declare(
+            "position_rate_hz", 20, "timed carriage positions (!POS) per second during motion, protocol v2 "
+            "units; 0 = only stops and status polls (at 9600 baud keep it <= 40)",
+            integer_range=[IntegerRange(from_value=0, to_value=p.POS_RATE_MAX_HZ, step=1)])
 
         self.client = Gp32Client(self.port, baud, timeout, retries)
+        self.client.position_rate_hz = int(self.position_rate_hz)
         self.client.add_listener(self._on_event)
         self.client.add_connection_listener(self._on_connection)
         self.client.add_error_listener(lambda err: self._count("malformed"))
@@ -73,6 +83,7 @@ class Gp32DriverNode(Node):
 
         services = ReentrantCallbackGroup()  # a move may block while stop and state keep going
         self.state_pub = self.create_publisher(ScannerState, "driver/state", 10)
+        self.carriage_pub = self.create_publisher(CarriagePosition, "driver/carriage", 50)
         self.tf_pub = self.create_publisher(TFMessage, "/tf", 100)  # tf2's TransformBroadcaster QoS
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(SetBool, "laser/set", self._srv_laser, callback_group=services)
@@ -109,6 +120,8 @@ class Gp32DriverNode(Node):
         try:
             self.client.set_rate(int(self.rate))
             self.client.set_watchdog(int(self.watchdog_ms))
+            if self.client.version >= 2:  # a reset unit is back at R0
+                self.client.set_position_rate(int(self.position_rate_hz))
             self.client.laser(False)
             self.laser_on = False
         except Gp32Error as exc:
@@ -147,7 +160,37 @@ class Gp32DriverNode(Node):
         elif isinstance(event, p.HomeDone) and self.fault.startswith(("carriage not homed", "GP32 reset",
                                                                        "reconnected", "serial port")):
             self.fault = ""
+        elif isinstance(event, p.Position):  # steady motion: no state change, only a timed position
+            self._publish_carriage(event.position, event.device_ms, True, "pos")
+            return
+        elif isinstance(event, p.Done) and event.device_ms is not None:
+            self._publish_carriage(event.position, event.device_ms, False, "done")
         self._publish_state(force=True)
+
+    def _publish_carriage(self, position: int, device_ms: Optional[int], moving: bool, source: str,
+                          bracket: Optional[tuple] = None) -> None:
+        """One timed position: a device stamp mapped to ROS time (v2), or the middle of a round trip."""
+        if device_ms is not None:
+            mapped = self.client.map_device_ms(device_ms)
+            if mapped is None:
+                return  # no round trip yet: the stamp cannot be placed
+            stamp_s, uncertainty_s = mapped
+        elif bracket is not None:
+            stamp_s, uncertainty_s = 0.5 * (bracket[0] + bracket[1]), 0.5 * (bracket[1] - bracket[0])
+        else:
+            return
+        if not self.client.homed or not self.context.ok():  # before homing the position means nothing
+            return
+        msg = CarriagePosition()
+        msg.header.stamp.sec = int(stamp_s)
+        msg.header.stamp.nanosec = min(999_999_999, int((stamp_s - int(stamp_s)) * 1e9))
+        msg.header.frame_id = self.laser_origin_frame
+        msg.position_steps = float(position)
+        msg.moving = moving
+        msg.uncertainty_s = float(uncertainty_s)
+        msg.clock_drift_ppm = float(self.client.clock_drift_ppm() or 0.0) if device_ms is not None else 0.0
+        msg.source = source
+        self.carriage_pub.publish(msg)
 
     def _count(self, what: str) -> None:
         self.counts[what] = self.counts.get(what, 0) + 1
@@ -156,9 +199,12 @@ class Gp32DriverNode(Node):
     def _poll(self) -> None:
         if self.client.connected:
             try:
-                status = self.client.status()  # also feeds the laser watchdog
+                # also feeds the laser watchdog and (v2) the device clock mapping
+                status, sent_s, received_s = self.client.status_timed()
                 self.laser_on = status.laser_on
                 self.moving = status.moving
+                self._publish_carriage(status.position, status.device_ms, status.moving, "status",
+                                       (sent_s, received_s))
             except Gp32Error as exc:
                 self.get_logger().warning(f"status poll failed: {exc}", throttle_duration_sec=5.0)
         self._publish_state(force=True)
@@ -214,7 +260,11 @@ class Gp32DriverNode(Node):
         status.message = self.fault or "ok"
         values = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
                   "track_steps": c.track_steps, "malformed_lines": c.malformed_lines,
-                  "stale_replies": c.stale_replies, "reconnects": self.reconnects}
+                  "stale_replies": c.stale_replies, "reconnects": self.reconnects, "protocol_version": c.version}
+        uncertainty, drift = c.clock_uncertainty_s(), c.clock_drift_ppm()
+        if c.version >= 2 and uncertainty is not None and drift is not None:
+            values["clock_uncertainty_s"] = f"{uncertainty:.6f}"
+            values["clock_drift_ppm"] = f"{drift:.1f}"
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
@@ -349,6 +399,9 @@ class Gp32DriverNode(Node):
                     if self.client.connected:
                         self.client.set_watchdog(int(param.value))
                     self.watchdog_ms = int(param.value)
+                elif param.name == "position_rate_hz":
+                    self.client.set_position_rate(int(param.value))  # refused by a v1 unit (NotSupported)
+                    self.position_rate_hz = int(param.value)
                 elif param.name in ("port", "baud"):
                     return SetParametersResult(successful=False,
                                                reason=f"{param.name} is read at start-up; restart the node")

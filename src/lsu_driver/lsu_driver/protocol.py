@@ -1,4 +1,8 @@
-"""GP32 serial protocol v1: typed commands, replies and events (see GP32_PROTOCOL.md).
+"""GP32 serial protocol v2 (and v1, its subset): typed commands, replies and events (see GP32_PROTOCOL.md).
+
+v2 adds the device's millisecond clock: ``T`` reads it, ``R<hz>`` sets the rate of ``!POS <pos> <ms>``
+events during motion, and the status reply, ``!DONE`` and ``!HOME`` carry the counter of the instant they
+report. Every v1 line parses as before, with ``device_ms`` None.
 
 Strict both ways: encoding refuses values the firmware would reject, and parsing a line
 that is not exactly one of the protocol's forms raises `MalformedLine` carrying the raw
@@ -11,7 +15,8 @@ import re
 from dataclasses import dataclass
 from typing import Optional, Union
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+SUPPORTED_VERSIONS = (1, 2)  # what the client speaks; v2 features are used only with a v2 device
 DEVICE_NAME = "LSU-GP32"
 MAX_LINE = 32            # commands (host -> device): the GP32's receive buffer
 # Device lines may be longer: the identify reply "OK LSU-GP32 v1 track=470 speed=200" of the
@@ -19,6 +24,8 @@ MAX_LINE = 32            # commands (host -> device): the GP32's receive buffer
 MAX_REPLY_LINE = 64
 RATE_MIN, RATE_MAX = 20, 400
 WATCHDOG_MAX_MS = 60000
+POS_RATE_MAX_HZ = 50      # !POS events per second at most (a 20-character event: 1 kB/s at 50 Hz)
+MS_WRAP = 2 ** 32         # the device's millisecond counter is unsigned 32-bit
 
 # error codes of the protocol
 ERR_UNKNOWN, ERR_ARGUMENT, ERR_NOT_HOMED, ERR_BUSY, ERR_RANGE, ERR_TOO_LONG, ERR_END_SENSOR = 1, 2, 3, 4, 5, 6, 7
@@ -111,7 +118,20 @@ class SetWatchdog:
     ms: int
 
 
-Command = Union[Identify, Status, Laser, GoTo, Move, Home, Sweep, Stop, SetRate, SetWatchdog]
+@dataclass(frozen=True)
+class ReadClock:
+    """``T`` (v2): the device's millisecond counter, ``OK T<ms>``."""
+
+
+@dataclass(frozen=True)
+class SetPositionRate:
+    """``R<hz>`` (v2): ``!POS`` events per second during motion (0 = off, the power-on value)."""
+
+    hz: int
+
+
+Command = Union[Identify, Status, Laser, GoTo, Move, Home, Sweep, Stop, SetRate, SetWatchdog, ReadClock,
+                SetPositionRate]
 
 _INT = r"([+-]?\d{1,6})"
 _COMMAND_FORMS = [
@@ -125,6 +145,8 @@ _COMMAND_FORMS = [
     (re.compile(r"X"), lambda m: Stop()),
     (re.compile(r"S" + _INT), lambda m: SetRate(int(m.group(1)))),
     (re.compile(r"W" + _INT), lambda m: SetWatchdog(int(m.group(1)))),
+    (re.compile(r"T"), lambda m: ReadClock()),
+    (re.compile(r"R" + _INT), lambda m: SetPositionRate(int(m.group(1)))),
 ]
 
 
@@ -137,6 +159,8 @@ def _check(cmd: Command) -> None:
         raise CommandError(ERR_ARGUMENT, f"rate {cmd.steps_per_s} outside {RATE_MIN}..{RATE_MAX}")
     if isinstance(cmd, SetWatchdog) and not 0 <= cmd.ms <= WATCHDOG_MAX_MS:
         raise CommandError(ERR_ARGUMENT, f"watchdog {cmd.ms} outside 0..{WATCHDOG_MAX_MS}")
+    if isinstance(cmd, SetPositionRate) and not 0 <= cmd.hz <= POS_RATE_MAX_HZ:
+        raise CommandError(ERR_ARGUMENT, f"position rate {cmd.hz} outside 0..{POS_RATE_MAX_HZ}")
 
 
 def encode_command(cmd: Command) -> bytes:
@@ -166,6 +190,10 @@ def encode_command(cmd: Command) -> bytes:
         text = f"S{cmd.steps_per_s}"
     elif isinstance(cmd, SetWatchdog):
         text = f"W{cmd.ms}"
+    elif isinstance(cmd, ReadClock):
+        text = "T"
+    elif isinstance(cmd, SetPositionRate):
+        text = f"R{cmd.hz}"
     else:
         raise TypeError(f"not a GP32 command: {cmd!r}")
     return (text + "\n").encode("ascii")
@@ -207,7 +235,7 @@ def parse_command(raw: bytes) -> Command:
             except CommandError as exc:
                 raise CommandError(exc.code, exc.text, raw) from None
             return cmd
-    if text[:1] in ("L", "G", "M", "S", "W"):
+    if text[:1] in ("L", "G", "M", "S", "W", "R"):
         raise CommandError(ERR_ARGUMENT, f"bad argument in '{text}'", raw)
     raise CommandError(ERR_UNKNOWN, f"unknown command '{text}'", raw)
 
@@ -237,16 +265,26 @@ class Boot:
 
 @dataclass(frozen=True)
 class Done:
-    """``!DONE <pos>``: a motion ended at step counter ``position``."""
+    """``!DONE <pos>[ <ms>]``: a motion ended at step counter ``position``; v2: at device ms ``device_ms``."""
 
     position: int
+    device_ms: Optional[int] = None
+
+
+@dataclass(frozen=True)
+class Position:
+    """``!POS <pos> <ms>`` (v2): during motion the step counter was ``position`` at device ms ``device_ms``."""
+
+    position: int
+    device_ms: int
 
 
 @dataclass(frozen=True)
 class HomeDone:
-    """``!HOME <track>``: homing finished, ``track`` steps between the sensors."""
+    """``!HOME <track>[ <ms>]``: homing finished, ``track`` steps between the sensors (v2: at ``device_ms``)."""
 
     track: int
+    device_ms: Optional[int] = None
 
 
 @dataclass(frozen=True)
@@ -262,15 +300,27 @@ class WatchdogFired:
 
 
 Reply = Union[Ok, Err]
-Event = Union[Boot, Done, HomeDone, EndSensor, WatchdogFired]
-Line = Union[Ok, Err, Boot, Done, HomeDone, EndSensor, WatchdogFired]
+Event = Union[Boot, Done, Position, HomeDone, EndSensor, WatchdogFired]
+Line = Union[Ok, Err, Boot, Done, Position, HomeDone, EndSensor, WatchdogFired]
+
+_MS = r"(\d{1,10})"  # an unsigned 32-bit millisecond count
+
+
+def _ms(text: Optional[str]) -> Optional[int]:
+    if text is None:
+        return None
+    value = int(text)
+    if value >= MS_WRAP:
+        raise ValueError(f"millisecond count {value} does not fit 32 bits")
+    return value
 
 _LINE_FORMS = [
     (re.compile(r"OK(?: ([ -~]{1,60}))?"), lambda m: Ok(m.group(1) or "")),
     (re.compile(r"ERR ([1-9]) ([ -~]{1,58})"), lambda m: Err(int(m.group(1)), m.group(2))),
     (re.compile(r"!BOOT " + DEVICE_NAME + r" v(\d{1,3})"), lambda m: Boot(int(m.group(1)))),
-    (re.compile(r"!DONE (-?\d{1,6})"), lambda m: Done(int(m.group(1)))),
-    (re.compile(r"!HOME (\d{1,6})"), lambda m: HomeDone(int(m.group(1)))),
+    (re.compile(r"!DONE (-?\d{1,6})(?: " + _MS + ")?"), lambda m: Done(int(m.group(1)), _ms(m.group(2)))),
+    (re.compile(r"!POS (-?\d{1,6}) " + _MS), lambda m: Position(int(m.group(1)), int(_ms(m.group(2)) or 0))),
+    (re.compile(r"!HOME (\d{1,6})(?: " + _MS + ")?"), lambda m: HomeDone(int(m.group(1)), _ms(m.group(2)))),
     (re.compile(r"!END ([01])"), lambda m: EndSensor(int(m.group(1)))),
     (re.compile(r"!WDOG"), lambda m: WatchdogFired()),
 ]
@@ -286,13 +336,16 @@ def parse_line(raw: bytes) -> Line:
     for pattern, make in _LINE_FORMS:
         match = pattern.fullmatch(text)
         if match:
-            return make(match)
+            try:
+                return make(match)
+            except ValueError as exc:
+                raise MalformedLine(raw, str(exc)) from None
     raise MalformedLine(raw, "not a reply (OK/ERR) or event (!...)")
 
 
 def is_event(line: Line) -> bool:
     """Events arrive unasked; replies answer the oldest command in flight."""
-    return isinstance(line, (Boot, Done, HomeDone, EndSensor, WatchdogFired))
+    return isinstance(line, (Boot, Done, Position, HomeDone, EndSensor, WatchdogFired))
 
 
 def encode_line(line: Line) -> bytes:
@@ -304,9 +357,11 @@ def encode_line(line: Line) -> bytes:
     elif isinstance(line, Boot):
         text = f"!BOOT {DEVICE_NAME} v{line.version}"
     elif isinstance(line, Done):
-        text = f"!DONE {line.position}"
+        text = f"!DONE {line.position}" + ("" if line.device_ms is None else f" {line.device_ms}")
+    elif isinstance(line, Position):
+        text = f"!POS {line.position} {line.device_ms}"
     elif isinstance(line, HomeDone):
-        text = f"!HOME {line.track}"
+        text = f"!HOME {line.track}" + ("" if line.device_ms is None else f" {line.device_ms}")
     elif isinstance(line, EndSensor):
         text = f"!END {line.which}"
     elif isinstance(line, WatchdogFired):
@@ -338,10 +393,12 @@ class StatusInfo:
     at_start: bool
     at_end: bool
     homed: bool
+    device_ms: Optional[int] = None   # v2: the device's counter when it read this status
 
 
 _IDENT = re.compile(DEVICE_NAME + r" v(\d{1,3}) track=(\d{1,6}) speed=(\d{1,4})")
-_STATUS = re.compile(r"P(-?\d{1,6}) L([01]) M([01]) E([01])([01]) H([01])")
+_STATUS = re.compile(r"P(-?\d{1,6}) L([01]) M([01]) E([01])([01]) H([01])(?: T" + _MS + ")?")
+_CLOCK = re.compile(r"T" + _MS)
 
 
 def parse_identify(payload: str, raw: Optional[bytes] = None) -> IdentifyInfo:
@@ -358,16 +415,32 @@ def format_identify(info: IdentifyInfo) -> str:
 
 
 def parse_status(payload: str, raw: Optional[bytes] = None) -> StatusInfo:
-    """``P235 L1 M0 E00 H1`` -> StatusInfo; MalformedLine otherwise."""
+    """``P235 L1 M0 E00 H1`` (v1) / ``P235 L1 M0 E00 H1 T81234`` (v2) -> StatusInfo; MalformedLine otherwise."""
     match = _STATUS.fullmatch(payload)
     if not match:
         raise MalformedLine(raw or payload.encode(), f"not a status payload: {payload!r}")
     g = match.groups()
-    return StatusInfo(int(g[0]), g[1] == "1", g[2] == "1", g[3] == "1", g[4] == "1", g[5] == "1")
+    try:
+        device_ms = _ms(g[6])
+    except ValueError as exc:
+        raise MalformedLine(raw or payload.encode(), str(exc)) from None
+    return StatusInfo(int(g[0]), g[1] == "1", g[2] == "1", g[3] == "1", g[4] == "1", g[5] == "1", device_ms)
 
 
 def format_status(info: StatusInfo) -> str:
     """Emulator side of `parse_status`."""
     b = lambda flag: "1" if flag else "0"  # noqa: E731
     return (f"P{info.position} L{b(info.laser_on)} M{b(info.moving)} "
-            f"E{b(info.at_start)}{b(info.at_end)} H{b(info.homed)}")
+            f"E{b(info.at_start)}{b(info.at_end)} H{b(info.homed)}"
+            + ("" if info.device_ms is None else f" T{info.device_ms}"))
+
+
+def parse_clock(payload: str, raw: Optional[bytes] = None) -> int:
+    """``T81234`` (the ``T`` reply, v2) -> the device's millisecond counter; MalformedLine otherwise."""
+    match = _CLOCK.fullmatch(payload)
+    try:
+        if match:
+            return int(_ms(match.group(1)) or 0)
+    except ValueError:
+        pass
+    raise MalformedLine(raw or payload.encode(), f"not a clock payload: {payload!r}")

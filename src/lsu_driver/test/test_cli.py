@@ -8,7 +8,7 @@ def test_send_prints_replies_and_events(tmp_path, lsu_cli):
         result = lsu_cli("gp32", "send", str(emu.link), "?", "P", "M+5", "--wait", timeout=60)
         assert result.returncode == 0, result.stdout + result.stderr
         out = result.stdout
-        assert "< OK LSU-GP32 v1 track=470 speed=200" in out and "(reply)" in out
+        assert "< OK LSU-GP32 v2 track=470 speed=200" in out and "(reply)" in out
         assert "!DONE 5" in out and "(event)" in out
         assert emu.truth().counter_steps == 5
         refused = lsu_cli("gp32", "send", str(emu.link), "G100", timeout=60)

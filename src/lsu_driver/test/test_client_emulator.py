@@ -38,7 +38,7 @@ def unit_client(unit):
 
 
 def test_home_learns_the_track_and_move_to_takes_real_time(unit_client, unit):
-    assert unit_client.identity.version == 1 and not unit_client.homed
+    assert unit_client.identity.version == 2 and not unit_client.homed
     assert unit_client.home() == 470
     t0 = time.monotonic()
     result = unit_client.move_to(235)
@@ -219,13 +219,13 @@ def test_wrong_version_is_refused(tmp_path):
         buf = b""
         while b"?" not in buf:
             buf += os.read(master, 64)
-        os.write(master, b"OK LSU-GP32 v2 track=470 speed=200\n")
+        os.write(master, b"OK LSU-GP32 v3 track=470 speed=200\n")
 
     threading.Thread(target=device, daemon=True).start()
     try:
         with pytest.raises(VersionMismatch) as info:
             Gp32Client(os.ttyname(slave), command_timeout_s=1.0, reconnect=False).connect()
-        assert "v2" in str(info.value) and "needs v1" in str(info.value)
+        assert "v3" in str(info.value) and "needs v1 or v2" in str(info.value)
     finally:
         os.close(master)
         os.close(slave)

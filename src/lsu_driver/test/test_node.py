@@ -5,7 +5,7 @@ import time
 import pytest
 from std_srvs.srv import SetBool, Trigger
 
-from lsu_interfaces.msg import ScannerState, SimTruth
+from lsu_interfaces.msg import CarriagePosition, ScannerState, SimTruth
 from lsu_interfaces.srv import MoveTo, Step
 from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator
 from lsu_driver.emulator_node import Gp32EmulatorNode
@@ -44,11 +44,26 @@ def test_services_home_move_step_and_laser(rig, emulator):
     assert not refused.success and "not homed" in refused.message
     home = h.call(c["home"], Trigger.Request(), timeout_s=20)
     assert home.success and "470" in home.message
+    carriage = []
+    h.node.create_subscription(CarriagePosition, "/lsu/driver/carriage", carriage.append, 100)
     moved = h.call(c["move_to"], MoveTo.Request(position_steps=100), timeout_s=10)
     assert moved.success and moved.position_steps == 100 and abs(emulator.truth().position_steps - 100) < 0.5
-    # the stop stamp is when the unit stopped (the emulator's own clock of it), not when the reply left
+    # the stop stamp is when the unit stopped (its !DONE's device stamp mapped), not when the reply left
     stopped = moved.stopped_stamp.sec + moved.stopped_stamp.nanosec * 1e-9
-    assert abs(stopped - emulator.truth().stopped_at_s) < 0.02
+    assert abs(stopped - emulator.truth().stopped_at_s) < 0.005
+    # driver/carriage: the !POS events during the move (20 Hz) and its !DONE, each stamped when it happened
+    assert h.spin_until(lambda: any(m.source == "done" and m.position_steps == 100 for m in carriage), 2.0)
+    truth = {(e["line"].split()[0], int(e["line"].split()[1]), e["device_ms"]): e["wall_s"]
+             for e in emulator.handle_control({"get": "events"})["events"]}
+    moving = [m for m in carriage if m.source == "pos"]
+    assert len(moving) >= 10 and all(m.moving and m.header.frame_id == "lsu_laser_origin" for m in moving)
+    for m in moving + [m for m in carriage if m.source == "done"]:
+        stamp = m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
+        candidates = [wall for (kind, pos, _), wall in truth.items()
+                      if kind == ("!POS" if m.source == "pos" else "!DONE") and pos == m.position_steps]
+        assert candidates and min(abs(stamp - wall) for wall in candidates) <= m.uncertainty_s, m
+    stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in moving]
+    assert stamps == sorted(stamps) and [m.position_steps for m in moving] == sorted(m.position_steps for m in moving)
     stepped = h.call(c["step"], Step.Request(steps=-30), timeout_s=10)
     assert stepped.success and stepped.position_steps == 70
     beyond = h.call(c["move_to"], MoveTo.Request(position_steps=900))
@@ -57,7 +72,7 @@ def test_services_home_move_step_and_laser(rig, emulator):
     assert h.spin_until(lambda: states[-1][1].laser_on, 2.0)
     assert h.call(c["laser"], SetBool.Request(data=False)).success and not emulator.truth().laser_on
     last = states[-1][1]
-    assert last.homed and last.position_steps == 70 and last.track_steps == 470 and last.firmware == "LSU-GP32 v1"
+    assert last.homed and last.position_steps == 70 and last.track_steps == 470 and last.firmware == "LSU-GP32 v2"
 
 
 def test_state_from_every_poll_of_a_5hz_or_faster_timer_and_on_change(rig, emulator):

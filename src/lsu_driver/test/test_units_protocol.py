@@ -1,9 +1,12 @@
-"""Protocol v1 line by line on both units (emulator and firmware in the HC08 simulator): the
-replies the protocol page prescribes for every command form, error codes, over-long lines and
-the power-on ``!BOOT``. Expected lines come from the protocol module's own encoder."""
+"""Protocol v2 line by line on both units (emulator and firmware in the HC08 simulator): the
+replies the protocol page prescribes for every command form, error codes, over-long lines, the
+power-on ``!BOOT`` and the device clock (``T``, ``R``, ``!POS``, stamps). Expected lines come from
+the protocol module's own encoder; the v1 forms are checked with the stamps taken off."""
 
 from __future__ import annotations
 
+import re
+import statistics
 import time
 from typing import List
 
@@ -13,13 +16,24 @@ import serial
 from lsu_driver import protocol as p
 
 
+_STAMPED = re.compile(rb"((?:!DONE|!POS|!HOME) -?\d+|OK P.* H[01]) T?\d+\n")
+
+
+def unstamped(raw: bytes) -> bytes:
+    """The line without its v2 device stamp: ``!DONE 5 81234`` -> ``!DONE 5``, ``OK P0 ... H0 T12`` -> ``OK P0 ... H0``."""
+    match = _STAMPED.fullmatch(raw)
+    return match.group(1) + b"\n" if match else raw
+
+
 class Line:
-    """A raw serial connection: send one command, collect the lines that follow."""
+    """A raw serial connection: send one command, collect the lines that follow (stamps taken off;
+    ``raw_since_command`` keeps them)."""
 
     def __init__(self, path: str) -> None:
         self.port = serial.Serial(path, 115200, timeout=0.05)
         self.buffer = b""
         self.since_command: List[bytes] = []  # every line since the last command was sent
+        self.raw_since_command: List[bytes] = []
 
     def read_lines(self, until: float) -> List[bytes]:
         lines = []
@@ -28,6 +42,8 @@ class Line:
             while b"\n" in self.buffer:
                 raw, self.buffer = self.buffer.split(b"\n", 1)
                 lines.append(raw + b"\n")
+        self.raw_since_command += lines
+        lines = [unstamped(x) for x in lines]
         self.since_command += lines
         return lines
 
@@ -35,6 +51,7 @@ class Line:
         """The lines after sending ``command``: up to its reply (OK/ERR), then ``settle_s`` more (so a
         second reply would show)."""
         self.since_command = []
+        self.raw_since_command = []
         self.port.write(command)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end and not any(x.startswith((b"OK", b"ERR")) for x in self.since_command):
@@ -63,13 +80,13 @@ def err(code: int) -> bytes:
 
 
 def test_identify_status_and_settings_answer_exactly_as_the_protocol_page(line):
-    assert line.ask(b"?\n") == [p.encode_line(p.Ok(p.format_identify(p.IdentifyInfo(1, 470, 200))))]
+    assert line.ask(b"?\n") == [p.encode_line(p.Ok(p.format_identify(p.IdentifyInfo(2, 470, 200))))]
     assert line.ask(b"p\r\n") == [p.encode_line(p.Ok(p.format_status(
         p.StatusInfo(0, False, False, False, False, False))))]  # case-insensitive, CR ignored
     assert line.ask(b"  S350 \n") == [b"OK S350\n"]
     assert line.ask(b"W0\n") == [b"OK W0\n"]
     assert line.ask(b"L1\n") == [b"OK L1\n"]
-    assert line.ask(b"?\n") == [b"OK LSU-GP32 v1 track=470 speed=350\n"]
+    assert line.ask(b"?\n") == [b"OK LSU-GP32 v2 track=470 speed=350\n"]
     assert line.ask(b"L0\n") == [b"OK L0\n"]
 
 
@@ -111,6 +128,50 @@ def test_power_cycle_announces_boot_and_forgets_position(line, unit):
     assert line.wait_for(b"!DONE 5\n", 3.0) == [b"OK\n", b"!DONE 5\n"]
     line.since_command = []
     unit.reset()
-    assert line.wait_for(b"!BOOT LSU-GP32 v1\n", 5.0) == [b"!BOOT LSU-GP32 v1\n"]
+    assert line.wait_for(b"!BOOT LSU-GP32 v2\n", 5.0) == [b"!BOOT LSU-GP32 v2\n"]
     assert line.ask(b"P\n") == [b"OK P0 L0 M0 E00 H0\n"]
     assert unit.truth().position_steps == pytest.approx(25.0, abs=0.01)  # the carriage did not move
+
+
+def _clock(line: Line) -> int:
+    reply = line.ask(b"T\n", 0.0)
+    assert reply == [reply[0]] and reply[0].startswith(b"OK T"), reply
+    return p.parse_clock(p.parse_line(reply[0]).payload)  # type: ignore[union-attr]
+
+
+def test_v2_clock_stamps_and_position_events(line):
+    """T, R and the stamps of P, !POS and !DONE on the device's own clock: the stamps never go back,
+    a motion of n pulses at r steps/s spans at least n / r on it, and !POS comes every 1 / R s."""
+    t0 = _clock(line)
+    line.ask(b"P\n", 0.0)
+    status = p.parse_status(p.parse_line(line.raw_since_command[0]).payload)  # type: ignore[union-attr]
+    assert status.device_ms is not None and status.device_ms >= t0
+    assert line.ask(b"R51\n") == [err(p.ERR_ARGUMENT)]
+    assert line.ask(b"R-1\n") == [err(p.ERR_ARGUMENT)]
+    assert line.ask(b"r20\n") == [b"OK R20\n"]
+    t1 = _clock(line)
+    assert line.ask(b"M+100\n", 0.0)[0] == b"OK\n"
+    line.port.write(b"T\n")  # answered during motion, between the events
+    seen = line.wait_for(b"!DONE 100\n", 5.0)
+    assert seen[-1] == b"!DONE 100\n", seen
+    during = [p.parse_clock(x[3:].decode().strip()) for x in line.raw_since_command if x.startswith(b"OK T")]
+    assert len(during) == 1 and during[0] >= t1
+    events = [p.parse_line(x) for x in line.raw_since_command if x.startswith(b"!")]
+    positions = [e for e in events if isinstance(e, p.Position)]
+    done = events[-1]
+    assert isinstance(done, p.Done) and done.device_ms is not None
+    assert done.device_ms - t1 >= 100 / 200 * 1000 - 2  # 100 pulses at 200 steps/s, on the device clock
+    assert len(positions) >= 8, events  # 0.5 s at 20 Hz, the first at the start
+    assert [e.position for e in positions] == sorted(e.position for e in positions)
+    assert positions[0].position <= 2 and positions[-1].position < 100
+    stamps = [e.device_ms for e in positions] + [done.device_ms]
+    assert stamps == sorted(stamps)
+    gaps = [b - a for a, b in zip(stamps[:-2], stamps[1:-1])]
+    assert statistics.median(gaps) == pytest.approx(50, abs=2), gaps
+    for event in positions:  # where the counter was at that instant: rate x elapsed device time
+        assert event.position == pytest.approx((event.device_ms - positions[0].device_ms) * 0.2
+                                               + positions[0].position, abs=3)
+    assert line.ask(b"R0\n") == [b"OK R0\n"]
+    assert line.ask(b"M-10\n", 0.0)[0] == b"OK\n"
+    assert line.wait_for(b"!DONE 90\n", 3.0)[-1] == b"!DONE 90\n"
+    assert not any(x.startswith(b"!POS") for x in line.raw_since_command)  # R0: off
