@@ -27,7 +27,8 @@ INTERFACES = [
     "lsu_interfaces/msg/ScannerState", "lsu_interfaces/msg/SimTruth", "lsu_interfaces/msg/LaserLine",
     "lsu_interfaces/msg/ScanEvent", "lsu_interfaces/msg/StereoExtrinsics", "lsu_interfaces/srv/MoveTo",
     "lsu_interfaces/srv/Step", "lsu_interfaces/srv/CaptureStereo", "lsu_interfaces/srv/Enroll",
-    "lsu_interfaces/srv/Identify", "lsu_interfaces/action/Scan",
+    "lsu_interfaces/srv/Identify", "lsu_interfaces/action/Scan", "lsu_interfaces/msg/CarriagePosition",
+    "tf2_msgs/msg/TFMessage",
     "sensor_msgs/msg/PointCloud2", "sensor_msgs/msg/Image", "std_srvs/srv/SetBool",
     "diagnostic_msgs/msg/DiagnosticArray", "visualization_msgs/msg/Marker", "shape_msgs/msg/Mesh",
 ]
