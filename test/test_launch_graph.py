@@ -60,7 +60,8 @@ def test_run_gives_the_same_exchange_in_one_process(launch, lsu_cli):
     check_exchange(lsu_cli, "pp_run")
     children = subprocess.run(["pgrep", "-P", str(proc.process.pid)], capture_output=True, text=True).stdout.split()
     assert children == []  # both nodes live inside the lsu process
-    assert proc.interrupt(timeout_s=10) == 0
+    code = proc.interrupt(timeout_s=10)
+    assert code == 0, proc.output[-3000:]
 
 
 def test_params_can_be_read_set_and_dumped(launch, lsu_cli):

@@ -93,9 +93,13 @@ class GraphClient:
         """
         start = time.monotonic()
         last_change, seen = start, self.graph_snapshot()
+        me = (self.node.get_name(), self.node.get_namespace())
         while self.context.ok():
             now = time.monotonic()
-            if now - start >= max_s or (now - start >= min_s and now - last_change >= quiet_s):
+            # quiet only counts once another participant is seen: on a busy host the first
+            # announcement can take seconds, and "nothing new" before it means nothing yet
+            others = any((name, ns) != me for name, ns in seen[0])
+            if now - start >= max_s or (others and now - start >= min_s and now - last_change >= quiet_s):
                 break
             self.executor.spin_once(timeout_sec=0.05)
             current = self.graph_snapshot()

@@ -40,3 +40,27 @@ def test_listing_waits_while_nodes_keep_appearing(ros_context):
                 node.destroy_node()
     assert finished_first  # the wait outlasted the last node's start ...
     assert seen == set(names)  # ... and saw all of them
+
+
+def test_listing_does_not_stop_before_the_first_other_participant_is_seen(ros_context):
+    import rclpy
+
+    # on a busy host the first announcement of the graph's nodes can come after the quiet period:
+    # "nothing new for 1.5 s" before anything else was seen means nothing seen yet, not a settled graph
+    late = {}
+
+    def bring_up() -> None:
+        late["node"] = rclpy.create_node("first_and_late", namespace="/graphtest2", context=ros_context)
+
+    timer = threading.Timer(2 * (DISCOVERY_QUIET_S + 1.0), bring_up)
+    with GraphClient() as g:
+        timer.start()
+        try:
+            g.wait_for_discovery(max_s=60.0)
+            seen = {n for n, ns in g.node.get_node_names_and_namespaces() if ns == "/graphtest2"}
+        finally:
+            timer.cancel()
+            timer.join()
+            if "node" in late:
+                late["node"].destroy_node()
+    assert seen == {"first_and_late"}
