@@ -4,8 +4,9 @@ Data: ``lsu_cameras.sim.people`` (MakeHuman's CC0 head-and-shoulders mesh with s
 hair volume, expressions, glasses, a raised fist), scanned by two sensors:
 
 - the LSU rig (``lsu_faces.synthetic.fast_scan``: left-camera ray casting, a laser sheet per carriage
-  position, laser shadow and right-camera visibility, 0.05 mm noise along the ray, 10 % of the points
-  dropped), with today's simulated physics;
+  position, laser shadow and right-camera visibility, noise along the ray at the rig's speckle limit
+  (``lsu_bringup.accuracy.rig_speckle_limit`` for config/sim_rig.yaml: ~0.1 mm per point at 300 mm,
+  what the rendered rig measures on a plane), 10 % of the points dropped);
 - a coarse consumer depth camera (``lsu_cameras.sim.depthcam``: 640 x 480 at 850 mm, 4 mm depth steps,
   1.5 mm noise, holes at silhouettes and in projector shadows, hair returning 60 % of its pixels).
 
@@ -44,7 +45,11 @@ from lsu_faces.synthetic import fast_scan  # noqa: E402
 
 IDENTITIES = int(os.environ.get("LSU_BENCH_FACES_IDS", "16"))
 PROBES = 2
-NOISE_M = 5e-5
+from lsu_bringup.accuracy import rig_speckle_limit  # noqa: E402
+from lsu_cameras.sim import load_rig  # noqa: E402
+
+# one point's depth sigma at the speckle limit: no extraction gets a single point below it
+NOISE_M = rig_speckle_limit(load_rig())["depth_mm"] / 1000.0
 DROP = 0.10
 STEP = 5
 FAR = DEFAULT_FALSE_ACCEPT
@@ -238,7 +243,7 @@ def main() -> None:
              f"lsu_cameras.sim.people), gallery = 1 frontal neutral scan each, {PROBES} probes per person and sensor "
              f"(smile / open mouth / surprise, yaw +-25, pitch +-10, glasses on 1/3, a fist before the chin on 1/5). "
              f"Sensors: the LSU rig (fast path: ray casting with laser shadow and right-camera visibility, "
-             f"{NOISE_M * 1000:.2f} mm noise, {DROP * 100:.0f} % dropped, carriage step {STEP}; today's physics) and a "
+             f"{NOISE_M * 1000:.2f} mm noise (the rig's speckle limit), {DROP * 100:.0f} % dropped, carriage step {STEP}) and a "
              f"coarse depth camera (640x480 at 850 mm, 4 mm depth steps, 1.5 mm noise, silhouette and shadow holes). "
              f"Open set at a stated false-accept rate of {FAR:g} per probe: false accept = with the probe's own "
              f"person left out, the best other person is accepted; false reject = own person enrolled but not the "
