@@ -138,15 +138,16 @@ def test_the_clock_restarts_with_the_device(emulator):
     client = Gp32Client(str(emulator.link), command_timeout_s=1.0)
     client.connect()
     try:
-        time.sleep(0.3)
-        before = client.read_clock()  # >= 300 ms after power-on
+        time.sleep(1.2)
+        before = client.read_clock()  # >= 1.2 s after power-on: the old mapping would be >= 1.2 s off below
         emulator.reset()  # power cycle: the counter starts again from its power-on value
         deadline = time.monotonic() + 3.0
         while not any(isinstance(e, p.Boot) for e in client.recent_events()) and time.monotonic() < deadline:
             time.sleep(0.01)
-        assert client.clock_uncertainty_s() is None  # the old mapping is gone with the old counter
         after = client.read_clock()
         mapped = client.map_device_ms(after)
+        # the old mapping is gone with the old counter: kept, it would place the restarted (smaller)
+        # count seconds in the past. (Whether the client has re-read the clock yet is a race: not checked.)
         assert mapped is not None and abs(mapped[0] - time.time()) < 0.5
         assert after < before  # it restarted from its power-on value (it would have counted on otherwise)
     finally:
