@@ -8,8 +8,8 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from lsu_bringup.bags import deserialize_ros, read_messages
-from lsu_bringup.testing import LSU
+from lsu_bags.bags import deserialize_ros, read_messages
+from lsu_testing.plugin import LSU
 from lsu_reconstruct.node import msg_to_cloud
 from lsu_reconstruct.pointcloud2 import decode
 

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsu_bringup.bags import bag_info
-from lsu_bringup.demo import accuracy_against_scene
-from lsu_bringup.processes import LSU
-from lsu_bringup.twohosts import TwoHosts, split_scan, why_unavailable
+from lsu_bags.bags import bag_info
+from lsu_tools.demo import accuracy_against_scene
+from lsu_tools.processes import LSU
+from lsu_tools.twohosts import TwoHosts, split_scan, why_unavailable
 
 pytestmark = pytest.mark.slow
 UNAVAILABLE = why_unavailable()
