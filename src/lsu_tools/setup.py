@@ -28,5 +28,12 @@ setup(
             "selftest_talker = lsu_tools.selftest:SelftestTalker",
             "selftest_listener = lsu_tools.selftest:SelftestListener",
         ],
+        # every `lsu` subcommand, this package's own included: lsu_tools.cli imports none of them
+        "lsu.commands": [
+            "launch = lsu_tools.cli:register",
+            "graph = lsu_tools.graph:register",
+            "doctor = lsu_tools.doctor:register",
+            "demo = lsu_tools.demo:register",
+        ],
     },
 )

@@ -451,12 +451,13 @@ def rig_speckle_limit(geometry, distance_m: float = REFERENCE_DISTANCE_M, with_l
 def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> Dict:
     """The whole study on the simulated rig; returns a JSON-ready dict (see `write_report`)."""
     from lsu_cameras.sim import build_scene, load_rig
+    from lsu_config import config_dir
     from lsu_faces.smoothing import SmoothParams
     from lsu_reconstruct.stereo import StereoModel
 
     config.check()
     t_start = time.perf_counter()
-    calibration = config.calibration or (Path(__file__).resolve().parents[3] / "config" / "calibration" / "sim")
+    calibration = config.calibration or (config_dir() / "calibration" / "sim")
     model = StereoModel.from_folder(calibration)
     geometry = load_rig()
     poses = default_poses(config.poses, config.min_distance_m, config.max_distance_m)

@@ -20,12 +20,13 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
 
     if args.bag:
         from lsu_cameras.calibration import BoardSpec
+        from lsu_config import config_dir
 
         from .accuracy_bag import run_bag_study
 
         board = BoardSpec.parse(args.board, args.square)
         calibration = Path(args.calibration) if args.calibration else \
-            Path(__file__).resolve().parents[3] / "config" / "calibration" / "sim"
+            config_dir() / "calibration" / "sim"
         print(f"[lsu accuracy] board scans in {args.bag}: {board.cols}x{board.rows} board, {args.square:g} mm squares, "
               f"calibration {calibration}", flush=True)
         result = run_bag_study(args.bag, calibration, board, progress=lambda s: print(f"[lsu accuracy] {s}", flush=True))

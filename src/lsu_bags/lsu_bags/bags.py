@@ -114,14 +114,11 @@ class PlaybackQos:
 
 # ----------------------------------------------------------------------------- types
 def default_msg_dirs() -> List[Path]:
-    """Folders laid out ``<dir>/<pkg>/msg/<Name>.msg``: the install's share dirs, then the source tree."""
-    from lsu_tools.cli import workspace_root  # no rclpy behind this import
-
+    """Folders laid out ``<dir>/<pkg>/msg/<Name>.msg``: the install's share folders (ament layout)."""
     dirs = [Path(sys.prefix) / "share"]
     for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
         if prefix:
             dirs.append(Path(prefix) / "share")
-    dirs.append(workspace_root() / "src")
     return dirs
 
 

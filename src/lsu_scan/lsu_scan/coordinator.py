@@ -65,7 +65,7 @@ def _key(stamp: Any) -> tuple:
 # name -> (default, description, (low, high) or None). Every one is read when it is used, so a
 # `param set` takes effect at the next call, deadline or scan; values outside the range are refused.
 PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
-    "output_dir": ("", "parent folder of scans/<id>/; empty = <workspace>/scans (applies from the next scan)", None),
+    "output_dir": ("", "parent folder of scans/<id>/; empty = scans/ in the directory the node was started from (applies from the next scan)", None),
     "capture_timeout_s": (1.0, "a stereo/capture call longer than this aborts (+ 0.3 s for the reply; below the "
                                "laser watchdog) [s]", (0.05, 30.0)),
     "ack_timeout_s": (5.0, "a snap the matcher does not acknowledge within this (from its capture) aborts the "
@@ -205,9 +205,7 @@ class ScanCoordinatorNode(Node):
                 continue
             value = param.value
             if param.name == "output_dir":
-                from lsu_tools.cli import workspace_root
-
-                self.output_dir = Path(value) if value else workspace_root() / "scans"
+                self.output_dir = Path(value) if value else Path.cwd() / "scans"
             elif param.name == "calibration_dir":
                 self.calibration_dir = str(value)
             else:

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, MutableMapping, Optional
 
+from lsu_config import config_dir
+
 DISCOVERY_VAR = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 DOMAIN_VAR = "ROS_DOMAIN_ID"
 LOCALHOST = "LOCALHOST"
@@ -54,16 +56,21 @@ def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
     return EnvReport(env[DISCOVERY_VAR], set_range, env[DOMAIN_VAR], set_domain)
 
 
-FASTDDS_PROFILES = Path(__file__).resolve().parents[3] / "config" / "dds" / "fastdds.xml"
+def fastdds_profiles() -> Path:
+    """The Fast DDS profile file of the LSU configuration."""
+    return config_dir() / "dds" / "fastdds.xml"
+
+
 _PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
 
 
 def use_profiles(env: MutableMapping[str, str]) -> None:
     """Point Fast DDS at our profile file (short heartbeats: a lost image fragment is repaired in
     50 ms instead of 3 s), unless the user chose a file of their own."""
-    if FASTDDS_PROFILES.is_file() and not any(env.get(v) for v in _PROFILE_VARS):
+    profiles = fastdds_profiles()
+    if profiles.is_file() and not any(env.get(v) for v in _PROFILE_VARS):
         for var in _PROFILE_VARS:
-            env[var] = str(FASTDDS_PROFILES)
+            env[var] = str(profiles)
 
 
 #: glibc malloc tuning for processes that move camera frames (~1 MB each, several per snap).

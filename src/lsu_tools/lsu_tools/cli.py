@@ -1,31 +1,20 @@
 """The `lsu` command: one entry point, subcommands for everything a lab user does.
 
-`lsu launch`, `lsu run`, graph introspection (`node`, `topic`, `service`, `param`),
-`lsu doctor` and `lsu demo` live here; other packages add their own subcommands through
-the ``lsu.commands`` entry point group (a function ``register(subparsers)``).
+Every subcommand comes from the ``lsu.commands`` entry point group (a function
+``register(subparsers)``), this package's own (`launch` and `run` here, graph introspection,
+`doctor`, `demo`) as much as those of the other packages (`bag`, `scan`, `accuracy`, ...), so
+this module imports none of them and each package registers what it offers.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 from typing import List, Optional
 
+from lsu_config import config_dir
 from lsu_scan import rosenv
-
-
-def workspace_root() -> Path:
-    """The checkout this package runs from (editable install), or LSU_WORKSPACE."""
-    if os.environ.get("LSU_WORKSPACE"):
-        return Path(os.environ["LSU_WORKSPACE"])
-    return Path(__file__).resolve().parents[3]
-
-
-def config_dir() -> Path:
-    """Folder with parameters, calibration, profiles and launch files (LSU_CONFIG_DIR overrides)."""
-    return Path(os.environ.get("LSU_CONFIG_DIR", workspace_root() / "config"))
 
 
 def resolve_launch_file(name: str) -> Path:
@@ -76,7 +65,8 @@ def _selection_options(p: argparse.ArgumentParser) -> None:
                    help="leave these groups or nodes out")
 
 
-def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """Add `launch` and `run` (``lsu.commands`` entry point)."""
     p = sub.add_parser("launch", help="start the nodes of a YAML launch file, one process each",
                        description="Start every node of a ROS 2 YAML launch file as its own process. "
                                    "Ctrl-C stops them all (SIGINT, then SIGTERM, then SIGKILL).")
@@ -99,19 +89,14 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.set_defaults(func=cmd_run)
 
 
-def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.ArgumentParser:
-    """The full `lsu` argument parser, plugins included."""
-    from . import demo, doctor, graph
+def build_parser() -> argparse.ArgumentParser:
+    """The full `lsu` argument parser: every installed ``lsu.commands`` entry point."""
     from .nodes_index import command_plugins
 
     parser = argparse.ArgumentParser(
         prog="lsu", description="LSU stereo laser-line scanner: launch, inspect and run the ROS 2 graph.",
         epilog="DDS stays on this machine: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless you set it.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    _launch_parsers(sub)
-    graph.register(sub)
-    doctor.register(sub, lambda: env_report)
-    demo.register(sub)
     for entry in command_plugins():
         try:
             entry.load()(sub)
@@ -124,8 +109,9 @@ def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.Argu
 def main(argv: Optional[List[str]] = None) -> int:
     """Console script `lsu`."""
     report = rosenv.apply_defaults()
-    parser = build_parser(report)
+    parser = build_parser()
     args = parser.parse_args(argv)
+    args.env_report = report  # what lsu set by default, for `lsu doctor`
     from .graph import GraphError
     from .launch_file import LaunchError
     from lsu_bags.rosmsg import InterfaceError

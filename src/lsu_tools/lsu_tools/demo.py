@@ -40,12 +40,11 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .cli import workspace_root
     from lsu_scan.scanner import LsuScanner, ScannerError
     from .processes import LaunchedProcess
 
     claim = rosenv.isolate()
-    out = Path(args.out or workspace_root() / "scans").resolve()
+    out = Path(args.out or "scans").resolve()
     print(f"[demo] DDS: localhost only, ROS_DOMAIN_ID={claim.domain_id} (claimed for this run)")
     with tempfile.TemporaryDirectory(prefix="lsu-demo-") as tmp:
         port = str(Path(tmp) / "gp32")
@@ -131,7 +130,7 @@ def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None
     p.add_argument("--end", type=int, default=470)
     p.add_argument("--step", type=int, default=2)
     p.add_argument("--settle", type=float, default=0.1)
-    p.add_argument("--out", default="", help="parent folder of the scan folder (default <workspace>/scans)")
+    p.add_argument("--out", default="", help="parent folder of the scan folder (default scans/ in the current directory)")
     p.set_defaults(func=cmd_demo)
 
 

@@ -19,7 +19,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Mapping, Optional
+from typing import Dict, List, Mapping, Optional
 
 from lsu_scan.rosenv import DISCOVERY_VAR, DOMAIN_VAR, LOCALHOST, EnvReport
 
@@ -287,9 +287,8 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]",
-             env_report: Callable[[], Optional[EnvReport]]) -> None:
-    """Add `doctor` to the `lsu` parser."""
+def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """Add `doctor` to the `lsu` parser (``lsu.commands`` entry point)."""
     p = sub.add_parser("doctor", help="check the installation, ROS environment and devices")
     p.add_argument("--graph", action="store_true", help="also run a talker/listener exchange through DDS")
-    p.set_defaults(func=cmd_doctor, env_report=env_report())
+    p.set_defaults(func=cmd_doctor)
