@@ -11,7 +11,7 @@ from sensor_msgs.msg import PointCloud2
 from lsu_bags.bags import deserialize_ros, read_messages
 from lsu_testing.plugin import LSU
 from lsu_reconstruct.node import msg_to_cloud
-from lsu_reconstruct.pointcloud2 import decode
+from lsu_bags.pointcloud2 import decode
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]

@@ -28,7 +28,7 @@ LAUNCH = ["capture_timeout_s:=5.0"]
 
 def cloud_by_pixel(folder: Path) -> dict:
     """(snap, left pixel row) -> x y z [m] of a scan's cloud.ply."""
-    from lsu_faces.plyio import read_ply
+    from lsu_bags.ply import read_ply
 
     cols, _ = read_ply(folder / "cloud.ply")
     keys = zip(cols["snap"].astype(int).tolist(), np.round(cols["v"] * 8).astype(int).tolist())

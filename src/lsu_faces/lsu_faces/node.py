@@ -226,7 +226,7 @@ class FaceProcessorNode(Node):
         self.get_logger().info(what)
 
     def _process_msg(self, msg: PointCloud2) -> Optional[ScanResult]:
-        from lsu_reconstruct.pointcloud2 import Cloud, PointField, decode
+        from lsu_bags.pointcloud2 import Cloud, PointField, decode
 
         cloud = Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
                       data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,

@@ -9,13 +9,13 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from lsu_faces.plyio import PlyError, read_ply
+from lsu_bags.ply import PlyError, read_ply
 
 
 def test_reads_an_lsu_reconstruct_cloud(tmp_path):
     from lsu_reconstruct.cli import write_ply
     from lsu_reconstruct.pipeline import SnapPoints
-    from lsu_reconstruct.pointcloud2 import pack_rgb
+    from lsu_bags.pointcloud2 import pack_rgb
 
     rng = np.random.default_rng(3)
     xyz = rng.normal(size=(40, 3))

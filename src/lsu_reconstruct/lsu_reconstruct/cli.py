@@ -19,9 +19,10 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from lsu_bags.pointcloud2 import unpack_rgb
+
 from .matching import LineArrays, MatchParams
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
-from .pointcloud2 import unpack_rgb
 from .stereo import StereoModel
 from .triangulate import METHODS
 

@@ -33,12 +33,12 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
 from std_msgs.msg import Header
 
+from lsu_bags.pointcloud2 import Cloud, PointField, decode, encode
 from lsu_cameras.polled import PolledGroup, take_all
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
 from .matching import LineArrays, MatchParams, prepare
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
-from .pointcloud2 import Cloud, PointField, decode, encode
 from .stereo import CalibrationError, StereoModel
 from .triangulate import METHODS
 

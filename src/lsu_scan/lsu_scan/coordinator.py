@@ -638,7 +638,7 @@ class ScanCoordinatorNode(Node):
         from lsu_reconstruct.cli import write_ply
         from lsu_reconstruct.node import msg_to_cloud
         from lsu_reconstruct.pipeline import SnapPoints
-        from lsu_reconstruct.pointcloud2 import decode
+        from lsu_bags.pointcloud2 import decode
 
         assert self._cloud is not None
         c = decode(msg_to_cloud(self._cloud))

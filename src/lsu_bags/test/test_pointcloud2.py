@@ -5,7 +5,7 @@ import struct
 import numpy as np
 import pytest
 
-from lsu_reconstruct.pointcloud2 import (FLOAT32, FLOAT64, UINT8, UINT32, LSU_FIELDS, Cloud, CloudError, PointField,
+from lsu_bags.pointcloud2 import (FLOAT32, FLOAT64, UINT8, UINT32, LSU_FIELDS, Cloud, CloudError, PointField,
                                          decode, encode, pack_rgb, unpack_rgb)
 
 
