@@ -1,20 +1,21 @@
-"""Read PLY clouds and meshes with every vertex property (numpy).
+"""Read PLY clouds and meshes with every vertex property, write LSU clouds (numpy).
 
 open3d's readers keep only x y z, normals and colours, but an LSU cloud (``lsu reconstruct``,
 ``cloud.ply`` of a scan) carries the left-image pixel ``u v`` and the ``snap`` index that meshing
 needs, so this small reader parses the header and maps the vertex element straight into a numpy
 structured array. It reads ascii and binary (little and big endian) files, scalar vertex
-properties of any type, and an optional ``face`` element of vertex index lists.
+properties of any type, and an optional ``face`` element of vertex index lists. The writer is
+hand-written for the same reason: open3d's writer would drop ``u v`` and ``snap``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-__all__ = ["PlyError", "read_ply"]
+__all__ = ["PlyError", "read_ply", "write_ply", "write_cloud_ply"]
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
           "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
@@ -124,3 +125,52 @@ def _checked(vertices: Dict[str, np.ndarray], faces: Optional[np.ndarray], path:
     if faces is not None and len(faces) and (faces.min() < 0 or faces.max() >= n):
         raise PlyError(f"{path}: face indices outside the {n} vertices")
     return vertices, faces
+
+
+# numpy dtype code -> PLY property type (the names the PLY spec and open3d use)
+_PLY_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float",
+              "f8": "double"}
+
+
+def write_ply(path: "str | Path", vertices: "Mapping[str, np.ndarray]", comments: Sequence[str] = ()) -> Path:
+    """Binary little-endian PLY of one vertex element: a property per column, in the mapping's order.
+
+    Each column's numpy dtype gives its PLY type (int8..uint32, float32, float64); returns ``path``.
+    """
+    path = Path(path)
+    columns = {name: np.asarray(col) for name, col in vertices.items()}
+    lengths = {len(c) for c in columns.values()}
+    if len(lengths) > 1:
+        raise PlyError(f"{path}: vertex columns have different lengths {sorted(lengths)}")
+    for name, col in columns.items():
+        if col.ndim != 1 or col.dtype.str[1:] not in _PLY_NAMES:
+            raise PlyError(f"{path}: column '{name}' ({col.dtype}, shape {col.shape}) is not a 1-D column of a PLY "
+                           f"type ({', '.join(_PLY_NAMES.values())})")
+    n = lengths.pop() if lengths else 0
+    rec = np.zeros(n, dtype=[(name, "<" + col.dtype.str[1:]) for name, col in columns.items()])
+    for name, col in columns.items():
+        rec[name] = col
+    header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}",
+              *(f"property {_PLY_NAMES[col.dtype.str[1:]]} {name}" for name, col in columns.items()), "end_header", ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        fh.write("\n".join(header).encode("ascii"))
+        fh.write(rec.tobytes())
+    return path
+
+
+def write_cloud_ply(path: "str | Path", columns: "Mapping[str, np.ndarray]", comment: str = "lsu") -> Path:
+    """An LSU cloud from PointCloud2 columns (x y z [m], packed rgb, u v, snap) as the PLY the project reads.
+
+    Properties: x y z (float, metres, lsu_left_optical), red green blue (uchar), u v (float, left
+    raw pixel), snap (uint). No ``rgb`` column: white.
+    """
+    from .pointcloud2 import unpack_rgb
+
+    n = len(columns["x"])
+    rgb = unpack_rgb(columns["rgb"]) if "rgb" in columns and n else np.full((n, 3), 255, np.uint8)
+    vertices = {"x": np.asarray(columns["x"], "<f4"), "y": np.asarray(columns["y"], "<f4"),
+                "z": np.asarray(columns["z"], "<f4"), "red": rgb[:, 0], "green": rgb[:, 1], "blue": rgb[:, 2],
+                "u": np.asarray(columns["u"], "<f4"), "v": np.asarray(columns["v"], "<f4"),
+                "snap": np.asarray(columns["snap"], "<u4")}
+    return write_ply(path, vertices, [f"{comment}, frame lsu_left_optical, metres"])

@@ -14,11 +14,11 @@ end of a row); writing uses the LSU layout of ARCHITECTURE.md unless told otherw
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence
 
 import numpy as np
 
-__all__ = ["PointField", "Cloud", "CloudError", "LSU_FIELDS", "layout", "encode", "decode", "pack_rgb",
+__all__ = ["PointField", "Cloud", "CloudError", "LSU_FIELDS", "layout", "encode", "decode", "from_msg", "pack_rgb",
            "unpack_rgb", "INT8", "UINT8", "INT16", "UINT16", "INT32", "UINT32", "FLOAT32", "FLOAT64"]
 
 # sensor_msgs/PointField datatype constants
@@ -144,6 +144,13 @@ def encode(columns: Mapping[str, np.ndarray], fields: Optional[List[PointField]]
     width = n // height
     return Cloud(fields=list(fields), data=arr.tobytes(), width=width, height=height, point_step=step,
                  row_step=step * width, is_bigendian=is_bigendian, is_dense=True)
+
+
+def from_msg(msg: Any) -> Cloud:
+    """The layout and bytes of a sensor_msgs/PointCloud2 (rclpy or rosbags message; header dropped)."""
+    return Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
+                 data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,
+                 row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
 
 
 def decode(cloud: Cloud, names: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:

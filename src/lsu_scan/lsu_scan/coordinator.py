@@ -634,18 +634,13 @@ class ScanCoordinatorNode(Node):
             self.get_logger().warning(f"no scan/cloud from stereo_matcher within {self.cloud_timeout_s:g} s; "
                                       "the per-snap data is in the bag if one was recorded")
             return 0
-        import numpy as np
-        from lsu_reconstruct.cli import write_ply
-        from lsu_reconstruct.node import msg_to_cloud
-        from lsu_reconstruct.pipeline import SnapPoints
-        from lsu_bags.pointcloud2 import decode
+        from lsu_bags.ply import write_cloud_ply
+        from lsu_bags.pointcloud2 import decode, from_msg
 
         assert self._cloud is not None
-        c = decode(msg_to_cloud(self._cloud))
-        points = SnapPoints(xyz=np.stack([c["x"], c["y"], c["z"]], axis=1), u=c["u"], v=c["v"], snap=c["snap"],
-                            rgb=c.get("rgb"))
-        record.files.append(str(write_ply(folder / "cloud.ply", points)))
-        return len(points)
+        columns = decode(from_msg(self._cloud))
+        record.files.append(str(write_cloud_ply(folder / "cloud.ply", columns, comment="lsu scan")))
+        return len(columns["x"])
 
     def _start_bag(self, folder: Path) -> Any:
         """Record the scan's topics on a private node spun by its own single-threaded executor.
