@@ -33,11 +33,16 @@ Running part of a file on one machine (`lsu launch sim --group rig` on the PC wi
 from __future__ import annotations
 
 import importlib
+import importlib.metadata as metadata
+import json
 import os
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+from urllib.parse import urlparse
+from urllib.request import url2pathname
 
 import yaml
 from yaml.nodes import MappingNode, Node, ScalarNode, SequenceNode
@@ -120,20 +125,27 @@ def _as_path(text: str, base: Path) -> Path:
 
 
 def _find_pkg_share(package: str) -> Path:
-    """Folder with the package's package.xml: the source folder for our editable installs."""
+    """Folder with the package's package.xml: ``share/PKG`` of this install or of an ament prefix,
+    else (an editable install, which installs no data files) the source folder it was installed from."""
     try:
-        module = importlib.import_module(package)
+        importlib.import_module(package)
     except ImportError as exc:
         raise LookupError(f"unknown package '{package}'") from exc
-    if module.__file__ is not None:
-        candidate = Path(module.__file__).resolve().parents[1]
-        if (candidate / "package.xml").exists():
-            return candidate
-    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+    prefixes = [sys.prefix, *(p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p)]
+    for prefix in prefixes:
         share = Path(prefix) / "share" / package
-        if prefix and share.is_dir():
+        if (share / "package.xml").is_file():
             return share
-    raise LookupError(f"package '{package}' has no share folder")
+    try:  # PEP 610: an editable install records the folder it came from
+        direct = json.loads(metadata.distribution(package).read_text("direct_url.json") or "{}")
+    except (metadata.PackageNotFoundError, ValueError):
+        direct = {}
+    if direct.get("dir_info", {}).get("editable") and str(direct.get("url", "")).startswith("file://"):
+        source = Path(url2pathname(urlparse(direct["url"]).path))
+        if (source / "package.xml").is_file():
+            return source
+    raise LookupError(f"package '{package}' has no share folder (no share/{package}/package.xml in "
+                      f"{', '.join(prefixes)})")
 
 
 class _Reader:

@@ -143,3 +143,15 @@ def test_dirname_is_absolute_when_the_file_is_given_relative(tmp_path, monkeypat
     monkeypatch.chdir(tmp_path)
     desc = load_launch("sub/t.launch.yaml", {}, resolve_executable)
     assert desc.nodes[0].param_files == [(tmp_path / "p.yaml").resolve()]
+
+
+def test_find_pkg_share_names_the_folder_with_the_package_xml(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    desc = load_launch(write(tmp_path, "launch:\n- arg: {name: where, default: $(find-pkg-share lsu_tools)}\n"
+                                       "- node: {pkg: lsu_tools, exec: selftest_talker, name: $(var where)}\n"),
+                       {}, None)
+    share = Path(desc.arguments["where"])
+    assert ET.parse(share / "package.xml").getroot().findtext("name") == "lsu_tools"
+    err = one_line_error(write(tmp_path, "launch:\n- arg: {name: w, default: $(find-pkg-share lsu_nowhere)}\n"))
+    assert "unknown package 'lsu_nowhere'" in str(err)
