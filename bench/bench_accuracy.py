@@ -7,7 +7,7 @@ rig, distances to the TRUE plane), ``plane_sigma_over_speckle_limit`` (their rat
 distances to the TRUE plane after our default mesh smoothing, board at 300 mm facing the rig),
 ``thesis_three_sigma_mm_300`` (the thesis chain in the same run, with the thesis' Laplacian 30 x 0.1),
 ``gaussian_{1,2,3}sigma_pct`` (our chain, all poses pooled, per-pose normalised residuals), and
-the rest of `lsu_bringup.accuracy.run_study`'s figures (`lsu accuracy --sim` writes the full
+the rest of `lsu_accuracy.accuracy.run_study`'s figures (`lsu accuracy --sim` writes the full
 report with plots).
 
 The same study on recorded board scans (`lsu accuracy --bag`) runs on board bags written from the
@@ -25,7 +25,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import write_result  # noqa: E402
 
-from lsu_bringup.accuracy import Pose, StudyConfig, run_study  # noqa: E402
+from lsu_accuracy.accuracy import Pose, StudyConfig, run_study  # noqa: E402
 
 # recorded-board poses: the whole 9x6, 20 mm board must be in the left view for its detection
 BAG_POSES = (Pose(0.25), Pose(0.30), Pose(0.35, yaw_deg=15.0, pitch_deg=-10.0), Pose(0.40, yaw_deg=-15.0, pitch_deg=5.0))
@@ -38,8 +38,8 @@ def bag_study() -> dict:
     """`lsu accuracy --bag` on simulated board bags; returns its result."""
     from lsu_cameras.calibration import BoardSpec
 
-    from lsu_bringup.accuracy_bag import run_bag_study
-    from lsu_bringup.simbags import write_board_scan_bags
+    from lsu_accuracy.accuracy_bag import run_bag_study
+    from lsu_testing.simbags import write_board_scan_bags
 
     calibration = Path(__file__).resolve().parents[1] / "config" / "calibration" / "sim"
     with tempfile.TemporaryDirectory(prefix="lsu-board-bags-") as tmp:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from common import median, percentile, time_calls, write_result
 
-from lsu_bringup import rosenv
+from lsu_scan import rosenv
 
 
 def main() -> int:

@@ -5,7 +5,7 @@ hair volume, expressions, glasses, a raised fist), scanned by two sensors:
 
 - the LSU rig (``lsu_faces.synthetic.fast_scan``: left-camera ray casting, a laser sheet per carriage
   position, laser shadow and right-camera visibility, noise along the ray at the rig's speckle limit
-  (``lsu_bringup.accuracy.rig_speckle_limit`` for config/sim_rig.yaml: ~0.1 mm per point at 300 mm,
+  (``lsu_accuracy.accuracy.rig_speckle_limit`` for config/sim_rig.yaml: ~0.1 mm per point at 300 mm,
   what the rendered rig measures on a plane), 10 % of the points dropped);
 - a coarse consumer depth camera (``lsu_cameras.sim.depthcam``: 640 x 480 at 850 mm, 4 mm depth steps,
   1.5 mm noise, holes at silhouettes and in projector shadows, hair returning 60 % of its pixels).
@@ -45,7 +45,7 @@ from lsu_faces.synthetic import fast_scan  # noqa: E402
 
 IDENTITIES = int(os.environ.get("LSU_BENCH_FACES_IDS", "16"))
 PROBES = 2
-from lsu_bringup.accuracy import rig_speckle_limit  # noqa: E402
+from lsu_accuracy.accuracy import rig_speckle_limit  # noqa: E402
 from lsu_cameras.sim import load_rig  # noqa: E402
 
 # one point's depth sigma at the speckle limit: no extraction gets a single point below it

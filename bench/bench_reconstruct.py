@@ -342,7 +342,7 @@ def main() -> None:
     synthetic_figures(figures)
     # the physical limit beside the rig figures (the renders carry laser speckle): one row's line centre
     # and one stereo point's depth at 300 mm (lsu_reconstruct.speckle)
-    from lsu_bringup.accuracy import rig_speckle_limit
+    from lsu_accuracy.accuracy import rig_speckle_limit
 
     limit = rig_speckle_limit(load_rig(), 0.30)
     figures["speckle_limit_px_300"] = limit["line_px"]

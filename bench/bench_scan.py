@@ -35,13 +35,13 @@ from pathlib import Path
 
 from common import write_result
 
-from lsu_bringup import rosenv
-from lsu_bringup.twohosts import TwoHosts, split_scan, why_unavailable
+from lsu_scan import rosenv
+from lsu_tools.twohosts import TwoHosts, split_scan, why_unavailable
 
 
 def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
-    from lsu_bringup.scanner import LsuScanner
-    from lsu_bringup.testing import LaunchedProcess
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
 
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans"])
     try:
@@ -78,7 +78,7 @@ def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
 @contextlib.contextmanager
 def watching_client():
     """`lsu view` on a free port and a Foxglove client subscribed to every topic the graph has."""
-    from lsu_bringup.testing import LaunchedProcess
+    from lsu_testing.plugin import LaunchedProcess
     from lsu_view.wsclient import FoxgloveClient
 
     view = LaunchedProcess(["view", "--port", "0"])
@@ -153,8 +153,8 @@ def replay(bag: Path, window: int = 4) -> dict:
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image, PointCloud2
 
-    from lsu_bringup.bags import deserialize_ros, read_messages
-    from lsu_bringup.testing import LaunchedProcess
+    from lsu_bags.bags import deserialize_ros, read_messages
+    from lsu_testing.plugin import LaunchedProcess
     from lsu_interfaces.msg import ScanEvent
 
     images = {}  # (topic, stamp) -> CDR bytes; the stamp is read straight from the CDR header

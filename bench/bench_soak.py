@@ -24,7 +24,7 @@ from scipy.stats import theilslopes
 
 from common import write_result
 
-from lsu_bringup import rosenv
+from lsu_scan import rosenv
 
 SCANS = int(os.environ.get("LSU_SOAK_SCANS", "50"))
 WARMUP_SCANS = 3
@@ -44,8 +44,8 @@ def open_fds(pid: int) -> int:
 
 
 def soak(tmp: Path) -> Dict[str, Dict[str, List[float]]]:
-    from lsu_bringup.scanner import LsuScanner
-    from lsu_bringup.testing import LaunchedProcess
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
 
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans"])
     samples: Dict[str, Dict[str, List[float]]] = {}

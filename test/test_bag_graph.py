@@ -115,7 +115,7 @@ def lsu_in_process(capsys: Any, *args: str) -> Any:
     """`lsu ARGS` through the console script's own main(), without paying its start-up again."""
     from types import SimpleNamespace
 
-    from lsu_bringup.cli import main
+    from lsu_tools.cli import main
 
     code = main(list(args))
     out = capsys.readouterr()

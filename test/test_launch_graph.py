@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lsu_bringup.processes import pid_alive
+from lsu_tools.processes import pid_alive
 
 DATA = Path(__file__).parent / "data"
 PINGPONG = str(DATA / "launch" / "pingpong.launch.yaml")
@@ -114,13 +114,13 @@ def test_killed_launcher_leaves_no_orphans(launch):
 
 
 BAD_FILES = {
-    "syntax": ("launch:\n- node:\n    pkg: lsu_bringup\n    exec: [oops\n", r":\d+: .*YAML syntax error"),
+    "syntax": ("launch:\n- node:\n    pkg: lsu_tools\n    exec: [oops\n", r":\d+: .*YAML syntax error"),
     "package": ("launch:\n- node:\n    pkg: lsu_missing\n    exec: x\n", r":3: node.pkg: unknown package 'lsu_missing'"),
-    "executable": ("launch:\n- node:\n    pkg: lsu_bringup\n    exec: ghost\n",
-                   r":4: node.exec: package 'lsu_bringup' has no executable 'ghost'"),
-    "param_file": ("launch:\n- node:\n    pkg: lsu_bringup\n    exec: selftest_talker\n    param:\n"
+    "executable": ("launch:\n- node:\n    pkg: lsu_tools\n    exec: ghost\n",
+                   r":4: node.exec: package 'lsu_tools' has no executable 'ghost'"),
+    "param_file": ("launch:\n- node:\n    pkg: lsu_tools\n    exec: selftest_talker\n    param:\n"
                    "    - from: $(dirname)/nowhere.yaml\n", r":6: node selftest_talker.param.from: parameter file not found"),
-    "var": ("launch:\n- node:\n    pkg: lsu_bringup\n    exec: selftest_talker\n    name: $(var who)\n",
+    "var": ("launch:\n- node:\n    pkg: lsu_tools\n    exec: selftest_talker\n    name: $(var who)\n",
             r":5: node.name: unknown launch argument \$\(var who\)"),
 }
 

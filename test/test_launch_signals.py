@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lsu_bringup.bags import deserialize, read_messages
-from lsu_bringup.scanner import LsuScanner
-from lsu_bringup.processes import LaunchedProcess, pid_alive
+from lsu_bags.bags import deserialize, read_messages
+from lsu_scan.scanner import LsuScanner
+from lsu_tools.processes import LaunchedProcess, pid_alive
 from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from lsu_bringup.bags import read_messages
-from lsu_bringup.testing import LSU
+from lsu_bags.bags import read_messages
+from lsu_testing.plugin import LSU
 from lsu_view.wsclient import FoxgloveClient
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"

@@ -8,10 +8,9 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
-from lsu_bringup.bags import deserialize_ros, read_messages
-from lsu_bringup.testing import LSU
-from lsu_reconstruct.node import msg_to_cloud
-from lsu_reconstruct.pointcloud2 import decode
+from lsu_bags.bags import deserialize_ros, read_messages
+from lsu_testing.plugin import LSU
+from lsu_bags.pointcloud2 import decode, from_msg
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
@@ -19,7 +18,7 @@ pytestmark = pytest.mark.slow
 
 
 def xyz(msg: PointCloud2) -> np.ndarray:
-    columns = decode(msg_to_cloud(msg))
+    columns = decode(from_msg(msg))
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 
 

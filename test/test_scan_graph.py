@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from lsu_bringup.scanner import LsuScanner
-from lsu_bringup.testing import LaunchedProcess
+from lsu_scan.scanner import LsuScanner
+from lsu_testing.plugin import LaunchedProcess
 from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow
@@ -111,7 +111,7 @@ def start(g, **goal):
 
 def snaps_lost(result) -> list:
     """Captured snaps (scan.json) whose image pair is not in the scan's bag: data a fault destroyed."""
-    from lsu_bringup.bags import read_messages
+    from lsu_bags.bags import read_messages
 
     record = scan_json(result)
     stamps = {}

@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsu_bringup.bags import bag_info
-from lsu_bringup.demo import accuracy_against_scene
-from lsu_bringup.processes import LSU
-from lsu_bringup.twohosts import TwoHosts, split_scan, why_unavailable
+from lsu_bags.bags import bag_info
+from lsu_tools.demo import accuracy_against_scene
+from lsu_tools.processes import LSU
+from lsu_tools.twohosts import TwoHosts, split_scan, why_unavailable
 
 pytestmark = pytest.mark.slow
 UNAVAILABLE = why_unavailable()
@@ -28,7 +28,7 @@ LAUNCH = ["capture_timeout_s:=5.0"]
 
 def cloud_by_pixel(folder: Path) -> dict:
     """(snap, left pixel row) -> x y z [m] of a scan's cloud.ply."""
-    from lsu_faces.plyio import read_ply
+    from lsu_bags.ply import read_ply
 
     cols, _ = read_ply(folder / "cloud.ply")
     keys = zip(cols["snap"].astype(int).tolist(), np.round(cols["v"] * 8).astype(int).tolist())

@@ -14,7 +14,7 @@ cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.lsu-stamps"
 PYTHON="${PYTHON:-python3}"
-PY_PACKAGES=(lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup lsu_view)
+PY_PACKAGES=(lsu_config lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bags lsu_scan lsu_accuracy lsu_tools lsu_testing lsu_view)
 
 step=""
 fail() {
@@ -115,6 +115,11 @@ step="install python packages"
 pkg_hash="$(inputs_hash $(for p in "${PY_PACKAGES[@]}"; do echo "src/$p/setup.py" "src/$p/setup.cfg" "src/$p/package.xml"; done) requirements.lock)"
 if ! stamp_ok packages "$pkg_hash"; then
     say "installing ${PY_PACKAGES[*]} in editable mode"
+    # packages this checkout no longer has (renamed or split) must not linger with their entry points
+    stale="$("$VENV/bin/python" -c 'import sys, importlib.metadata as md; keep = set(sys.argv[1:]) | {"lsu_interfaces"}
+print(" ".join(sorted({n for n in (str(d.metadata["Name"] or "").replace("-", "_") for d in md.distributions())
+                       if n.startswith("lsu_") and n not in keep})))' "${PY_PACKAGES[@]}")"
+    [ -z "$stale" ] || "$VENV/bin/python" -m pip uninstall -q -y $stale
     args=()
     for p in "${PY_PACKAGES[@]}"; do args+=(-e "src/$p"); done
     "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps "${args[@]}" 2>&1 \

@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> int:
-    from lsu_bringup import rosenv
-    from lsu_bringup.scanner import LsuScanner
-    from lsu_bringup.processes import LaunchedProcess
+    from lsu_scan import rosenv
+    from lsu_scan.scanner import LsuScanner
+    from lsu_tools.processes import LaunchedProcess
 
     claim = rosenv.isolate()
     target = ROOT / "test" / "data" / "bags" / "scan_head"

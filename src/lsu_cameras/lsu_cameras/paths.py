@@ -1,18 +1,7 @@
-"""Where the workspace's config lives (same rule as the `lsu` command)."""
+"""Where the config lives: lsu_config's one rule (its package data, LSU_CONFIG_DIR overrides)."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
+from lsu_config import config_dir
 
-
-def workspace_root() -> Path:
-    """The checkout this package runs from (editable install), or LSU_WORKSPACE."""
-    if os.environ.get("LSU_WORKSPACE"):
-        return Path(os.environ["LSU_WORKSPACE"])
-    return Path(__file__).resolve().parents[3]
-
-
-def config_dir() -> Path:
-    """Folder with parameters, calibration, profiles (LSU_CONFIG_DIR overrides)."""
-    return Path(os.environ.get("LSU_CONFIG_DIR", workspace_root() / "config"))
+__all__ = ["config_dir"]

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from lsu_bringup.scanner import LsuScanner
-from lsu_bringup.testing import LaunchedProcess
+from lsu_scan.scanner import LsuScanner
+from lsu_testing.plugin import LaunchedProcess
 from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow

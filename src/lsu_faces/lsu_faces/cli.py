@@ -18,9 +18,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from lsu_bags.ply import UNITS
+
 from .face import NOSE_METHODS, FaceParams
 from .gallery import DEFAULT_FALSE_ACCEPT
-from .plyio import UNITS
 from .mesh import MeshParams
 from typing import TYPE_CHECKING
 

@@ -226,11 +226,9 @@ class FaceProcessorNode(Node):
         self.get_logger().info(what)
 
     def _process_msg(self, msg: PointCloud2) -> Optional[ScanResult]:
-        from lsu_reconstruct.pointcloud2 import Cloud, PointField, decode
+        from lsu_bags.pointcloud2 import decode, from_msg
 
-        cloud = Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
-                      data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,
-                      row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
+        cloud = from_msg(msg)
         names = [f.name for f in msg.fields]
         missing = [n for n in ("x", "y", "z") if n not in names]
         if missing:

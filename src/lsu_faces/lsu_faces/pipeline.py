@@ -21,9 +21,10 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from lsu_bags.ply import UNITS, read_ply
+
 from .face import FaceError, FaceFrame, FaceParams, NoseResult, embed_face
 from .mesh import FaceMesh, MeshError, MeshParams, mesh_plain_cloud, triangulate_image_plane
-from .plyio import UNITS, read_ply
 from .signature import Signature, SignatureError, SignatureParams, make_signature
 from .smoothing import SmoothParams, smooth
 from .texture import render_views, unpack_rgb, write_mesh

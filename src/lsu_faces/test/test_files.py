@@ -9,20 +9,20 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from lsu_faces.plyio import PlyError, read_ply
+from lsu_bags.ply import PlyError, read_ply
 
 
 def test_reads_an_lsu_reconstruct_cloud(tmp_path):
-    from lsu_reconstruct.cli import write_ply
+    from lsu_bags.ply import write_cloud_ply
+    from lsu_bags.pointcloud2 import pack_rgb
     from lsu_reconstruct.pipeline import SnapPoints
-    from lsu_reconstruct.pointcloud2 import pack_rgb
 
     rng = np.random.default_rng(3)
     xyz = rng.normal(size=(40, 3))
     rgb = rng.integers(0, 256, size=(40, 3)).astype(np.uint8)
     cloud = SnapPoints(xyz, rng.uniform(0, 640, 40), rng.uniform(0, 480, 40), np.arange(40, dtype=np.uint32),
                        pack_rgb(rgb))
-    cols, faces = read_ply(write_ply(tmp_path / "c.ply", cloud))
+    cols, faces = read_ply(write_cloud_ply(tmp_path / "c.ply", cloud.fields()))
     assert faces is None
     assert np.allclose(np.stack([cols["x"], cols["y"], cols["z"]], 1), xyz, atol=1e-6)
     assert np.allclose(cols["u"], cloud.u, atol=1e-4) and np.array_equal(cols["snap"], cloud.snap)
@@ -48,11 +48,9 @@ def _person_cloud(seed: int, step: int = 6, **kw):
 
 
 def _write_cloud(path, c):
-    from lsu_reconstruct.cli import write_ply
-    from lsu_reconstruct.pipeline import SnapPoints
+    from lsu_bags.ply import write_cloud_ply
 
-    return write_ply(path, SnapPoints(np.stack([c["x"], c["y"], c["z"]], 1).astype(np.float64), c["u"], c["v"],
-                                      c["snap"], c["rgb"]))
+    return write_cloud_ply(path, c)
 
 
 def _parser():

@@ -23,7 +23,7 @@ def _msg(columns, fields=None):
     from std_msgs.msg import Header
 
     from lsu_reconstruct.node import cloud_to_msg
-    from lsu_reconstruct.pointcloud2 import FLOAT32, encode, layout
+    from lsu_bags.pointcloud2 import FLOAT32, encode, layout
 
     if fields is None:
         cloud = encode(columns)

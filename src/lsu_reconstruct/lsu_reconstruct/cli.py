@@ -6,57 +6,30 @@
 The bag must hold ``/lsu/stereo/{left,right}/laser_line`` (``lsu_interfaces/msg/LaserLine``);
 ``/lsu/scan/events`` (snap indices, TEXTURE stamp) and ``/lsu/stereo/left/image_raw`` (the
 texture) are used when present. Any namespace works: topics are matched by their suffix.
-Bags are read with the ``rosbags`` library; the lsu_interfaces types are registered from
-their .msg files, so no ROS installation is needed to read them.
+Bags are read with lsu_bags (the ``rosbags`` library; the lsu_interfaces types come from
+their installed .msg files), so no ROS installation is needed to read them.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
+from lsu_bags.bags import BagError, BagTypes, bag_topics, deserialize, read_messages
+from lsu_bags.ply import write_cloud_ply
+
 from .matching import LineArrays, MatchParams
-from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
-from .pointcloud2 import unpack_rgb
+from .pipeline import colour_at, merge_snaps, reconstruct_snap
 from .stereo import StereoModel
 from .triangulate import METHODS
 
-__all__ = ["register", "BagError", "interfaces_msg_dir", "lsu_typestore", "read_bag", "read_pairs", "write_ply",
-           "run"]
+__all__ = ["register", "BagError", "read_bag", "read_pairs", "run"]
 
 LINE_TYPE = "lsu_interfaces/msg/LaserLine"
 EVENT_TYPE = "lsu_interfaces/msg/ScanEvent"
-
-
-class BagError(ValueError):
-    """A bag cannot be read or holds no usable laser lines; the message names the file and the cause."""
-
-
-def interfaces_msg_dir() -> Path:
-    """Folder with the lsu_interfaces .msg files (installed share/ first, then the source tree)."""
-    candidates = [Path(sys.prefix) / "share" / "lsu_interfaces" / "msg",
-                  Path(__file__).resolve().parents[2] / "lsu_interfaces" / "msg"]
-    for c in candidates:
-        if (c / "LaserLine.msg").is_file():
-            return c
-    raise FileNotFoundError(f"lsu_interfaces .msg files not found in {', '.join(map(str, candidates))}; "
-                            f"run `make setup`")
-
-
-def lsu_typestore() -> Any:
-    """A rosbags Jazzy typestore with every lsu_interfaces message registered from its .msg file."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types: Dict[str, Any] = {}
-    for path in sorted(interfaces_msg_dir().glob("*.msg")):
-        types.update(get_types_from_msg(path.read_text(), f"lsu_interfaces/msg/{path.stem}"))
-    store.register(types)
-    return store
 
 
 def _key(stamp: Any) -> int:
@@ -83,51 +56,48 @@ def _image(msg: Any) -> np.ndarray:
 
 def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineArrays]], Optional[np.ndarray], Dict[str, int]]:
     """Stereo laser-line pairs of a bag: ``[(snap, stamp_ns, left, right)]``, the texture image (or None), counts."""
-    from rosbags.highlevel import AnyReader
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"bag {path} not found")
-    store = lsu_typestore()
+    topics = bag_topics(path)
+    wanted: Dict[str, str] = {}
+    for topic, (msgtype, _qos) in topics.items():
+        if topic.endswith("stereo/left/laser_line") and msgtype == LINE_TYPE:
+            wanted[topic] = "left"
+        elif topic.endswith("stereo/right/laser_line") and msgtype == LINE_TYPE:
+            wanted[topic] = "right"
+        elif topic.endswith("scan/events") and msgtype == EVENT_TYPE:
+            wanted[topic] = "events"
+    if not any(v in ("left", "right") for v in wanted.values()):
+        have = ", ".join(sorted(f"{t} ({m})" for t, (m, _q) in topics.items())) or "none"
+        raise BagError(f"bag {path} has no stereo/{{left,right}}/laser_line topics of type {LINE_TYPE}; "
+                       f"it has: {have}")
+    types = BagTypes()
     lines: Dict[str, Dict[int, LineArrays]] = {"left": {}, "right": {}}
     snaps: Dict[int, int] = {}
     texture_keys: List[int] = []
     try:
-        with AnyReader([path], default_typestore=store) as reader:
-            wanted = {}
-            for c in reader.connections:
-                if c.topic.endswith("stereo/left/laser_line") and c.msgtype == LINE_TYPE:
-                    wanted[c.id] = "left"
-                elif c.topic.endswith("stereo/right/laser_line") and c.msgtype == LINE_TYPE:
-                    wanted[c.id] = "right"
-                elif c.topic.endswith("scan/events") and c.msgtype == EVENT_TYPE:
-                    wanted[c.id] = "events"
-            if not any(v in ("left", "right") for v in wanted.values()):
-                topics = ", ".join(sorted(f"{c.topic} ({c.msgtype})" for c in reader.connections)) or "none"
-                raise BagError(f"bag {path} has no stereo/{{left,right}}/laser_line topics of type {LINE_TYPE}; "
-                               f"it has: {topics}")
-            conns = [c for c in reader.connections if c.id in wanted]
-            for conn, _, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                kind = wanted[conn.id]
-                if kind == "events":
-                    if msg.type == 2:      # SNAP
-                        snaps[_key(msg.image_stamp)] = int(msg.index)
-                    elif msg.type == 1:    # TEXTURE
-                        texture_keys.append(_key(msg.image_stamp))
-                else:
-                    lines[kind][_key(msg.header.stamp)] = _line(msg)
-            texture = None
-            if texture_keys:
-                images = [c for c in reader.connections if c.topic.endswith("stereo/left/image_raw")]
-                for conn, _, raw in reader.messages(connections=images):
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    if _key(msg.header.stamp) == texture_keys[-1]:
-                        texture = _image(msg)
-                        break
+        for message in read_messages(path, sorted(wanted)):
+            msg = deserialize(message, types)
+            kind = wanted[message.topic]
+            if kind == "events":
+                if msg.type == 2:      # SNAP
+                    snaps[_key(msg.image_stamp)] = int(msg.index)
+                elif msg.type == 1:    # TEXTURE
+                    texture_keys.append(_key(msg.image_stamp))
+            else:
+                lines[kind][_key(msg.header.stamp)] = _line(msg)
+        texture = None
+        images = [t for t in topics if t.endswith("stereo/left/image_raw")]
+        if texture_keys and images:
+            for message in read_messages(path, images):
+                msg = deserialize(message, types)
+                if _key(msg.header.stamp) == texture_keys[-1]:
+                    texture = _image(msg)
+                    break
     except BagError:
         raise
-    except Exception as exc:  # rosbags raises several reader/deserialisation types for corrupt files
+    except Exception as exc:  # a message that does not deserialise: corrupt data under a valid index
         raise BagError(f"cannot read bag {path}: {exc.__class__.__name__}: {exc}") from None
     common = sorted(set(lines["left"]) & set(lines["right"]))
     counts = {"left": len(lines["left"]), "right": len(lines["right"]), "pairs": len(common)}
@@ -170,27 +140,6 @@ def read_pairs(folder: "str | Path") -> List[Tuple[int, int, LineArrays, LineArr
     return pairs
 
 
-def write_ply(path: "str | Path", cloud: SnapPoints) -> Path:
-    """Binary little-endian PLY with x y z (float, metres), red green blue (uchar), u v (float), snap (uint)."""
-    path = Path(path)
-    n = len(cloud)
-    rgb = unpack_rgb(cloud.fields()["rgb"]) if n else np.zeros((0, 3), np.uint8)
-    rec = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                             ("blue", "u1"), ("u", "<f4"), ("v", "<f4"), ("snap", "<u4")])
-    rec["x"], rec["y"], rec["z"] = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
-    rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    rec["u"], rec["v"], rec["snap"] = cloud.u, cloud.v, cloud.snap
-    header = ("ply\nformat binary_little_endian 1.0\ncomment lsu reconstruct, frame lsu_left_optical, metres\n"
-              f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-              "property float u\nproperty float v\nproperty uint snap\nend_header\n")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
-        fh.write(rec.tobytes())
-    return path
-
-
 def run(args: argparse.Namespace) -> int:
     """`lsu reconstruct` (returns the exit code)."""
     model = StereoModel.from_folder(args.calib)
@@ -207,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     cloud = merge_snaps(sorted(snaps, key=lambda s: int(s.snap[0]) if len(s) else 0))
     if texture is not None and len(cloud):
         cloud.rgb = colour_at(texture, cloud.u, cloud.v)
-    out = write_ply(args.output, cloud)
+    out = write_cloud_ply(args.output, cloud.fields(), comment="lsu reconstruct")
     print(f"lsu reconstruct: {len(cloud)} points from {counts['pairs']} stereo pairs "
           f"({counts['left']} left, {counts['right']} right lines){'' if texture is not None else ', uncoloured'} "
           f"-> {out}")

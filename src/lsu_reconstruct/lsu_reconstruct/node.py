@@ -33,16 +33,16 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
 from std_msgs.msg import Header
 
+from lsu_bags.pointcloud2 import Cloud, decode, encode, from_msg
 from lsu_cameras.polled import PolledGroup, take_all
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
 from .matching import LineArrays, MatchParams, prepare
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
-from .pointcloud2 import Cloud, PointField, decode, encode
 from .stereo import CalibrationError, StereoModel
 from .triangulate import METHODS
 
-__all__ = ["StereoMatcherNode", "cloud_to_msg", "msg_to_cloud", "line_from_msg", "image_to_array", "decode_msg",
+__all__ = ["StereoMatcherNode", "cloud_to_msg", "line_from_msg", "image_to_array", "decode_msg",
            "main"]
 
 RELIABLE_DATA = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
@@ -64,13 +64,6 @@ def cloud_to_msg(cloud: Cloud, header: Header) -> PointCloud2:
     msg.data = cloud.data
     msg.is_dense = bool(cloud.is_dense)
     return msg
-
-
-def msg_to_cloud(msg: PointCloud2) -> Cloud:
-    """sensor_msgs/PointCloud2 -> codec :class:`Cloud` (header dropped)."""
-    return Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
-                 data=bytes(msg.data), width=msg.width, height=msg.height, point_step=msg.point_step,
-                 row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
 
 
 def line_from_msg(msg: LaserLine) -> LineArrays:
@@ -451,7 +444,7 @@ class StereoMatcherNode(Node):
 
 def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str, np.ndarray]:
     """Columns of a sensor_msgs/PointCloud2 (any layout) as numpy arrays."""
-    return decode(msg_to_cloud(msg), names)
+    return decode(from_msg(msg), names)
 
 
 def main(args: Optional[List[str]] = None) -> int:

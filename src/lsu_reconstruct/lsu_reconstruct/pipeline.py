@@ -13,8 +13,9 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from lsu_bags.pointcloud2 import pack_rgb
+
 from .matching import LineArrays, MatchParams, match_line, match_thesis
-from .pointcloud2 import pack_rgb
 from .stereo import StereoModel
 from .triangulate import accept_points, triangulate
 

@@ -5,8 +5,16 @@ import argparse
 import numpy as np
 import pytest
 
+from lsu_bags.bags import BagTypes
 from lsu_reconstruct import synthetic as S
-from lsu_reconstruct.cli import BagError, lsu_typestore, register
+from lsu_reconstruct.cli import BagError, register
+
+
+def lsu_typestore():
+    types = BagTypes()
+    for msgtype in ("lsu_interfaces/msg/LaserLine", "lsu_interfaces/msg/ScanEvent"):
+        types.ensure(msgtype)
+    return types.typestore
 
 
 def write_bag(path, rig, plane, xs, with_events=True):

@@ -15,7 +15,7 @@ import threading
 from dataclasses import dataclass
 from typing import Dict, Optional, Sequence
 
-from lsu_bringup.bags import BagTypes
+from lsu_bags.bags import BagTypes
 
 #: message types sent at most `image_max_hz` times a second per topic (big, and a person watching
 #: does not need all of them)
@@ -38,7 +38,7 @@ def ros2msg_schema(msgtype: str, types: BagTypes, topic: Optional[str] = None) -
     """The ``ros2msg`` text of ``msgtype`` with every type it uses (rosbag2's mcap format).
 
     Raises:
-        lsu_bringup.bags.UnknownTypeError: no definition of the type (or a type it uses) is installed.
+        lsu_bags.bags.UnknownTypeError: no definition of the type (or a type it uses) is installed.
     """
     types.ensure(msgtype, topic)
     text, _hash = types.msgdef(msgtype)

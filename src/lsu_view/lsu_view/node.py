@@ -29,8 +29,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from lsu_bringup.bags import BagError, BagTypes
-from lsu_bringup.rosmsg import InterfaceError, get_interface
+from lsu_bags.bags import BagError, BagTypes
+from lsu_bags.rosmsg import InterfaceError, get_interface
 
 from .channels import RateLimiter, TopicOffer, offered, ros2msg_schema, topic_kind
 

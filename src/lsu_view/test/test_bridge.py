@@ -176,7 +176,7 @@ def test_a_negative_rate_is_refused_with_a_reason(ros_node, bridge):
 
 
 def test_our_own_types_get_their_definitions_from_the_msg_files():
-    from lsu_bringup.bags import BagTypes
+    from lsu_bags.bags import BagTypes
     from lsu_view.channels import ros2msg_schema
 
     types = BagTypes()

@@ -1,1 +1,0 @@
-"""The scan_coordinator node, launch files and the lsu command (launch, run, graph introspection, doctor, bags)."""

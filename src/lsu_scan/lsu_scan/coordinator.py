@@ -1,0 +1,726 @@
+"""`scan_coordinator` node: stop-snap scans through the `/lsu/scan` action (thesis ch. 3.3).
+
+laser off -> texture pair -> laser on -> for each position: move, settle, the matcher's
+acknowledgement of the previous snap (its per-snap `points`; processed during this move and
+settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED -> scan cloud on disk.
+
+Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
+fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
+marked partial with the reason. While the scan runs, the laser is only on while the scan makes
+progress: a move, a capture or a snap's acknowledgement that is ``laser_pause_s`` late switches it
+off at once, without waiting for the late answer (the laser guard); it comes back on before the
+next capture, and a capture exposed after the laser went off is taken again.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.parameter import Parameter
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import SetBool
+
+from lsu_cameras.polled import PolledGroup, take_latest
+from lsu_interfaces.action import Scan
+from lsu_interfaces.msg import ScanEvent, ScannerState
+from lsu_interfaces.srv import CaptureStereo, MoveTo
+
+from .laser_guard import LaserGuard, ack_due_at
+from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
+                        mechanical_lower_bound_s, new_scan_id, plan_positions)
+
+EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# how long the end-of-scan laser-off call may still wait once a shutdown began: `lsu launch`
+# SIGKILLs 4 s after its SIGINT, and scan.json and the bag must be on disk before that
+SHUTDOWN_CALL_S = 0.5
+
+
+class ScanAborted(Exception):
+    """The scan cannot go on; the message is the reason given to the user."""
+
+
+class ScanCanceled(ScanAborted):
+    """The user canceled the goal."""
+
+
+def _key(stamp: Any) -> tuple:
+    return (int(stamp.sec), int(stamp.nanosec))
+
+
+# name -> (default, description, (low, high) or None). Every one is read when it is used, so a
+# `param set` takes effect at the next call, deadline or scan; values outside the range are refused.
+PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
+    "output_dir": ("", "parent folder of scans/<id>/; empty = scans/ in the directory the node was started from (applies from the next scan)", None),
+    "capture_timeout_s": (1.0, "a stereo/capture call longer than this aborts (+ 0.3 s for the reply; below the "
+                               "laser watchdog) [s]", (0.05, 30.0)),
+    "ack_timeout_s": (5.0, "a snap the matcher does not acknowledge within this (from its capture) aborts the "
+                           "scan [s]", (0.1, 600.0)),
+    "laser_pause_s": (0.2, "a move, capture or snap acknowledgement this late switches the laser off until the "
+                           "scan goes on [s] (applies from the next deadline)", (0.02, 1.5)),
+    "move_timeout_s": (0.0, "carriage/move_to timeout [s]; 0 = the driver's own", (0.0, 600.0)),
+    "cloud_timeout_s": (15.0, "wait for the matcher's scan/cloud after the scan [s]", (0.0, 600.0)),
+    "exposure_s": (0.033, "camera exposure: the mechanical lower bound in scan.json, when a capture is due [s]",
+                   (0.0, 1.0)),
+    "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
+                        None),
+}
+
+
+def _descriptor(description: str, bounds: Optional[Tuple[float, float]]) -> ParameterDescriptor:
+    descriptor = ParameterDescriptor(description=description)
+    if bounds is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
+    return descriptor
+
+
+@dataclass
+class ScanRun:
+    """One scan's state while it runs: what it is, and what it captured so far (kept on every way out)."""
+
+    scan_id: str
+    folder: Path
+    plan: ScanPlan
+    record: ScanRecord
+    start_state: ScannerState                         # the driver's state when the goal came
+    started: float                                    # monotonic
+    captured: List[SnapRecord] = field(default_factory=list)
+    points_total: int = 0
+    abort_reason: str = ""
+    canceled: bool = False
+
+
+class ScanCoordinatorNode(Node):
+    """Serves the ``scan`` action; publishes ``scan/events``; writes one folder per scan."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("scan_coordinator", **{"namespace": "/lsu", **kwargs})
+        # the laser guard's books (scan thread only); the off call it sent without waiting for the reply
+        self.guard = LaserGuard(pause_s=float(PARAMETERS["laser_pause_s"][0]))
+        self._off_future: Any = None
+        self._guarded_ack: Optional[tuple] = None  # the image stamp whose points the "ack" deadline waits for
+        self._capture_asked = 0.0  # monotonic time the last capture was asked for
+        for name, (default, description, bounds) in PARAMETERS.items():
+            self.declare_parameter(name, default, _descriptor(description, bounds))
+        self._apply_parameters([self.get_parameter(name) for name in PARAMETERS])
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        group = ReentrantCallbackGroup()
+        # The scan loop's own traffic (service calls, per-snap acknowledgements) lives on a private
+        # node that the scan thread spins itself while it waits: a reply is handled in the thread
+        # that waits for it, with no hand-off through the multi-threaded executor (a wait-set
+        # rebuild and two thread switches per message, ~5-10 ms per call on a busy 2-core machine).
+        # No global arguments: the process's `-r __node:=scan_coordinator` would give it our name.
+        self._io = rclpy.create_node("_scan_coordinator_io", namespace=self.get_namespace(), context=self.context,
+                                     use_global_arguments=False, start_parameter_services=False)
+        self._io_executor = SingleThreadedExecutor(context=self.context)
+        self._io_executor.add_node(self._io)
+        self.laser = self._io.create_client(SetBool, "laser/set")
+        self.move = self._io.create_client(MoveTo, "carriage/move_to")
+        self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
+        self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
+        self._state: Optional[ScannerState] = None
+        self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        self._cloud: Optional[PointCloud2] = None
+        self._cloud_serial = 0
+        self._cond = threading.Condition()
+        self._stopping = False
+        # read when a goal starts, not followed: as an executor-run subscription it woke the
+        # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
+        # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
+        self._state_sub = self.create_subscription(
+            ScannerState, "driver/state", lambda _msg: None,
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE), callback_group=PolledGroup())
+        self._io.create_subscription(PointCloud2, "points", self._on_points, QoSProfile(
+            depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        # on the main node: latched, and it must be current when the next scan starts
+        self.create_subscription(PointCloud2, "scan/cloud", self._on_cloud, LATCHED, callback_group=group)
+        self._busy = threading.Lock()      # held by the scan thread while a scan runs
+        self._goal_lock = threading.Lock()  # makes "is a scan running or accepted?" and "accept" one step
+        self._goal_active = False
+        self._counter = 0
+        self._server = ActionServer(self, Scan, "scan", execute_callback=self._execute,
+                                    goal_callback=self._on_goal, cancel_callback=lambda _h: CancelResponse.ACCEPT,
+                                    callback_group=group)
+
+    # ------------------------------------------------------------------------------ inputs
+    @property
+    def state(self) -> Optional[ScannerState]:
+        """The newest gp32_driver state received (None before the first)."""
+        latest = take_latest(self._state_sub)
+        if latest is not None:
+            self._state = latest
+        return self._state
+
+    def _on_points(self, msg: PointCloud2) -> None:
+        with self._cond:
+            self._acks[_key(msg.header.stamp)] = (int(msg.width) * int(msg.height), time.monotonic())
+            self._cond.notify_all()
+
+    def _on_cloud(self, msg: PointCloud2) -> None:
+        with self._cond:
+            self._cloud = msg
+            self._cloud_serial += 1
+            self._cond.notify_all()
+
+    def _on_goal(self, _goal: Scan.Goal) -> GoalResponse:
+        # One step under one lock: two goals sent at the same moment are not both accepted (the
+        # second would otherwise be queued behind the first instead of refused).
+        with self._goal_lock:
+            if self._goal_active:
+                self.get_logger().warning("scan goal rejected: a scan is already running")
+                return GoalResponse.REJECT
+            self._goal_active = True
+        return GoalResponse.ACCEPT
+
+    # ------------------------------------------------------------------------------ parameters
+    def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+        """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
+        for param in changed:
+            if param.name in ("output_dir", "calibration_dir") and param.value:
+                path = Path(str(param.value))
+                if path.exists() and not path.is_dir():
+                    return SetParametersResult(successful=False,
+                                               reason=f"{param.name} {path} exists and is not a folder")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, changed: List[Parameter]) -> None:
+        """Every accepted value takes effect now: the scan reads these attributes at each use."""
+        for param in changed:
+            if param.name not in PARAMETERS:
+                continue
+            value = param.value
+            if param.name == "output_dir":
+                self.output_dir = Path(value) if value else Path.cwd() / "scans"
+            elif param.name == "calibration_dir":
+                self.calibration_dir = str(value)
+            else:
+                setattr(self, param.name, float(value))
+                if param.name == "laser_pause_s":
+                    self.guard.pause_s = float(value)
+
+    # ------------------------------------------------------------------------------ helpers
+    @property
+    def shutting_down(self) -> bool:
+        """The node is being stopped (Ctrl-C, SIGTERM, destroy_node): the scan must end now, data kept."""
+        return self._stopping or not self.context.ok()
+
+    def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True,
+              due_s: Optional[float] = None) -> Any:
+        """One service call from the scan thread, spinning the private node until the reply is in.
+
+        With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
+        and the launcher's grace period is short); the laser-off call at the end does not stop early
+        but gives up :data:`SHUTDOWN_CALL_S` after a shutdown begins, even one that begins mid-call
+        (the driver, stopped by the same Ctrl-C, switches the laser off itself and will not answer).
+        ``due_s``: when the answer is expected; ``laser_pause_s`` past it the laser guard switches
+        the laser off while the wait goes on.
+        """
+        # polled here rather than with client.wait_for_service, which sleeps 0.25 s at a time and
+        # does not run the laser guard meanwhile
+        available_by = time.monotonic() + min(timeout_s, 5.0)
+        while not client.service_is_ready():
+            if time.monotonic() >= available_by or not self.context.ok():
+                raise ScanAborted(f"{what}: service {client.srv_name} is not available (is its node running?)")
+            self._guard_laser()
+            time.sleep(0.01)
+        future = client.call_async(request)
+        end = time.monotonic() + timeout_s
+        if due_s is not None:
+            self.guard.due("call", time.monotonic() + due_s, f"{what}: no answer from {client.srv_name}")
+        try:
+            self._await_future(future, client, end, stop_early)
+        finally:
+            self.guard.answered("call")
+        if not future.done():
+            client.remove_pending_request(future)
+            raise ScanAborted(f"{what}: no answer from {client.srv_name} within {timeout_s:g} s")
+        return future.result()
+
+    def _await_future(self, future: Any, client: Any, end: float, stop_early: bool) -> None:
+        """Spin the private node until ``future`` is done or ``end`` (monotonic) passed; see `_call`."""
+        while not future.done() and time.monotonic() < end:
+            if self.shutting_down:
+                if stop_early or not self.context.ok():  # a shut-down context receives nothing any more
+                    client.remove_pending_request(future)
+                    raise ScanAborted("scan_coordinator is shutting down")
+                end = min(end, time.monotonic() + SHUTDOWN_CALL_S)  # the first cut stays: later ones are later
+            self._guard_laser()
+            self._io_executor.spin_until_future_complete(future, timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+
+    def _guard_laser(self) -> None:
+        """Switch the laser off now if the scan is late on a deadline, without waiting for the reply.
+
+        Called by every wait of the scan thread. A stalled pipeline (a hung camera, a dead matcher,
+        a driver that does not report the stop) then leaves the laser on for ``laser_pause_s`` past
+        the moment the answer was due, not for the whole timeout of the call it waits on.
+        """
+        if self._guarded_ack is not None and self._guarded_ack in self._acks:
+            self.guard.answered("ack")
+            self._guarded_ack = None
+        warning = self.guard.overdue(time.monotonic())
+        if warning is None:
+            return
+        self._off_future = self.laser.call_async(SetBool.Request(data=False))
+        self.guard.switched_off(warning, time.time())
+        self.get_logger().warning(f"{warning}: laser off until the scan can go on")
+
+    def _resume_laser(self) -> None:
+        """Laser on again before a capture if the guard switched it off (after its off call is through)."""
+        if self._off_future is not None:
+            # the driver serves calls concurrently: the on must not overtake the off
+            future, self._off_future = self._off_future, None
+            try:
+                self._await_future(future, self.laser, time.monotonic() + 3.0, stop_early=True)
+            finally:
+                self.guard.off_settled()
+            if not future.done():
+                self.laser.remove_pending_request(future)
+        if not self.guard.lit:
+            self._set_laser(True)
+
+    def _set_laser(self, on: bool, timeout_s: float = 3.0, stop_early: bool = True) -> None:
+        if not on:
+            self.guard.lit_by_scan(False)  # the guard must not send another off meanwhile
+        response = self._call(self.laser, SetBool.Request(data=on), timeout_s, f"laser {'on' if on else 'off'}",
+                              stop_early=stop_early)
+        if not response.success:
+            raise ScanAborted(f"laser {'on' if on else 'off'} failed: {response.message}")
+        self.guard.lit_by_scan(on)
+
+    def _laser_off_safely(self) -> str:
+        # on shutdown the driver is stopping too (it switches the laser off itself): ask briefly
+        timeout = SHUTDOWN_CALL_S if self.shutting_down else 3.0
+        try:
+            self._set_laser(False, timeout, stop_early=False)
+            return ""
+        except Exception as exc:  # noqa: BLE001 - a dead context raises rclpy's own types; never skip the files
+            self.get_logger().error(f"could not switch the laser off: {exc} (the driver's shutdown or the "
+                                    "firmware watchdog will)")
+            return str(exc) or exc.__class__.__name__
+
+    def _capture(self, lit: bool = True) -> Any:
+        """One published stereo capture; with ``lit`` the laser is on during its exposure.
+
+        A capture the laser guard interrupted is taken again unless its exposure (the image stamp,
+        from the same system clock) ended before the laser was switched off.
+        """
+        exposure = float(self.exposure_s)
+        for _attempt in range(3):
+            if lit:
+                self._resume_laser()
+            self._capture_asked = time.monotonic()
+            response = self._call(self.capture,
+                                  CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
+                                  float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
+            if not response.success:
+                raise ScanAborted(f"capture failed: {response.message}")
+            exposed_until = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9 + exposure
+            if not lit or self.guard.lit or exposed_until < self.guard.last_off_wall:
+                return response
+            self.get_logger().warning("the capture came after the laser went off: taking it again")
+        raise ScanAborted(f"capture: 3 captures in a row came {self.laser_pause_s:g} s late (the laser went off "
+                          "meanwhile); is the camera overloaded?")
+
+    def _event(self, kind: int, scan_id: str, folder: Path, **fields: Any) -> None:
+        msg = ScanEvent(type=kind, scan_id=scan_id, output_dir=str(folder))
+        msg.header.stamp = self.get_clock().now().to_msg()
+        for name, value in fields.items():
+            setattr(msg, name, value)
+        try:
+            self.events.publish(msg)
+        except Exception as exc:  # noqa: BLE001 - rclpy raises its own types on a context going down
+            if not self.shutting_down:
+                raise
+            self.get_logger().warning(f"scan event {kind} not published, shutting down ({exc.__class__.__name__})")
+
+    def _wait(self, predicate: Callable[[], bool], timeout_s: float, spin: bool = True) -> bool:
+        """Wait until ``predicate()``; with ``spin`` the scan thread handles the private node meanwhile."""
+        end = time.monotonic() + timeout_s
+        while not predicate():
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                return False
+            if self.shutting_down:
+                raise ScanAborted("scan_coordinator is shutting down")
+            if spin:
+                self._guard_laser()
+                self._io_executor.spin_once(timeout_sec=min(remaining, 0.02))
+            else:
+                with self._cond:
+                    self._cond.wait(min(remaining, 0.05))
+        return True
+
+    def _check_cancel(self, goal_handle: Any) -> None:
+        if goal_handle.is_cancel_requested:
+            raise ScanCanceled("canceled by the user")
+        if self.shutting_down:
+            raise ScanAborted("scan_coordinator is shutting down")
+
+    def _since_stop_s(self, stamp: Any) -> Optional[float]:
+        """Seconds since the driver saw the carriage stop (``MoveTo.Response.stopped_stamp``), or None.
+
+        The vibration the settle waits out decays from the stop, not from when the move's reply
+        reached us; a stamp that is missing (an older driver) or implausible (clock trouble) counts
+        as no time passed, i.e. the full settle.
+        """
+        stopped = int(stamp.sec) + int(stamp.nanosec) * 1e-9
+        if stopped <= 0.0:
+            return None
+        elapsed = time.time() - stopped  # the driver stamps with the system clock of this machine
+        return elapsed if 0.0 <= elapsed <= 0.5 else None
+
+    def _sleep(self, goal_handle: Any, seconds: float) -> None:
+        """Settle: wait ``seconds``, handling acknowledgements and checking for a cancel meanwhile."""
+        end = time.monotonic() + seconds
+        while True:
+            remaining = end - time.monotonic()
+            if remaining <= 0:
+                return
+            self._check_cancel(goal_handle)
+            self._guard_laser()
+            # an acknowledgement wakes this wait at once; the timeout only bounds how late a cancel
+            # (handled on the main node) is seen, and each wake-up costs a wait-set rebuild
+            self._io_executor.spin_once(timeout_sec=min(0.02, remaining))
+
+    # ------------------------------------------------------------------------------ the scan
+    def _execute(self, goal_handle: Any) -> Scan.Result:
+        try:
+            with self._busy:
+                return self._scan(goal_handle)
+        finally:
+            with self._goal_lock:
+                self._goal_active = False
+
+    def _scan(self, goal_handle: Any) -> Scan.Result:
+        """plan -> snap loop -> finish; the laser is off and the files are on disk on every way out."""
+        run = self._plan(goal_handle)
+        if isinstance(run, Scan.Result):
+            return run  # refused before anything moved
+        recorder = self._start_bag_or_warn(run) if goal_handle.request.record_bag else None
+        self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
+                               f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
+                               f"{run.plan.settle_s:g} s -> {run.folder}")
+        self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=len(run.plan.positions))
+        cloud_serial_before = self._cloud_serial
+        with self._cond:
+            self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
+        self.guard.start_scan()
+        try:
+            self._snap_loop(goal_handle, run)
+        except ScanCanceled as exc:
+            run.abort_reason, run.canceled = str(exc), True
+        except ScanAborted as exc:
+            run.abort_reason = str(exc)
+        except Exception as exc:  # a bug must still leave the laser off and the data on disk
+            if self.shutting_down:  # rclpy's own exceptions out of a context the signal handler shut down
+                run.abort_reason = f"scan_coordinator is shutting down ({exc.__class__.__name__})"
+            else:
+                run.abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
+                self.get_logger().error(run.abort_reason)
+        finally:
+            self.guard.clear()
+            self._guarded_ack = None
+            self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)
+            laser_error = self._laser_off_safely()
+        return self._finish(goal_handle, run, laser_error, cloud_serial_before, recorder)
+
+    def _plan(self, goal_handle: Any) -> Any:
+        """The scan's id, folder, record and validated positions, or the refusal (a Scan.Result, goal aborted)."""
+        goal: Scan.Goal = goal_handle.request
+        t0 = time.monotonic()
+        self._counter += 1
+        scan_id = new_scan_id(counter=self._counter)
+        parent = Path(goal.output_dir) if goal.output_dir else self.output_dir
+        folder = parent / scan_id
+        calib = Path(self.calibration_dir) if self.calibration_dir else None
+        record = ScanRecord(scan_id=scan_id, started=_dt.datetime.now().isoformat(timespec="seconds"),
+                            goal={k: getattr(goal, k) for k in goal.get_fields_and_field_types()},
+                            parameters={"capture_timeout_s": self.capture_timeout_s, "ack_timeout_s": self.ack_timeout_s,
+                                        "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s,
+                                        "laser_pause_s": self.laser_pause_s},
+                            calibration=calibration_checksum(calib))
+        state = self.state
+        try:
+            if state is None or not state.connected:
+                raise ScanAborted("no state from gp32_driver (driver/state): is the driver running and connected?")
+            if not state.homed:
+                raise ScanAborted("the carriage is not homed: call carriage/home (or `lsu service call "
+                                  "/lsu/carriage/home`) before scanning")
+            try:
+                plan = plan_positions(goal.start_steps, goal.end_steps, goal.step_steps, state.track_steps,
+                                      goal.settle_s, goal.texture)
+            except ScanGoalError as exc:
+                raise ScanAborted(f"bad goal: {exc}") from None
+        except ScanAborted as exc:
+            self.get_logger().error(f"scan {scan_id} refused: {exc}")
+            goal_handle.abort()
+            return Scan.Result(scan_id=scan_id, output_dir=str(folder), status=str(exc))
+        record.snaps_expected = len(plan.positions)
+        record.timings_s["mechanical_lower_bound"] = mechanical_lower_bound_s(
+            plan, state.position_steps, max(1.0, state.step_rate_steps_per_s), float(self.exposure_s))
+        folder.mkdir(parents=True, exist_ok=True)
+        return ScanRun(scan_id=scan_id, folder=folder, plan=plan, record=record, start_state=state, started=t0)
+
+    def _start_bag_or_warn(self, run: ScanRun) -> Any:
+        try:
+            return self._start_bag(run.folder)
+        except Exception as exc:  # no bag is no reason to lose the scan: say so and go on
+            self.get_logger().error(f"bag recording could not start ({exc.__class__.__name__}: {exc}); "
+                                    "scanning without a bag")
+            return None
+
+    def _snap_loop(self, goal_handle: Any, run: ScanRun) -> None:
+        """Texture pair, then move / settle / previous snap's points / capture / SNAP for each position.
+
+        Raises ScanAborted / ScanCanceled; ``run.captured`` holds every snap taken so far either way.
+        """
+        plan, state, total = run.plan, run.start_state, len(run.plan.positions)
+        self._set_laser(False)
+        if plan.texture:
+            response = self._capture(lit=False)
+            self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
+        self._set_laser(True)
+        snap_times: List[float] = []
+        # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
+        # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
+        pending: Optional[Dict[str, Any]] = None
+        rate = max(1.0, float(state.step_rate_steps_per_s))
+        here = int(state.position_steps)
+        for index, position in enumerate(plan.positions):
+            t_snap = time.monotonic()
+            self._check_cancel(goal_handle)
+            self._feedback(goal_handle, "moving", index, total, position, run.points_total, snap_times)
+            request = MoveTo.Request(position_steps=position, timeout_s=float(self.move_timeout_s))
+            moved = self._call(self.move, request, float(self.move_timeout_s) or 60.0, f"move to {position}",
+                               due_s=abs(position - here) / rate)
+            if not moved.success:
+                raise ScanAborted(f"move to {position} failed: {moved.message}")
+            here = int(moved.position_steps)
+            t_moved = time.monotonic()
+            since_stop = self._since_stop_s(moved.stopped_stamp)
+            self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
+            t_slept = time.monotonic()
+            if pending is not None:
+                run.points_total += self._await_ack(pending)
+                pending = None
+            t_settled = time.monotonic()
+            response = self._capture()
+            t_captured = time.monotonic()
+            key = _key(response.stamp)
+            self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=moved.position_steps,
+                        image_stamp=response.stamp, expected_snaps=total)
+            # per-phase wall times: where a snap's time goes (bench_scan reads them)
+            snap = SnapRecord(index=index, position_steps=int(moved.position_steps), stamp=f"{key[0]}.{key[1]:09d}",
+                              skew_s=float(response.skew_s), move_s=round(t_moved - t_snap, 4),
+                              settle_s=round(t_slept - t_moved, 4),
+                              stop_to_reply_s=None if since_stop is None else round(since_stop, 4),
+                              ack_wait_s=round(t_settled - t_slept, 4), capture_s=round(t_captured - t_settled, 4))
+            run.captured.append(snap)
+            pending = {"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_snap}
+            # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on.
+            self._guarded_ack = key
+            self.guard.due("ack", ack_due_at(t_captured, self._capture_asked, float(self.exposure_s)),
+                           f"snap {index} not acknowledged by stereo_matcher")
+            snap_times.append(time.monotonic() - t_snap)
+        if pending is not None:
+            run.points_total += self._await_ack(pending)
+        self._feedback(goal_handle, "finishing", total, total, plan.positions[-1], run.points_total, snap_times)
+
+    def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
+                recorder: Any) -> Scan.Result:
+        """FINISHED / ABORTED event, cloud.ply, the bag closed, scan.json; ends the goal."""
+        abort_reason, record, folder, total = run.abort_reason, run.record, run.folder, len(run.plan.positions)
+        if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
+            # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first
+            abort_reason = f"scan_coordinator is shutting down ({abort_reason})"
+        if laser_error and not abort_reason:
+            abort_reason = f"laser off failed at the end of the scan: {laser_error}"
+        partial = bool(abort_reason)
+        kind = ScanEvent.ABORTED if partial else ScanEvent.FINISHED
+        self._event(kind, run.scan_id, folder, expected_snaps=total, snaps_captured=len(run.captured),
+                    partial=partial, reason=abort_reason)
+        record.timings_s["scan"] = time.monotonic() - run.started
+        cloud_points = self._save_cloud(folder, cloud_serial_before, record) if run.captured else 0
+        if recorder is not None:
+            try:
+                record.files.append(self._stop_bag(recorder))
+            except Exception as exc:  # noqa: BLE001 - scan.json must still be written, saying what happened
+                bag_error = f"the bag could not be finished: {exc.__class__.__name__}: {exc}"
+                self.get_logger().error(bag_error)
+                abort_reason = f"{abort_reason}; {bag_error}" if abort_reason else bag_error
+                partial = True
+        record.snaps = [snap.as_json() for snap in run.captured]
+        record.laser_pauses = [pause.as_json() for pause in self.guard.pauses]
+        record.snaps_captured = len(run.captured)
+        record.snaps_acknowledged = sum(1 for snap in run.captured if snap.acknowledged)
+        record.points = cloud_points or run.points_total
+        record.partial = partial
+        record.status = (f"partial: {abort_reason}" if partial else
+                         f"finished: {len(run.captured)} snaps, {record.points} points")
+        record.timings_s["total"] = time.monotonic() - run.started
+        record.files.append(str(record.write(folder)))
+        result = Scan.Result(scan_id=run.scan_id, output_dir=str(folder), success=not partial, partial=partial,
+                             snaps=len(run.captured), points=int(record.points),
+                             seconds=float(record.timings_s["scan"]), files=[str(f) for f in record.files],
+                             status=record.status)
+        summary = f"scan {run.scan_id} {record.status} in {result.seconds:.1f} s; files in {folder}"
+        if partial:  # rclpy refuses one call site logging at two severities
+            self.get_logger().warning(summary)
+        else:
+            self.get_logger().info(summary)
+        if run.canceled:
+            goal_handle.canceled()
+        elif partial:
+            goal_handle.abort()
+        else:
+            goal_handle.succeed()
+        return result
+
+    def _await_ack(self, pending: Dict[str, Any]) -> int:
+        """Wait until stereo_matcher published the snap's points; returns their count.
+
+        ``ack_timeout_s`` after the capture without them the scan aborts; the laser guard has switched
+        the laser off long before (``laser_pause_s`` after the capture), and `_capture` switches it
+        back on when the points came after all.
+        """
+        snap, key = pending["snap"], pending["key"]
+        remaining = float(self.ack_timeout_s) - (time.monotonic() - pending["t_captured"])
+        if not self._wait(lambda: key in self._acks, remaining):
+            raise ScanAborted(f"snap {snap.index} (position {snap.position_steps}) was not acknowledged by "
+                              f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
+        self.guard.answered("ack")
+        self._guarded_ack = None
+        points, t_ack = self._acks.pop(key)
+        snap.points = int(points)
+        # from the arrival time, not from now: the wait may start long after the points came
+        snap.ack_s = round(max(0.0, t_ack - pending["t_captured"]), 4)
+        snap.snap_s = round(t_ack - pending["t_snap"], 4)
+        return snap.points
+
+    def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
+                  snap_times: List[float]) -> None:
+        fb = Scan.Feedback(stage=stage, snap_index=index, snaps_total=total, position_steps=int(position),
+                           points_so_far=int(points))
+        if snap_times:
+            fb.eta_s = float(sum(snap_times) / len(snap_times) * (total - index))
+        goal_handle.publish_feedback(fb)
+
+    def _save_cloud(self, folder: Path, serial_before: int, record: ScanRecord) -> int:
+        """Wait for the matcher's scan cloud and write cloud.ply; returns its point count (0 if none came)."""
+        if self.shutting_down:  # the matcher is stopping too; scan.json and the bag must be on disk first
+            self.get_logger().warning("shutting down: not waiting for stereo_matcher's scan/cloud; the per-snap "
+                                      "data is in the bag if one was recorded")
+            return 0
+        try:
+            arrived = self._wait(lambda: self._cloud_serial > serial_before, float(self.cloud_timeout_s), spin=False)
+        except ScanAborted:  # shutdown while waiting
+            arrived = False
+        if not arrived:
+            self.get_logger().warning(f"no scan/cloud from stereo_matcher within {self.cloud_timeout_s:g} s; "
+                                      "the per-snap data is in the bag if one was recorded")
+            return 0
+        from lsu_bags.ply import write_cloud_ply
+        from lsu_bags.pointcloud2 import decode, from_msg
+
+        assert self._cloud is not None
+        columns = decode(from_msg(self._cloud))
+        record.files.append(str(write_cloud_ply(folder / "cloud.ply", columns, comment="lsu scan")))
+        return len(columns["x"])
+
+    def _start_bag(self, folder: Path) -> Any:
+        """Record the scan's topics on a private node spun by its own single-threaded executor.
+
+        Why not on this node: the recorder's subscriptions would be destroyed (on close) while the
+        multi-threaded executor builds its wait set in another thread, which rclpy answers with
+        InvalidHandle out of spin(): the coordinator died after the scan and the result was lost.
+        Its own executor is stopped before the subscriptions go; a single-threaded executor also
+        costs less than half as much per recorded message.
+        """
+        from rclpy.executors import SingleThreadedExecutor
+
+        from lsu_bags.bag_cli import BagRecorder
+
+        # Not /lsu/sim/truth: simulation only, and ~1 ms of executor time per message in this process
+        # while the scan loop needs the CPU. The bag is for replaying the processing; `lsu bag record
+        # --all` still takes everything.
+        topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
+                  "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
+                  "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
+                  "/lsu/driver/state"]
+        # no global arguments: the process's `-r __node:=scan_coordinator` would give it our name
+        node = rclpy.create_node("_scan_coordinator_bag", namespace=self.get_namespace(), context=self.context,
+                                 use_global_arguments=False, start_parameter_services=False)
+        executor = SingleThreadedExecutor(context=self.context)
+        executor.add_node(node)
+        stop = threading.Event()
+
+        def spin() -> None:
+            while not stop.is_set() and self.context.ok():
+                executor.spin_once(timeout_sec=0.1)
+
+        try:
+            recorder = BagRecorder(node, topics, folder / "bag", "mcap", compress=True,
+                                   log=lambda text: self.get_logger().info(text))
+        except BaseException:
+            executor.shutdown()
+            node.destroy_node()
+            raise
+        thread = threading.Thread(target=spin, name="lsu-scan-bag", daemon=True)
+        thread.start()
+        return recorder, node, executor, stop, thread
+
+    @staticmethod
+    def _stop_bag(bag: Any) -> str:
+        recorder, node, executor, stop, thread = bag
+        stop.set()
+        thread.join(timeout=5.0)  # its executor no longer waits on the subscriptions closing below
+        try:
+            recorder.close()
+        finally:
+            executor.shutdown()
+            node.destroy_node()
+        return str(recorder.path)
+
+    def destroy_node(self) -> None:
+        if self._busy.locked():
+            # the scan thread owns the private node: let it end the scan (laser off in its finally)
+            self._stopping = True
+            if self._busy.acquire(timeout=3.0):
+                self._busy.release()
+            else:
+                self.get_logger().error("the scan did not end within 3 s of shutdown; the firmware watchdog "
+                                        "switches the laser off")
+        self._io_executor.shutdown(timeout_sec=1.0)
+        self._io.destroy_node()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    """Console script ``scan_coordinator``."""
+    rclpy.init(args=sys.argv if args is None else args)
+    node = ScanCoordinatorNode()
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

@@ -1,0 +1,1 @@
+"""The pytest plugin (per-session ROS domain, graph fixtures) and simulated bags for tests and benchmarks."""

@@ -1,0 +1,131 @@
+"""The `lsu` command: one entry point, subcommands for everything a lab user does.
+
+Every subcommand comes from the ``lsu.commands`` entry point group (a function
+``register(subparsers)``), this package's own (`launch` and `run` here, graph introspection,
+`doctor`, `demo`) as much as those of the other packages (`bag`, `scan`, `accuracy`, ...), so
+this module imports none of them and each package registers what it offers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+from lsu_config import config_dir
+from lsu_scan import rosenv
+
+
+def resolve_launch_file(name: str) -> Path:
+    """A path as given, else ``config/launch/NAME.launch.yaml``."""
+    path = Path(name)
+    if path.is_file():
+        return path
+    for candidate in (config_dir() / "launch" / f"{name}.launch.yaml", config_dir() / "launch" / name):
+        if candidate.is_file():
+            return candidate
+    known = sorted(p.name.removesuffix(".launch.yaml") for p in (config_dir() / "launch").glob("*.launch.yaml"))
+    raise FileNotFoundError(f"launch file '{name}' not found (neither a file nor one of: {', '.join(known)})")
+
+
+def _load(args: argparse.Namespace):
+    from .launch_file import load_groups, load_launch, parse_cli_arguments, select_nodes
+    from .nodes_index import resolve_executable
+
+    description = load_launch(resolve_launch_file(args.file), parse_cli_arguments(args.arguments), resolve_executable)
+    groups = [g for item in (args.group or []) for g in item.split(",") if g]
+    exclude = [g for item in (args.exclude or []) for g in item.split(",") if g]
+    if not groups and not exclude:
+        return description
+    return select_nodes(description, groups, exclude, load_groups(config_dir() / "launch" / "groups.yaml"))
+
+
+def cmd_launch(args: argparse.Namespace) -> int:
+    from .launcher import Launcher
+
+    description = _load(args)
+    if not description.nodes:
+        print(f"[lsu launch] {description.file}: no nodes to start")
+        return 0
+    return Launcher(description, sigint_timeout_s=args.sigint_timeout).run()
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .runner import run_in_process
+
+    return run_in_process(_load(args), executor=args.executor)
+
+
+def _selection_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--group", action="append", metavar="NAME[,NAME]",
+                   help="start only these groups of config/launch/groups.yaml (rig, processing, view) or nodes "
+                        "(by name); e.g. --group rig on the PC wired to the unit, --group processing on another")
+    p.add_argument("--exclude", action="append", metavar="NAME[,NAME]",
+                   help="leave these groups or nodes out")
+
+
+def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """Add `launch` and `run` (``lsu.commands`` entry point)."""
+    p = sub.add_parser("launch", help="start the nodes of a YAML launch file, one process each",
+                       description="Start every node of a ROS 2 YAML launch file as its own process. "
+                                   "Ctrl-C stops them all (SIGINT, then SIGTERM, then SIGKILL).")
+    p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
+    p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    _selection_options(p)
+    p.add_argument("--sigint-timeout", type=float, default=2.5, metavar="S",
+                   help="grace after SIGINT before SIGTERM (default 2.5)")
+    p.set_defaults(func=cmd_launch)
+    p = sub.add_parser("run", help="run the nodes of a launch file in one process",
+                       description="Build every node of a launch file in this process and spin them on one "
+                                   "executor.")
+    p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
+    p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    _selection_options(p)
+    p.add_argument("--executor", choices=("multi", "single"), default="multi",
+                   help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "
+                        "callback (the scan coordinator); single: one thread, lower overhead per callback, "
+                        "for graphs of processing nodes such as `replay`")
+    p.set_defaults(func=cmd_run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full `lsu` argument parser: every installed ``lsu.commands`` entry point."""
+    from .nodes_index import command_plugins
+
+    parser = argparse.ArgumentParser(
+        prog="lsu", description="LSU stereo laser-line scanner: launch, inspect and run the ROS 2 graph.",
+        epilog="DDS stays on this machine: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless you set it.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for entry in command_plugins():
+        try:
+            entry.load()(sub)
+        except Exception as exc:  # a broken plugin must not take the whole command down
+            print(f"lsu: warning: subcommand plugin '{entry.name}' ({entry.value}) failed to load: {exc}",
+                  file=sys.stderr)
+    return parser
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Console script `lsu`."""
+    report = rosenv.apply_defaults()
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    args.env_report = report  # what lsu set by default, for `lsu doctor`
+    from .graph import GraphError
+    from .launch_file import LaunchError
+    from lsu_bags.rosmsg import InterfaceError
+    from lsu_scan.scanner import ScannerError
+
+    try:
+        return int(args.func(args) or 0)
+    except (LaunchError, GraphError, InterfaceError, ScannerError, LookupError, FileNotFoundError,
+            ValueError) as exc:
+        print(f"lsu {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

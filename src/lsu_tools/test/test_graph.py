@@ -1,0 +1,63 @@
+"""Graph listing waits for discovery to settle, not for a fixed time."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from lsu_tools.graph import DISCOVERY_MIN_S, DISCOVERY_QUIET_S, GraphClient
+
+
+def test_listing_waits_while_nodes_keep_appearing(ros_context):
+    import rclpy
+
+    # nodes that come up one by one, each well within the quiet period of the one before, for
+    # longer than the old fixed 3 s wait: every one of them must be listed
+    gap_s = DISCOVERY_QUIET_S / 3
+    count = int(3.0 / gap_s) + 3
+    names = [f"late_node_{i}" for i in range(count)]
+    # the first node makes the process's DDS participant (slow on a busy host); the others then
+    # only add entities to the graph, like nodes of a launch coming up one by one
+    created = [rclpy.create_node(names[0], namespace="/graphtest", context=ros_context)]
+    stop = threading.Event()
+
+    def bring_up() -> None:
+        for name in names[1:]:
+            if stop.wait(gap_s):
+                return
+            created.append(rclpy.create_node(name, namespace="/graphtest", context=ros_context))
+
+    with GraphClient() as g:
+        worker = threading.Thread(target=bring_up)
+        worker.start()
+        try:
+            g.wait_for_discovery(max_s=60.0)
+            seen = {n for n, ns in g.node.get_node_names_and_namespaces() if ns == "/graphtest"}
+            finished_first = len(created) == count
+        finally:
+            stop.set()
+            worker.join()
+            for node in created:
+                node.destroy_node()
+    assert finished_first  # the wait outlasted the last node's start ...
+    assert seen == set(names)  # ... and saw all of them
+
+
+def test_listing_does_not_stop_before_the_first_other_participant_is_seen(ros_context, monkeypatch):
+    # on a busy host the first announcement of the graph's nodes can come after the quiet period:
+    # "nothing new for 1.5 s" before anything else was seen means nothing seen yet, not a settled
+    # graph. The graph is scripted (other tests' participants may share this session's domain):
+    # only this client for a while, then one other node.
+    with GraphClient() as g:
+        me = (g.node.get_name(), g.node.get_namespace())
+        start = time.monotonic()
+        appear_after_s = 2 * (DISCOVERY_QUIET_S + DISCOVERY_MIN_S)
+
+        def snapshot():
+            nodes = [me] + ([("first_and_late", "/graphtest2")] if time.monotonic() - start >= appear_after_s else [])
+            return (tuple(sorted(nodes)), (), (), ())
+
+        monkeypatch.setattr(g, "graph_snapshot", snapshot)
+        waited = g.wait_for_discovery(max_s=120.0)
+    # it waited for the other node, then for the quiet period after it, and not for the maximum
+    assert appear_after_s + DISCOVERY_QUIET_S <= waited < 120.0
