@@ -170,13 +170,17 @@ def read_pairs(folder: "str | Path") -> List[Tuple[int, int, LineArrays, LineArr
     return pairs
 
 
+# the vertex record of write_ply (the laser sheet calibration reads scans' clouds with it)
+PLY_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                      ("u", "<f4"), ("v", "<f4"), ("snap", "<u4")])
+
+
 def write_ply(path: "str | Path", cloud: SnapPoints) -> Path:
     """Binary little-endian PLY with x y z (float, metres), red green blue (uchar), u v (float), snap (uint)."""
     path = Path(path)
     n = len(cloud)
     rgb = unpack_rgb(cloud.fields()["rgb"]) if n else np.zeros((0, 3), np.uint8)
-    rec = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                             ("blue", "u1"), ("u", "<f4"), ("v", "<f4"), ("snap", "<u4")])
+    rec = np.zeros(n, dtype=PLY_DTYPE)
     rec["x"], rec["y"], rec["z"] = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
     rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     rec["u"], rec["v"], rec["snap"] = cloud.u, cloud.v, cloud.snap
@@ -235,3 +239,7 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.add_argument("--depth-min-m", type=float, default=defaults.depth_min_m, help="nearest accepted depth [m]")
     p.add_argument("--depth-max-m", type=float, default=defaults.depth_max_m, help="farthest accepted depth [m]")
     p.set_defaults(func=run)
+    # `lsu calibrate --laser` (this entry point loads after lsu_cameras' "cameras", which adds `calibrate`)
+    from .laser_cli import register_laser
+
+    register_laser(subparsers)
