@@ -39,6 +39,7 @@ from lsu_interfaces.msg import ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
 from .laser_guard import LaserGuard, ack_due_at
+from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, settle_from_images
 from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
                         mechanical_lower_bound_s, new_scan_id, plan_positions)
 
@@ -78,6 +79,11 @@ PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
                    (0.0, 1.0)),
     "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
                         None),
+    "settle": ("fixed", "after each stop: 'fixed' waits the goal's settle_s; 'adaptive' captures as soon as the "
+                        "laser line stopped moving (two frames agree), at the latest once settle_s has passed "
+                        "(lsu_bringup.settle)", None),
+    "settle_tolerance_px": (DEFAULT_TOLERANCE_PX, "adaptive settle: the line counts as still when it moved less "
+                                                  "than this between two frames [px]", (0.01, 5.0)),
 }
 
 
@@ -191,6 +197,9 @@ class ScanCoordinatorNode(Node):
     def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
         """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
         for param in changed:
+            if param.name == "settle" and param.value not in SETTLE_MODES:
+                return SetParametersResult(successful=False, reason=f"settle '{param.value}' is not one of "
+                                                                    f"{', '.join(SETTLE_MODES)}")
             if param.name in ("output_dir", "calibration_dir") and param.value:
                 path = Path(str(param.value))
                 if path.exists() and not path.is_dir():
@@ -208,8 +217,8 @@ class ScanCoordinatorNode(Node):
                 from .cli import workspace_root
 
                 self.output_dir = Path(value) if value else workspace_root() / "scans"
-            elif param.name == "calibration_dir":
-                self.calibration_dir = str(value)
+            elif param.name in ("calibration_dir", "settle"):
+                setattr(self, param.name, str(value))
             else:
                 setattr(self, param.name, float(value))
                 if param.name == "laser_pause_s":
@@ -315,8 +324,9 @@ class ScanCoordinatorNode(Node):
                                     "firmware watchdog will)")
             return str(exc) or exc.__class__.__name__
 
-    def _capture(self, lit: bool = True) -> Any:
-        """One published stereo capture; with ``lit`` the laser is on during its exposure.
+    def _capture(self, lit: bool = True, publish: bool = True, images: bool = False) -> Any:
+        """One stereo capture (published unless ``publish`` is false; with ``images`` the response holds the
+        images); with ``lit`` the laser is on during its exposure.
 
         A capture the laser guard interrupted is taken again unless its exposure (the image stamp,
         from the same system clock) ended before the laser was switched off.
@@ -327,7 +337,8 @@ class ScanCoordinatorNode(Node):
                 self._resume_laser()
             self._capture_asked = time.monotonic()
             response = self._call(self.capture,
-                                  CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
+                                  CaptureStereo.Request(publish=publish, return_images=images,
+                                                        timeout_s=float(self.capture_timeout_s)),
                                   float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
             if not response.success:
                 raise ScanAborted(f"capture failed: {response.message}")
@@ -454,7 +465,8 @@ class ScanCoordinatorNode(Node):
                             goal={k: getattr(goal, k) for k in goal.get_fields_and_field_types()},
                             parameters={"capture_timeout_s": self.capture_timeout_s, "ack_timeout_s": self.ack_timeout_s,
                                         "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s,
-                                        "laser_pause_s": self.laser_pause_s},
+                                        "laser_pause_s": self.laser_pause_s, "settle": self.settle,
+                                        "settle_tolerance_px": self.settle_tolerance_px},
                             calibration=calibration_checksum(calib))
         state = self.state
         try:
@@ -515,13 +527,19 @@ class ScanCoordinatorNode(Node):
             here = int(moved.position_steps)
             t_moved = time.monotonic()
             since_stop = self._since_stop_s(moved.stopped_stamp)
-            self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
-            t_slept = time.monotonic()
-            if pending is not None:
-                run.points_total += self._await_ack(pending)
+            trace: Optional[SettleTrace] = None
+            if self.settle == "adaptive":
+                response, trace, t_slept, t_settled = self._adaptive_capture(goal_handle, run, pending, t_moved,
+                                                                             plan.settle_s - (since_stop or 0.0))
                 pending = None
-            t_settled = time.monotonic()
-            response = self._capture()
+            else:
+                self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
+                t_slept = time.monotonic()
+                if pending is not None:
+                    run.points_total += self._await_ack(pending)
+                    pending = None
+                t_settled = time.monotonic()
+                response = self._capture()
             t_captured = time.monotonic()
             key = _key(response.stamp)
             self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=moved.position_steps,
@@ -532,6 +550,8 @@ class ScanCoordinatorNode(Node):
                               settle_s=round(t_slept - t_moved, 4),
                               stop_to_reply_s=None if since_stop is None else round(since_stop, 4),
                               ack_wait_s=round(t_settled - t_slept, 4), capture_s=round(t_captured - t_settled, 4))
+            if trace is not None:
+                snap.settle = trace.as_json()
             run.captured.append(snap)
             pending = {"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_snap}
             # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on.
@@ -542,6 +562,42 @@ class ScanCoordinatorNode(Node):
         if pending is not None:
             run.points_total += self._await_ack(pending)
         self._feedback(goal_handle, "finishing", total, total, plan.positions[-1], run.points_total, snap_times)
+
+    def _adaptive_capture(self, goal_handle: Any, run: ScanRun, pending: Optional[Dict[str, Any]], t_moved: float,
+                          settle_left_s: float) -> Tuple[Any, SettleTrace, float, float]:
+        """The snap's capture by the adaptive settle (lsu_bringup.settle); also awaits the previous snap's ack.
+
+        Returns (capture response, trace, end of the settle's probe, when the ack was in) for the SnapRecord.
+        """
+        from lsu_cameras.live import image_from_msg
+
+        fixed_end = t_moved + max(0.0, settle_left_s)
+        marks = {"probed": t_moved, "acked": t_moved}
+
+        def probe() -> Any:
+            self._check_cancel(goal_handle)
+            image = image_from_msg(self._capture(publish=False, images=True).left)
+            marks["probed"] = marks["acked"] = time.monotonic()
+            return image
+
+        def before_capture() -> None:
+            nonlocal pending
+            self._check_cancel(goal_handle)
+            if pending is not None:
+                run.points_total += self._await_ack(pending)
+                pending = None
+                marks["acked"] = time.monotonic()
+
+        def capture() -> Tuple[Any, Any]:
+            response = self._capture(images=True)
+            return response, image_from_msg(response.left)
+
+        response, trace = settle_from_images(probe, capture, lambda: time.monotonic() >= fixed_end,
+                                             tolerance_px=float(self.settle_tolerance_px),
+                                             before_capture=before_capture)
+        if trace.captures > 1:
+            self.get_logger().debug(f"adaptive settle: {trace.captures - 1} capture(s) moved before the snap")
+        return response, trace, marks["probed"], marks["acked"]
 
     def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
                 recorder: Any) -> Scan.Result:
