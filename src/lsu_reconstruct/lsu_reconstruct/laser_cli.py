@@ -216,12 +216,44 @@ SIM_BOARDS = ((0.26, 10.0), (0.30, 0.0), (0.34, -15.0))   # (distance [m], yaw a
 SIM_POSITIONS = tuple(range(150, 331, 20))
 
 
+def _write_line_bag(path: Path, lines: Sequence[Tuple[Any, Any]], positions: Sequence[int]) -> Path:
+    """A bag as a recording scan holds it, for what this command reads: laser lines and SNAP events."""
+    from rosbags.rosbag2 import Writer
+
+    from .cli import EVENT_TYPE, LINE_TYPE, lsu_typestore
+
+    store = lsu_typestore()
+    T = store.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    with Writer(path, version=9) as writer:
+        conns = {side: writer.add_connection(f"/lsu/stereo/{side}/laser_line", LINE_TYPE, typestore=store)
+                 for side in ("left", "right")}
+        events = writer.add_connection("/lsu/scan/events", EVENT_TYPE, typestore=store)
+        for index, (pair, position) in enumerate(zip(lines, positions)):
+            stamp = Time(sec=1_800_000_000 + index, nanosec=0)
+            t = (1_800_000_000 + index) * 1_000_000_000
+            event = T[EVENT_TYPE](header=Header(stamp=stamp, frame_id=""), type=2, scan_id="sim-board",
+                                  expected_snaps=len(positions), index=index, position_steps=int(position),
+                                  image_stamp=stamp, snaps_captured=0, partial=False, reason="", output_dir="")
+            writer.write(events, t, store.serialize_cdr(event, EVENT_TYPE))
+            for side, line in zip(("left", "right"), pair):
+                msg = T[LINE_TYPE](header=Header(stamp=stamp, frame_id=f"lsu_{side}_optical"),
+                                   image_width=line.image_width, image_height=line.image_height, method="sim",
+                                   u=np.asarray(line.u, np.float32), v=np.asarray(line.v, np.float32),
+                                   peak=np.asarray(line.peak, np.float32), width=np.asarray(line.width, np.float32),
+                                   quality=np.asarray(line.quality, np.float32), rows_searched=line.image_height,
+                                   rows_ambiguous=0, rows_saturated=0)
+                writer.write(conns[side], t + 1, store.serialize_cdr(msg, LINE_TYPE))
+    return path
+
+
 def simulate_board_scans(out: "str | Path", calib_dir: "str | Path", boards: Sequence[Tuple[float, float]] = SIM_BOARDS,
-                         positions: Sequence[int] = SIM_POSITIONS, seed: int = 0) -> List[Path]:
+                         positions: Sequence[int] = SIM_POSITIONS, seed: int = 0, bags: bool = False) -> List[Path]:
     """Scan folders (cloud.ply + scan.json) of flat boards seen by the simulated rig: rendered frames, the
     extractor's lines and this package's matcher, as the live graph makes them (no carriage vibration).
 
     ``calib_dir`` is the calibration the matcher uses and the scans name (e.g. config/calibration/sim).
+    With ``bags`` each scan is a bare bag of the laser lines and SNAP events instead (no scan.json).
     """
     from lsu_cameras.calib_io import calibration_checksum
     from lsu_cameras.sim import SimulatedRig, load_rig, make_plane
@@ -242,16 +274,21 @@ def simulate_board_scans(out: "str | Path", calib_dir: "str | Path", boards: Seq
         normal = -(np.cos(yaw) * axes[2] + np.sin(yaw) * axes[0])
         board = make_plane(geometry.rig_center + distance * axes[2], normal, name="board")
         rig = SimulatedRig(geometry, [board], seed=seed + k)
-        snaps, records = [], []
+        snaps, records, pairs = [], [], []
         for index, position in enumerate(positions):
             frame = rig.render(float(position), seed=seed + 1000 * k + index)
             lines = []
             for image in (frame.left, frame.right):
                 r = extract_laser_line(image)
                 lines.append(LineArrays(r.u, r.v, r.peak, r.width, r.quality, r.image_width, r.image_height))
+            pairs.append((lines[0], lines[1]))
             snaps.append(reconstruct_snap(model, lines[0], lines[1], snap=index))
             records.append({"index": index, "position_steps": int(position)})
         folder = Path(out) / f"board-{round(distance * 1000)}mm-yaw{yaw_deg:+.0f}"
+        if bags:
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            folders.append(_write_line_bag(folder, pairs, positions))
+            continue
         folder.mkdir(parents=True, exist_ok=True)
         write_ply(folder / "cloud.ply", merge_snaps(snaps))
         (folder / "scan.json").write_text(json.dumps(

@@ -58,6 +58,18 @@ def test_calibrate_laser_writes_the_rigs_sheet(board_scans, tmp_path, capsys):
     assert sheet.residual_mm < 0.3 and sheet.positions == (SIM_POSITIONS[0], SIM_POSITIONS[-1])
 
 
+def test_bags_of_the_boards_give_the_same_sheet_as_their_clouds(board_scans, tmp_path):
+    """Bare bags (laser lines + SNAP events, no scan.json): reconstructed here, positions from the events."""
+    calib, scans = board_scans
+    bags = simulate_board_scans(tmp_path / "bags", calib, seed=3, bags=True)
+    assert all((b / "metadata.yaml").is_file() and not (b / "scan.json").exists() for b in bags)
+    from_bags, report = calibrate_laser(bags, calib)
+    from_clouds, _ = calibrate_laser(scans, calib)
+    assert np.allclose(from_bags.normal, from_clouds.normal, atol=1e-5)
+    assert from_bags.c0_m == pytest.approx(from_clouds.c0_m, abs=1e-6)
+    assert [r.positions for r in report] == [len(SIM_POSITIONS)] * 3
+
+
 def test_one_board_is_refused_with_what_to_scan(board_scans, capsys):
     calib, scans = board_scans
     assert lsu("calibrate", "--laser", str(scans[0]), "-o", str(calib)) == 2
