@@ -106,3 +106,10 @@ def test_a_frame_without_the_line_is_not_still():
     # the frame after the hidden one has nothing to compare with either: the next one decides
     assert trace.captures == 3 and trace.reason == "still"
     assert np.isnan(trace.shifts_px[0]) and np.isnan(trace.shifts_px[1])
+
+
+def test_no_probe_when_the_fixed_settle_is_already_over():
+    probes = []
+    snap, trace = settle_from_images(lambda: probes.append(1), lambda: ("capture", np.zeros(480)), lambda: True,
+                                     profile=lambda p: p)
+    assert snap == "capture" and probes == [] and trace.captures == 1 and trace.reason == "fixed settle passed"
