@@ -305,6 +305,8 @@ def register_laser(subparsers: Any) -> None:
         calibrate = subparsers.add_parser("calibrate", help="laser sheet calibration from scans of a flat board")
         calibrate.add_argument("-o", "--output", default="calibration", help="calibration folder")
     stereo = calibrate.get_default("func")
+    calibrate.description = ((calibrate.description or "") + " With --laser SCAN...: the laser's light sheet from "
+                             "scans of a flat board at 2+ distances -> laser.yaml in -o DIR.").strip()
     calibrate.add_argument("--laser", nargs="+", metavar="SCAN",
                            help="laser sheet calibration instead: scan folders (scan.json + cloud.ply, or bag/) or "
                                 "bags of a flat board/wall at 2+ distances, made with the calibration in -o DIR; "
