@@ -269,7 +269,7 @@ SETTLE_UNITS = {"stopsnap_adaptive_settle_scan_s": "s", "stopsnap_fixed_settle_s
 SETTLE_NOTES = (
     "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm), after a warm-up scan, scans of "
     "stopsnap_settle_scan_snaps snaps (0..470 step 2 unless LSU_BENCH_SETTLE_SCAN said otherwise) with the settle parameter of scan_coordinator fixed (settle_s 0.1) and adaptive (lsu_bringup.settle, "
-    "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
+    "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s and laser_pause_s 1.5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
     "two scans: stopsnap_*_settle_scan_s the action's wall time, *_rms_mm the cloud's RMS distance to the true head "
     "surface (the demo's measure), adaptive_captures_per_snap the published captures per snap (the unpublished probe "
     "not counted). The sim's capture is a render (~40 ms), standing in for the wait for a camera frame.")
@@ -292,9 +292,11 @@ def settle_figures(tmp: Path) -> dict:
         with LsuScanner(wait_s=60) as scanner:
             scanner.scan(start=230, end=240, step=5, settle_s=0.1, output_dir=str(tmp / "warmup-settle"))
             lsu = str(Path(sys.executable).parent / "lsu")
-            # a loaded shared host stretches captures past the default 1 s limit (both modes get the same)
-            subprocess.run([lsu, "param", "set", "/lsu/scan_coordinator", "capture_timeout_s", "5.0"], check=True,
-                           capture_output=True, timeout=60)
+            # a loaded shared host stretches captures past the default 1 s limit and the laser guard's 0.2 s
+            # (both modes get the same limits)
+            for name, value in (("capture_timeout_s", "5.0"), ("laser_pause_s", "1.5")):
+                subprocess.run([lsu, "param", "set", "/lsu/scan_coordinator", name, value], check=True,
+                               capture_output=True, timeout=60)
             for mode in ("fixed", "adaptive", "adaptive", "fixed"):
                 subprocess.run([lsu, "param", "set", "/lsu/scan_coordinator", "settle", mode], check=True,
                                capture_output=True, timeout=60)

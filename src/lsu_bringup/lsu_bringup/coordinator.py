@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import datetime as _dt
 import sys
+from collections import OrderedDict
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
+import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
@@ -35,11 +37,11 @@ from std_srvs.srv import SetBool
 
 from lsu_cameras.polled import PolledGroup, take_latest
 from lsu_interfaces.action import Scan
-from lsu_interfaces.msg import ScanEvent, ScannerState
+from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
 from .laser_guard import LaserGuard, ack_due_at
-from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, settle_from_images
+from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
 from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
                         mechanical_lower_bound_s, new_scan_id, plan_positions)
 
@@ -141,6 +143,9 @@ class ScanCoordinatorNode(Node):
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self._state: Optional[ScannerState] = None
         self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        # adaptive settle: the laser_extractor's left lines by image stamp, subscribed at the first adaptive scan
+        self._left_lines: "OrderedDict[tuple, LaserLine]" = OrderedDict()
+        self._left_line_sub: Any = None
         self._cloud: Optional[PointCloud2] = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
@@ -510,6 +515,8 @@ class ScanCoordinatorNode(Node):
             self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         self._set_laser(True)
         snap_times: List[float] = []
+        if self.settle == "adaptive":
+            self._follow_left_lines()
         # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
         # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
         pending: Optional[Dict[str, Any]] = None
@@ -563,22 +570,42 @@ class ScanCoordinatorNode(Node):
             run.points_total += self._await_ack(pending)
         self._feedback(goal_handle, "finishing", total, total, plan.positions[-1], run.points_total, snap_times)
 
+    def _follow_left_lines(self) -> None:
+        """Subscribe (once, on the private node the scan thread spins) to the extractor's left lines."""
+        if self._left_line_sub is None:
+            def keep(msg: LaserLine) -> None:
+                self._left_lines[_key(msg.header.stamp)] = msg
+                while len(self._left_lines) > 16:
+                    self._left_lines.popitem(last=False)
+
+            self._left_line_sub = self._io.create_subscription(
+                LaserLine, "stereo/left/laser_line", keep,
+                QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+
     def _adaptive_capture(self, goal_handle: Any, run: ScanRun, pending: Optional[Dict[str, Any]], t_moved: float,
                           settle_left_s: float) -> Tuple[Any, SettleTrace, float, float]:
         """The snap's capture by the adaptive settle (lsu_bringup.settle); also awaits the previous snap's ack.
 
         Returns (capture response, trace, end of the settle's probe, when the ack was in) for the SnapRecord.
         """
-        from lsu_cameras.live import image_from_msg
-
         fixed_end = t_moved + max(0.0, settle_left_s)
         marks = {"probed": t_moved, "acked": t_moved}
 
+        def line_of(response: Any) -> Any:
+            """The laser_extractor's left line of this capture (per-row profile; all NaN if it does not come)."""
+            key = _key(response.stamp)
+            self._wait(lambda: key in self._left_lines, float(self.capture_timeout_s))
+            msg = self._left_lines.pop(key, None)
+            if msg is None:
+                return np.full(1, np.nan)
+            return profile_from_line(np.frombuffer(msg.u, np.float32), np.frombuffer(msg.v, np.float32),
+                                     int(msg.image_height))
+
         def probe() -> Any:
             self._check_cancel(goal_handle)
-            image = image_from_msg(self._capture(publish=False, images=True).left)
+            line = line_of(self._capture())
             marks["probed"] = marks["acked"] = time.monotonic()
-            return image
+            return line
 
         def before_capture() -> None:
             nonlocal pending
@@ -589,12 +616,12 @@ class ScanCoordinatorNode(Node):
                 marks["acked"] = time.monotonic()
 
         def capture() -> Tuple[Any, Any]:
-            response = self._capture(images=True)
-            return response, image_from_msg(response.left)
+            response = self._capture()
+            return response, line_of(response)
 
         response, trace = settle_from_images(probe, capture, lambda: time.monotonic() >= fixed_end,
                                              tolerance_px=float(self.settle_tolerance_px),
-                                             before_capture=before_capture)
+                                             before_capture=before_capture, profile=lambda line: line)
         if trace.captures > 1:
             self.get_logger().debug(f"adaptive settle: {trace.captures - 1} capture(s) moved before the snap")
         return response, trace, marks["probed"], marks["acked"]

@@ -2,14 +2,15 @@
 
 After a stop the carriage rings on its belt (a decaying oscillation, see the emulator's vibration
 model); the fixed settle waits a time long enough for every stop. ``adaptive`` watches the line
-instead: a first frame right after the stop (a probe, not published), then published captures,
-each compared with the frame before it. The first published capture whose laser line lies where
-the previous frame's did (median shift over the image rows within half of ``tolerance_px``) is the snap;
-a capture that moved is left unacknowledged (no SNAP event: the matcher does not file it, the
-same as a capture the laser guard had taken again). Publishing every candidate, rather than
-probing until two probes agree and then capturing once more, saves one frame per snap: on a
-camera that delivers one frame per period the snap is then the second frame after the stop when
-the line is already still.
+instead: captures right after the stop, each compared with the frame before it. The first capture
+whose laser line lies where the previous frame's did (median shift over the image rows within half
+of ``tolerance_px``) is the snap; a capture that moved is left unacknowledged (no SNAP event: the
+matcher does not file it, the same as a capture the laser guard had taken again). Every candidate
+is published, and its line is the one the graph's laser_extractor publishes for it: no image
+travels twice, and the snap is the second frame after the stop when the line is already still.
+(Returning the images in the capture's response and extracting in the coordinator was tried
+first: on a loaded 2-core host the 1.8 MB responses made each snap several times slower than the
+fixed settle.)
 
 Bounds and limits:
 - once the fixed settle (counted from the stop) has passed when a capture starts, that capture is
@@ -24,8 +25,8 @@ Bounds and limits:
   truth over the range of phases at which the probe can fall;
 - only the left image is compared: both cameras see the same sheet move.
 
-The line is found by lsu_extract's own extractor (the laser_extractor node's), in the coordinator's
-process: a frame already in memory costs one extraction (~2-5 ms) and no graph round trip.
+`settle_from_images` takes the frames as callables, so the same decision runs on the laser_extractor's
+lines in the coordinator and on rendered frames (`line_profile`, the extractor's own function) in tests.
 """
 
 from __future__ import annotations
@@ -35,8 +36,8 @@ from typing import Any, Callable, List, Optional, Tuple
 
 import numpy as np
 
-__all__ = ["SETTLE_MODES", "DEFAULT_TOLERANCE_PX", "MIN_ROWS", "SettleTrace", "line_profile", "line_shift_px",
-           "settle_from_images"]
+__all__ = ["SETTLE_MODES", "DEFAULT_TOLERANCE_PX", "MIN_ROWS", "SettleTrace", "line_profile", "profile_from_line",
+           "line_shift_px", "settle_from_images"]
 
 SETTLE_MODES = ("fixed", "adaptive")
 # How far from rest the snap's line may be [px]; frames agree within half of it. At 0.3 m one
@@ -55,6 +56,15 @@ def line_profile(image: np.ndarray) -> np.ndarray:
     rows = np.asarray(result.v, dtype=np.int64)
     ok = (rows >= 0) & (rows < image.shape[0])
     profile[rows[ok]] = np.asarray(result.u, dtype=np.float64)[ok]
+    return profile
+
+
+def profile_from_line(u: np.ndarray, v: np.ndarray, height: int) -> np.ndarray:
+    """The same per-row profile from a LaserLine's samples (the laser_extractor's output for a published image)."""
+    profile = np.full(int(height), np.nan)
+    rows = np.rint(np.asarray(v, dtype=np.float64)).astype(np.int64)
+    ok = (rows >= 0) & (rows < int(height))
+    profile[rows[ok]] = np.asarray(u, dtype=np.float64)[ok]
     return profile
 
 
@@ -85,8 +95,8 @@ def settle_from_images(probe: Callable[[], np.ndarray], capture: Callable[[], Tu
                        before_capture: Optional[Callable[[], None]] = None) -> Tuple[Any, SettleTrace]:
     """Run the adaptive settle; returns (the snap's capture, what was seen).
 
-    ``probe()`` -> a left image that is not published; ``capture()`` -> (its response, its left image),
-    published; ``fixed_passed()`` -> whether the fixed settle since the stop is over (checked before each
+    ``probe()`` -> the first frame after the stop (not the snap); ``capture()`` -> (its response, its
+    frame); a frame is what ``profile`` turns into the line's column per row; ``fixed_passed()`` -> whether the fixed settle since the stop is over (checked before each
     capture); ``before_capture()`` runs before each published capture (the coordinator awaits the previous
     snap's acknowledgement there). A frame without enough line rows to compare (laser hidden) does not
     count as still.
