@@ -271,8 +271,8 @@ SETTLE_NOTES = (
     "stopsnap_settle_scan_snaps snaps (0..470 step 2 unless LSU_BENCH_SETTLE_SCAN said otherwise) with the settle parameter of scan_coordinator fixed (settle_s 0.1) and adaptive (lsu_bringup.settle, "
     "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s and laser_pause_s 1.5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
     "two scans: stopsnap_*_settle_scan_s the action's wall time, *_rms_mm the cloud's RMS distance to the true head "
-    "surface (the demo's measure), adaptive_captures_per_snap the published captures per snap (the unpublished probe "
-    "not counted). The sim's capture is a render (~40 ms), standing in for the wait for a camera frame.")
+    "surface (the demo's measure), adaptive_captures_per_snap the captures per snap after the first frame after the stop "
+    "(that probe is published too, but never the snap). The sim's capture is a render (~40 ms), standing in for the wait for a camera frame.")
 
 
 def settle_figures(tmp: Path) -> dict:
