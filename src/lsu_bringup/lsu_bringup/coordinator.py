@@ -329,9 +329,8 @@ class ScanCoordinatorNode(Node):
                                     "firmware watchdog will)")
             return str(exc) or exc.__class__.__name__
 
-    def _capture(self, lit: bool = True, publish: bool = True, images: bool = False) -> Any:
-        """One stereo capture (published unless ``publish`` is false; with ``images`` the response holds the
-        images); with ``lit`` the laser is on during its exposure.
+    def _capture(self, lit: bool = True) -> Any:
+        """One published stereo capture; with ``lit`` the laser is on during its exposure.
 
         A capture the laser guard interrupted is taken again unless its exposure (the image stamp,
         from the same system clock) ended before the laser was switched off.
@@ -342,8 +341,7 @@ class ScanCoordinatorNode(Node):
                 self._resume_laser()
             self._capture_asked = time.monotonic()
             response = self._call(self.capture,
-                                  CaptureStereo.Request(publish=publish, return_images=images,
-                                                        timeout_s=float(self.capture_timeout_s)),
+                                  CaptureStereo.Request(publish=True, timeout_s=float(self.capture_timeout_s)),
                                   float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
             if not response.success:
                 raise ScanAborted(f"capture failed: {response.message}")
