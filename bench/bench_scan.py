@@ -19,6 +19,9 @@
    and once with each group in its own network namespace joined by a veth pair (UDP only):
    two_host_scan_wall_over_one_host; two_host_lines_scan_wall_over_one_host the same with the
    extractor on the rig host (groups rig_extract / processing_lines: only laser lines cross).
+5. Settle (`--only settle`): full scans with scan_coordinator's settle fixed and adaptive, same graph and
+   scene: stopsnap_adaptive_settle_scan_s beside stopsnap_fixed_settle_scan_s, and the clouds' RMS distance
+   to the true surface (stopsnap_adaptive_rms_over_fixed), so that speed is not bought with error.
 """
 
 from __future__ import annotations
@@ -259,6 +262,72 @@ def two_host_figures(walls: dict) -> dict:
             "two_host_lines_scan_wall_s": walls["two_host_lines"]}
 
 
+SETTLE_UNITS = {"stopsnap_adaptive_settle_scan_s": "s", "stopsnap_fixed_settle_scan_s": "s",
+                "stopsnap_adaptive_over_fixed": "x", "stopsnap_adaptive_rms_mm": "mm", "stopsnap_fixed_rms_mm": "mm",
+                "stopsnap_adaptive_rms_over_fixed": "x", "stopsnap_adaptive_captures_per_snap": "captures",
+                "stopsnap_settle_scan_snaps": "snaps"}
+SETTLE_NOTES = (
+    "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm), after a warm-up scan, scans of "
+    "stopsnap_settle_scan_snaps snaps (0..470 step 2 unless LSU_BENCH_SETTLE_SCAN said otherwise) with the settle parameter of scan_coordinator fixed (settle_s 0.1) and adaptive (lsu_scan.settle, "
+    "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s and laser_pause_s 1.5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
+    "two scans: stopsnap_*_settle_scan_s the action's wall time, *_rms_mm the cloud's RMS distance to the true head "
+    "surface (the demo's measure), adaptive_captures_per_snap the captures per snap after the first frame after the stop "
+    "(that probe is published too, but never the snap). The sim's capture is a render (~40 ms), standing in for the wait for a camera frame.")
+
+
+def settle_figures(tmp: Path) -> dict:
+    """Fixed vs adaptive stop-snap settle on the same scene and physics: scan time and accuracy.
+
+    LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which).
+    """
+    from lsu_tools.demo import accuracy_against_scene
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
+
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/settle"])
+    runs: dict = {"fixed": [], "adaptive": []}
+    try:
+        graph.wait_for_line(r"homed: track", timeout_s=120)
+        graph.wait_for_line(r"source 'sim' open", timeout_s=120)
+        with LsuScanner(wait_s=60) as scanner:
+            scanner.scan(start=230, end=240, step=5, settle_s=0.1, output_dir=str(tmp / "warmup-settle"))
+            lsu = str(Path(sys.executable).parent / "lsu")
+            # a loaded shared host stretches captures past the default 1 s limit and the laser guard's 0.2 s
+            # (both modes get the same limits)
+            for name, value in (("capture_timeout_s", "5.0"), ("laser_pause_s", "1.5")):
+                subprocess.run([lsu, "param", "set", "/lsu/scan_coordinator", name, value], check=True,
+                               capture_output=True, timeout=60)
+            for mode in ("fixed", "adaptive", "adaptive", "fixed"):
+                subprocess.run([lsu, "param", "set", "/lsu/scan_coordinator", "settle", mode], check=True,
+                               capture_output=True, timeout=60)
+                start, end, step = (int(v) for v in os.environ.get("LSU_BENCH_SETTLE_SCAN", "0,470,2").split(","))
+                scanner.start_scan(start=start, end=end, step=step, settle_s=0.1)
+                result = scanner.get_result(timeout_s=600)
+                if not result.success:
+                    raise RuntimeError(f"the {mode}-settle scan failed: {result.status}")
+                folder = Path(result.output_dir)
+                record = json.loads((folder / "scan.json").read_text())
+                if record["parameters"].get("settle") != mode:
+                    raise RuntimeError(f"scan.json says settle {record['parameters'].get('settle')}, not {mode}")
+                captures = [s.get("settle", {}).get("captures", 1) for s in record["snaps"]]
+                runs[mode].append({"range": f"{start}..{end} step {step}", "seconds": result.seconds, "captures": sum(captures) / max(1, len(captures)),
+                                   "rms_mm": accuracy_against_scene(folder / "cloud.ply", "head:7")["rms_mm"]})
+    finally:
+        graph.interrupt(timeout_s=30)
+        graph.kill()
+
+    def mean(mode: str, key: str) -> float:
+        return sum(r[key] for r in runs[mode]) / len(runs[mode])
+
+    return {"stopsnap_adaptive_settle_scan_s": mean("adaptive", "seconds"),
+            "stopsnap_fixed_settle_scan_s": mean("fixed", "seconds"),
+            "stopsnap_adaptive_over_fixed": mean("adaptive", "seconds") / mean("fixed", "seconds"),
+            "stopsnap_adaptive_rms_mm": mean("adaptive", "rms_mm"), "stopsnap_fixed_rms_mm": mean("fixed", "rms_mm"),
+            "stopsnap_adaptive_rms_over_fixed": mean("adaptive", "rms_mm") / mean("fixed", "rms_mm"),
+            "stopsnap_adaptive_captures_per_snap": mean("adaptive", "captures"),
+            "stopsnap_settle_scan_snaps": float(len(record["snaps"]))}
+
+
 def only(parts: set) -> int:
     """Measure only the live-view and/or two-host figures and merge them into the existing scan.json."""
     claim = rosenv.isolate()
@@ -269,6 +338,8 @@ def only(parts: set) -> int:
             tmp = Path(tmp_name)
             if "view" in parts:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
+            if "settle" in parts:
+                figures.update(settle_figures(tmp))
             if "two_host" in parts:
                 unavailable = why_unavailable()
                 if unavailable is not None:
@@ -285,10 +356,11 @@ def only(parts: set) -> int:
     merged = {**old["figures"], **figures}
     note = (f" {VIEW_NOTES} [{', '.join(sorted(parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
             f"`bench_scan.py --only {','.join(sorted(parts))}`, load average {os.getloadavg()[0]:.1f} on "
-            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
+            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]"
+            + (f" {SETTLE_NOTES}" if "settle" in parts else ""))
     if parts:
-        write_result("scan", merged, {**old["units"], **UNITS},
-                     notes=old.get("notes", "").split(" bridge: a default")[0] + note)
+        write_result("scan", merged, {**old["units"], **UNITS, **SETTLE_UNITS},
+                     notes=old.get("notes", "").split(" bridge: a default")[0].split(" settle: in one")[0] + note)
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
         return 1
@@ -317,6 +389,7 @@ def main() -> int:
             rep = replays[len(replays) // 2]
             unavailable = why_unavailable()
             walls = two_host_runs(tmp) if unavailable is None else {}
+            settle = settle_figures(tmp)
     finally:
         claim.release()
     write_result(
@@ -332,14 +405,14 @@ def main() -> int:
          "replay_snaps_per_s_max": replays[-1]["snaps"] / replays[-1]["seconds"],
          "replay_cpu_ms_per_snap": 1000 * rep["cpu_s"] / max(1, rep["snaps"]),
          "replay_snaps": rep["snaps"], "bag_snaps_missing_images": rep["missing_in_bag"],
-         **view_figures(runs), **two_host_figures(walls)},
+         **view_figures(runs), **two_host_figures(walls), **settle},
         {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
          "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s",
          "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
          "capture_ms_median": "ms", "replay_snaps_per_s": "snaps/s", "replay_cpu_ms_per_snap": "ms",
          "replay_snaps_per_s_min": "snaps/s", "replay_snaps_per_s_max": "snaps/s",
          "replay_snaps": "snaps", "bag_snaps_missing_images": "snaps",
-         **UNITS},
+         **UNITS, **SETTLE_UNITS},
         notes="live: lsu launch sim (6 processes, synthetic head 7), after a 3-snap warm-up scan two scans 0..470 step 2, "
               "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
               "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
@@ -350,7 +423,7 @@ def main() -> int:
               "snaps/s is the graph's sustained processing rate (median of 3 replays, each in a fresh graph; min and max "
               "beside it); replay_cpu_ms_per_snap: CPU time (all threads) of the "
               "replay process over the same window per snap (on a shared host it varies too: the same work took 10-20 ms). "
-              + VIEW_NOTES)
+              + VIEW_NOTES + " " + SETTLE_NOTES)
     return 0
 
 

@@ -184,3 +184,8 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.add_argument("--depth-min-m", type=float, default=defaults.depth_min_m, help="nearest accepted depth [m]")
     p.add_argument("--depth-max-m", type=float, default=defaults.depth_max_m, help="farthest accepted depth [m]")
     p.set_defaults(func=run)
+    # `lsu calibrate --laser` (entry points load sorted by name: lsu_cameras' "cameras", which adds `calibrate`,
+    # comes before this "reconstruct")
+    from .laser_cli import register_laser
+
+    register_laser(subparsers)

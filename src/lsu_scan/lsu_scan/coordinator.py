@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import datetime as _dt
 import sys
+from collections import OrderedDict
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Tuple
 
+import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.parameter import Parameter
@@ -35,10 +37,11 @@ from std_srvs.srv import SetBool
 
 from lsu_cameras.polled import PolledGroup, take_latest
 from lsu_interfaces.action import Scan
-from lsu_interfaces.msg import ScanEvent, ScannerState
+from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
 from .laser_guard import LaserGuard, ack_due_at
+from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
 from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
                         mechanical_lower_bound_s, new_scan_id, plan_positions)
 
@@ -78,6 +81,11 @@ PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
                    (0.0, 1.0)),
     "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
                         None),
+    "settle": ("fixed", "after each stop: 'fixed' waits the goal's settle_s; 'adaptive' captures as soon as the "
+                        "laser line stopped moving (two frames agree), at the latest once settle_s has passed "
+                        "(lsu_scan.settle)", None),
+    "settle_tolerance_px": (DEFAULT_TOLERANCE_PX, "adaptive settle: the line counts as still when it moved less "
+                                                  "than this between two frames [px]", (0.01, 5.0)),
 }
 
 
@@ -135,6 +143,9 @@ class ScanCoordinatorNode(Node):
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self._state: Optional[ScannerState] = None
         self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        # adaptive settle: the laser_extractor's left lines by image stamp, subscribed at the first adaptive scan
+        self._left_lines: "OrderedDict[tuple, LaserLine]" = OrderedDict()
+        self._left_line_sub: Any = None
         self._cloud: Optional[PointCloud2] = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
@@ -191,6 +202,9 @@ class ScanCoordinatorNode(Node):
     def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
         """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
         for param in changed:
+            if param.name == "settle" and param.value not in SETTLE_MODES:
+                return SetParametersResult(successful=False, reason=f"settle '{param.value}' is not one of "
+                                                                    f"{', '.join(SETTLE_MODES)}")
             if param.name in ("output_dir", "calibration_dir") and param.value:
                 path = Path(str(param.value))
                 if path.exists() and not path.is_dir():
@@ -206,8 +220,8 @@ class ScanCoordinatorNode(Node):
             value = param.value
             if param.name == "output_dir":
                 self.output_dir = Path(value) if value else Path.cwd() / "scans"
-            elif param.name == "calibration_dir":
-                self.calibration_dir = str(value)
+            elif param.name in ("calibration_dir", "settle"):
+                setattr(self, param.name, str(value))
             else:
                 setattr(self, param.name, float(value))
                 if param.name == "laser_pause_s":
@@ -452,7 +466,8 @@ class ScanCoordinatorNode(Node):
                             goal={k: getattr(goal, k) for k in goal.get_fields_and_field_types()},
                             parameters={"capture_timeout_s": self.capture_timeout_s, "ack_timeout_s": self.ack_timeout_s,
                                         "cloud_timeout_s": self.cloud_timeout_s, "exposure_s": self.exposure_s,
-                                        "laser_pause_s": self.laser_pause_s},
+                                        "laser_pause_s": self.laser_pause_s, "settle": self.settle,
+                                        "settle_tolerance_px": self.settle_tolerance_px},
                             calibration=calibration_checksum(calib))
         state = self.state
         try:
@@ -496,6 +511,8 @@ class ScanCoordinatorNode(Node):
             self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         self._set_laser(True)
         snap_times: List[float] = []
+        if self.settle == "adaptive":
+            self._follow_left_lines()
         # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
         # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
         pending: Optional[Dict[str, Any]] = None
@@ -513,13 +530,19 @@ class ScanCoordinatorNode(Node):
             here = int(moved.position_steps)
             t_moved = time.monotonic()
             since_stop = self._since_stop_s(moved.stopped_stamp)
-            self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
-            t_slept = time.monotonic()
-            if pending is not None:
-                run.points_total += self._await_ack(pending)
+            trace: Optional[SettleTrace] = None
+            if self.settle == "adaptive":
+                response, trace, t_slept, t_settled = self._adaptive_capture(goal_handle, run, pending, t_moved,
+                                                                             plan.settle_s - (since_stop or 0.0))
                 pending = None
-            t_settled = time.monotonic()
-            response = self._capture()
+            else:
+                self._sleep(goal_handle, plan.settle_s - (since_stop or 0.0))
+                t_slept = time.monotonic()
+                if pending is not None:
+                    run.points_total += self._await_ack(pending)
+                    pending = None
+                t_settled = time.monotonic()
+                response = self._capture()
             t_captured = time.monotonic()
             key = _key(response.stamp)
             self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=moved.position_steps,
@@ -530,6 +553,8 @@ class ScanCoordinatorNode(Node):
                               settle_s=round(t_slept - t_moved, 4),
                               stop_to_reply_s=None if since_stop is None else round(since_stop, 4),
                               ack_wait_s=round(t_settled - t_slept, 4), capture_s=round(t_captured - t_settled, 4))
+            if trace is not None:
+                snap.settle = trace.as_json()
             run.captured.append(snap)
             pending = {"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_snap}
             # Its points are due at once (~10 ms): a stalled pipeline must not keep the laser on.
@@ -540,6 +565,62 @@ class ScanCoordinatorNode(Node):
         if pending is not None:
             run.points_total += self._await_ack(pending)
         self._feedback(goal_handle, "finishing", total, total, plan.positions[-1], run.points_total, snap_times)
+
+    def _follow_left_lines(self) -> None:
+        """Subscribe (once, on the private node the scan thread spins) to the extractor's left lines."""
+        if self._left_line_sub is None:
+            def keep(msg: LaserLine) -> None:
+                self._left_lines[_key(msg.header.stamp)] = msg
+                while len(self._left_lines) > 16:
+                    self._left_lines.popitem(last=False)
+
+            self._left_line_sub = self._io.create_subscription(
+                LaserLine, "stereo/left/laser_line", keep,
+                QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+
+    def _adaptive_capture(self, goal_handle: Any, run: ScanRun, pending: Optional[Dict[str, Any]], t_moved: float,
+                          settle_left_s: float) -> Tuple[Any, SettleTrace, float, float]:
+        """The snap's capture by the adaptive settle (lsu_scan.settle); also awaits the previous snap's ack.
+
+        Returns (capture response, trace, end of the settle's probe, when the ack was in) for the SnapRecord.
+        """
+        fixed_end = t_moved + max(0.0, settle_left_s)
+        marks = {"probed": t_moved, "acked": t_moved}
+
+        def line_of(response: Any) -> Any:
+            """The laser_extractor's left line of this capture (per-row profile; all NaN if it does not come)."""
+            key = _key(response.stamp)
+            self._wait(lambda: key in self._left_lines, float(self.capture_timeout_s))
+            msg = self._left_lines.pop(key, None)
+            if msg is None:
+                return np.full(1, np.nan)
+            return profile_from_line(np.frombuffer(msg.u, np.float32), np.frombuffer(msg.v, np.float32),
+                                     int(msg.image_height))
+
+        def probe() -> Any:
+            self._check_cancel(goal_handle)
+            line = line_of(self._capture())
+            marks["probed"] = marks["acked"] = time.monotonic()
+            return line
+
+        def before_capture() -> None:
+            nonlocal pending
+            self._check_cancel(goal_handle)
+            if pending is not None:
+                run.points_total += self._await_ack(pending)
+                pending = None
+                marks["acked"] = time.monotonic()
+
+        def capture() -> Tuple[Any, Any]:
+            response = self._capture()
+            return response, line_of(response)
+
+        response, trace = settle_from_images(probe, capture, lambda: time.monotonic() >= fixed_end,
+                                             tolerance_px=float(self.settle_tolerance_px),
+                                             before_capture=before_capture, profile=lambda line: line)
+        if trace.captures > 1:
+            self.get_logger().debug(f"adaptive settle: {trace.captures - 1} capture(s) moved before the snap")
+        return response, trace, marks["probed"], marks["acked"]
 
     def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
                 recorder: Any) -> Scan.Result:

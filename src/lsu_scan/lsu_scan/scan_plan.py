@@ -137,6 +137,7 @@ class SnapRecord:
     points: Optional[int] = None
     ack_s: Optional[float] = None   # capture to the arrival of its points
     snap_s: Optional[float] = None  # start of the snap to the arrival of its points
+    settle: Optional[Dict[str, object]] = None  # adaptive settle only: captures, reason, line shifts (settle.py)
 
     @property
     def acknowledged(self) -> bool:
@@ -145,7 +146,7 @@ class SnapRecord:
     def as_json(self) -> Dict[str, object]:
         """The scan.json entry: the acknowledgement fields only once they are known."""
         out = asdict(self)
-        for name in ("points", "ack_s", "snap_s"):
+        for name in ("points", "ack_s", "snap_s", "settle"):
             if out[name] is None:
                 del out[name]
         return out

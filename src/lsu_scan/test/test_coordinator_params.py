@@ -56,6 +56,15 @@ def test_output_dir_applies_to_the_next_scan_and_a_file_is_refused(coordinator, 
     assert coordinator.output_dir == target
 
 
+def test_settle_mode_takes_effect_or_is_refused_naming_the_modes(coordinator):
+    assert coordinator.settle == "fixed"
+    assert coordinator.set_parameters([Parameter("settle", value="adaptive")])[0].successful
+    assert coordinator.settle == "adaptive"
+    refused = coordinator.set_parameters([Parameter("settle", value="sometimes")])[0]
+    assert not refused.successful and "fixed, adaptive" in refused.reason
+    assert coordinator.settle == "adaptive"
+
+
 def test_every_parameter_is_described_with_its_range(coordinator):
     for name, (_default, _text, bounds) in PARAMETERS.items():
         descriptor = coordinator.describe_parameter(name)
