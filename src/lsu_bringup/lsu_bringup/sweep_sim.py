@@ -37,6 +37,7 @@ class SweepScan:
     frames: int
     seconds: float                      # simulated carriage time of the scan [s]
     stats: Dict[str, int] = field(default_factory=dict)
+    checked_xyz: Optional[np.ndarray] = None  # stop-snap with a sheet: the points that pass the sweep's sheet check
 
 
 def sweep_frame_count(start: int, end: int, rate_steps_s: float, fps: float) -> int:
@@ -91,25 +92,38 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
 
 
 def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int = 470, step: int = 2,
-                   settle_s: float = 0.1, seed: int = 0, params=None) -> SweepScan:
-    """Render and reconstruct a stop-snap scan of the same scene (settled ``settle_s`` after each stop)."""
+                   settle_s: float = 0.1, seed: int = 0, params=None, sheet=None) -> SweepScan:
+    """Render and reconstruct a stop-snap scan of the same scene (settled ``settle_s`` after each stop).
+
+    With ``sheet``, ``checked_xyz`` also holds the stop-snap points that pass the sweep's check against
+    the sheet at the snap's position (what the sweep's stereo path keeps), for a like-for-like comparison.
+    """
     from lsu_cameras.sim import CarriageState, SimulatedRig
     from lsu_reconstruct.matching import MatchParams
     from lsu_reconstruct.pipeline import reconstruct_snap
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
 
     rig = SimulatedRig(geometry, objects, seed=seed)
     xyz: List[np.ndarray] = []
+    checked: List[np.ndarray] = []
     positions = list(range(start, end + 1, step))
     for index, position in enumerate(positions):
         state = CarriageState(float(position), True, stopped_at_s=0.0,
                               vibration_amplitude_steps=VIBRATION_AMPLITUDE_STEPS, vibration_tau_s=VIBRATION_TAU_S,
                               vibration_freq_hz=VIBRATION_FREQ_HZ)
         frame = rig.render(state, capture_time_s=settle_s, seed=seed + index)
-        snap = reconstruct_snap(model, _lines(frame.left), _lines(frame.right), params or MatchParams(), snap=index)
+        left, right = _lines(frame.left), _lines(frame.right)
+        snap = reconstruct_snap(model, left, right, params or MatchParams(), snap=index)
         if len(snap):
             xyz.append(snap.xyz)
+        if sheet is not None:
+            at_rest = CarriageTrack(np.array([0.0, 1.0]), np.array([float(position)] * 2), moving=np.zeros(2, bool))
+            out = reconstruct_sweep_frame(model, sheet, at_rest, SweepFrame(index, left, right, 0.0, 0.0, 0.02),
+                                          SweepParams(match=params or MatchParams()))
+            checked.append(out.points.xyz)
     points = np.concatenate(xyz) if xyz else np.zeros((0, 3))
-    return SweepScan(points, len(xyz), len(positions), 0.0, {"stereo": int(len(points))})
+    return SweepScan(points, len(xyz), len(positions), 0.0, {"stereo": int(len(points))},
+                     np.concatenate(checked) if checked else (np.zeros((0, 3)) if sheet is not None else None))
 
 
 def fit_sim_laser_sheet(geometry, model, distances_m: Sequence[float] = (0.26, 0.34),
