@@ -13,7 +13,8 @@ Per frame (`reconstruct_sweep_frame`):
   mid-exposure position: laser triangulation with one camera, no matching needed;
 - where the two exposures overlap (by at least ``min_overlap`` of the exposure), the pair is also
   matched and triangulated as in stop-snap (`reconstruct_snap`) and every stereo point is checked
-  against the sheet point of the same left pixel: within ``consistency_mm`` the stereo point is kept,
+  against the sheet (its distance to the sheet at the mean of the two mid-exposure positions): within
+  ``consistency_mm`` the stereo point is kept,
   beyond it the point is rejected (a mismatch, or a carriage position / sheet that is off) and
   counted in the stats; the right camera's sheet points are then not added (they trace the same
   surface line as the left's);
@@ -113,7 +114,7 @@ class SweepParams:
     """Sweep reconstruction settings."""
 
     match: MatchParams = MatchParams()
-    consistency_mm: float = 0.5       # stereo vs sheet point disagreement beyond which a point is rejected
+    consistency_mm: float = 0.5       # a stereo point farther than this from the sheet is rejected
     min_overlap: float = 0.5          # share of the exposure both cameras must have in common for stereo
     min_sheet_angle_deg: float = 10.0  # a ray meeting the sheet flatter than this gives no sheet point
     min_run_rows: int = 9             # sheet points: shorter continuous pieces of line are dropped
@@ -223,11 +224,12 @@ def reconstruct_sweep_frame(model: StereoModel, sheet: LaserSheet, track: Carria
     parts = []
     if frame.overlap >= params.min_overlap and len(frame.left) and len(frame.right):
         snap = reconstruct_snap(model, frame.left, frame.right, params.match, snap=frame.index)
-        if len(snap) and np.isfinite(p_left):
-            origin, dirs = _rays(model, "left", snap.u, snap.v)
-            on_sheet = sheet.intersect_rays(origin, dirs, p_left)
+        p_both = 0.5 * (p_left + p_right)  # the overlapping exposures saw the sheet between the two
+        if len(snap) and np.isfinite(p_both):
+            # the stereo point's distance to the sheet, not to one camera's ray-sheet intersection:
+            # along a ray meeting the sheet at a flat angle that distance is the same error magnified
             with np.errstate(invalid="ignore"):
-                agree = np.linalg.norm(snap.xyz - on_sheet, axis=1) * 1000.0 <= params.consistency_mm
+                agree = np.abs(sheet.distance_m(snap.xyz, np.full(len(snap), p_both))) * 1000.0 <= params.consistency_mm
             stats["stereo_rejected_inconsistent"] = int(np.count_nonzero(~agree))
             keep = np.nonzero(agree)[0]
         else:  # no carriage position: nothing to check against; stereo alone is what stop-snap gives
