@@ -2,6 +2,7 @@
 
     make bench-scan   ->  bench/results/scan.json
     .venv/bin/python bench/bench_scan.py --only view,two_host   (only parts 3 and 4, merged into scan.json)
+    .venv/bin/python bench/bench_scan.py --only sweep           (only part 5, merged into scan.json)
 
 1. `lsu launch sim` (separate processes, synthetic head), two full scans 0..470 step 2, settle 0.1 s:
    a default one (what `lsu scan` does: no bag) and one recording its bag (`lsu scan --record`).
@@ -22,6 +23,12 @@
 5. Settle (`--only settle`): full scans with scan_coordinator's settle fixed and adaptive, same graph and
    scene: stopsnap_adaptive_settle_scan_s beside stopsnap_fixed_settle_scan_s, and the clouds' RMS distance
    to the true surface (stopsnap_adaptive_rms_over_fixed), so that speed is not bought with error.
+6. Sweep (`lsu scan --mode sweep`): a live sweep 0..470 at 60 steps/s with 30 fps frame pairs on the sim
+   graph (synthetic head 7): sweep_scan_s (action wall time), sweep_lines, sweep_frames_dropped_pct. Then
+   the same head rendered and reconstructed without ROS (`lsu_accuracy.sweep_sim`), same scene and
+   physics: a stop-snap scan 0..470 step 2 (settle 0.1 s after the emulator's post-stop vibration) and
+   sweeps at 60 steps/s, 30 fps, synchronised and with the right camera 50 ms late (+-5 ms jitter);
+   sweep_rms_over_stopsnap(_50ms) = RMS distance to the rendered head mesh, sweep / stop-snap.
 """
 
 from __future__ import annotations
@@ -328,6 +335,76 @@ def settle_figures(tmp: Path) -> dict:
             "stopsnap_settle_scan_snaps": float(len(record["snaps"]))}
 
 
+SWEEP_RATE, SWEEP_FPS, SWEEP_OFFSET_S, SWEEP_JITTER_S = 60.0, 30.0, 0.050, 0.005
+SWEEP_NOTES = (
+    f"sweep: live `lsu scan --mode sweep` 0..470 at {SWEEP_RATE:g} steps/s, {SWEEP_FPS:g} fps on lsu launch sim (head 7, "
+    "no bag, texture on): sweep_scan_s is the action's wall time (texture pair + move to the start + the sweep + "
+    "the last acknowledgements), sweep_lines the frame pairs matched, sweep_frames_dropped_pct the frame slots "
+    "without a capture. Accuracy without ROS (lsu_accuracy.sweep_sim, head 7 at 300 mm, calibration "
+    "config/calibration/sim with its laser.yaml): stop-snap 0..470 step 2 with the emulator's vibration 0.1 s "
+    f"after each stop vs sweeps at {SWEEP_RATE:g} steps/s, {SWEEP_FPS:g} fps (sheet moving during each 20 ms exposure), "
+    f"synchronised and with the right camera {1000 * SWEEP_OFFSET_S:g} ms late (jitter {1000 * SWEEP_JITTER_S:g} ms "
+    "std): each line on the laser sheet at its camera's mid-exposure carriage position (from 20 Hz stamped "
+    "positions), stereo where the exposures overlap, checked against the sheet; RMS distance of the raw points "
+    "to the rendered head mesh, sweep / stop-snap. The sweep's check against the sheet also rejects stereo "
+    "mismatches that stop-snap keeps: _checked figures divide by the stop-snap points that pass the same check.")
+SWEEP_UNITS = {"sweep_scan_s": "s", "sweep_lines": "lines", "sweep_frames_dropped_pct": "%", "sweep_points": "points",
+               "sweep_rms_over_stopsnap": "x", "sweep_rms_over_stopsnap_50ms": "x", "stopsnap_rms_mm": "mm",
+               "sweep_rms_mm": "mm", "sweep_50ms_rms_mm": "mm", "sweep_50ms_lines": "lines",
+               "sweep_sim_lines": "lines", "stopsnap_sim_lines": "lines", "stopsnap_checked_rms_mm": "mm",
+               "sweep_rms_over_stopsnap_checked": "x", "sweep_rms_over_stopsnap_checked_50ms": "x"}
+
+
+def sweep_live(tmp: Path) -> dict:
+    """Part 5, live: one sweep over the head on the sim graph; the action's wall time and frame accounting."""
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
+
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    try:
+        graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
+        graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
+        with LsuScanner(wait_s=60) as scanner:
+            scanner.scan(start=200, end=230, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # warm-up
+            result = scanner.scan(start=0, end=470, mode="sweep", sweep_rate_steps_s=SWEEP_RATE,
+                                  frame_rate_hz=SWEEP_FPS)
+    finally:
+        graph.interrupt(timeout_s=20)
+        graph.kill()
+    if not result.success:
+        raise RuntimeError(f"the sweep scan failed: {result.status}")
+    record = json.loads((Path(result.output_dir) / "scan.json").read_text())
+    return {"sweep_scan_s": result.seconds, "sweep_lines": result.snaps, "sweep_points": result.points,
+            "sweep_frames_dropped_pct": record["sweep"]["frames_dropped_pct"]}
+
+
+def sweep_accuracy() -> dict:
+    """Part 5, without ROS: RMS to the rendered head of sweeps against stop-snap, same scene and physics."""
+    from lsu_accuracy.accuracy import surface_rms_mm
+    from lsu_accuracy.sweep_sim import stopsnap_scene, sweep_scene
+    from lsu_config import config_dir
+    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_reconstruct.laser_sheet import read_laser_yaml
+    from lsu_reconstruct.stereo import StereoModel
+
+    calib = config_dir() / "calibration" / "sim"
+    model, sheet = StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml")
+    geometry = load_rig()
+    head = build_scene("head:7", geometry)
+    stop = stopsnap_scene(model, geometry, head, seed=7, sheet=sheet)
+    sync = sweep_scene(model, sheet, geometry, head, SWEEP_RATE, SWEEP_FPS, seed=7)
+    late = sweep_scene(model, sheet, geometry, head, SWEEP_RATE, SWEEP_FPS, offset_s=SWEEP_OFFSET_S,
+                       jitter_s=SWEEP_JITTER_S, seed=7)
+    rms = {name: surface_rms_mm(head, scan.xyz) for name, scan in (("stop", stop), ("sync", sync), ("late", late))}
+    rms["stop_checked"] = surface_rms_mm(head, stop.checked_xyz)
+    return {"sweep_rms_over_stopsnap": rms["sync"] / rms["stop"], "sweep_rms_over_stopsnap_50ms": rms["late"] / rms["stop"],
+            "stopsnap_rms_mm": rms["stop"], "sweep_rms_mm": rms["sync"], "sweep_50ms_rms_mm": rms["late"],
+            "sweep_50ms_lines": late.lines, "sweep_sim_lines": sync.lines, "stopsnap_sim_lines": stop.lines,
+            "stopsnap_checked_rms_mm": rms["stop_checked"],
+            "sweep_rms_over_stopsnap_checked": rms["sync"] / rms["stop_checked"],
+            "sweep_rms_over_stopsnap_checked_50ms": rms["late"] / rms["stop_checked"]}
+
+
 def only(parts: set) -> int:
     """Measure only the live-view and/or two-host figures and merge them into the existing scan.json."""
     claim = rosenv.isolate()
@@ -340,6 +417,9 @@ def only(parts: set) -> int:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
                 figures.update(settle_figures(tmp))
+            if "sweep" in parts:
+                figures.update(sweep_live(tmp))
+                figures.update(sweep_accuracy())
             if "two_host" in parts:
                 unavailable = why_unavailable()
                 if unavailable is not None:
@@ -354,12 +434,12 @@ def only(parts: set) -> int:
     path = Path(__file__).resolve().parent / "results" / "scan.json"
     old = json.loads(path.read_text()) if path.is_file() else {"figures": {}, "units": {}, "notes": ""}
     merged = {**old["figures"], **figures}
-    note = (f" {VIEW_NOTES} [{', '.join(sorted(parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
+    note = (f" {VIEW_NOTES} {SWEEP_NOTES} [{', '.join(sorted(parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
             f"`bench_scan.py --only {','.join(sorted(parts))}`, load average {os.getloadavg()[0]:.1f} on "
             f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]"
             + (f" {SETTLE_NOTES}" if "settle" in parts else ""))
     if parts:
-        write_result("scan", merged, {**old["units"], **UNITS, **SETTLE_UNITS},
+        write_result("scan", merged, {**old["units"], **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
                      notes=old.get("notes", "").split(" bridge: a default")[0].split(" settle: in one")[0] + note)
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -390,6 +470,7 @@ def main() -> int:
             unavailable = why_unavailable()
             walls = two_host_runs(tmp) if unavailable is None else {}
             settle = settle_figures(tmp)
+            sweep = {**sweep_live(tmp), **sweep_accuracy()}
     finally:
         claim.release()
     write_result(
@@ -405,14 +486,14 @@ def main() -> int:
          "replay_snaps_per_s_max": replays[-1]["snaps"] / replays[-1]["seconds"],
          "replay_cpu_ms_per_snap": 1000 * rep["cpu_s"] / max(1, rep["snaps"]),
          "replay_snaps": rep["snaps"], "bag_snaps_missing_images": rep["missing_in_bag"],
-         **view_figures(runs), **two_host_figures(walls), **settle},
+         **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
         {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
          "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s",
          "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
          "capture_ms_median": "ms", "replay_snaps_per_s": "snaps/s", "replay_cpu_ms_per_snap": "ms",
          "replay_snaps_per_s_min": "snaps/s", "replay_snaps_per_s_max": "snaps/s",
          "replay_snaps": "snaps", "bag_snaps_missing_images": "snaps",
-         **UNITS, **SETTLE_UNITS},
+         **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
         notes="live: lsu launch sim (6 processes, synthetic head 7), after a 3-snap warm-up scan two scans 0..470 step 2, "
               "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
               "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
@@ -423,7 +504,7 @@ def main() -> int:
               "snaps/s is the graph's sustained processing rate (median of 3 replays, each in a fresh graph; min and max "
               "beside it); replay_cpu_ms_per_snap: CPU time (all threads) of the "
               "replay process over the same window per snap (on a shared host it varies too: the same work took 10-20 ms). "
-              + VIEW_NOTES + " " + SETTLE_NOTES)
+              + VIEW_NOTES + " " + SETTLE_NOTES + " " + SWEEP_NOTES)
     return 0
 
 

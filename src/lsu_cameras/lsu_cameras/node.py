@@ -176,11 +176,13 @@ class StereoCameraNode(Node):
             return CarriageState(float(self.get_parameter("carriage_position_steps").value),
                                  bool(self.get_parameter("laser_on").value))
         stamp = truth.header.stamp.sec + truth.header.stamp.nanosec * 1e-9
-        position = truth.position_steps
-        if truth.moving:  # extrapolate to the exposure time: the carriage keeps going between samples
-            position += truth.velocity_steps_per_s * max(0.0, t - stamp)
+        if truth.moving:
+            # the carriage keeps going between samples: the renderer follows it through each camera's
+            # own exposure (motion blur) from the sample's position and time
+            return CarriageState(truth.position_steps, truth.laser_on, velocity_steps_per_s=truth.velocity_steps_per_s,
+                                 position_time_s=stamp)
         stopped = truth.stopped_at.sec + truth.stopped_at.nanosec * 1e-9
-        return CarriageState(position, truth.laser_on, stopped if (stopped > 0 and not truth.moving) else None,
+        return CarriageState(truth.position_steps, truth.laser_on, stopped if stopped > 0 else None,
                              truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
 
     def _open_source(self) -> None:

@@ -200,11 +200,13 @@ class SimSource(StereoSource):
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         t = self.clock()
         started = time.monotonic()
-        # simulated cameras are perfectly synchronized: both exposures start at t
+        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s)
         frame = self.rig.render(self.carriage(t), capture_time_s=t)
         # a real frame is not there before its exposure has ended: a render faster than the
         # exposure must not make a simulated scan faster than the unit could be
         remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)
         if remaining > 0:
             time.sleep(remaining)
-        return StereoPair(frame.left, frame.right, t, 0.0)
+        left_start, right_start = frame.exposure_start_s
+        skew = (right_start - left_start) if left_start is not None and right_start is not None else 0.0
+        return StereoPair(frame.left, frame.right, t, skew)

@@ -329,7 +329,8 @@ class Gp32DriverNode(Node):
             return response
         timeout = request.timeout_s or None
         position, error, stopped_at = self._motion(request.position_steps,
-                                                   lambda: self.client.move_to(request.position_steps, timeout))
+                                                   lambda: self._move_at_rate(request.position_steps, timeout,
+                                                                              request.rate_steps_per_s))
         response.success = not error
         response.position_steps = int(position)
         response.message = error
@@ -337,6 +338,19 @@ class Gp32DriverNode(Node):
             response.stopped_stamp.sec = int(stopped_at)
             response.stopped_stamp.nanosec = min(999_999_999, int((stopped_at - int(stopped_at)) * 1e9))
         return response
+
+    def _move_at_rate(self, position: int, timeout: Optional[float], rate: float) -> MotionResult:
+        """``move_to`` at ``rate`` steps/s for this move alone (0: the node's rate); the node's rate is set back."""
+        rate = int(round(rate)) if rate > 0 else 0
+        if not rate or rate == int(self.rate):
+            return self.client.move_to(position, timeout)
+        if not p.RATE_MIN <= rate <= p.RATE_MAX:
+            raise Gp32Error(f"move refused: rate_steps_per_s {rate} is outside {p.RATE_MIN}..{p.RATE_MAX} steps/s")
+        self.client.set_rate(rate)
+        try:
+            return self.client.move_to(position, timeout)
+        finally:
+            self.client.set_rate(int(self.rate))
 
     def _srv_step(self, request: Step.Request, response: Step.Response) -> Step.Response:
         response.message = self._refuse_motion()

@@ -101,6 +101,22 @@ def test_state_from_every_poll_of_a_5hz_or_faster_timer_and_on_change(rig, emula
     assert h.spin_until(lambda: any(m.laser_on for _, m in states[before:]), 5.0)
 
 
+def test_move_at_its_own_rate_then_the_drivers_rate_again(rig, emulator):
+    """A sweep's move runs at the rate it asks for (the unit's truth), and the next move at the driver's rate."""
+    h, _, _, c = rig
+    assert h.call(c["home"], Trigger.Request(), timeout_s=20).success
+    future = c["move_to"].call_async(MoveTo.Request(position_steps=200, rate_steps_per_s=60.0))
+    assert h.spin_until(lambda: emulator.truth().moving, 5.0)
+    assert emulator.truth().velocity_steps_per_s == pytest.approx(60.0)
+    assert h.spin_until(future.done, 10.0) and future.result().success
+    future = c["move_to"].call_async(MoveTo.Request(position_steps=100))
+    assert h.spin_until(lambda: emulator.truth().moving, 5.0)
+    assert abs(emulator.truth().velocity_steps_per_s) == pytest.approx(200.0)  # the driver's default rate
+    assert h.spin_until(future.done, 10.0) and future.result().success
+    refused = h.call(c["move_to"], MoveTo.Request(position_steps=300, rate_steps_per_s=1000.0))
+    assert not refused.success and "rate_steps_per_s 1000" in refused.message and "20..400" in refused.message
+
+
 def test_stop_preempts_move_to(rig, emulator):
     h, _, states, c = rig
     h.call(c["home"], Trigger.Request(), timeout_s=20)

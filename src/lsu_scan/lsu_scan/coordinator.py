@@ -15,6 +15,7 @@ next capture, and a capture exposed after the laser went off is taken again.
 from __future__ import annotations
 
 import datetime as _dt
+import math
 import sys
 from collections import OrderedDict
 import threading
@@ -44,6 +45,7 @@ from .laser_guard import LaserGuard, ack_due_at
 from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
 from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
                         mechanical_lower_bound_s, new_scan_id, plan_positions)
+from .sweep_plan import SweepPlan, plan_sweep, scan_mode
 
 EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -110,6 +112,7 @@ class ScanRun:
     points_total: int = 0
     abort_reason: str = ""
     canceled: bool = False
+    sweep: Optional[SweepPlan] = None                 # a sweep scan's plan; None: stop-snap
 
 
 class ScanCoordinatorNode(Node):
@@ -429,13 +432,13 @@ class ScanCoordinatorNode(Node):
         self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
                                f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
                                f"{run.plan.settle_s:g} s -> {run.folder}")
-        self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=len(run.plan.positions))
+        self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=run.record.snaps_expected)
         cloud_serial_before = self._cloud_serial
         with self._cond:
             self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
         self.guard.start_scan()
         try:
-            self._snap_loop(goal_handle, run)
+            (self._snap_loop if run.sweep is None else self._sweep_loop)(goal_handle, run)
         except ScanCanceled as exc:
             run.abort_reason, run.canceled = str(exc), True
         except ScanAborted as exc:
@@ -479,6 +482,10 @@ class ScanCoordinatorNode(Node):
             try:
                 plan = plan_positions(goal.start_steps, goal.end_steps, goal.step_steps, state.track_steps,
                                       goal.settle_s, goal.texture)
+                sweep = None
+                if scan_mode(goal.mode) == "sweep":
+                    sweep = plan_sweep(goal.start_steps, goal.end_steps, state.track_steps,
+                                       float(goal.sweep_rate_steps_s), float(goal.frame_rate_hz))
             except ScanGoalError as exc:
                 raise ScanAborted(f"bad goal: {exc}") from None
         except ScanAborted as exc:
@@ -488,8 +495,14 @@ class ScanCoordinatorNode(Node):
         record.snaps_expected = len(plan.positions)
         record.timings_s["mechanical_lower_bound"] = mechanical_lower_bound_s(
             plan, state.position_steps, max(1.0, state.step_rate_steps_per_s), float(self.exposure_s))
+        if sweep is not None:
+            record.snaps_expected = sweep.frames_expected
+            record.timings_s["mechanical_lower_bound"] = (
+                abs(sweep.start - state.position_steps) / max(1.0, state.step_rate_steps_per_s) + sweep.duration_s
+                + (float(self.exposure_s) if plan.texture else 0.0))
         folder.mkdir(parents=True, exist_ok=True)
-        return ScanRun(scan_id=scan_id, folder=folder, plan=plan, record=record, start_state=state, started=t0)
+        return ScanRun(scan_id=scan_id, folder=folder, plan=plan, record=record, start_state=state, started=t0,
+                       sweep=sweep)
 
     def _start_bag_or_warn(self, run: ScanRun) -> Any:
         try:
@@ -622,10 +635,97 @@ class ScanCoordinatorNode(Node):
             self.get_logger().debug(f"adaptive settle: {trace.captures - 1} capture(s) moved before the snap")
         return response, trace, marks["probed"], marks["acked"]
 
+    def _sweep_loop(self, goal_handle: Any, run: ScanRun) -> None:
+        """Texture pair, move to the start, then one move to the end at the sweep rate with a capture per frame slot.
+
+        Frames are taken on a clock of ``frame_rate_hz`` from the start of the motion; a slot that passed
+        while a capture was still running is dropped (counted in scan.json). Every frame is a SNAP for the
+        extractor and matcher (the stop-snap path, keyed on its image stamp); their points are awaited
+        after the motion. Raises ScanAborted / ScanCanceled; ``run.captured`` holds every frame taken.
+        """
+        sweep, state = run.sweep, run.start_state
+        assert sweep is not None
+        self._set_laser(False)
+        if run.plan.texture:
+            response = self._capture(lit=False)
+            self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
+        here = int(state.position_steps)
+        if here != sweep.start:
+            self._feedback(goal_handle, "moving", 0, sweep.frames_expected, sweep.start, 0, [])
+            moved = self._call(self.move, MoveTo.Request(position_steps=sweep.start, timeout_s=float(self.move_timeout_s)),
+                               float(self.move_timeout_s) or 60.0, f"move to {sweep.start}",
+                               due_s=abs(sweep.start - here) / max(1.0, float(state.step_rate_steps_per_s)))
+            if not moved.success:
+                raise ScanAborted(f"move to {sweep.start} failed: {moved.message}")
+        self._set_laser(True)
+        direction = 1 if sweep.end >= sweep.start else -1
+        period = 1.0 / sweep.frame_rate_hz
+        request = MoveTo.Request(position_steps=sweep.end, timeout_s=float(self.move_timeout_s),
+                                 rate_steps_per_s=float(sweep.rate_steps_s))
+        move = self.move.call_async(request)
+        t0, t0_wall = time.monotonic(), time.time()
+        # a driver that does not report the end of the motion must not keep the laser on
+        self.guard.due("sweep", t0 + sweep.duration_s + 1.0, f"sweep to {sweep.end}: no answer from "
+                                                            f"{self.move.srv_name}")
+        pending: List[Dict[str, Any]] = []
+        frame_times: List[float] = []
+        slot = 0
+        try:
+            while slot < sweep.frames_expected:
+                self._check_cancel(goal_handle)
+                slot = max(slot, math.ceil((time.monotonic() - t0) / period - 1e-6))
+                # wait for the slot, handling the move's reply and the acknowledgements meanwhile
+                while not move.done() and time.monotonic() < t0 + slot * period:
+                    self._guard_laser()
+                    self._io_executor.spin_once(timeout_sec=min(0.005, max(0.0, t0 + slot * period - time.monotonic())))
+                # the last slot is the end of the motion: its frame sees the carriage stopped at the end
+                if move.done() and slot < sweep.frames_expected - 1:
+                    break
+                if time.monotonic() > t0 + float(self.move_timeout_s or (sweep.duration_s * 2.0 + 10.0)):
+                    self.move.remove_pending_request(move)
+                    raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
+                t_asked = time.monotonic()
+                response = self._capture()
+                t_captured = time.monotonic()
+                stamp_s = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9
+                # the carriage's position at the exposure from the commanded rate (for the record;
+                # the points come from the images)
+                travelled = min(abs(sweep.end - sweep.start), max(0.0, (stamp_s - t0_wall) * sweep.rate_steps_s))
+                position = int(round(sweep.start + direction * travelled))
+                index = len(run.captured)
+                key = _key(response.stamp)
+                self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=position,
+                            image_stamp=response.stamp, expected_snaps=sweep.frames_expected)
+                snap = SnapRecord(index=index, position_steps=position, stamp=f"{key[0]}.{key[1]:09d}",
+                                  skew_s=float(response.skew_s), move_s=0.0, settle_s=0.0, stop_to_reply_s=None,
+                                  ack_wait_s=0.0, capture_s=round(t_captured - t_asked, 4))
+                run.captured.append(snap)
+                pending.append({"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_asked})
+                frame_times.append(period)
+                self._feedback(goal_handle, "sweeping", index, sweep.frames_expected, position, run.points_total,
+                               frame_times)
+                slot += 1
+            if not move.done():  # every frame slot is taken; the motion's reply is still due
+                self._await_future(move, self.move, t0 + sweep.duration_s + 10.0, stop_early=True)
+            if not move.done():
+                self.move.remove_pending_request(move)
+                raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
+        finally:
+            self.guard.answered("sweep")
+        moved = move.result()
+        if not moved.success:
+            raise ScanAborted(f"sweep to {sweep.end} failed: {moved.message}")
+        for item in pending:
+            run.points_total += self._await_ack(item)
+        self._feedback(goal_handle, "finishing", len(run.captured), sweep.frames_expected, sweep.end, run.points_total,
+                       frame_times)
+
     def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
                 recorder: Any) -> Scan.Result:
         """FINISHED / ABORTED event, cloud.ply, the bag closed, scan.json; ends the goal."""
         abort_reason, record, folder, total = run.abort_reason, run.record, run.folder, len(run.plan.positions)
+        if run.sweep is not None:
+            total = run.sweep.frames_expected
         if abort_reason and self.shutting_down and "shutting down" not in abort_reason:
             # the other nodes got the same Ctrl-C: the driver's own stop may have ended the move first
             abort_reason = f"scan_coordinator is shutting down ({abort_reason})"
@@ -646,6 +746,8 @@ class ScanCoordinatorNode(Node):
                 abort_reason = f"{abort_reason}; {bag_error}" if abort_reason else bag_error
                 partial = True
         record.snaps = [snap.as_json() for snap in run.captured]
+        if run.sweep is not None:
+            record.sweep = run.sweep.record(len(run.captured))
         record.laser_pauses = [pause.as_json() for pause in self.guard.pauses]
         record.snaps_captured = len(run.captured)
         record.snaps_acknowledged = sum(1 for snap in run.captured if snap.acknowledged)

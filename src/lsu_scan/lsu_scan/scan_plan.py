@@ -105,6 +105,8 @@ class ScanRecord:
     # each time the laser guard switched the laser off mid-scan: wall time and why (a late answer)
     laser_pauses: List[Dict[str, object]] = field(default_factory=list)
     files: List[str] = field(default_factory=list)
+    # a sweep scan: its rate, frame rate and the frames expected, captured and dropped (empty: stop-snap)
+    sweep: Dict[str, object] = field(default_factory=dict)
 
     def write(self, folder: Path) -> Path:
         """Write ``folder/scan.json`` atomically (a partial scan is always described on disk)."""

@@ -201,14 +201,21 @@ class LsuScanner:
 
     # ------------------------------------------------------------------------------ scans
     def start_scan(self, start: int = 0, end: int = 470, step: int = 2, settle_s: float = 0.1, texture: bool = True,
-                   record_bag: bool = False, output_dir: str = "", label: str = "") -> None:
-        """Send a scan goal and return at once (see `is_task_complete`)."""
+                   record_bag: bool = False, output_dir: str = "", label: str = "", mode: str = "stopsnap",
+                   sweep_rate_steps_s: float = 60.0, frame_rate_hz: float = 30.0) -> None:
+        """Send a scan goal and return at once (see `is_task_complete`).
+
+        ``mode``: "stopsnap" (``step``, ``settle_s``) or "sweep" (``sweep_rate_steps_s`` <= 180, frames at
+        ``frame_rate_hz``); the coordinator refuses a bad goal with the reason in the result's status.
+        """
         if not self._action.wait_for_server(timeout_sec=self.wait_s):
             raise ScannerError("the /lsu/scan action server (scan_coordinator) is not available; is the graph "
                                "running (lsu launch sim)?")
         self._feedback = None  # feedback of an earlier scan must not pass for this one's
         goal = self._Scan.Goal(start_steps=start, end_steps=end, step_steps=step, settle_s=float(settle_s),
-                               texture=texture, record_bag=record_bag, output_dir=output_dir, label=label)
+                               texture=texture, record_bag=record_bag, output_dir=output_dir, label=label,
+                               mode=mode, sweep_rate_steps_s=float(sweep_rate_steps_s),
+                               frame_rate_hz=float(frame_rate_hz))
         sent = self._in_spin_thread(lambda: self._action.send_goal_async(goal, feedback_callback=self._on_feedback),
                                     self.wait_s, "scan goal")
         handle = self._wait_future(sent, self.wait_s, "scan goal")
@@ -267,7 +274,8 @@ def cmd_scan(args: argparse.Namespace) -> int:
             print(f"homing: {scanner.home()}")
         scanner.start_scan(start=args.start, end=args.end, step=args.step, settle_s=args.settle,
                            texture=not args.no_texture, record_bag=args.record, output_dir=args.out or "",
-                           label=args.label)
+                           label=args.label, mode=args.mode, sweep_rate_steps_s=args.rate,
+                           frame_rate_hz=args.fps)
         try:
             shown = None
             while not scanner.is_task_complete():
@@ -293,11 +301,17 @@ def cmd_scan(args: argparse.Namespace) -> int:
 
 def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
     """Add `lsu scan`."""
-    p = sub.add_parser("scan", help="run a stop-snap scan on the running graph (Ctrl-C cancels, laser off)")
+    p = sub.add_parser("scan", help="run a scan on the running graph, stop-snap or sweep (Ctrl-C cancels, laser off)")
+    p.add_argument("--mode", choices=("stopsnap", "sweep"), default="stopsnap",
+                   help="stopsnap: move, settle, capture per position (default); sweep: one constant-rate move "
+                        "with frames at --fps")
     p.add_argument("--start", type=int, default=0, help="first position [steps] (default 0)")
     p.add_argument("--end", type=int, default=470, help="last position [steps] (default 470)")
     p.add_argument("--step", type=int, default=2, help="spacing [steps] (default 2)")
     p.add_argument("--settle", type=float, default=0.1, help="wait after each stop [s] (default 0.1)")
+    p.add_argument("--rate", type=float, default=60.0,
+                   help="sweep: carriage rate [steps/s], 20..180 (default 60: 236 frames over 0..470 at 30 fps)")
+    p.add_argument("--fps", type=float, default=30.0, help="sweep: frame pairs per second (default 30)")
     p.add_argument("--no-texture", action="store_true", help="skip the laser-off colour pair")
     p.add_argument("--record", action="store_true", help="record the scan's topics into a bag in the scan folder")
     p.add_argument("--out", default="", help="parent folder for the scan folder (default: the node's output_dir)")

@@ -46,6 +46,8 @@ class CarriageState:
 
     Post-stop vibration: ``displacement(t) = A exp(-(t - t0) / tau) cos(2 pi f (t - t0))`` for
     ``t >= t0 = stopped_at_s``; ``stopped_at_s = None`` means settled long ago.
+    Constant-rate motion (a sweep): ``velocity_steps_per_s`` != 0 with ``position_steps`` the position
+    at ``position_time_s``; the displacement is then ``velocity (t - position_time_s)`` (no vibration).
     """
 
     position_steps: float
@@ -54,10 +56,19 @@ class CarriageState:
     vibration_amplitude_steps: float = 0.0
     vibration_tau_s: float = 0.05
     vibration_freq_hz: float = 30.0
+    velocity_steps_per_s: float = 0.0
+    position_time_s: Optional[float] = None
+
+    @property
+    def moving(self) -> bool:
+        """The carriage moves at a constant rate and the time of ``position_steps`` is known."""
+        return self.velocity_steps_per_s != 0.0 and self.position_time_s is not None
 
     def displacement_steps(self, t_s: np.ndarray) -> np.ndarray:
-        """Vibration displacement [steps] at times ``t_s``."""
+        """Displacement from ``position_steps`` [steps] at times ``t_s``: the motion, or the post-stop vibration."""
         t = np.asarray(t_s, dtype=np.float64)
+        if self.moving:
+            return self.velocity_steps_per_s * (t - float(self.position_time_s))  # type: ignore[arg-type]
         if self.stopped_at_s is None or self.vibration_amplitude_steps == 0.0 or self.vibration_tau_s <= 0.0:
             return np.zeros_like(t)
         dt = np.maximum(t - self.stopped_at_s, 0.0)
@@ -113,9 +124,10 @@ class StereoFrame:
     position_steps: float
     laser_on: bool
     capture_time_s: Optional[float]
-    laser_offset_steps: float = 0.0           # mean vibration displacement over the left camera's exposure
+    laser_offset_steps: float = 0.0           # mean displacement (vibration or motion) over the left camera's exposure
     truth: Optional[LaserTruth] = None
-    # per camera (left, right): exposure start [s] and mean carriage displacement over that exposure
+    # per camera (left, right): exposure start [s] and mean carriage displacement over that exposure (moving:
+    # the displacement at mid-exposure, so the sheet a camera saw is at position_steps + its offset)
     exposure_start_s: Tuple[Optional[float], Optional[float]] = (None, None)
     laser_offsets_steps: Tuple[float, float] = (0.0, 0.0)
 
@@ -419,7 +431,12 @@ class SimulatedRig:
         sensor = g.sensor
         if not state.laser_on:
             return 0.0, np.zeros(0), np.zeros(0)
-        if start_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
+        if start_s is not None and state.moving:
+            # the sheet sweeps over the surface while the shutter is open: the line is the sheet's
+            # sub-exposures averaged (motion blur), centred on the sheet at mid-exposure
+            times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
+            disp = state.displacement_steps(times)
+        elif start_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
             disp = np.zeros(1)
         else:
             times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s

@@ -1,0 +1,144 @@
+"""Sweep and stop-snap scans of a simulated scene, rendered and reconstructed without ROS (pure).
+
+`sweep_scene` renders what a constant-rate sweep gives: the carriage runs from ``start`` to ``end``
+at ``rate_steps_s`` while both cameras free-run at ``fps``, each frame exposed from its camera's own
+start (the rig's ``capture_offset_s`` / ``capture_jitter_s``), with the sheet moving during the
+exposure; the carriage positions come stamped as the driver publishes them (`!POS` at
+``position_rate_hz``), and `lsu_reconstruct.sweep` turns every frame into points. `stopsnap_scene`
+renders the same scene stop-snap (settled after each move, the emulator's residual vibration after
+the settle time), through the same extractor and matcher: the reference of the sweep's accuracy.
+
+`fit_sim_laser_sheet` calibrates the simulated rig's laser sheet the way a lab does it: stop-snap
+scans of a flat target at two distances, fitted with `fit_laser_sheet` (what
+``config/calibration/sim/laser.yaml`` holds).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence
+
+import numpy as np
+
+__all__ = ["SweepScan", "sweep_scene", "stopsnap_scene", "fit_sim_laser_sheet", "sweep_frame_count"]
+
+# the emulator's post-stop vibration (lsu_driver.emulator.EmulatorConfig defaults, at 200 steps/s)
+VIBRATION_AMPLITUDE_STEPS = 0.6
+VIBRATION_TAU_S = 0.040
+VIBRATION_FREQ_HZ = 22.0
+
+
+@dataclass
+class SweepScan:
+    """A reconstructed scan: points (left frame, m), lines (frames or snaps with points), per-source counts."""
+
+    xyz: np.ndarray
+    lines: int
+    frames: int
+    seconds: float                      # simulated carriage time of the scan [s]
+    stats: Dict[str, int] = field(default_factory=dict)
+    checked_xyz: Optional[np.ndarray] = None  # stop-snap with a sheet: the points that pass the sweep's sheet check
+
+
+def sweep_frame_count(start: int, end: int, rate_steps_s: float, fps: float) -> int:
+    """Frames a free-running camera takes while the carriage sweeps ``start``..``end`` at ``rate_steps_s``."""
+    return int(np.floor(abs(end - start) / rate_steps_s * fps)) + 1
+
+
+def _lines(image: np.ndarray):
+    from lsu_extract.extractor import extract_laser_line
+    from lsu_reconstruct.matching import LineArrays
+
+    res = extract_laser_line(image)
+    return LineArrays(res.u, res.v, res.peak, res.width, res.quality, image.shape[1], image.shape[0])
+
+
+def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0,
+                start: int = 0, end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0,
+                position_rate_hz: float = 20.0, seed: int = 0, params=None,
+                frames: Optional[int] = None) -> SweepScan:
+    """Render and reconstruct a sweep (module doc); ``frames`` limits the count (tests)."""
+    from lsu_cameras.sim import CarriageState, SimulatedRig
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
+
+    params = params or SweepParams()
+    rig = SimulatedRig(geometry, objects, seed=seed)
+    rig.set_capture_timing(offset_s, jitter_s)
+    direction = 1.0 if end >= start else -1.0
+    duration = abs(end - start) / rate_steps_s
+    # the driver's stamped positions: the counter at every 1/R s from the start, and the stop
+    stamps = np.r_[np.arange(0.0, duration, 1.0 / position_rate_hz), duration]
+    track = CarriageTrack(stamps, np.rint(start + direction * rate_steps_s * stamps))
+    count = sweep_frame_count(start, end, rate_steps_s, fps) if frames is None else int(frames)
+    exposure = geometry.sensor.exposure_s
+    xyz: List[np.ndarray] = []
+    stats: Dict[str, int] = {}
+    lines = 0
+    for index in range(count):
+        t = index / fps  # the left camera's nominal exposure start; the rig draws each camera's jitter
+        state = CarriageState(float(start), True, velocity_steps_per_s=direction * rate_steps_s, position_time_s=0.0)
+        if t + exposure > duration:  # the carriage stopped at the end: the last frames see it there
+            state = CarriageState(float(end), True)
+        frame = rig.render(state, capture_time_s=t, seed=seed + index)
+        sweep_frame = SweepFrame(index, _lines(frame.left), _lines(frame.right), float(frame.exposure_start_s[0]),
+                                 float(frame.exposure_start_s[1]), exposure)
+        out = reconstruct_sweep_frame(model, sheet, track, sweep_frame, params)
+        for key, value in out.stats.items():
+            stats[key] = stats.get(key, 0) + int(value)
+        if len(out.points):
+            xyz.append(out.points.xyz)
+            lines += int(len(np.unique(out.source)))
+    return SweepScan(np.concatenate(xyz) if xyz else np.zeros((0, 3)), lines, count, duration, stats)
+
+
+def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int = 470, step: int = 2,
+                   settle_s: float = 0.1, seed: int = 0, params=None, sheet=None) -> SweepScan:
+    """Render and reconstruct a stop-snap scan of the same scene (settled ``settle_s`` after each stop).
+
+    With ``sheet``, ``checked_xyz`` also holds the stop-snap points that pass the sweep's check against
+    the sheet at the snap's position (what the sweep's stereo path keeps), for a like-for-like comparison.
+    """
+    from lsu_cameras.sim import CarriageState, SimulatedRig
+    from lsu_reconstruct.matching import MatchParams
+    from lsu_reconstruct.pipeline import reconstruct_snap
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
+
+    rig = SimulatedRig(geometry, objects, seed=seed)
+    xyz: List[np.ndarray] = []
+    checked: List[np.ndarray] = []
+    positions = list(range(start, end + 1, step))
+    for index, position in enumerate(positions):
+        state = CarriageState(float(position), True, stopped_at_s=0.0,
+                              vibration_amplitude_steps=VIBRATION_AMPLITUDE_STEPS, vibration_tau_s=VIBRATION_TAU_S,
+                              vibration_freq_hz=VIBRATION_FREQ_HZ)
+        frame = rig.render(state, capture_time_s=settle_s, seed=seed + index)
+        left, right = _lines(frame.left), _lines(frame.right)
+        snap = reconstruct_snap(model, left, right, params or MatchParams(), snap=index)
+        if len(snap):
+            xyz.append(snap.xyz)
+        if sheet is not None:
+            at_rest = CarriageTrack(np.array([0.0, 1.0]), np.array([float(position)] * 2), moving=np.zeros(2, bool))
+            out = reconstruct_sweep_frame(model, sheet, at_rest, SweepFrame(index, left, right, 0.0, 0.0, 0.02),
+                                          SweepParams(match=params or MatchParams()))
+            checked.append(out.points.xyz)
+    points = np.concatenate(xyz) if xyz else np.zeros((0, 3))
+    return SweepScan(points, len(xyz), len(positions), 0.0, {"stereo": int(len(points))},
+                     np.concatenate(checked) if checked else (np.zeros((0, 3)) if sheet is not None else None))
+
+
+def fit_sim_laser_sheet(geometry, model, distances_m: Sequence[float] = (0.26, 0.34),
+                        positions: Sequence[int] = tuple(range(60, 411, 25)), seed: int = 11):
+    """The sim rig's sheet calibrated as in a lab: stop-snap scans of a flat target at two distances."""
+    from lsu_cameras.sim import SimulatedRig, build_scene
+    from lsu_reconstruct.laser_sheet import fit_laser_sheet
+    from lsu_reconstruct.pipeline import reconstruct_snap
+
+    points, where = [], []
+    for distance in distances_m:
+        rig = SimulatedRig(geometry, build_scene("plane", geometry, distance_m=distance), seed=seed)
+        for p in positions:
+            frame = rig.render(float(p), seed=int(p))
+            snap = reconstruct_snap(model, _lines(frame.left), _lines(frame.right), snap=int(p))
+            points.append(snap.xyz)
+            where.append(np.full(len(snap.xyz), float(p)))
+    return fit_laser_sheet(np.concatenate(points), np.concatenate(where))

@@ -1,0 +1,176 @@
+"""Sweep reconstruction (lsu_reconstruct.sweep) against analytic and rendered ground truth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig, write_true_calibration
+from lsu_extract.extractor import extract_laser_line
+from lsu_reconstruct.laser_sheet import LaserSheet
+from lsu_reconstruct.matching import LineArrays
+from lsu_reconstruct.stereo import StereoModel
+from lsu_reconstruct.sweep import (SOURCE_LEFT_SHEET, SOURCE_RIGHT_SHEET, SOURCE_STEREO, CarriageTrack, SweepError,
+                                   SweepFrame, SweepParams, exposure_mid_s, reconstruct_sweep_frame)
+
+RATE = 60.0  # steps/s: a whole-track sweep at 30 fps gives 235 frames
+
+
+def true_sheet(geometry) -> LaserSheet:
+    """The renderer's own sheet (its geometry), as a LaserSheet."""
+    n = geometry.laser_normal
+    c0 = float(n @ geometry.laser_origin(0.0))
+    k = float(n @ geometry.laser_origin(1.0)) - c0
+    return LaserSheet(normal=tuple(float(x) for x in n), c0_m=c0, m_per_step=k, residual_mm=0.0, points=0,
+                      rejected=0, positions=(0, int(geometry.track_steps)))
+
+
+def driver_track(duration_s: float, rate_hz: float = 20.0, start: float = 0.0) -> CarriageTrack:
+    """What the driver publishes during a sweep: the integer step counter every 1/rate_hz s, and the stop."""
+    stamps = np.r_[np.arange(0.0, duration_s, 1.0 / rate_hz), duration_s]
+    return CarriageTrack(stamps, np.rint(start + RATE * stamps))
+
+
+def lines(image: np.ndarray) -> LineArrays:
+    res = extract_laser_line(image)
+    return LineArrays(res.u, res.v, res.peak, res.width, res.quality, image.shape[1], image.shape[0])
+
+
+def surface_distance_mm(objects, xyz: np.ndarray) -> np.ndarray:
+    """Distance to the rendered meshes themselves (open3d): the renderer's geometry, not the code under test."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for obj in objects:
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(obj.mesh))
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(xyz, np.float32))).numpy().astype(np.float64) * 1000.0
+
+
+@pytest.fixture(scope="module")
+def rig_model(tmp_path_factory):
+    geometry = load_rig()
+    folder = tmp_path_factory.mktemp("calib")
+    write_true_calibration(geometry, folder)
+    return geometry, StereoModel.from_folder(folder)
+
+
+def test_carriage_position_at_exposure_mid_from_stamped_counter():
+    track = driver_track(4.0)
+    for start in (0.013, 1.2345, 3.9):
+        mid = exposure_mid_s(start, 0.02)
+        assert mid == pytest.approx(start + 0.01)
+        # the counter is an integer sampled at 20 Hz: interpolation is within half a step of the true motion
+        assert abs(float(track.position_at(mid)) - RATE * mid) <= 0.5
+    # after the stop (the last sample) the carriage stays there; before the first sample and after a
+    # sample still moving, the rate goes on for a short while, then the position is unknown
+    assert float(track.position_at(4.5)) == 240.0
+    assert float(track.position_at(-0.05)) == pytest.approx(-3.0) and np.isnan(track.position_at(-0.5))
+    running = CarriageTrack(track.stamps_s[:-1], track.positions_steps[:-1], moving=np.ones(len(track.stamps_s) - 1))
+    assert float(running.position_at(3.95 + 0.05)) == pytest.approx(237.0 + 3.0, abs=0.6)
+    assert np.isnan(running.position_at(4.5))
+    with pytest.raises(SweepError, match="at least 2"):
+        CarriageTrack(np.array([0.0]), np.array([1.0]))
+    with pytest.raises(SweepError, match="duration"):
+        exposure_mid_s(0.0, -1.0)
+
+
+def test_moving_line_is_the_sheet_at_mid_exposure(rig_model):
+    """The rendered motion-blurred line lies where a still sheet at the mid-exposure position puts it."""
+    geometry, _model = rig_model
+    rig = SimulatedRig(geometry, build_scene("plane", geometry, distance_m=0.30), seed=3)
+    exposure = geometry.sensor.exposure_s
+    moving = rig.render(CarriageState(200.0, True, velocity_steps_per_s=180.0, position_time_s=0.0),
+                        capture_time_s=0.0, seed=5)
+    assert moving.laser_offsets_steps[0] == pytest.approx(180.0 * exposure / 2.0)
+    mid = rig.render(200.0 + 180.0 * exposure / 2.0, seed=5)
+    start = rig.render(200.0, seed=5)
+    lm, lmid, lstart = lines(moving.left), lines(mid.left), lines(start.left)
+    rows = np.intersect1d(np.intersect1d(lm.v, lmid.v), lstart.v)
+    assert len(rows) > 300
+
+    def at(line: LineArrays) -> np.ndarray:
+        return line.u[np.searchsorted(line.v, rows)]
+
+    off_mid = np.median(np.abs(at(lm) - at(lmid)))
+    off_start = np.median(np.abs(at(lm) - at(lstart)))
+    # 1.8 steps of travel during the exposure move the line ~1.5 px; half of it at mid-exposure
+    assert off_start > 0.5
+    assert off_mid < 0.1 * off_start
+
+
+def render_sweep(geometry, objects, offset_s: float, jitter_s: float, frames, seed: int = 1):
+    rig = SimulatedRig(geometry, objects, seed=seed)
+    rig.set_capture_timing(offset_s, jitter_s)
+    out = []
+    for index in frames:
+        t = index / 30.0
+        frame = rig.render(CarriageState(0.0, True, velocity_steps_per_s=RATE, position_time_s=0.0),
+                           capture_time_s=t, seed=seed + index)
+        out.append(SweepFrame(index, lines(frame.left), lines(frame.right), float(frame.exposure_start_s[0]),
+                              float(frame.exposure_start_s[1]), geometry.sensor.exposure_s))
+    return out
+
+
+def test_sweep_with_50ms_discrepancy_on_rendered_frames(rig_model):
+    """Each camera's line on the sheet at its own mid-exposure: both lines land on the rendered sphere."""
+    geometry, model = rig_model
+    objects = build_scene("sphere", geometry)
+    frames = render_sweep(geometry, objects, offset_s=0.05, jitter_s=0.003, frames=range(100, 136, 5))
+    sheet, track = true_sheet(geometry), driver_track(7.9)
+    errors, sources = [], []
+    for frame in frames:
+        assert frame.overlap == 0.0  # 50 ms apart, 20 ms exposures: no stereo
+        out = reconstruct_sweep_frame(model, sheet, track, frame)
+        errors.append(surface_distance_mm(objects, out.points.xyz))
+        sources.append(out.source)
+        # the two cameras saw the sheet 3 steps apart: two different lines of the surface
+        assert out.positions_steps[1] - out.positions_steps[0] == pytest.approx(RATE * 0.05, abs=1.0)
+    err, src = np.concatenate(errors), np.concatenate(sources)
+    assert np.count_nonzero(src == SOURCE_LEFT_SHEET) > 1000 and np.count_nonzero(src == SOURCE_RIGHT_SHEET) > 1000
+    assert np.sqrt(np.mean(err ** 2)) < 0.25
+    # the same lines placed at the frame's nominal time (the left camera's) miss the surface by far more
+    nominal = CarriageTrack(track.stamps_s + 0.05, track.positions_steps)  # right line at the left's time
+    naive_right = [reconstruct_sweep_frame(model, sheet, nominal, f) for f in frames]
+    wrong = np.concatenate([surface_distance_mm(objects, o.points.xyz[o.source == SOURCE_RIGHT_SHEET])
+                            for o in naive_right])
+    assert np.sqrt(np.mean(wrong ** 2)) > 3.0 * np.sqrt(np.mean(err ** 2))
+
+
+def test_synchronised_sweep_uses_stereo_and_the_sheet_check_rejects_a_wrong_position(rig_model):
+    geometry, model = rig_model
+    objects = build_scene("sphere", geometry)
+    frames = render_sweep(geometry, objects, offset_s=0.0, jitter_s=0.0, frames=(110, 120))
+    sheet, track = true_sheet(geometry), driver_track(7.9)
+    for frame in frames:
+        out = reconstruct_sweep_frame(model, sheet, track, frame)
+        assert np.all(out.source == SOURCE_STEREO) and len(out.points) > 300
+        assert out.stats["stereo_rejected_inconsistent"] < 0.02 * len(out.points)
+        err = surface_distance_mm(objects, out.points.xyz)
+        assert np.sqrt(np.mean(err ** 2)) < 0.2
+        # a carriage track 4 steps off (1.7 mm of sheet): the stereo points no longer agree with it
+        off = CarriageTrack(track.stamps_s, track.positions_steps + 4.0)
+        bad = reconstruct_sweep_frame(model, sheet, off, frame, SweepParams(consistency_mm=0.5))
+        assert bad.stats["stereo_rejected_inconsistent"] > 0.9 * len(out.points)
+
+
+def test_the_sim_rigs_laser_yaml_is_its_true_sheet():
+    """config/calibration/sim/laser.yaml (fitted on rendered flat targets) against the rig's own geometry."""
+    from lsu_reconstruct.laser_sheet import read_laser_yaml
+
+    geometry = load_rig()
+    sheet = read_laser_yaml(Path(__file__).resolve().parents[3] / "config" / "calibration" / "sim" / "laser.yaml")
+    angle = np.degrees(np.arccos(min(1.0, abs(float(np.asarray(sheet.normal) @ geometry.laser_normal)))))
+    assert angle < 0.01
+    for p in (0.0, 235.0, 470.0):
+        n, c = sheet.plane(p)
+        probe = geometry.laser_origin(p) + 0.3 * geometry.rig_axes[2]  # on the true sheet, at the subject
+        assert abs(float(n @ probe) - c) * 1000.0 < 0.01
+
+
+def test_params_refuse_nonsense():
+    with pytest.raises(SweepError, match="consistency_mm"):
+        SweepParams(consistency_mm=0.0)
+    with pytest.raises(SweepError, match="min_overlap"):
+        SweepParams(min_overlap=1.5)
