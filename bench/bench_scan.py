@@ -429,7 +429,7 @@ def only(parts: set, bag: Path | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix="lsu-bench-scan-") as tmp_name:
             tmp = Path(tmp_name)
             if "replay" in parts:
-                source = f"the bag {bag.name}" if bag else "a bag written by lsu_bringup.simbags (synthetic head 7, " \
+                source = "a recorded scan bag given with --bag" if bag else "a bag written by lsu_bringup.simbags (synthetic head 7, " \
                     "0..470 step 2 + texture pair, rendered by the simulated rig without the graph)"
                 figures.update(replay_figures(bag or sim_bag(tmp)))
                 replay_note = (f"[replay figures: `bench_scan.py --only replay` {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} "
