@@ -112,3 +112,11 @@ def test_lsu_run_replay_bag_publishes_the_recorded_cloud(launch, ros_node):
     replayed = xyz(clouds[0])
     assert replayed.shape == expected.shape
     assert np.max(np.abs(replayed - expected)) <= 1e-6
+
+
+def test_lsu_run_replay_names_a_missing_bag(tmp_path, capsys):
+    from lsu_bringup.cli import main
+
+    assert main(["run", "replay", str(tmp_path / "no-such-bag"), "--exit"]) == 2
+    err = capsys.readouterr().err
+    assert "no-such-bag" in err and "not found" in err
