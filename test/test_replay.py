@@ -62,14 +62,15 @@ def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_
     points the live graph (separate processes, DDS between them) published and recorded, and drops nothing."""
     from lsu_bringup.cli import resolve_launch_file
     from lsu_bringup.direct_replay import DirectReplay
-    from lsu_bringup.launch_file import load_launch
+    from lsu_bringup.launch_file import load_launch, select_nodes
     from lsu_bringup.nodes_index import resolve_executable
     from lsu_bringup.runner import build_nodes
 
     recorded = points_by_stamp(deserialize_ros(m) for m in read_messages(BAG, ["/lsu/points"]))
     snap_events = [e for e in (deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/events"])) if e.type == 2]
     assert len(recorded) == len(snap_events) == 6
-    description = load_launch(resolve_launch_file("replay"), {}, resolve_executable)
+    description = select_nodes(load_launch(resolve_launch_file("replay"), {}, resolve_executable),
+                               ["laser_extractor", "stereo_matcher"], [], {})
     nodes = build_nodes(description, tmp_path, context=ros_context)
     try:
         replay = DirectReplay(nodes)
