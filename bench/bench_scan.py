@@ -3,15 +3,20 @@
     make bench-scan   ->  bench/results/scan.json
     .venv/bin/python bench/bench_scan.py --only view,two_host   (only parts 3 and 4, merged into scan.json)
     .venv/bin/python bench/bench_scan.py --only sweep           (only part 5, merged into scan.json)
+    .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
+                                                                      unless a bag is given)
 
 1. `lsu launch sim` (separate processes, synthetic head), two full scans 0..470 step 2, settle 0.1 s:
    a default one (what `lsu scan` does: no bag) and one recording its bag (`lsu scan --record`).
    scan_wall_over_mechanical = the default scan's action wall time / (moves at the emulator's rate +
    settle + exposure for every snap), the bound the coordinator computes from the parameters;
    scan_wall_over_mechanical_recording: the same for the recording scan.
-2. The recorded bag's snaps replayed closed-loop (images + events as raw CDR, each snap waiting for
-   its /lsu/points) into `lsu run replay` (extractor + matcher in one process), three times, each in a
-   fresh graph: replay_snaps_per_s is the median run, replay_cpu_ms_per_snap that run's CPU per snap.
+2. Replay of the recorded bag: the per-snap computation called directly on its frames (no ROS:
+   replay_compute_ms_per_snap), `lsu run replay BAG --exit` (the default replay, bag handed to the
+   extractor and matcher in one process: replay_snaps_per_s, replay_cpu_ms_per_snap and
+   replay_cpu_over_compute = the two CPU times per snap), and the message path (images + events as
+   raw CDR published closed-loop, each snap waiting for its /lsu/points, into `lsu run replay`:
+   replay_dds_*); three runs each, medians.
 3. Live view: a default scan with `lsu view` running and a Foxglove client (lsu_view.wsclient) subscribed
    to every channel, images included, then one more default scan without them:
    bridge_overhead_pct = that scan's wall time over the mean of the two default scans without, minus 1.
@@ -237,6 +242,163 @@ def replay(bag: Path, window: int = 4) -> dict:
     return {"snaps": done, "seconds": seconds, "cpu_s": cpu, "missing_in_bag": missing}
 
 
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+
+
+def _node_params(name: str) -> dict:
+    """The ``ros__parameters`` of config/params/NAME.yaml (what the replay launch file gives the node)."""
+    import yaml
+
+    return yaml.safe_load((CONFIG / "params" / f"{name}.yaml").read_text())["/**"]["ros__parameters"]
+
+
+def compute_reference(bag: Path, passes: int = 3) -> dict:
+    """CPU per snap of the per-snap computation called directly on the bag's frames (no ROS).
+
+    The frames are read from the bag first (not timed); then per snap: the two images read from
+    their CDR buffers (lsu_extract.image), two extractions with the replay launch file's extractor
+    parameters, matching + triangulation (lsu_reconstruct.pipeline.reconstruct_snap) with its
+    matcher parameters and calibration: the functions the nodes call. The median of ``passes``
+    passes (after one untimed one) of CPU time (this process, all threads).
+    """
+    from dataclasses import fields
+
+    import numpy as np
+
+    from lsu_bags.bags import read_messages
+    from lsu_extract.extractor import ExtractorParams, extract_laser_line
+    from lsu_extract.image import decode_image, parse_image_cdr
+    from lsu_reconstruct.matching import LineArrays, MatchParams
+    from lsu_reconstruct.pipeline import reconstruct_snap
+    from lsu_reconstruct.stereo import StereoModel
+
+    ext = _node_params("laser_extractor")
+    params = ExtractorParams(**{f.name: ext[f.name] for f in fields(ExtractorParams) if f.name in ext})
+    mat = _node_params("stereo_matcher")
+    match = MatchParams(**{f.name: mat[f.name] for f in fields(MatchParams) if f.name in mat},
+                        method=mat["triangulation"])
+    model = StereoModel.from_folder(CONFIG / "calibration" / "sim")
+    frames: dict = {}
+    for m in read_messages(bag, ["/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
+        frames.setdefault(struct.unpack_from("<iI", m.data, 4), {})[m.topic.split("/")[-2]] = m.data
+    pairs = [(f["left"], f["right"]) for _, f in sorted(frames.items()) if len(f) == 2]
+
+    def line(raw: bytes) -> LineArrays:
+        msg = parse_image_cdr(raw)
+        r = extract_laser_line(decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step), params)
+        return LineArrays(u=r.u, v=r.v, peak=r.peak, width=r.width, quality=np.clip(r.quality, 0.0, 1.0),
+                          image_width=r.image_width, image_height=r.image_height)
+
+    def one_pass() -> int:
+        points = 0
+        for left, right in pairs:
+            points += len(reconstruct_snap(model, line(left), line(right), match))
+        return points
+
+    one_pass()
+    cpu = []
+    for _ in range(passes):
+        c0 = time.process_time()
+        points = one_pass()
+        cpu.append(time.process_time() - c0)
+    # what reading the bag alone costs (decompression included): the part of a replay no message path can save
+    c0 = time.process_time()
+    for _ in read_messages(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
+        pass
+    read_s = time.process_time() - c0
+    return {"snaps": len(pairs), "cpu_s": sorted(cpu)[len(cpu) // 2], "points": points, "read_cpu_s": read_s}
+
+
+def replay_direct(bag: Path) -> dict:
+    """`lsu run replay BAG --exit` (the default replay: bag -> extractor -> matcher in one process, no DDS between).
+
+    The figures are the ones the command prints for its processing window (first message read to
+    the scan cloud published): snaps, wall seconds, CPU (whole process, all threads) per snap.
+    """
+    import re
+
+    from lsu_testing.plugin import LaunchedProcess
+
+    graph = LaunchedProcess(["run", "replay", str(bag), "--exit"])
+    try:
+        graph.process.wait(timeout=600)
+    finally:
+        graph.kill()
+    graph._reader.join(timeout=10)
+    match = re.search(r"replayed .*: (\d+) snaps .* in ([\d.]+) s, \d+ snaps/s, ([\d.]+) ms CPU per snap \(([\d.]+) "
+                      r"ms of it reading the bag\); (\d+) frames unreadable, (\d+) lines unpaired", graph.output)
+    if graph.process.returncode != 0 or match is None:
+        raise RuntimeError(f"lsu run replay {bag} failed (exit {graph.process.returncode}): {graph.output[-3000:]}")
+    snaps = int(match.group(1))
+    return {"snaps": snaps, "seconds": float(match.group(2)), "cpu_s": float(match.group(3)) * snaps / 1000.0,
+            "read_cpu_s": float(match.group(4)) * snaps / 1000.0, "lost": int(match.group(5)) + int(match.group(6))}
+
+
+def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAYS) -> dict:
+    """replay_cpu_over_compute and replay_snaps_per_s (direct replay), beside the message path's (dds)."""
+    reference = compute_reference(bag)
+    compute_ms = 1000 * reference["cpu_s"] / max(1, reference["snaps"])
+    direct = sorted((replay_direct(bag) for _ in range(direct_runs)), key=lambda r: r["snaps"] / r["seconds"])
+    rep = direct[len(direct) // 2]
+    figures = {"replay_compute_ms_per_snap": compute_ms,
+               "replay_snaps_per_s": rep["snaps"] / rep["seconds"],
+               "replay_snaps_per_s_min": direct[0]["snaps"] / direct[0]["seconds"],
+               "replay_snaps_per_s_max": direct[-1]["snaps"] / direct[-1]["seconds"],
+               "replay_cpu_ms_per_snap": 1000 * rep["cpu_s"] / max(1, rep["snaps"]),
+               "replay_snaps": rep["snaps"], "replay_lost": max(r["lost"] for r in direct)}
+    figures["replay_cpu_over_compute"] = figures["replay_cpu_ms_per_snap"] / compute_ms
+    read_ms = 1000 * reference["read_cpu_s"] / max(1, reference["snaps"])
+    figures["replay_read_ms_per_snap"] = read_ms
+    figures["replay_cpu_over_compute_and_read"] = figures["replay_cpu_ms_per_snap"] / (compute_ms + read_ms)
+    figures["replay_processing_cpu_over_compute"] = 1000 * (rep["cpu_s"] - rep["read_cpu_s"]) / max(1, rep["snaps"]) \
+        / compute_ms
+    if dds_runs:
+        dds = sorted((replay(bag) for _ in range(dds_runs)), key=lambda r: r["snaps"] / r["seconds"])
+        mid = dds[len(dds) // 2]
+        figures.update({"replay_dds_snaps_per_s": mid["snaps"] / mid["seconds"],
+                        "replay_dds_cpu_ms_per_snap": 1000 * mid["cpu_s"] / max(1, mid["snaps"]),
+                        "replay_dds_snaps": mid["snaps"], "bag_snaps_missing_images": mid["missing_in_bag"]})
+        figures["replay_dds_cpu_over_compute"] = figures["replay_dds_cpu_ms_per_snap"] / compute_ms
+    return figures
+
+
+REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps/s", "replay_snaps_per_s_min": "snaps/s",
+                "replay_snaps_per_s_max": "snaps/s", "replay_cpu_ms_per_snap": "ms", "replay_snaps": "snaps",
+                "replay_lost": "frames+lines", "replay_cpu_over_compute": "x", "replay_dds_snaps_per_s": "snaps/s",
+                "replay_dds_cpu_ms_per_snap": "ms", "replay_dds_snaps": "snaps", "bag_snaps_missing_images": "snaps",
+                "replay_dds_cpu_over_compute": "x", "replay_read_ms_per_snap": "ms",
+                "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x"}
+REPLAY_NOTES = (
+    "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
+    "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
+    "no ROS (images read from their CDR buffers, two extractions and matching + triangulation with the "
+    "replay launch file's parameters; median of 3 passes). replay_snaps_per_s / replay_cpu_ms_per_snap: "
+    "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "
+    "matcher nodes in one process, which publish lines (to subscribers), points and the scan cloud as "
+    "live), from the first message read to the scan cloud published (bag reading and decompression "
+    "included), CPU of the whole process (all threads); median of 3 runs, min and max beside it; "
+    "replay_cpu_over_compute = replay_cpu_ms_per_snap / replay_compute_ms_per_snap, replay_lost: "
+    "frames unreadable + lines unpaired. replay_read_ms_per_snap: CPU per snap of reading the bag alone "
+    "(rosbags, the mcap chunks' zstd decompression included; same run), which the direct replay does "
+    "in a second thread; replay_cpu_over_compute_and_read = replay CPU / (compute + read); "
+    "replay_processing_cpu_over_compute: the replay's CPU without its bag-reading thread's (thread CPU "
+    "clock) over compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
+    "by the benchmark. replay_dds_*: the message path (`lsu run replay --executor "
+    "single`, the bag's raw CDR published into it closed-loop with at most 4 snaps awaiting their "
+    "/lsu/points, below the image queue depth 5), CPU of that process only (median of 3 runs, each in a "
+    "fresh graph); these were replay_snaps_per_s / replay_cpu_ms_per_snap before the direct replay. ")
+
+
+def sim_bag(tmp: Path) -> Path:
+    """A recorded-like scan bag of synthetic head 7, 0..470 step 2 with the texture pair, without the graph."""
+    from lsu_testing.simbags import write_sim_scan_bag
+    from lsu_cameras.sim import build_scene, load_rig
+
+    geometry = load_rig()
+    return write_sim_scan_bag(tmp / "bag", build_scene("head:7", geometry), list(range(0, 471, 2)), seed=7,
+                              geometry=geometry)
+
+
 VIEW_NOTES = (
     "bridge: a default scan with `lsu view` and a Foxglove WebSocket client "
     "subscribed to every channel (images at the bridge's default 5 Hz per camera), then one without; "
@@ -405,14 +567,25 @@ def sweep_accuracy() -> dict:
             "sweep_rms_over_stopsnap_checked_50ms": rms["late"] / rms["stop_checked"]}
 
 
-def only(parts: set) -> int:
-    """Measure only the live-view and/or two-host figures and merge them into the existing scan.json."""
+def only(parts: set, bag: Path | None = None) -> int:
+    """Measure only the replay, live-view and/or two-host figures and merge them into the existing scan.json."""
+    unknown = parts - {"replay", "view", "two_host", "settle", "sweep"}
+    if unknown:
+        raise SystemExit(f"--only takes replay, view, two_host, settle, sweep (comma-separated); not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
     failure = None
+    replay_note = ""
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-bench-scan-") as tmp_name:
             tmp = Path(tmp_name)
+            if "replay" in parts:
+                source = "a recorded scan bag given with --bag" if bag else "a bag written by lsu_testing.simbags (synthetic head 7, " \
+                    "0..470 step 2 + texture pair, rendered by the simulated rig without the graph)"
+                figures.update(replay_figures(bag or sim_bag(tmp)))
+                replay_note = (f"[replay figures: `bench_scan.py --only replay` {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} "
+                               f"UTC on {source}; host shared with other heavy jobs, load average "
+                               f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end] ")
             if "view" in parts:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
@@ -434,13 +607,20 @@ def only(parts: set) -> int:
     path = Path(__file__).resolve().parent / "results" / "scan.json"
     old = json.loads(path.read_text()) if path.is_file() else {"figures": {}, "units": {}, "notes": ""}
     merged = {**old["figures"], **figures}
-    note = (f" {VIEW_NOTES} {SWEEP_NOTES} [{', '.join(sorted(parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
-            f"`bench_scan.py --only {','.join(sorted(parts))}`, load average {os.getloadavg()[0]:.1f} on "
-            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]"
-            + (f" {SETTLE_NOTES}" if "settle" in parts else ""))
+    notes = old.get("notes", "")
+    if "replay" in parts:  # its section of the notes replaced, the rest kept
+        head, _, rest = notes.partition("replay: ")
+        at = rest.find("bridge: a default")
+        notes = head + REPLAY_NOTES + replay_note + (rest[at:] if at >= 0 else "")
+    view_parts = parts - {"replay"}
+    if view_parts:
+        notes = notes.split(" bridge: a default")[0] + (
+            f" {VIEW_NOTES} [{', '.join(sorted(view_parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
+            f"`bench_scan.py --only {','.join(sorted(view_parts))}`, load average {os.getloadavg()[0]:.1f} on "
+            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
+        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if "sweep" in view_parts else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else "")
     if parts:
-        write_result("scan", merged, {**old["units"], **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
-                     notes=old.get("notes", "").split(" bridge: a default")[0].split(" settle: in one")[0] + note)
+        write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=notes)
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
         return 1
@@ -449,7 +629,8 @@ def only(parts: set) -> int:
 
 def main() -> int:
     if len(sys.argv) > 2 and sys.argv[1] == "--only":
-        return only(set(sys.argv[2].split(",")))
+        bag = Path(sys.argv[4]) if len(sys.argv) > 4 and sys.argv[3] == "--bag" else None
+        return only(set(sys.argv[2].split(",")), bag)
     claim = rosenv.isolate()
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-bench-scan-") as tmp_name:
@@ -463,10 +644,8 @@ def main() -> int:
             # from the texture position is left out)
             phases = {name: sorted(s[f"{name}_s"] for s in record["snaps"][1:] if f"{name}_s" in s) or [0.0]
                       for name in ("move", "capture")}
-            # the median of REPLAYS runs (each in a fresh graph): one run is at the mercy of the host's noise
-            replays = sorted((replay(Path(recording["result"].output_dir) / "bag") for _ in range(REPLAYS)),
-                             key=lambda r: r["snaps"] / r["seconds"])
-            rep = replays[len(replays) // 2]
+            # medians of REPLAYS runs (each in a fresh process): one run is at the mercy of the host's noise
+            replays = replay_figures(Path(recording["result"].output_dir) / "bag")
             unavailable = why_unavailable()
             walls = two_host_runs(tmp) if unavailable is None else {}
             settle = settle_figures(tmp)
@@ -481,30 +660,17 @@ def main() -> int:
          "ack_ms_median": 1000 * acks[len(acks) // 2], "ack_ms_max": 1000 * acks[-1],
          "move_ms_median": 1000 * phases["move"][len(phases["move"]) // 2],
          "capture_ms_median": 1000 * phases["capture"][len(phases["capture"]) // 2],
-         "replay_snaps_per_s": rep["snaps"] / rep["seconds"],
-         "replay_snaps_per_s_min": replays[0]["snaps"] / replays[0]["seconds"],
-         "replay_snaps_per_s_max": replays[-1]["snaps"] / replays[-1]["seconds"],
-         "replay_cpu_ms_per_snap": 1000 * rep["cpu_s"] / max(1, rep["snaps"]),
-         "replay_snaps": rep["snaps"], "bag_snaps_missing_images": rep["missing_in_bag"],
-         **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
+         **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
         {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
          "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s",
          "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
-         "capture_ms_median": "ms", "replay_snaps_per_s": "snaps/s", "replay_cpu_ms_per_snap": "ms",
-         "replay_snaps_per_s_min": "snaps/s", "replay_snaps_per_s_max": "snaps/s",
-         "replay_snaps": "snaps", "bag_snaps_missing_images": "snaps",
-         **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
+         "capture_ms_median": "ms", **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
         notes="live: lsu launch sim (6 processes, synthetic head 7), after a 3-snap warm-up scan two scans 0..470 step 2, "
               "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
               "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
               "scan_wall_over_mechanical_recording; bound = moves at the emulator's 200 steps/s + (settle + 33 ms "
-              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). replay: the recording scan's bag, its scan events and image pairs, the laser-off texture pair included (raw CDR "
-              "from the bag) published into lsu run replay (extractor + matcher in one process) with at most 4 snaps "
-              "awaiting their /lsu/points acknowledgement (below the image queue depth 5): no snap is dropped and "
-              "snaps/s is the graph's sustained processing rate (median of 3 replays, each in a fresh graph; min and max "
-              "beside it); replay_cpu_ms_per_snap: CPU time (all threads) of the "
-              "replay process over the same window per snap (on a shared host it varies too: the same work took 10-20 ms). "
-              + VIEW_NOTES + " " + SETTLE_NOTES + " " + SWEEP_NOTES)
+              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). "
+              + REPLAY_NOTES + VIEW_NOTES + " " + SETTLE_NOTES + " " + SWEEP_NOTES)
     return 0
 
 

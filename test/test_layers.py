@@ -29,7 +29,7 @@ ALLOWED: Dict[str, Set[str]] = {
     "lsu_view": _BASE | {"lsu_bags"},
     "lsu_scan": _BASE | {"lsu_bags", "lsu_cameras", "lsu_driver", "lsu_extract", "lsu_reconstruct"},
     "lsu_accuracy": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces"},
-    "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy"},
+    "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy"},
     "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools"},
 }
 

@@ -1,4 +1,5 @@
-"""A recorded scan replayed through extractor -> matcher (separate processes) gives the recorded cloud."""
+"""A recorded scan replayed through extractor -> matcher gives the recorded cloud: through DDS (separate processes,
+`lsu bag play`) and handed over directly in one process (`lsu run replay BAG`)."""
 
 import subprocess
 from pathlib import Path
@@ -14,7 +15,6 @@ from lsu_bags.pointcloud2 import decode, from_msg
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
-pytestmark = pytest.mark.slow
 
 
 def xyz(msg: PointCloud2) -> np.ndarray:
@@ -22,6 +22,7 @@ def xyz(msg: PointCloud2) -> np.ndarray:
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 
 
+@pytest.mark.slow
 def test_replayed_scan_gives_the_recorded_cloud(launch, ros_node):
     recorded = [deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/cloud"])]
     assert len(recorded) == 1
@@ -43,3 +44,79 @@ def test_replayed_scan_gives_the_recorded_cloud(launch, ros_node):
     replayed = xyz(clouds[0])
     assert replayed.shape == expected.shape
     assert np.max(np.abs(replayed - expected)) <= 1e-6
+
+
+def points_by_stamp(messages) -> dict:
+    """stamp (ns) -> (xyz (N, 3), snap indices (N,)) of PointCloud2 messages."""
+    out = {}
+    for msg in messages:
+        columns = decode(from_msg(msg))
+        key = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        out[key] = (np.stack([columns["x"], columns["y"], columns["z"]], axis=1), columns["snap"])
+    return out
+
+
+def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_path):
+    """The bag handed to the replay launch file's extractor and matcher in-process gives, snap by snap, the
+    points the live graph (separate processes, DDS between them) published and recorded, and drops nothing."""
+    from lsu_tools.cli import resolve_launch_file
+    from lsu_tools.direct_replay import DirectReplay
+    from lsu_tools.launch_file import load_launch, select_nodes
+    from lsu_tools.nodes_index import resolve_executable
+    from lsu_tools.runner import build_nodes
+
+    recorded = points_by_stamp(deserialize_ros(m) for m in read_messages(BAG, ["/lsu/points"]))
+    snap_events = [e for e in (deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/events"])) if e.type == 2]
+    assert len(recorded) == len(snap_events) == 6
+    description = select_nodes(load_launch(resolve_launch_file("replay"), {}, resolve_executable),
+                               ["laser_extractor", "stereo_matcher"], [], {})
+    nodes = build_nodes(description, tmp_path, context=ros_context)
+    try:
+        replay = DirectReplay(nodes)
+        published, clouds = [], []
+        replay.matcher.points_pub.publish = published.append  # what subscribers of /lsu/points would get
+        replay.matcher.cloud_pub.publish = clouds.append
+        stats = replay.run(BAG)
+    finally:
+        for node in nodes:
+            node.destroy_node()
+    assert (stats.snaps, stats.snap_events, stats.pairs, stats.frames_dropped, stats.lines_unpaired) == (6, 6, 7, 0, 0)
+    replayed = points_by_stamp(published)
+    assert sorted(replayed) == sorted(recorded)
+    for key, (xyz_rec, snap_rec) in recorded.items():
+        xyz_rep, snap_rep = replayed[key]
+        assert xyz_rep.shape == xyz_rec.shape and len(xyz_rec) > 100
+        assert np.max(np.abs(xyz_rep - xyz_rec)) <= 1e-6
+        assert np.array_equal(snap_rep, snap_rec)
+    # the scan cloud too (coloured by the texture pair found through the replay's own image source)
+    expected = [deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/cloud"])]
+    assert len(clouds) == 1
+    got, want = decode(from_msg(clouds[0])), decode(from_msg(expected[0]))
+    assert np.array_equal(got["snap"], want["snap"]) and np.array_equal(got["rgb"], want["rgb"])
+    assert np.max(np.abs(got["z"] - want["z"])) <= 1e-6
+
+
+@pytest.mark.slow
+def test_lsu_run_replay_bag_publishes_the_recorded_cloud(launch, ros_node):
+    """`lsu run replay BAG` (the default replay) processes the bag, says nothing was lost, and late
+    subscribers get the scan cloud the live graph recorded."""
+    expected = xyz([deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/cloud"])][0])
+    graph = launch("run", "replay", str(BAG))
+    line = graph.wait_for_line(r"replayed .*: (\d+) snaps \((\d+) SNAP events, \d+ pairs\).* (\d+) frames unreadable, "
+                               r"(\d+) lines unpaired", timeout_s=120)
+    assert line.groups() == ("6", "6", "0", "0")
+    clouds = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    ros_node.node.create_subscription(PointCloud2, "/lsu/scan/cloud", clouds.append, latched)
+    assert ros_node.spin_until(lambda: len(clouds) >= 1, 30.0), graph.output[-3000:]
+    replayed = xyz(clouds[0])
+    assert replayed.shape == expected.shape
+    assert np.max(np.abs(replayed - expected)) <= 1e-6
+
+
+def test_lsu_run_replay_names_a_missing_bag(tmp_path, capsys):
+    from lsu_tools.cli import main
+
+    assert main(["run", "replay", str(tmp_path / "no-such-bag"), "--exit"]) == 2
+    err = capsys.readouterr().err
+    assert "no-such-bag" in err and "not found" in err

@@ -155,12 +155,22 @@ class LaserExtractorNode(Node):
 
     def on_image(self, side: str, raw: bytes) -> None:
         """Extract the line of one serialized sensor_msgs/Image and publish it; a bad image is reported, never raised."""
+        line = self.line_of(side, raw)
+        if line is not None:
+            self.publishers_[side].publish(line)
+
+    def line_of(self, side: str, raw: Any) -> Optional[LaserLine]:
+        """The laser line of one serialized sensor_msgs/Image (any buffer: bytes, memoryview), not published.
+
+        None for a frame that cannot be read (reported on /diagnostics, counted as dropped). A
+        direct replay calls this with the bag's buffers and hands the line on itself.
+        """
         try:
             msg = parse_image_cdr(raw)
         except ImageFormatError as exc:
             self.dropped[side] += 1
             self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
-            return
+            return None
         size = (msg.width, msg.height)
         expected = self._sizes.setdefault(side, size)
         try:
@@ -183,12 +193,12 @@ class LaserExtractorNode(Node):
         except ImageFormatError as exc:
             self.dropped[side] += 1
             self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
-            return
+            return None
         self.frames[side] += 1
         header = Header(stamp=Time(sec=msg.sec, nanosec=msg.nanosec), frame_id=msg.frame_id)
-        self.publishers_[side].publish(result_to_msg(result, header))
         if side in self._reported:
             self._report(side, DiagnosticStatus.OK, f"{side} camera: extracting again")
+        return result_to_msg(result, header)
 
     def on_event(self, msg: ScanEvent) -> None:
         """STARTED, FINISHED, ABORTED: forget the laser-off pair; TEXTURE: take the pair it names."""

@@ -19,7 +19,7 @@ import struct
 import sys
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any, Callable, Dict, Iterable, List, Optional
 
 import numpy as np
 import rclpy
@@ -169,10 +169,13 @@ class StereoMatcherNode(Node):
         self.points_pub = self.create_publisher(PointCloud2, "points", 10)
         self.cloud_pub = self.create_publisher(PointCloud2, "scan/cloud", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_subscription(LaserLine, "stereo/left/laser_line", lambda m: self.on_line("left", m), RELIABLE_DATA)
-        self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
-                                 RELIABLE_DATA)
-        self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)
+        # kept so that a direct replay, which hands lines and events over itself, can remove them
+        self.input_subscriptions = [
+            self.create_subscription(LaserLine, "stereo/left/laser_line", lambda m: self.on_line("left", m),
+                                     RELIABLE_DATA),
+            self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
+                                     RELIABLE_DATA),
+            self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)]
         # Read on demand, only while a TEXTURE event names an image not yet found: the reader keeps
         # the newest few frames in DDS, and the snaps' frames (one per snap, 900 KB) are never
         # taken into Python nor wake the executor (each was a copy and a callback in the replay's
@@ -180,6 +183,9 @@ class StereoMatcherNode(Node):
         self._image_sub = self.create_subscription(Image, "stereo/left/image_raw", lambda _raw: None, QoSProfile(
             depth=IMAGES_KEPT, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST),
             callback_group=PolledGroup(), raw=True)
+        # where the texture image is looked for: serialized left images not yet looked at (a direct
+        # replay, which has no image topic, gives its own source)
+        self.take_left_images: Callable[[], Iterable[Any]] = lambda: take_all(self._image_sub)
         if self.get_parameter("calibration_source").value == "topics":
             # camera_info comes with every image (volatile, like the images); a volatile reader also
             # matches latched publishers (older bags), so either kind of camera is heard
@@ -368,7 +374,7 @@ class StereoMatcherNode(Node):
             return
         # only the frames waiting now can hold it: the ones taken earlier were checked against the same key
         raw = None
-        for candidate in take_all(self._image_sub):
+        for candidate in self.take_left_images():
             key = _cdr_stamp_key(candidate)
             if key == scan.texture_key:
                 raw = candidate

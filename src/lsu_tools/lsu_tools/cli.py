@@ -54,6 +54,14 @@ def cmd_launch(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from .runner import run_in_process
 
+    bags = [a for a in args.arguments if ":=" not in a]
+    if bags:  # `lsu run replay BAG`: the bag handed to the extractor and matcher directly
+        from .direct_replay import run_direct_replay
+
+        if len(bags) > 1:
+            raise ValueError(f"one bag at a time (got {', '.join(bags)}); launch arguments are written name:=value")
+        args.arguments = [a for a in args.arguments if ":=" in a]
+        return run_direct_replay(_load(args), Path(bags[0]), exit_when_done=args.exit)
     return run_in_process(_load(args), executor=args.executor)
 
 
@@ -78,9 +86,14 @@ def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None
     p.set_defaults(func=cmd_launch)
     p = sub.add_parser("run", help="run the nodes of a launch file in one process",
                        description="Build every node of a launch file in this process and spin them on one "
-                                   "executor.")
+                                   "executor. With a BAG (`lsu run replay BAG`), the bag's image pairs and scan "
+                                   "events go straight to the extractor and matcher of this process (no DDS "
+                                   "between them); their outputs are published as live.")
     p.add_argument("file", metavar="FILE|NAME", help="launch file, or NAME for config/launch/NAME.launch.yaml")
-    p.add_argument("arguments", nargs="*", metavar="name:=value", help="launch arguments")
+    p.add_argument("arguments", nargs="*", metavar="[BAG] name:=value",
+                   help="a recorded scan's bag folder to process directly, and launch arguments")
+    p.add_argument("--exit", action="store_true",
+                   help="with a BAG: stop once the bag is processed and its scan cloud published")
     _selection_options(p)
     p.add_argument("--executor", choices=("multi", "single"), default="multi",
                    help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "

@@ -1,0 +1,279 @@
+"""`lsu run replay BAG`: a recorded scan processed by the extractor and matcher in this process, handed over directly.
+
+The bag's image pairs and scan events go straight from the bag reader to the ``laser_extractor``
+node's extraction and its lines straight to the ``stereo_matcher``'s pairing (no DDS, no
+(de)serialisation of images or lines between them); the nodes are the ones of the launch file,
+with its parameters, and they still publish what they publish live (``stereo/*/laser_line``
+while someone subscribes, ``points`` per snap, ``scan/cloud``, ``/diagnostics``), so
+subscribers see the same outputs. Their input subscriptions are removed: nothing arrives twice.
+Replaying into a graph of separate nodes is `lsu bag play` into `lsu launch replay` (or
+`lsu run replay` without a bag): the message path.
+
+Hand-written because this is the integration of our own two nodes; the bag is read with
+`rosbags` (lsu_bags.bags) and the extraction/matching are the nodes' own methods.
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import queue
+import sys
+import threading
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Sequence, TextIO
+
+from lsu_bags.bags import bag_topics, read_messages
+
+__all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
+
+SIDES = ("left", "right")
+SPIN_EVERY_S = 0.05  # timers and the other nodes' callbacks run at least this often during a replay
+PREFETCH = 8  # bag messages read ahead (about 4 image pairs, ~8 MB)
+
+
+@dataclass
+class ReplayStats:
+    """What one replay did: counts, wall and CPU time (CPU of the whole process, all threads)."""
+
+    images: int = 0
+    events: int = 0
+    snap_events: int = 0
+    pairs: int = 0              # image (or line) pairs matched, the laser-off texture pair included
+    snaps: int = 0              # SNAP events whose pair was matched
+    frames_dropped: int = 0     # images the extractor could not read
+    lines_unpaired: int = 0     # lines that never found their partner (same stamp)
+    seconds: float = 0.0
+    cpu_s: float = 0.0          # the whole process, all threads
+    read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
+
+    def summary(self, bag: Path) -> str:
+        rate = self.snaps / self.seconds if self.seconds > 0 else 0.0
+        cpu = 1000.0 * self.cpu_s / max(1, self.snaps)
+        read = 1000.0 * self.read_cpu_s / max(1, self.snaps)
+        return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs) in "
+                f"{self.seconds:.2f} s, {rate:.0f} snaps/s, {cpu:.2f} ms CPU per snap ({read:.2f} ms of it reading "
+                f"the bag); {self.frames_dropped} frames unreadable, "
+                f"{self.lines_unpaired} lines unpaired")
+
+
+def _side(topic: str, suffix: str) -> Optional[str]:
+    for side in SIDES:
+        if topic.endswith(f"stereo/{side}/{suffix}"):
+            return side
+    return None
+
+
+def _prefetched(messages: Iterator[Any], cpu: Dict[str, float], depth: int = PREFETCH) -> Iterator[Any]:
+    """``messages`` read ahead by a thread: the bag's decompression (zstd chunks, which releases the GIL)
+    runs on the other core while this one extracts and matches. Exceptions come out where they occurred;
+    ``cpu["read_s"]`` is the reading thread's CPU time so far."""
+    box: "queue.Queue[Any]" = queue.Queue(maxsize=depth)
+    done = object()
+    stop = threading.Event()
+
+    def read() -> None:
+        t0 = time.thread_time()
+        try:
+            for m in messages:
+                while not stop.is_set():
+                    try:
+                        box.put(m, timeout=0.1)
+                        cpu["read_s"] = time.thread_time() - t0
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            cpu["read_s"] = time.thread_time() - t0
+            box.put(done)
+        except BaseException as exc:  # handed to the consumer, which raises it
+            box.put(exc)
+
+    reader = threading.Thread(target=read, name="bag-reader", daemon=True)
+    reader.start()
+    try:
+        while True:
+            item = box.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        reader.join(timeout=5.0)
+
+
+class DirectReplay:
+    """Feeds a bag to an extractor and a matcher node of this process (see the module doc).
+
+    ``nodes``: the nodes built from a launch file; one ``laser_extractor`` (LaserExtractorNode)
+    and one ``stereo_matcher`` (StereoMatcherNode) must be among them.
+    """
+
+    def __init__(self, nodes: Sequence[Any]) -> None:
+        from lsu_extract.node import LaserExtractorNode
+        from lsu_reconstruct.node import IMAGES_KEPT, StereoMatcherNode
+
+        extractors = [n for n in nodes if isinstance(n, LaserExtractorNode)]
+        matchers = [n for n in nodes if isinstance(n, StereoMatcherNode)]
+        if len(extractors) != 1 or len(matchers) != 1:
+            raise LookupError(f"replaying a bag needs one laser_extractor and one stereo_matcher in the launch file "
+                              f"(found {len(extractors)} and {len(matchers)}); use the 'replay' launch file, or play "
+                              f"the bag into your graph with `lsu bag play`")
+        self.extractor, self.matcher = extractors[0], matchers[0]
+        # the replay is their only input: lines published for subscribers must not come back to the matcher
+        for sub in list(self.extractor.subscriptions_):
+            self.extractor.destroy_subscription(sub)
+        for sub in list(self.matcher.input_subscriptions):
+            self.matcher.destroy_subscription(sub)
+        self._left_images: Deque[Any] = collections.deque(maxlen=IMAGES_KEPT)
+        self.matcher.take_left_images = self._take_left_images
+
+    def _take_left_images(self) -> List[Any]:
+        taken = list(self._left_images)
+        self._left_images.clear()
+        return taken
+
+    def run(self, bag: Path | str, spin: Callable[[], None] = lambda: None) -> ReplayStats:
+        """Process every scan event and image pair of ``bag`` in recorded order; ``spin`` runs the executor once.
+
+        Raises:
+            lsu_bags.bags.BagError: the bag is missing, corrupt, or holds neither images nor laser lines.
+        """
+        from rclpy.serialization import deserialize_message
+
+        from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
+        from sensor_msgs.msg import CameraInfo
+
+        from lsu_bags.bags import BagError
+
+        topics = bag_topics(bag)
+        images = {t: _side(t, "image_raw") for t in topics if _side(t, "image_raw")}
+        lines = {t: _side(t, "laser_line") for t in topics if _side(t, "laser_line")}
+        if images:
+            lines = {}  # the lines are made again from the images, as the live graph would
+        elif not lines:
+            raise BagError(f"bag {bag} holds neither stereo/{{left,right}}/image_raw nor stereo/{{left,right}}/"
+                           f"laser_line (it has: {', '.join(sorted(topics)) or 'no topics'})")
+        events = [t for t in topics if t.endswith("scan/events")]
+        calibration = []
+        if str(self.matcher.get_parameter("calibration_source").value) == "topics":
+            calibration = [t for t in topics if _side(t, "camera_info") or t.endswith("stereo/extrinsics")]
+        extractor, matcher = self.extractor, self.matcher
+        publishers = extractor.publishers_
+        stats = ReplayStats()
+        pairs_before = matcher.pairs
+        lines_of: Dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
+        reading: Dict[str, float] = {"read_s": 0.0}
+        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *calibration]), reading)
+        first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
+        t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
+        next_spin = t0 + SPIN_EVERY_S
+        for m in itertools.chain([first] if first is not None else [], messages):
+            side = images.get(m.topic)
+            if side is not None:
+                stats.images += 1
+                if side == "left":
+                    self._left_images.append(m.data)  # the texture is looked for among these
+                line = extractor.line_of(side, m.data)
+                if line is not None:
+                    if publishers[side].get_subscription_count():
+                        publishers[side].publish(line)
+                    lines_of[line.header.stamp.sec * 1_000_000_000 + line.header.stamp.nanosec] += 1
+                    matcher.on_line(side, line)
+            elif m.topic in lines:
+                line = deserialize_message(m.data, LaserLine)
+                lines_of[line.header.stamp.sec * 1_000_000_000 + line.header.stamp.nanosec] += 1
+                matcher.on_line(lines[m.topic], line)
+            elif m.topic in events:
+                event = deserialize_message(m.data, ScanEvent)
+                stats.events += 1
+                if event.type == ScanEvent.SNAP:
+                    stats.snap_events += 1
+                    key = event.image_stamp.sec * 1_000_000_000 + event.image_stamp.nanosec
+                    stats.snaps += lines_of[key] >= 2
+                extractor.on_event(event)
+                matcher.on_event(event)
+            elif m.topic.endswith("extrinsics"):
+                matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
+            else:
+                matcher.on_info(_side(m.topic, "camera_info"), deserialize_message(m.data, CameraInfo))
+            if time.monotonic() >= next_spin:
+                spin()
+                next_spin = time.monotonic() + SPIN_EVERY_S
+        matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
+        stats.seconds = time.monotonic() - t0
+        stats.cpu_s = time.process_time() - cpu0
+        stats.read_cpu_s = reading["read_s"] - read0
+        stats.pairs = matcher.pairs - pairs_before
+        stats.frames_dropped = sum(extractor.dropped.values())
+        stats.lines_unpaired = sum(matcher.unmatched.values()) + len(matcher.left) + len(matcher.right)
+        return stats
+
+    def scan_pending(self) -> bool:
+        """A scan ended (FINISHED/ABORTED) whose cloud the matcher has not published yet (it waits for snaps)."""
+        scan = self.matcher.scan
+        return scan is not None and scan.end_type is not None and not scan.published
+
+
+def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exit_when_done: bool = False) -> int:
+    """Build the launch file's nodes, replay ``bag`` through them directly, then spin until Ctrl-C.
+
+    With ``exit_when_done`` it returns once the bag is processed and a pending scan cloud is
+    published (at most the matcher's scan_timeout_s later). One thread: the replay calls into
+    the nodes between the executor's turns.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+    from lsu_bags.bags import BagError
+    from .runner import build_nodes
+
+    if not Path(bag).exists():
+        raise FileNotFoundError(f"bag '{bag}' not found: give a bag folder (or its .mcap/.db3 file)")
+    rclpy.init()
+    nodes: List[Any] = []
+    try:
+        with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
+            nodes = build_nodes(description, Path(tmp), out=out)
+            replay = DirectReplay(nodes)
+            spinner = SingleThreadedExecutor()
+            for node in nodes:
+                spinner.add_node(node)
+            out.write(f"[lsu run] replaying {bag} directly into laser_extractor and stereo_matcher "
+                      f"({len(nodes)} node(s) in one process)\n")
+            out.flush()
+            try:
+                spinner.spin_once(timeout_sec=0.0)
+                try:
+                    stats = replay.run(bag, spin=lambda: spinner.spin_once(timeout_sec=0.0))
+                except BagError as exc:
+                    out.write(f"[lsu run] error: {exc}\n")
+                    return 2
+                out.write(f"[lsu run] {stats.summary(Path(bag))}\n")
+                out.flush()
+                if exit_when_done:
+                    timeout = float(replay.matcher.get_parameter("scan_timeout_s").value) + 1.0
+                    deadline = time.monotonic() + timeout
+                    while replay.scan_pending() and time.monotonic() < deadline:
+                        spinner.spin_once(timeout_sec=0.05)
+                    spinner.spin_once(timeout_sec=0.0)
+                else:
+                    out.write("[lsu run] replay done; the nodes keep running (Ctrl-C stops)\n")
+                    out.flush()
+                    spinner.spin()
+            except (KeyboardInterrupt, ExternalShutdownException):
+                pass
+            finally:
+                spinner.shutdown(timeout_sec=2.0)
+    finally:
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    out.write("[lsu run] stopped\n")
+    return 0
