@@ -27,6 +27,12 @@ def split_ns(ns: int) -> "tuple[int, int]":
     return sec, nanosec
 
 
+def to_text(ns: int) -> str:
+    """``"sec.nanosec"`` with nine digits after the point (exact, sortable as a key in files)."""
+    sec, nanosec = split_ns(ns)
+    return f"{sec}.{nanosec:09d}"
+
+
 def to_msg(ns: int) -> Any:
     """A ``builtin_interfaces/Time`` of integer nanoseconds."""
     from builtin_interfaces.msg import Time

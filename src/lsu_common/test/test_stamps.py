@@ -29,6 +29,11 @@ def test_float_seconds_round_to_the_nearest_ns_with_the_carry(seconds, sec, nano
     assert (msg.sec, msg.nanosec) == (sec, nanosec)
 
 
+def test_text_form_is_exact():
+    assert stamps.to_text(1_800_000_000_000_000_042) == "1800000000.000000042"
+    assert stamps.to_text(stamps.to_ns(Time(sec=5, nanosec=120_000_000))) == "5.120000000"
+
+
 def test_times_before_the_epoch_have_a_positive_nanosec():
     msg = stamps.to_msg(-1)  # 1 ns before 1970: sec -1, nanosec 999999999 (the ROS convention)
     assert (msg.sec, msg.nanosec) == (-1, 999_999_999)
