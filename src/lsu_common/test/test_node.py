@@ -59,11 +59,12 @@ def test_a_signal_ends_the_node_cleanly(sig):
 
 
 @pytest.mark.slow
-def test_a_sigterm_while_the_node_is_built_is_a_normal_end():
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
     proc = _start("slow")
     try:
         assert proc.stdout.readline().strip() == "building"
-        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
