@@ -16,11 +16,12 @@ import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 
-_BASE = {"lsu_interfaces", "tf2_msgs", "lsu_config"}
+_BASE = {"lsu_interfaces", "tf2_msgs", "lsu_common", "lsu_config"}
 # package -> the LSU packages it may import (lower layers only)
 ALLOWED: Dict[str, Set[str]] = {
+    "lsu_common": set(),
     "lsu_config": set(),
-    "lsu_bags": {"lsu_interfaces"},
+    "lsu_bags": {"lsu_interfaces", "lsu_common"},
     "lsu_driver": _BASE,
     "lsu_cameras": _BASE,
     "lsu_extract": _BASE,

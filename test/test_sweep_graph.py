@@ -16,15 +16,14 @@ from sensor_msgs.msg import PointCloud2
 from lsu_bags.bags import deserialize_ros, read_messages
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LSU, LaunchedProcess
-from lsu_reconstruct.node import msg_to_cloud
-from lsu_reconstruct.pointcloud2 import decode
+from lsu_bags.pointcloud2 import decode, from_msg
 
 pytestmark = pytest.mark.slow
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
 
 
 def xyz(msg: PointCloud2) -> np.ndarray:
-    columns = decode(msg_to_cloud(msg))
+    columns = decode(from_msg(msg))
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 
 

@@ -25,6 +25,9 @@ from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
+from lsu_common import stamps
+from lsu_common.images import msg_to_array
+
 from .accuracy import CHAINS, AccuracyError, ChainRunner, evaluate_pose, summarise
 
 __all__ = ["BoardScan", "BoardPlane", "find_bags", "read_board_scans", "detect_board_plane", "run_bag_study",
@@ -106,8 +109,6 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
         AccuracyError: a topic is missing, or a scan has no laser-off pair (what to record is said).
         lsu_bags.bags.BagError: the bag is missing, truncated or corrupt.
     """
-    from lsu_extract.image import decode_image
-
     from lsu_bags.bags import BagTypes, bag_topics, deserialize, read_messages
 
     topics = bag_topics(bag)
@@ -123,7 +124,7 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
     scans: Dict[str, Dict] = {}
     for message in read_messages(bag, [events]):
         ev = deserialize(message, types)
-        key = int(ev.image_stamp.sec) * 10**9 + int(ev.image_stamp.nanosec)
+        key = stamps.to_ns(ev.image_stamp)
         scan = scans.setdefault(ev.scan_id, {"texture": None, "snaps": {}})
         if ev.type == _TEXTURE:
             scan["texture"] = key
@@ -134,10 +135,9 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
     side_of = {topic: side for side, topic in images.items()}
     for message in read_messages(bag, list(images.values())):
         msg = deserialize(message, types)
-        key = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+        key = stamps.to_ns(msg.header.stamp)
         if key in wanted:
-            frames[(side_of[message.topic], key)] = decode_image(msg.data, int(msg.width), int(msg.height),
-                                                                 msg.encoding, int(msg.step)).copy()
+            frames[(side_of[message.topic], key)] = msg_to_array(msg).copy()
     folder = bag.name if bag.name != "bag" else bag.parent.name  # `lsu scan --record` writes <scan_id>/bag
     for scan_id, scan in scans.items():
         name = scan_id if folder == scan_id else f"{folder}:{scan_id}"

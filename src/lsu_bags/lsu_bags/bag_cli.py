@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Set
 
+from lsu_common import stamps
+
 from . import bags
 from .bags import BagError, UnknownTypeError
 
@@ -49,7 +51,7 @@ def rosbags_qos(profile: Any) -> Any:
     def duration(d: Any) -> Any:
         ns = int(d.nanoseconds)
         # rmw reports "infinite" as INT64_MAX ns; rosbag2 stores it as (9223372036, 854775807)
-        return bags.INFINITE_TIME if ns >= 2**63 - 1 else QosTime(ns // 1_000_000_000, ns % 1_000_000_000)
+        return bags.INFINITE_TIME if ns >= 2**63 - 1 else QosTime(*stamps.split_ns(ns))
 
     return Qos(enum(QosHistory, profile.history), int(profile.depth), enum(QosReliability, profile.reliability),
                enum(QosDurability, profile.durability), duration(profile.deadline), duration(profile.lifespan),

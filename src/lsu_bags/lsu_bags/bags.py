@@ -43,6 +43,8 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderEr
 from rosbags.rosbag2 import WriterError
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 
+from lsu_common import stamps
+
 #: storage plugins we write (both are read)
 STORAGES: Tuple[str, ...] = ("mcap", "sqlite3")
 #: rosbag2 metadata version written; 9 is what ROS 2 Jazzy's rosbag2 writes
@@ -662,9 +664,9 @@ def _mcap_chunk_compression(paths: Sequence[Path]) -> str:
 
 
 def _stamp(ns: int) -> str:
-    when = datetime.fromtimestamp(ns // 1_000_000_000, tz=timezone.utc)
-    sec, nsec = divmod(ns, 1_000_000_000)
-    return f"{when:%b %d %Y %H:%M:%S}.{nsec:09d} UTC ({sec}.{nsec:09d})"
+    sec, nsec = stamps.split_ns(ns)
+    when = datetime.fromtimestamp(sec, tz=timezone.utc)
+    return f"{when:%b %d %Y %H:%M:%S}.{nsec:09d} UTC ({stamps.to_text(ns)})"
 
 
 def _size(n: int) -> str:

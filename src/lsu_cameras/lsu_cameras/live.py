@@ -22,6 +22,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
+from lsu_common.images import ImageFormatError, msg_to_array
+
 from .calibration import BoardSpec, CalibrationError, StereoCalibrationResult, calibrate_stereo, find_board
 
 #: Parameter names in display order.
@@ -295,22 +297,11 @@ def run_live_calibration(capture: Callable[[], Tuple[np.ndarray, np.ndarray]], t
 
 
 def image_from_msg(msg: Any) -> np.ndarray:
-    """A BGR (or gray) uint8 array of a sensor_msgs/Image in bgr8, rgb8, mono8, bgra8 or rgba8."""
-    channels = {"bgr8": 3, "rgb8": 3, "mono8": 1, "8UC1": 1, "8UC3": 3, "bgra8": 4, "rgba8": 4}
-    if msg.encoding not in channels:
-        raise LiveCalibrationError(f"image encoding '{msg.encoding}' is not supported (use bgr8, rgb8 or mono8)")
-    c = channels[msg.encoding]
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    data = np.frombuffer(bytes(msg.data), np.uint8)
-    if h == 0 or w == 0 or data.size < h * step or step < w * c:
-        raise LiveCalibrationError(f"image message of {w}x{h} ({msg.encoding}, step {step}) holds {data.size} bytes")
-    image = data[:h * step].reshape(h, step)[:, :w * c].reshape(h, w, c) if c > 1 else \
-        data[:h * step].reshape(h, step)[:, :w]
-    if msg.encoding in ("rgb8", "rgba8"):
-        return cv2.cvtColor(image, cv2.COLOR_RGB2BGR if c == 3 else cv2.COLOR_RGBA2BGR)
-    if c == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    return np.ascontiguousarray(image)
+    """A BGR (or gray) uint8 array of a sensor_msgs/Image (`lsu_common.images`; bgr8, rgb8, mono8, bgra8, rgba8, Bayer)."""
+    try:
+        return np.ascontiguousarray(msg_to_array(msg))
+    except ImageFormatError as exc:
+        raise LiveCalibrationError(f"camera image: {exc}") from None
 
 
 class CaptureClient:
@@ -319,40 +310,21 @@ class CaptureClient:
     SERVICE = "stereo/capture"
 
     def __init__(self, namespace: str = "/lsu", wait_s: float = 10.0, timeout_s: float = 10.0) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
-
+        from lsu_common.node import GraphClient
         from lsu_interfaces.srv import CaptureStereo
 
-        self._rclpy = rclpy
         # publish=True as well: whoever watches image_raw (rviz, rqt) sees what the calibration judged
         self._request = CaptureStereo.Request(publish=True, return_images=True)
         self.timeout_s = timeout_s
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"lsu_calibrate_{id(self) & 0xFFFF:x}", namespace=namespace,
-                                      context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
+        self._graph = GraphClient(f"lsu_calibrate_{id(self) & 0xFFFF:x}", namespace)
+        self.context, self.node, self.executor = self._graph.context, self._graph.node, self._graph.executor
         self.client = self.node.create_client(CaptureStereo, self.SERVICE)
         self.service = self.node.resolve_service_name(self.SERVICE)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
         if not self.client.wait_for_service(timeout_sec=wait_s):
             self.close()
             raise LiveCalibrationError(f"capture service {self.service} not available: start the cameras with "
                                        "`lsu launch sim` (simulated rig) or `lsu launch lab` (the unit), in the "
                                        "same ROS_DOMAIN_ID")
-
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # the context went down under us during close()
-                if self.context.ok():
-                    raise
-                return
 
     def capture(self) -> Tuple[np.ndarray, np.ndarray]:
         """One fresh pair as BGR arrays; raises `LiveCalibrationError` when the node reports a failure."""
@@ -370,10 +342,7 @@ class CaptureClient:
 
     def close(self) -> None:
         """Leave the graph."""
-        self.executor.shutdown(timeout_sec=1.0)
-        self._rclpy.try_shutdown(context=self.context)
-        self._spin.join(timeout=2.0)
-        self.node.destroy_node()
+        self._graph.close()
 
     def __enter__(self) -> "CaptureClient":
         return self

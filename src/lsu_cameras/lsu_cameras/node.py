@@ -10,24 +10,22 @@ emulator) and falls back to the ``carriage_position_steps`` parameter without it
 
 from __future__ import annotations
 
-import array
 import threading
 from pathlib import Path
-from typing import Any, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
-import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from tf2_msgs.msg import TFMessage
 
+from lsu_common import diagnostics, qos, stamps
+from lsu_common.images import bgr_to_msg
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import SimTruth, StereoExtrinsics
 from lsu_interfaces.srv import CaptureStereo
 
@@ -42,20 +40,39 @@ from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSou
 SOURCES = ("sim", "v4l2", "folder")
 
 
-def image_msg(image: np.ndarray, stamp: Time, frame_id: str) -> Image:
-    """A bgr8 sensor_msgs/Image of an HxWx3 uint8 array."""
-    msg = Image()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
-    msg.encoding = "bgr8"
-    msg.is_bigendian = 0
-    msg.step = int(image.shape[1] * 3)
-    data = array.array("B")
-    # one copy straight from the numpy buffer; an array.array is stored as is (bytes would be copied again)
-    data.frombytes(np.ascontiguousarray(image, dtype=np.uint8).data)
-    msg.data = data
-    return msg
+image_msg = bgr_to_msg  # a bgr8 sensor_msgs/Image of an HxWx3 uint8 array
+
+
+R = True  # read_only: the source, calibration and frames are opened and published once, at start-up
+PARAMETERS: Dict[str, Param] = {
+    "source": Param("sim", "camera source: sim | v4l2 | folder", read_only=R),
+    "devices": Param(["/dev/video0", "/dev/video1"], "v4l2: left and right devices", read_only=R),
+    "folder": Param("", "folder: directory of left_*.png/right_*.png pairs", read_only=R),
+    "image_width": Param(640, "v4l2: requested width [px]", (1, 16384), read_only=R),
+    "image_height": Param(480, "v4l2: requested height [px]", (1, 16384), read_only=R),
+    "profile": Param("dark", "v4l2: camera property profile (config/profiles)", read_only=R),
+    "calibration_dir": Param("", "left.yaml/right.yaml/stereo.yaml; empty: config/calibration/sim for sim, none "
+                             "otherwise", read_only=R),
+    "left_camera_info_url": Param("", "overrides left.yaml (file:// URL or path)", read_only=R),
+    "right_camera_info_url": Param("", "overrides right.yaml (file:// URL or path)", read_only=R),
+    "left_frame_id": Param("lsu_left_optical", "frame of the left images", read_only=R),
+    "right_frame_id": Param("lsu_right_optical", "frame of the right images", read_only=R),
+    "base_frame_id": Param("lsu_base", "rig frame of /tf_static (x forward, y left, z up; origin between the optical "
+                           "centres)", read_only=R),
+    "track_step_m": Param(TrackGeometry.step_m, "laser track: metres per carriage step (for the laser origin on "
+                          "/tf_static)", read_only=R),
+    "track_center_step": Param(TrackGeometry.center_step, "laser track: the carriage step in line with the rig centre",
+                               read_only=R),
+    "laser_forward_m": Param(TrackGeometry.laser_forward_m, "laser track: laser exit ahead (+) of the camera "
+                             "baseline [m]", read_only=R),
+    "preview_rate_hz": Param(0.0, "free-running publish rate [Hz]; 0 = capture only", (0.0, 100.0)),
+    "capture_timeout_s": Param(2.0, "default capture timeout [s]", (0.01, 600.0)),
+    "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | mesh file", read_only=R),
+    "sim_rig": Param("", "sim: rig geometry YAML (default config/sim_rig.yaml)", read_only=R),
+    "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
+    "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),
+    "laser_on": Param(True, "sim: laser state used until /lsu/sim/truth arrives"),
+}
 
 
 def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
@@ -80,37 +97,7 @@ class StereoCameraNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("stereo_camera", **{"namespace": "/lsu", **kwargs})
-        d = self.declare_parameter
-        d("source", "sim", ParameterDescriptor(description="camera source: sim | v4l2 | folder"))
-        d("devices", ["/dev/video0", "/dev/video1"], ParameterDescriptor(description="v4l2: left and right devices"))
-        d("folder", "", ParameterDescriptor(description="folder: directory of left_*.png/right_*.png pairs"))
-        d("image_width", 640, ParameterDescriptor(description="v4l2: requested width [px]"))
-        d("image_height", 480, ParameterDescriptor(description="v4l2: requested height [px]"))
-        d("profile", "dark", ParameterDescriptor(description="v4l2: camera property profile (config/profiles)"))
-        d("calibration_dir", "", ParameterDescriptor(
-            description="left.yaml/right.yaml/stereo.yaml; empty: config/calibration/sim for sim, none otherwise"))
-        d("left_camera_info_url", "", ParameterDescriptor(description="overrides left.yaml (file:// URL or path)"))
-        d("right_camera_info_url", "", ParameterDescriptor(description="overrides right.yaml (file:// URL or path)"))
-        d("left_frame_id", "lsu_left_optical", ParameterDescriptor(description="frame of the left images"))
-        d("right_frame_id", "lsu_right_optical", ParameterDescriptor(description="frame of the right images"))
-        fixed = dict(read_only=True)
-        d("base_frame_id", "lsu_base", ParameterDescriptor(
-            description="rig frame of /tf_static (x forward, y left, z up; origin between the optical centres)", **fixed))
-        d("track_step_m", TrackGeometry.step_m, ParameterDescriptor(
-            description="laser track: metres per carriage step (for the laser origin on /tf_static)", **fixed))
-        d("track_center_step", TrackGeometry.center_step, ParameterDescriptor(
-            description="laser track: the carriage step in line with the rig centre", **fixed))
-        d("laser_forward_m", TrackGeometry.laser_forward_m, ParameterDescriptor(
-            description="laser track: laser exit ahead (+) of the camera baseline [m]", **fixed))
-        d("preview_rate_hz", 0.0, ParameterDescriptor(description="free-running publish rate; 0 = capture only"))
-        d("capture_timeout_s", 2.0, ParameterDescriptor(description="default capture timeout [s]"))
-        d("sim_scene", "head", ParameterDescriptor(description="sim: plane | sphere | board | head | head:SEED | mesh file"))
-        d("sim_rig", "", ParameterDescriptor(description="sim: rig geometry YAML (default config/sim_rig.yaml)"))
-        d("sim_seed", 0, ParameterDescriptor(description="sim: sensor noise seed"))
-        d("carriage_position_steps", 235.0, ParameterDescriptor(
-            description="sim: carriage position used until /lsu/sim/truth arrives [steps]"))
-        d("laser_on", True, ParameterDescriptor(description="sim: laser state used until /lsu/sim/truth arrives"))
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        declare_parameters(self, PARAMETERS)
 
         self._lock = threading.Lock()
         self._publish_lock = threading.Lock()
@@ -118,11 +105,11 @@ class StereoCameraNode(Node):
         self._truth_msg: Optional[SimTruth] = None
         self.source: Optional[StereoSource] = None
         self.calibration: Optional[CalibrationSet] = None
-        self.status_level = DiagnosticStatus.OK
+        self.status_level = diagnostics.OK
         self.status_message = "ok"
 
-        sensor_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE)
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        sensor_qos = qos.SCAN_DATA
+        latched = qos.LATCHED
         self.pub_left = self.create_publisher(Image, "stereo/left/image_raw", sensor_qos)
         self.pub_right = self.create_publisher(Image, "stereo/right/image_raw", sensor_qos)
         # camera_info goes out with every image (same header and QoS), never latched alone: its stamp
@@ -139,25 +126,29 @@ class StereoCameraNode(Node):
         self._publish_calibration()
 
         # read at capture time, never by the executor (see PolledGroup); depth 1 keeps the newest only
-        self._truth_sub = self.create_subscription(SimTruth, "sim/truth", lambda _msg: None, QoSProfile(
-            depth=1, reliability=ReliabilityPolicy.RELIABLE), callback_group=PolledGroup())
+        self._truth_sub = self.create_subscription(SimTruth, "sim/truth", lambda _msg: None, qos.STATE,
+                                                   callback_group=PolledGroup())
         self.srv = self.create_service(CaptureStereo, "stereo/capture", self._on_capture)
-        rate = float(self.get_parameter("preview_rate_hz").value)
-        self.preview = self.create_timer(1.0 / rate, self._on_preview) if rate > 0 else None
+        self.preview: Any = None
+        self._set_preview_rate(float(self.get_parameter("preview_rate_hz").value))
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.create_timer(1.0, self._publish_diagnostics, callback_group=MutuallyExclusiveCallbackGroup())
 
     # ------------------------------------------------------------------ set-up
     def _fail(self, message: str) -> None:
-        self.status_level, self.status_message = DiagnosticStatus.ERROR, message
+        self.status_level, self.status_message = diagnostics.ERROR, message
         self.get_logger().error(message)
 
-    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _set_preview_rate(self, rate_hz: float) -> None:
+        if self.preview is not None:
+            self.destroy_timer(self.preview)
+        self.preview = self.create_timer(1.0 / rate_hz, self._on_preview) if rate_hz > 0 else None
+
+    def _apply_parameters(self, params: List[Any]) -> None:
+        """preview_rate_hz restarts the preview timer; the other settable ones are read where they are used."""
         for p in params:
-            if p.name == "source" and p.value not in SOURCES:
-                return SetParametersResult(successful=False, reason=f"source must be one of {', '.join(SOURCES)}")
-            if p.name == "source" and p.value != self.get_parameter("source").value:
-                return SetParametersResult(successful=False, reason="source is fixed at start-up; restart the node")
-        return SetParametersResult(successful=True)
+            if p.name == "preview_rate_hz":
+                self._set_preview_rate(float(p.value))
 
     @property
     def _truth(self) -> Optional[SimTruth]:
@@ -175,13 +166,13 @@ class StereoCameraNode(Node):
         if truth is None:
             return CarriageState(float(self.get_parameter("carriage_position_steps").value),
                                  bool(self.get_parameter("laser_on").value))
-        stamp = truth.header.stamp.sec + truth.header.stamp.nanosec * 1e-9
+        stamp = stamps.to_seconds(truth.header.stamp)
         if truth.moving:
             # the carriage keeps going between samples: the renderer follows it through each camera's
             # own exposure (motion blur) from the sample's position and time
             return CarriageState(truth.position_steps, truth.laser_on, velocity_steps_per_s=truth.velocity_steps_per_s,
                                  position_time_s=stamp)
-        stopped = truth.stopped_at.sec + truth.stopped_at.nanosec * 1e-9
+        stopped = stamps.to_seconds(truth.stopped_at)
         return CarriageState(truth.position_steps, truth.laser_on, stopped if stopped > 0 else None,
                              truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
 
@@ -195,7 +186,7 @@ class StereoCameraNode(Node):
                 geometry = load_rig(rig_path)
                 scene = build_scene(str(self.get_parameter("sim_scene").value), geometry)
                 rig = SimulatedRig(geometry, scene, seed=int(self.get_parameter("sim_seed").value))
-                self.source = SimSource(rig, self._sim_carriage, clock=lambda: self.get_clock().now().nanoseconds * 1e-9)
+                self.source = SimSource(rig, self._sim_carriage, clock=lambda: stamps.ns_to_seconds(self.get_clock().now().nanoseconds))
             elif kind == "v4l2":
                 profile_name = str(self.get_parameter("profile").value)
                 profile = load_profile(profile_name) if profile_name else None
@@ -278,11 +269,8 @@ class StereoCameraNode(Node):
         if isinstance(self.source, SimSource):  # sim time is already the node's clock
             sec = pair.time_s
         else:  # device sources report wall time; stamp with the node clock at the same instant
-            sec = self.get_clock().now().nanoseconds * 1e-9
-        t = Time()
-        t.sec = int(sec)
-        t.nanosec = int(round((sec - int(sec)) * 1e9)) % 1_000_000_000
-        return t
+            sec = stamps.ns_to_seconds(self.get_clock().now().nanoseconds)
+        return stamps.from_seconds(sec)
 
     def _publish_pair(self, left: Image, right: Image) -> None:
         # one pair at a time: the capture service and the preview timer may run in parallel (`lsu run`),
@@ -336,17 +324,11 @@ class StereoCameraNode(Node):
                            image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)))
 
     def _publish_diagnostics(self) -> None:
-        status = DiagnosticStatus()
-        status.level = self.status_level
-        status.name = f"{self.get_name()}: cameras"
-        status.hardware_id = str(self.get_parameter("source").value)
-        status.message = self.status_message
-        status.values = [KeyValue(key="calibration_id", value=self.calibration.calibration_id if self.calibration else ""),
-                         KeyValue(key="sim_truth", value="received" if self._truth is not None else "none")]
-        array = DiagnosticArray()
-        array.header.stamp = self.get_clock().now().to_msg()
-        array.status = [status]
-        self.pub_diag.publish(array)
+        values = {"calibration_id": self.calibration.calibration_id if self.calibration else "",
+                  "sim_truth": "received" if self._truth is not None else "none"}
+        self.pub_diag.publish(diagnostics.status_array(self, self.status_level, f"{self.get_name()}: cameras",
+                                                       self.status_message, values,
+                                                       hardware_id=str(self.get_parameter("source").value)))
 
     def destroy_node(self) -> None:
         """Release the cameras."""
@@ -355,17 +337,4 @@ class StereoCameraNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> None:
-    """Console script ``stereo_camera``."""
-    rclpy.init(args=args)
-    node: Optional[StereoCameraNode] = None
-    try:
-        # built inside the try: opening the simulated rig takes seconds, and a Ctrl-C meanwhile is a normal end
-        node = StereoCameraNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+main = main_of(StereoCameraNode)

@@ -184,7 +184,7 @@ def test_image_messages_with_row_padding_decode_to_bgr(encoding, channels):
     out = image_from_msg(msg)
     expected = image[:, :, ::-1] if encoding == "rgb8" else (image[:, :, 0] if channels == 1 else image)
     assert np.array_equal(out, expected)
-    with pytest.raises(LiveCalibrationError, match="encoding '16UC1' is not supported"):
+    with pytest.raises(LiveCalibrationError, match="unsupported image encoding '16UC1'"):
         image_from_msg(Image(height=5, width=7, encoding="16UC1", step=14, data=bytes(70)))
 
 

@@ -140,3 +140,29 @@ def test_calibration_of_another_size_is_not_published(ros_node, tmp_path):
     assert "800x480 images but the cameras give 640x480" in node.status_message
     client = ros_node.node.create_client(CaptureStereo, "/lsu/stereo/capture")
     assert ros_node.call(client, CaptureStereo.Request(publish=False)).success  # images still flow
+
+
+def test_every_camera_parameter_takes_effect_when_set_or_is_refused(ros_node):
+    node = make_node(ros_node)
+    images = []
+    ros_node.node.create_subscription(Image, "/lsu/stereo/left/image_raw", images.append, 10)
+    client = ros_node.node.create_client(CaptureStereo, "/lsu/stereo/capture")
+    rig = SimulatedRig(load_rig(), build_scene("plane", load_rig()))
+    cam = rig.laser_truth(120.0).left
+    row = 240
+    expected_column = cam.pixels[np.round(cam.pixels[:, 1]) == row][0, 0]
+
+    def laser_at_120() -> bool:  # what the simulated cameras render now (no sim/truth: the parameter)
+        response = ros_node.call(client, CaptureStereo.Request(publish=False, return_images=True))
+        return abs(red_column(response.left, row) - expected_column) <= 1
+
+    ros_node.check_parameters(node, {
+        "carriage_position_steps": (120.0, laser_at_120),
+        "laser_on": (False, lambda: not node._sim_carriage(0.0).laser_on),
+        "capture_timeout_s": (0.5, lambda: node.get_parameter("capture_timeout_s").value == 0.5),  # read per call
+        "preview_rate_hz": (4.0, lambda: node.preview is not None and node.preview.timer_period_ns == 250_000_000
+                            and len(images) >= 2),  # free-running now
+    })
+    assert ros_node.set_parameter("/lsu/stereo_camera", "preview_rate_hz", 0.0).successful
+    assert node.preview is None, "0 stops the preview"
+    assert not ros_node.set_parameter("/lsu/stereo_camera", "capture_timeout_s", 0.0).successful  # out of range

@@ -41,8 +41,7 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     faults = Faults(garbage_probability=args.garbage, drop_probability=args.drop,
                     reply_delay_s=args.late_ms / 1000.0, stalled=args.stall, seed=args.seed)
     if not args.no_ros:
-        import rclpy
-        from rclpy.executors import ExternalShutdownException
+        from lsu_common.node import run_node
 
         from .emulator_node import Gp32EmulatorNode
 
@@ -54,18 +53,11 @@ def cmd_emulate(args: argparse.Namespace) -> int:
                      "-p", f"protocol_version:={args.protocol}", "-p", f"clock_drift_ppm:={float(args.clock_drift_ppm)}"]
         if args.control:
             overrides += ["-p", f"control:={args.control}"]
-        rclpy.init()
-        node = Gp32EmulatorNode(cli_args=overrides)
-        print(f"GP32 emulator: {node.emulator.device_path} -> {args.link} (control {node.emulator.control_path}); "
-              "publishing /lsu/sim/truth; Ctrl-C stops", flush=True)
-        try:
-            rclpy.spin(node)
-        except (KeyboardInterrupt, ExternalShutdownException):
-            pass
-        finally:
-            node.destroy_node()
-            rclpy.try_shutdown()
-        return 0
+        def started(node: Gp32EmulatorNode) -> None:
+            print(f"GP32 emulator: {node.emulator.device_path} -> {args.link} (control "
+                  f"{node.emulator.control_path}); publishing /lsu/sim/truth; Ctrl-C stops", flush=True)
+
+        return run_node(lambda: Gp32EmulatorNode(cli_args=overrides), [], on_started=started)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     with Gp32Emulator(config, faults, link=args.link, control=args.control or f"{args.link}.ctl") as emu:

@@ -9,32 +9,53 @@ control socket (`lsu gp32 fault`).
 
 from __future__ import annotations
 
-import sys
 import time
-from typing import Any, List, Optional
+from typing import Any, Dict, List
 
-import rclpy
-from builtin_interfaces.msg import Time
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 
+from lsu_common import qos, stamps
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import SimTruth
 
 from .emulator import EmulatorConfig, Faults, Gp32Emulator, Truth
 from .firmware import Gp32Firmware, build
 
 
-def _stamp(seconds: float) -> Time:
-    sec = int(seconds)
-    return Time(sec=sec, nanosec=int(round((seconds - sec) * 1e9)) % 1_000_000_000)
+_DEFAULTS = EmulatorConfig()
+R = True  # read_only: the unit's power-on configuration and start-up faults (run-time faults: `lsu gp32 fault`)
+PARAMETERS: Dict[str, Param] = {
+    "unit": Param("emulator", "emulator (Python) | firmware (firmware/gp32 in the HC08 simulator)", read_only=R),
+    "link": Param("/tmp/lsu-gp32", "stable symlink to the emulated serial port (what the driver opens)", read_only=R),
+    "control": Param("", "UNIX socket for run-time faults; empty = <link>.ctl", read_only=R),
+    "track_steps": Param(_DEFAULTS.track_steps, "physical track between the sensors [steps]", read_only=R),
+    "rate_steps_per_s": Param(_DEFAULTS.rate_steps_per_s, "power-on step rate [steps/s]", read_only=R),
+    "watchdog_ms": Param(_DEFAULTS.watchdog_ms, "power-on laser watchdog [ms]", read_only=R),
+    "start_position_steps": Param(_DEFAULTS.start_position_steps, "carriage position at power-on [steps]",
+                                  read_only=R),
+    "vibration_amplitude_steps": Param(_DEFAULTS.vibration_amplitude_steps,
+                                       "residual vibration right after a stop at 200 steps/s [steps]", read_only=R),
+    "vibration_tau_s": Param(_DEFAULTS.vibration_tau_s, "vibration decay constant [s]", read_only=R),
+    "vibration_freq_hz": Param(_DEFAULTS.vibration_freq_hz, "vibration frequency [Hz]", read_only=R),
+    "protocol_version": Param(_DEFAULTS.protocol_version,
+                              "GP32 protocol the unit speaks: 2, or 1 (the v1 firmware, no device clock)", read_only=R),
+    "clock_drift_ppm": Param(_DEFAULTS.clock_drift_ppm,
+                             "how much faster the unit's millisecond clock runs than the host's [ppm]", read_only=R),
+    "fault_garbage_probability": Param(0.0, "chance of garbage before each line", (0.0, 1.0), read_only=R),
+    "fault_drop_probability": Param(0.0, "chance that each sent byte is lost", (0.0, 1.0), read_only=R),
+    "fault_reply_delay_ms": Param(0, "delay of every sent line [ms]", read_only=R),
+    "fault_stalled": Param(False, "the motor does not move (pulses are still counted)", read_only=R),
+    "fault_seed": Param(0, "seed of the fault random generator", read_only=R),
+    "truth_rate_hz": Param(50.0, "sim/truth rate while the carriage moves [Hz]", (1.0, 1000.0)),
+    "truth_rest_rate_hz": Param(5.0, "sim/truth rate at rest [Hz]", (0.1, 100.0)),
+}
 
 
 def truth_to_msg(truth: Truth) -> SimTruth:
     """The emulator's `Truth` as a ``lsu_interfaces/SimTruth`` message."""
     msg = SimTruth()
-    msg.header.stamp = _stamp(truth.stamp_s)
+    msg.header.stamp = stamps.from_seconds(truth.stamp_s)
     msg.position_steps = float(truth.position_steps)
     msg.velocity_steps_per_s = float(truth.velocity_steps_per_s)
     msg.counter_steps = int(truth.counter_steps)
@@ -42,7 +63,7 @@ def truth_to_msg(truth: Truth) -> SimTruth:
     msg.laser_on = truth.laser_on
     msg.homed = truth.homed
     if truth.stopped_at_s > 0:
-        msg.stopped_at = _stamp(truth.stopped_at_s)
+        msg.stopped_at = stamps.from_seconds(truth.stopped_at_s)
     msg.vibration_amplitude_steps = float(truth.vibration_amplitude_steps)
     msg.vibration_tau_s = float(truth.vibration_tau_s)
     msg.vibration_freq_hz = float(truth.vibration_freq_hz)
@@ -56,42 +77,20 @@ class Gp32EmulatorNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("gp32_emulator", **{"namespace": "/lsu", **kwargs})
 
-        def declare(name: str, default: Any, description: str) -> Any:
-            return self.declare_parameter(name, default, ParameterDescriptor(description=description)).value
-
-        unit = self.declare_parameter("unit", "emulator", ParameterDescriptor(
-            description="emulator (Python) | firmware (firmware/gp32 in the HC08 simulator)", read_only=True)).value
+        v = declare_parameters(self, PARAMETERS)
+        unit, link, control = str(v["unit"]), str(v["link"]), str(v["control"])
         if unit not in ("emulator", "firmware"):
             raise ValueError(f"unit must be 'emulator' or 'firmware', not '{unit}'")
-        link = declare("link", "/tmp/lsu-gp32", "stable symlink to the emulated serial port (what the driver opens)")
-        control = declare("control", "", "UNIX socket for run-time faults; empty = <link>.ctl")
-        defaults = EmulatorConfig()
         config = EmulatorConfig(
-            track_steps=declare("track_steps", defaults.track_steps, "physical track between the sensors [steps]"),
-            rate_steps_per_s=declare("rate_steps_per_s", defaults.rate_steps_per_s, "power-on step rate [steps/s]"),
-            watchdog_ms=declare("watchdog_ms", defaults.watchdog_ms, "power-on laser watchdog [ms]"),
-            start_position_steps=declare("start_position_steps", defaults.start_position_steps,
-                                         "carriage position at power-on [steps]"),
-            vibration_amplitude_steps=declare("vibration_amplitude_steps", defaults.vibration_amplitude_steps,
-                                              "residual vibration right after a stop at 200 steps/s [steps]"),
-            vibration_tau_s=declare("vibration_tau_s", defaults.vibration_tau_s, "vibration decay constant [s]"),
-            vibration_freq_hz=declare("vibration_freq_hz", defaults.vibration_freq_hz, "vibration frequency [Hz]"),
-            protocol_version=declare("protocol_version", defaults.protocol_version,
-                                     "GP32 protocol the unit speaks: 2, or 1 (the v1 firmware, no device clock)"),
-            clock_drift_ppm=declare("clock_drift_ppm", defaults.clock_drift_ppm,
-                                    "how much faster the unit's millisecond clock runs than the host's [ppm]"),
-        )
+            track_steps=v["track_steps"], rate_steps_per_s=v["rate_steps_per_s"], watchdog_ms=v["watchdog_ms"],
+            start_position_steps=v["start_position_steps"], vibration_amplitude_steps=v["vibration_amplitude_steps"],
+            vibration_tau_s=v["vibration_tau_s"], vibration_freq_hz=v["vibration_freq_hz"],
+            protocol_version=v["protocol_version"], clock_drift_ppm=v["clock_drift_ppm"])
         faults = Faults(
-            garbage_probability=declare("fault_garbage_probability", 0.0, "chance of garbage before each line"),
-            drop_probability=declare("fault_drop_probability", 0.0, "chance that each sent byte is lost"),
-            reply_delay_s=declare("fault_reply_delay_ms", 0, "delay of every sent line [ms]") / 1000.0,
-            stalled=declare("fault_stalled", False, "the motor does not move (pulses are still counted)"),
-            seed=declare("fault_seed", 0, "seed of the fault random generator"),
-        )
-        rate_hz = declare("truth_rate_hz", 50.0, "sim/truth rate while the carriage moves [Hz]")
-        self.rest_period_s = 1.0 / declare("truth_rest_rate_hz", 5.0, "sim/truth rate at rest [Hz]")
-        self.truth_pub = self.create_publisher(SimTruth, "sim/truth",
-                                               QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            garbage_probability=v["fault_garbage_probability"], drop_probability=v["fault_drop_probability"],
+            reply_delay_s=v["fault_reply_delay_ms"] / 1000.0, stalled=v["fault_stalled"], seed=v["fault_seed"])
+        self.rest_period_s = 1.0 / float(v["truth_rest_rate_hz"])
+        self.truth_pub = self.create_publisher(SimTruth, "sim/truth", qos.reliable(10))
         self._last_publish = 0.0
         # Every change (motion start/stop, laser, homing, reset) is published the moment the firmware
         # thread sees it; in between, the samples are periodic: a moving carriage is extrapolated from
@@ -112,9 +111,18 @@ class Gp32EmulatorNode(Node):
             self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
         self.emulator.on_change = self._on_change
         self.emulator.start()
-        self.timer = self.create_timer(1.0 / rate_hz, self._periodic)
+        self.timer = self.create_timer(1.0 / float(v["truth_rate_hz"]), self._periodic)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f"GP32 {unit} on {self.emulator.device_path} (link {link}, control "
                                f"{self.emulator.control_path})")
+
+    def _apply_parameters(self, params: List[Any]) -> None:
+        for param in params:
+            if param.name == "truth_rate_hz":
+                self.destroy_timer(self.timer)
+                self.timer = self.create_timer(1.0 / float(param.value), self._periodic)
+            elif param.name == "truth_rest_rate_hz":
+                self.rest_period_s = 1.0 / float(param.value)
 
     def _on_change(self) -> None:
         try:
@@ -139,15 +147,4 @@ class Gp32EmulatorNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``gp32_emulator``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = Gp32EmulatorNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(Gp32EmulatorNode)

@@ -12,25 +12,45 @@ a running move fails with the reason; moves are refused until the carriage is ho
 
 from __future__ import annotations
 
-import sys
 import threading
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from geometry_msgs.msg import TransformStamped
 from std_srvs.srv import SetBool, Trigger
 from tf2_msgs.msg import TFMessage
 
+from lsu_common import diagnostics, stamps
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import CarriagePosition, ScannerState
 from lsu_interfaces.srv import MoveTo, Step
 
 from . import protocol as p
 from .client import DeviceError, Gp32Client, Gp32Error, MotionResult, NotConnected
+
+# Start-up-only parameters are read_only (the port is opened, the frames named once); the others
+# take effect when set (`_apply_parameters`), or are refused with the reason.
+PARAMETERS: Dict[str, Param] = {
+    "port": Param("/tmp/lsu-gp32", "serial device of the GP32 (emulator: its --link path)", read_only=True),
+    "baud": Param(115200, "serial baud rate (9600 for the original RS232 link)", read_only=True),
+    "command_timeout_s": Param(1.0, "reply timeout per command [s]", (0.01, 30.0)),
+    "retries": Param(2, "re-sends of an idempotent command after a timeout", (0, 10)),
+    "auto_home": Param(False, "home the carriage once after the first connect", read_only=True),
+    "step_rate_steps_per_s": Param(200, "stepper rate [steps/s]; above ~180 the counter drifts",
+                                   (p.RATE_MIN, p.RATE_MAX)),
+    "watchdog_ms": Param(2000, "firmware laser watchdog [ms]; 0 disables it", (0, p.WATCHDOG_MAX_MS)),
+    "laser_frame_id": Param("lsu_laser", "TF frame of the laser at the carriage position", read_only=True),
+    "laser_origin_frame_id": Param("lsu_laser_origin", "TF parent of laser_frame_id: the laser at step 0",
+                                   read_only=True),
+    "track_step_m": Param(0.00042333, "metres per carriage step (1/60 inch)", (1e-6, 0.01), read_only=True),
+    "state_rate_hz": Param(10.0, "status poll and state publish rate [Hz] (>= 5)", (5.0, 50.0)),
+    "position_rate_hz": Param(20, "timed carriage positions (!POS) per second during motion, protocol v2 units; "
+                                  "0 = only stops and status polls (at 9600 baud keep it <= 40)",
+                              (0, p.POS_RATE_MAX_HZ)),
+}
 
 
 class Gp32DriverNode(Node):
@@ -39,34 +59,20 @@ class Gp32DriverNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("gp32_driver", **{"namespace": "/lsu", **kwargs})
 
-        def declare(name: str, default: Any, description: str, **extra: Any) -> Any:
-            return self.declare_parameter(name, default, ParameterDescriptor(description=description,
-                                                                             **extra)).value
-
-        self.port = declare("port", "/tmp/lsu-gp32", "serial device of the GP32 (emulator: its --link path)")
-        baud = declare("baud", 115200, "serial baud rate (9600 for the original RS232 link)")
-        timeout = declare("command_timeout_s", 1.0, "reply timeout per command [s]")
-        retries = declare("retries", 2, "re-sends of an idempotent command after a timeout")
-        self.auto_home = declare("auto_home", False, "home the carriage once after the first connect")
-        self.rate = declare("step_rate_steps_per_s", 200, "stepper rate [steps/s]; above ~180 the counter drifts",
-                            integer_range=[IntegerRange(from_value=p.RATE_MIN, to_value=p.RATE_MAX, step=1)])
-        self.watchdog_ms = declare("watchdog_ms", 2000, "firmware laser watchdog [ms]; 0 disables it",
-                                   integer_range=[IntegerRange(from_value=0, to_value=p.WATCHDOG_MAX_MS, step=1)])
+        values = declare_parameters(self, PARAMETERS, check=self._check_parameters, apply=self._apply_parameters,
+                                    apply_now=False)
+        self.port = str(values["port"])
+        self.auto_home = bool(values["auto_home"])
+        self.rate = int(values["step_rate_steps_per_s"])
+        self.watchdog_ms = int(values["watchdog_ms"])
         # the moving laser frame on /tf; the static frames (rig, cameras, laser origin) come from the camera node
-        self.laser_frame = declare("laser_frame_id", "lsu_laser", "TF frame of the laser at the carriage position",
-                                   read_only=True)
-        self.laser_origin_frame = declare("laser_origin_frame_id", "lsu_laser_origin",
-                                          "TF parent of laser_frame_id: the laser at step 0", read_only=True)
-        self.step_m = declare("track_step_m", 0.00042333, "metres per carriage step (1/60 inch)", read_only=True,
-                              floating_point_range=[FloatingPointRange(from_value=1e-6, to_value=0.01)])
-        state_hz = declare("state_rate_hz", 10.0, "status poll and state publish rate [Hz] (>= 5)",
-                           floating_point_range=[FloatingPointRange(from_value=5.0, to_value=50.0)])
-        self.position_rate_hz = declare(
-            "position_rate_hz", 20, "timed carriage positions (!POS) per second during motion, protocol v2 "
-            "units; 0 = only stops and status polls (at 9600 baud keep it <= 40)",
-            integer_range=[IntegerRange(from_value=0, to_value=p.POS_RATE_MAX_HZ, step=1)])
+        self.laser_frame = str(values["laser_frame_id"])
+        self.laser_origin_frame = str(values["laser_origin_frame_id"])
+        self.step_m = float(values["track_step_m"])
+        self.position_rate_hz = int(values["position_rate_hz"])
 
-        self.client = Gp32Client(self.port, baud, timeout, retries)
+        self.client = Gp32Client(self.port, int(values["baud"]), float(values["command_timeout_s"]),
+                                 int(values["retries"]))
         self.client.position_rate_hz = int(self.position_rate_hz)
         self.client.add_listener(self._on_event)
         self.client.add_connection_listener(self._on_connection)
@@ -91,8 +97,9 @@ class Gp32DriverNode(Node):
         self.create_service(Step, "carriage/step", self._srv_step, callback_group=services)
         self.create_service(Trigger, "carriage/home", self._srv_home, callback_group=services)
         self.create_service(Trigger, "carriage/stop", self._srv_stop, callback_group=services)
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.create_timer(1.0 / state_hz, self._poll, callback_group=MutuallyExclusiveCallbackGroup())
+        self._poll_group = MutuallyExclusiveCallbackGroup()
+        self._poll_timer = self.create_timer(1.0 / float(values["state_rate_hz"]), self._poll,
+                                             callback_group=self._poll_group)
         self.create_timer(1.0, self._diagnostics, callback_group=MutuallyExclusiveCallbackGroup())
         self._connect_timer = self.create_timer(1.0, self._try_connect,
                                                 callback_group=MutuallyExclusiveCallbackGroup())
@@ -182,8 +189,7 @@ class Gp32DriverNode(Node):
         if not self.client.homed or not self.context.ok():  # before homing the position means nothing
             return
         msg = CarriagePosition()
-        msg.header.stamp.sec = int(stamp_s)
-        msg.header.stamp.nanosec = min(999_999_999, int((stamp_s - int(stamp_s)) * 1e9))
+        msg.header.stamp = stamps.from_seconds(stamp_s)
         msg.header.frame_id = self.laser_origin_frame
         msg.position_steps = float(position)
         msg.moving = moving
@@ -250,14 +256,7 @@ class Gp32DriverNode(Node):
 
     def _diagnostics(self) -> None:
         c = self.client
-        status = DiagnosticStatus(name="lsu: gp32_driver", hardware_id=self.port)
-        if not c.connected:
-            status.level = DiagnosticStatus.ERROR
-        elif self.fault:
-            status.level = DiagnosticStatus.WARN
-        else:
-            status.level = DiagnosticStatus.OK
-        status.message = self.fault or "ok"
+        level = diagnostics.ERROR if not c.connected else diagnostics.WARN if self.fault else diagnostics.OK
         values = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
                   "track_steps": c.track_steps, "malformed_lines": c.malformed_lines,
                   "stale_replies": c.stale_replies, "reconnects": self.reconnects, "protocol_version": c.version}
@@ -265,11 +264,8 @@ class Gp32DriverNode(Node):
         if c.version >= 2 and uncertainty is not None and drift is not None:
             values["clock_uncertainty_s"] = f"{uncertainty:.6f}"
             values["clock_drift_ppm"] = f"{drift:.1f}"
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        array = DiagnosticArray()
-        array.header.stamp = self.get_clock().now().to_msg()
-        array.status = [status]
-        self.diag_pub.publish(array)
+        self.diag_pub.publish(diagnostics.status_array(self, level, "lsu: gp32_driver", self.fault or "ok", values,
+                                                       hardware_id=self.port))
 
     # ------------------------------------------------------------------------------ services
     def _srv_laser(self, request: SetBool.Request, response: SetBool.Response) -> SetBool.Response:
@@ -335,8 +331,7 @@ class Gp32DriverNode(Node):
         response.position_steps = int(position)
         response.message = error
         if stopped_at is not None:
-            response.stopped_stamp.sec = int(stopped_at)
-            response.stopped_stamp.nanosec = min(999_999_999, int((stopped_at - int(stopped_at)) * 1e9))
+            response.stopped_stamp = stamps.from_seconds(stopped_at)
         return response
 
     def _move_at_rate(self, position: int, timeout: Optional[float], rate: float) -> MotionResult:
@@ -402,28 +397,44 @@ class Gp32DriverNode(Node):
             response.success, response.message = False, str(exc)
         return response
 
-    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+        """Ranges and read-only are rclpy's; the unit's settings are sent here, so a refusal reaches the setter.
+
+        The GP32 is the judge of its own settings (a v1 unit has no timed positions, a lost link
+        takes none): the value is sent in the on-set callback and the set refused with the unit's
+        answer; the node's copy changes in `_apply_parameters`, once the set is accepted.
+        """
         for param in params:
             try:
-                if param.name == "step_rate_steps_per_s":
-                    if self.client.connected:
-                        self.client.set_rate(int(param.value))
-                    self.rate = int(param.value)
-                elif param.name == "watchdog_ms":
-                    if self.client.connected:
-                        self.client.set_watchdog(int(param.value))
-                    self.watchdog_ms = int(param.value)
+                if param.name == "step_rate_steps_per_s" and self.client.connected:
+                    self.client.set_rate(int(param.value))
+                elif param.name == "watchdog_ms" and self.client.connected:
+                    self.client.set_watchdog(int(param.value))
                 elif param.name == "position_rate_hz":
                     self.client.set_position_rate(int(param.value))  # refused by a v1 unit (NotSupported)
-                    self.position_rate_hz = int(param.value)
-                elif param.name in ("port", "baud"):
-                    return SetParametersResult(successful=False,
-                                               reason=f"{param.name} is read at start-up; restart the node")
             except NotConnected as exc:
-                return SetParametersResult(successful=False, reason=str(exc))
+                return str(exc)
             except Gp32Error as exc:
-                return SetParametersResult(successful=False, reason=f"the GP32 refused {param.name}: {exc}")
-        return SetParametersResult(successful=True)
+                return f"the GP32 refused {param.name}: {exc}"
+        return None
+
+    def _apply_parameters(self, params: List[Any]) -> None:
+        """Accepted values take effect: the next configure uses them, the poll timer runs at the new rate."""
+        for param in params:
+            if param.name == "step_rate_steps_per_s":
+                self.rate = int(param.value)
+            elif param.name == "watchdog_ms":
+                self.watchdog_ms = int(param.value)
+            elif param.name == "position_rate_hz":
+                self.position_rate_hz = int(param.value)
+            elif param.name == "command_timeout_s":
+                self.client.command_timeout_s = float(param.value)
+            elif param.name == "retries":
+                self.client.retries = int(param.value)
+            elif param.name == "state_rate_hz":
+                self.destroy_timer(self._poll_timer)
+                self._poll_timer = self.create_timer(1.0 / float(param.value), self._poll,
+                                                     callback_group=self._poll_group)
 
     # ------------------------------------------------------------------------------ shutdown
     def safe_shutdown(self) -> None:
@@ -438,17 +449,4 @@ class Gp32DriverNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``gp32_driver``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = Gp32DriverNode()
-    executor = MultiThreadedExecutor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(Gp32DriverNode, multi_threaded=True)

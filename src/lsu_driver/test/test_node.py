@@ -234,3 +234,37 @@ def test_laser_frame_on_tf_follows_the_carriage_once_homed(rig):
         assert t.transform.translation.y == pytest.approx(-position * 0.00042333)
         assert (t.transform.translation.x, t.transform.translation.z, t.transform.rotation.w) == (0.0, 0.0, 1.0)
     assert tf[-1].transforms[0].transform.translation.y == pytest.approx(-100 * 0.00042333)
+
+
+def test_every_driver_parameter_takes_effect_when_set_or_is_refused(rig, emulator):
+    h, driver, states, _ = rig
+
+    def polls_at(period_ns: int) -> bool:  # the poll timer was replaced, not added to
+        periods = [t.timer_period_ns for t in driver.timers if t.callback == driver._poll]
+        return periods == [period_ns]
+
+    h.check_parameters(driver, {
+        # the unit's settings reach the unit (its log shows the command), the node's copy follows
+        "step_rate_steps_per_s": (150, lambda: "< S150" in emulator.log and driver.rate == 150
+                                  and states[-1][1].step_rate_steps_per_s == 150.0),
+        "watchdog_ms": (1500, lambda: "< W1500" in emulator.log and driver.watchdog_ms == 1500),
+        "position_rate_hz": (10, lambda: "< R10" in emulator.log and driver.client.position_rate_hz == 10),
+        "command_timeout_s": (0.75, lambda: driver.client.command_timeout_s == 0.75),
+        "retries": (3, lambda: driver.client.retries == 3),
+        "state_rate_hz": (25.0, lambda: polls_at(40_000_000)),
+    })
+    # out of range: refused with the range, nothing changed
+    refused = h.set_parameter("/lsu/gp32_driver", "state_rate_hz", 2.0)
+    assert not refused.successful and polls_at(40_000_000)
+    refused = h.set_parameter("/lsu/gp32_driver", "step_rate_steps_per_s", 5000)
+    assert not refused.successful and driver.rate == 150 and "< S5000" not in emulator.log
+
+
+def test_emulator_parameters_take_effect_or_are_refused(ros_node, tmp_path):
+    emu_node = ros_node.add(Gp32EmulatorNode(context=ros_node.context, cli_args=[
+        "--ros-args", "-p", f"link:={tmp_path / 'e'}"]))
+    ros_node.check_parameters(emu_node, {
+        "truth_rate_hz": (20.0, lambda: emu_node.timer.timer_period_ns == 50_000_000
+                          and emu_node.timer in emu_node.timers),
+        "truth_rest_rate_hz": (2.0, lambda: emu_node.rest_period_s == 0.5),
+    })

@@ -22,17 +22,17 @@ from dataclasses import fields
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from builtin_interfaces.msg import Time
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
+from lsu_common import diagnostics, qos, stamps
+from lsu_common.node import main_of
+from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
@@ -41,8 +41,8 @@ from .image import ImageFormatError, decode_image, parse_image_cdr
 
 SIDES = ("left", "right")
 # scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
-SCAN_DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE)
-EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+SCAN_DATA_QOS = qos.SCAN_DATA
+EVENTS_QOS = qos.EVENTS
 BACKGROUNDS = ("none", "texture")
 FRAMES_KEPT = 8  # newest frames per camera kept while a TEXTURE event may still name one of them
 
@@ -65,16 +65,6 @@ _DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }
-
-
-def _descriptor(name: str, default: Any) -> ParameterDescriptor:
-    text, bounds = _DESCRIPTIONS[name]
-    descriptor = ParameterDescriptor(description=text)
-    if bounds is not None and isinstance(default, float):
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
-    elif bounds is not None:
-        descriptor.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
-    return descriptor
 
 
 def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
@@ -101,7 +91,7 @@ class LaserExtractorNode(Node):
         defaults = ExtractorParams()
         for spec in fields(ExtractorParams):
             value = getattr(defaults, spec.name)
-            self.declare_parameter(spec.name, value, _descriptor(spec.name, value))
+            self.declare_parameter(spec.name, value, descriptor(Param(value, *_DESCRIPTIONS[spec.name])))
         self.declare_parameter("background", "none", ParameterDescriptor(
             description="none: each frame alone; texture: minus the laser-off frame of the scan's TEXTURE event "
                         "(ambient light and red objects cancel)"))
@@ -182,7 +172,7 @@ class LaserExtractorNode(Node):
             image = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
             texture = None
             if self.background == "texture":
-                key = msg.sec * 1_000_000_000 + msg.nanosec
+                key = stamps.to_ns(msg)
                 self._recent[side].append((key, np.array(image)))  # a copy: the message buffer is reused
                 if key == self._texture_key:
                     self.textures[side] = self._recent[side][-1][1]
@@ -206,7 +196,7 @@ class LaserExtractorNode(Node):
             self._texture_key = None
             self.textures.clear()
         elif msg.type == ScanEvent.TEXTURE:
-            self._texture_key = msg.image_stamp.sec * 1_000_000_000 + msg.image_stamp.nanosec
+            self._texture_key = stamps.to_ns(msg.image_stamp)
             self.textures.clear()
             for side in SIDES:  # the pair usually came before its event; otherwise on_image takes it
                 for key, image in self._recent[side]:
@@ -222,27 +212,12 @@ class LaserExtractorNode(Node):
         else:
             self._reported[side] = message
             self.get_logger().error(message)
-        status = DiagnosticStatus(level=level, name=f"{self.get_fully_qualified_name()}: {side}",
-                                  message=message, hardware_id=f"{side} camera",
-                                  values=[KeyValue(key="frames", value=str(self.frames[side])),
-                                          KeyValue(key="dropped", value=str(self.dropped[side]))])
-        array_msg = DiagnosticArray(status=[status])
-        array_msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(array_msg)
+        self.diagnostics.publish(diagnostics.status_array(
+            self, level, f"{self.get_fully_qualified_name()}: {side}", message,
+            {"frames": self.frames[side], "dropped": self.dropped[side]}, hardware_id=f"{side} camera"))
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``laser_extractor``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = LaserExtractorNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(LaserExtractorNode)
 
 
 if __name__ == "__main__":

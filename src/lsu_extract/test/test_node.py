@@ -111,3 +111,17 @@ def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_name
     assert np.max(np.abs(u - truth[v])) < 0.5
     events.publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s2"))  # a new scan: its own laser-off pair
     assert ros_node.spin_until(lambda: not extractor.textures, 10)
+
+
+def test_every_extractor_parameter_takes_effect_when_set_through_the_parameter_service(ros_node):
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    new = {"method": "thesis", "min_contrast": 20.0, "contrast_sigmas": 4.0, "ambiguity_ratio": 0.5,
+           "min_width_px": 2.0, "max_width_px": 20.0, "window_px": 16, "coarse_step_rows": 4, "saturation_level": 240,
+           "clipped_centre": "red", "red_threshold": 120, "blue_threshold": 90}
+    cases = {name: (value, lambda name=name, value=value: getattr(extractor.params, name) == value)
+             for name, value in new.items()}
+    cases["background"] = ("texture", lambda: extractor.background == "texture")
+    assert all(getattr(extractor.params, name) != value for name, value in new.items()), "pick values that change"
+    ros_node.check_parameters(extractor, cases)
+    refused = ros_node.set_parameter("/lsu/laser_extractor", "background", "sky")
+    assert not refused.successful and "must be one of" in refused.reason and extractor.background == "texture"

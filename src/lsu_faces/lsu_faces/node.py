@@ -23,21 +23,20 @@ from __future__ import annotations
 import datetime as _dt
 import sys
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any, Dict, List, Optional
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, PointStamped
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from shape_msgs.msg import Mesh, MeshTriangle
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
+from lsu_common import diagnostics, qos
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import ScanEvent
 from lsu_interfaces.srv import Enroll, Identify
 
@@ -51,9 +50,8 @@ from .smoothing import SmoothParams
 
 __all__ = ["FaceProcessorNode", "mesh_to_marker", "mesh_to_shape", "main"]
 
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
+LATCHED = qos.LATCHED
+EVENTS = qos.EVENTS
 
 
 def mesh_to_marker(mesh: FaceMesh, header: Header, max_triangles: int = 0) -> Marker:
@@ -84,38 +82,44 @@ def mesh_to_shape(mesh: FaceMesh) -> Mesh:
     return out
 
 
+def parameter_table() -> Dict[str, Param]:
+    """The node's parameters: every one is read where it is used, so a set takes effect at the next scan or call."""
+    mp, sp, fp, gp = MeshParams(), SmoothParams(), FaceParams(), SignatureParams()
+    return {
+        "output_dir": Param("~/.lsu/faces", "folder for mesh.ply, mesh.obj and renders when the scan events name no "
+                            "folder (a sub-folder per scan)"),
+        "gallery_file": Param("~/.lsu/faces/gallery.db", "SQLite face gallery used by face/enroll and face/identify"),
+        "scans_dir": Param("", "folder searched for <scan_id>/cloud.ply by the services' scan_id (empty: output_dir)"),
+        "write_files": Param(True, "write mesh.ply, mesh.obj and the renders for every scan"),
+        "render_size_px": Param(480, "side of the square front/side renders [px]", (16, 8192)),
+        "max_edge_factor": Param(mp.max_edge_factor, "cull triangles with an edge longer than this x the median edge "
+                                 "(> 1)", (1.0, 1000.0)),
+        "max_stretch": Param(mp.max_stretch, "cull triangles stretched more than this x the median (depth jumps; > 1)",
+                             (1.0, 1000.0)),
+        "smoothing": Param(sp.method, "mesh smoothing: taubin (no shrinkage), laplacian (thesis) or none"),
+        "smoothing_iterations": Param(sp.iterations, "Laplacian iterations or Taubin passes", (0, 10000)),
+        "laplacian_factor": Param(sp.factor, "Laplacian step towards the neighbour centroid (thesis: 0.1)",
+                                  (0.0, 1.0)),
+        "taubin_lambda": Param(sp.taubin_lambda, "Taubin shrink step (0..1)", (0.0, 1.0)),
+        "taubin_mu": Param(sp.taubin_mu, "Taubin inflate step (< -taubin_lambda)", (-1.0, 0.0)),
+        "allow_enrolment": Param(False, "serve face/enroll (biometric data: off unless the lab decides; set at "
+                                 "launch only). face/identify is always served", read_only=True),
+        "nose_method": Param(fp.nose_method, "nose tip finder: template (verified by the face's layout), "
+                             "protrusion or svd (thesis)"),
+        "signature_method": Param(gp.method, "face signature: depthmap (ICP-aligned) or fft (thesis)"),
+        "false_accept_rate": Param(DEFAULT_FALSE_ACCEPT, "identify accepts the best match only when the chance that "
+                                   "a stranger comes as close (gallery impostor statistics) is at most this (0..1)",
+                                   (0.0, 1.0)),
+        "marker_max_triangles": Param(60000, "triangles sent in the scan/mesh Marker (0 = all)", (0, 100_000_000)),
+    }
+
+
 class FaceProcessorNode(Node):
     """Meshes every scan cloud, finds the face, and serves the gallery (see module doc)."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("face_processor", **{"namespace": "/lsu", **kwargs})
-        mp, sp, fp, gp = MeshParams(), SmoothParams(), FaceParams(), SignatureParams()
-
-        def declare(name: str, default: Any, description: str, read_only: bool = False) -> None:
-            self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=read_only))
-
-        declare("output_dir", "~/.lsu/faces", "folder for mesh.ply, mesh.obj and renders when the scan events name "
-                "no folder (a sub-folder per scan)")
-        declare("gallery_file", "~/.lsu/faces/gallery.db", "SQLite face gallery used by face/enroll and face/identify")
-        declare("scans_dir", "", "folder searched for <scan_id>/cloud.ply by the services' scan_id (empty: output_dir)")
-        declare("write_files", True, "write mesh.ply, mesh.obj and the renders for every scan")
-        declare("render_size_px", 480, "side of the square front/side renders [px]")
-        declare("max_edge_factor", mp.max_edge_factor, "cull triangles with an edge longer than this x the median edge")
-        declare("max_stretch", mp.max_stretch, "cull triangles stretched more than this x the median (depth jumps)")
-        declare("smoothing", sp.method, "mesh smoothing: taubin (no shrinkage), laplacian (thesis) or none")
-        declare("smoothing_iterations", sp.iterations, "Laplacian iterations or Taubin passes")
-        declare("laplacian_factor", sp.factor, "Laplacian step towards the neighbour centroid (thesis: 0.1)")
-        declare("taubin_lambda", sp.taubin_lambda, "Taubin shrink step (0..1)")
-        declare("taubin_mu", sp.taubin_mu, "Taubin inflate step (< -taubin_lambda)")
-        declare("allow_enrolment", False, "serve face/enroll (biometric data: off unless the lab decides; set at "
-                "launch only). face/identify is always served", read_only=True)
-        declare("nose_method", fp.nose_method, "nose tip finder: template (verified by the face's layout), "
-                "protrusion or svd (thesis)")
-        declare("signature_method", gp.method, "face signature: depthmap (ICP-aligned) or fft (thesis)")
-        declare("false_accept_rate", DEFAULT_FALSE_ACCEPT, "identify accepts the best match only when the chance "
-                "that a stranger comes as close (gallery impostor statistics) is at most this (0..1)")
-        declare("marker_max_triangles", 60000, "triangles sent in the scan/mesh Marker (0 = all)")
-        self.add_on_set_parameters_callback(self._check_parameters)
+        declare_parameters(self, parameter_table(), check=self._check_parameters)
 
         self.latest: Optional[ScanResult] = None
         self.scan_id = ""
@@ -134,20 +138,17 @@ class FaceProcessorNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
 
     # ------------------------------------------------------------------ parameters
-    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+        """Choices and open bounds (the closed ranges are in the descriptors, checked by rclpy)."""
         choices = {"smoothing": SMOOTH_METHODS, "nose_method": NOSE_METHODS, "signature_method": SIGNATURE_METHODS}
         for p in params:
             if p.name in choices and p.value not in choices[p.name]:
-                return SetParametersResult(successful=False, reason=f"{p.name} must be one of "
-                                                                    f"{', '.join(choices[p.name])}")
+                return f"{p.name} must be one of {', '.join(choices[p.name])}"
             if p.name == "false_accept_rate" and not 0.0 < p.value < 1.0:
-                return SetParametersResult(successful=False, reason="false_accept_rate must be between 0 and 1 "
-                                                                    "(e.g. 0.01 for 1 %)")
+                return "false_accept_rate must be between 0 and 1 (e.g. 0.01 for 1 %)"
             if p.name in ("max_edge_factor", "max_stretch") and p.value <= 1.0:
-                return SetParametersResult(successful=False, reason=f"{p.name} must be greater than 1")
-            if p.name in ("smoothing_iterations", "render_size_px", "marker_max_triangles") and p.value < 0:
-                return SetParametersResult(successful=False, reason=f"{p.name} must not be negative")
-        return SetParametersResult(successful=True)
+                return f"{p.name} must be greater than 1"
+        return None
 
     def _value(self, name: str) -> Any:
         return self.get_parameter(name).value
@@ -312,30 +313,15 @@ class FaceProcessorNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def publish_diagnostics(self) -> None:
         """Processing counts and the last error on /diagnostics."""
-        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: face processing", hardware_id="lsu_faces")
-        status.level = DiagnosticStatus.WARN if self.errors else DiagnosticStatus.OK
-        status.message = f"{self.processed} clouds processed, {self.errors} errors"
-        status.values = [KeyValue(key="processed", value=str(self.processed)),
-                         KeyValue(key="errors", value=str(self.errors)),
-                         KeyValue(key="last_error", value=self.last_error)]
-        diag = DiagnosticArray()
-        diag.header.stamp = self.get_clock().now().to_msg()
-        diag.status = [status]
-        self.diag_pub.publish(diag)
+        self.diag_pub.publish(diagnostics.status_array(
+            self, diagnostics.WARN if self.errors else diagnostics.OK,
+            f"{self.get_fully_qualified_name()}: face processing",
+            f"{self.processed} clouds processed, {self.errors} errors",
+            {"processed": self.processed, "errors": self.errors, "last_error": self.last_error},
+            hardware_id="lsu_faces"))
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``face_processor``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = FaceProcessorNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(FaceProcessorNode)
 
 
 if __name__ == "__main__":

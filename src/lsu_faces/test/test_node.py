@@ -115,3 +115,34 @@ def test_bad_clouds_give_errors_not_exceptions(ros_node, tmp_path, head_scan):
     assert not r.success and "allow_enrolment" in r.message
     assert not (tmp_path / "g.db").exists()
     assert not node.set_parameters([Parameter("allow_enrolment", value=True)])[0].successful
+
+
+def test_every_face_parameter_takes_effect_when_set_or_is_refused(ros_node, tmp_path):
+    from lsu_faces.node import FaceProcessorNode
+
+    node = ros_node.add(FaceProcessorNode(context=ros_node.context, namespace="/lsu_faces_params"))
+    pp = node.process_params
+    used = lambda name, value: (lambda: node._value(name) == value)  # noqa: E731  (read where used)
+    ros_node.check_parameters(node, {
+        "output_dir": (str(tmp_path), lambda: node._folder().parent == tmp_path),
+        "gallery_file": (str(tmp_path / "g.db"), used("gallery_file", str(tmp_path / "g.db"))),
+        "scans_dir": (str(tmp_path), used("scans_dir", str(tmp_path))),
+        "write_files": (False, used("write_files", False)),
+        "render_size_px": (256, used("render_size_px", 256)),
+        "marker_max_triangles": (1000, used("marker_max_triangles", 1000)),
+        "false_accept_rate": (0.05, used("false_accept_rate", 0.05)),
+        "max_edge_factor": (4.0, lambda: pp().mesh.max_edge_factor == 4.0),
+        "max_stretch": (5.0, lambda: pp().mesh.max_stretch == 5.0),
+        "smoothing": ("laplacian", lambda: pp().smoothing.method == "laplacian"),
+        "smoothing_iterations": (12, lambda: pp().smoothing.iterations == 12),
+        "laplacian_factor": (0.2, lambda: pp().smoothing.factor == 0.2),
+        "taubin_lambda": (0.4, lambda: pp().smoothing.taubin_lambda == 0.4),
+        "taubin_mu": (-0.45, lambda: pp().smoothing.taubin_mu == -0.45),
+        "nose_method": ("svd", lambda: pp().face.nose_method == "svd"),
+        "signature_method": ("fft", lambda: pp().signature.method == "fft"),
+    })
+    for name, value in (("smoothing", "blur"), ("false_accept_rate", 0.0), ("max_stretch", 1.0),
+                        ("render_size_px", -1)):
+        refused = ros_node.set_parameter("/lsu_faces_params/face_processor", name, value)
+        assert not refused.successful and refused.reason, name
+    assert pp().smoothing.method == "laplacian" and node._value("false_accept_rate") == 0.05

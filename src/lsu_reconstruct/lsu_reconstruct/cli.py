@@ -20,6 +20,8 @@ import numpy as np
 
 from lsu_bags.bags import BagError, BagTypes, bag_topics, deserialize, read_messages
 from lsu_bags.ply import write_cloud_ply
+from lsu_common import stamps
+from lsu_common.images import ImageFormatError, msg_to_bgr
 
 from .matching import LineArrays, MatchParams
 from .pipeline import colour_at, merge_snaps, reconstruct_snap
@@ -32,8 +34,7 @@ LINE_TYPE = "lsu_interfaces/msg/LaserLine"
 EVENT_TYPE = "lsu_interfaces/msg/ScanEvent"
 
 
-def _key(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+_key = stamps.to_ns
 
 
 def _line(msg: Any) -> LineArrays:
@@ -43,15 +44,10 @@ def _line(msg: Any) -> LineArrays:
 
 
 def _image(msg: Any) -> np.ndarray:
-    channels = {"bgr8": 3, "rgb8": 3, "mono8": 1}
-    if msg.encoding not in channels:
-        raise BagError(f"texture image encoding '{msg.encoding}' is not supported (bgr8, rgb8, mono8)")
-    c = channels[msg.encoding]
-    img = np.asarray(msg.data, dtype=np.uint8).reshape(msg.height, msg.step)[:, :msg.width * c]
-    img = img.reshape(msg.height, msg.width, c)
-    if c == 1:
-        return np.repeat(img, 3, axis=2)
-    return img[:, :, ::-1] if msg.encoding == "rgb8" else img
+    try:
+        return msg_to_bgr(msg)
+    except ImageFormatError as exc:
+        raise BagError(f"texture image: {exc}") from None
 
 
 def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineArrays]], Optional[np.ndarray], Dict[str, int]]:

@@ -22,12 +22,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterable, List, Optional
 
 import numpy as np
-import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
@@ -35,6 +31,10 @@ from std_msgs.msg import Header
 
 from lsu_bags.pointcloud2 import Cloud, decode, encode, from_msg
 from lsu_cameras.polled import PolledGroup, take_all
+from lsu_common import diagnostics, qos, stamps
+from lsu_common.images import msg_to_bgr
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
 from .matching import LineArrays, MatchParams, prepare
@@ -45,10 +45,9 @@ from .triangulate import METHODS
 __all__ = ["StereoMatcherNode", "cloud_to_msg", "line_from_msg", "image_to_array", "decode_msg",
            "main"]
 
-RELIABLE_DATA = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
-EVENTS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_ALL)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+RELIABLE_DATA = qos.reliable(50)
+EVENTS = qos.EVENTS
+LATCHED = qos.LATCHED
 IMAGES_KEPT = 8  # newest left frames kept for the texture: its TEXTURE event may come a few frames late
 
 
@@ -76,22 +75,11 @@ def line_from_msg(msg: LaserLine) -> LineArrays:
 
 
 def image_to_array(msg: Image) -> np.ndarray:
-    """bgr8 / rgb8 / mono8 sensor_msgs/Image -> HxWx3 bgr uint8 array."""
-    channels = {"bgr8": 3, "rgb8": 3, "mono8": 1, "bgra8": 4, "rgba8": 4}
-    if msg.encoding not in channels:
-        raise ValueError(f"texture image encoding '{msg.encoding}' is not supported; publish bgr8 (or rgb8/mono8)")
-    c = channels[msg.encoding]
-    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)
-    img = buf.reshape(msg.height, msg.step)[:, :msg.width * c].reshape(msg.height, msg.width, c)
-    if msg.encoding.startswith("rgb"):
-        img = img[:, :, 2::-1]
-    elif c == 1:
-        img = np.repeat(img, 3, axis=2)
-    return np.ascontiguousarray(img[:, :, :3])
+    """A sensor_msgs/Image (any supported encoding) as an HxWx3 BGR uint8 array (the scan's texture)."""
+    return msg_to_bgr(msg)
 
 
-def _stamp_key(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+_stamp_key = stamps.to_ns
 
 
 def _cdr_stamp_key(raw: bytes) -> int:
@@ -102,7 +90,35 @@ def _cdr_stamp_key(raw: bytes) -> int:
     rest of a 900 KB image.
     """
     sec, nanosec = struct.unpack_from("<iI" if raw[1] & 1 else ">iI", raw, 4)
-    return sec * 1_000_000_000 + nanosec
+    return sec * stamps.NS_PER_S + nanosec
+
+
+def parameter_table() -> Dict[str, Param]:
+    """The matcher's parameters; the calibration's source and folder are read at start-up (read-only)."""
+    p = MatchParams()
+    return {
+        "calibration_source": Param("topics", "where the stereo calibration comes from: 'file' (calibration_dir) or "
+                                    "'topics' (stereo/{left,right}/camera_info + stereo/extrinsics)", read_only=True),
+        "calibration_dir": Param("", "folder with left.yaml, right.yaml, stereo.yaml (calibration_source: file)",
+                                 read_only=True),
+        "depth_min_m": Param(p.depth_min_m, "nearest accepted point along the left optical axis [m]", (0.0, 100.0)),
+        "depth_max_m": Param(p.depth_max_m, "farthest accepted point along the left optical axis [m]", (1e-3, 100.0)),
+        "max_gap_rows": Param(p.max_gap_rows, "right laser samples further apart than this [rows] are not joined",
+                              (1e-3, 1000.0)),
+        "max_step_px": Param(p.max_step_px, "nor samples whose column jumps more than this per row [px] (depth edges, "
+                             "reflections)", (1e-3, 1000.0)),
+        "max_order_dev": Param(p.max_order_dev, "ordering tolerance when a left point has several crossings "
+                               "[segments]", (0.0, 1000.0)),
+        "min_quality": Param(p.min_quality, "drop laser rows whose extractor quality is below this (0..1)", (0.0, 1.0)),
+        "smooth_window_rows": Param(p.smooth_window_rows, "rows of the local quadratic fit along each laser line (odd, "
+                                    ">= 5; 0 = no smoothing)", (0, 1001)),
+        "max_reproj_px": Param(p.max_reproj_px, "reject points whose reprojection error exceeds this [px]",
+                               (1e-3, 1000.0)),
+        "triangulation": Param(p.method, "triangulation method: midpoint, dlt or optimal"),
+        "pair_buffer": Param(64, "laser lines kept while waiting for their partner (per side)", (1, 100000)),
+        "scan_timeout_s": Param(5.0, "after FINISHED/ABORTED, wait this long for missing snaps, then publish the "
+                                "partial scan cloud [s]", (1e-3, 3600.0)),
+    }
 
 
 @dataclass
@@ -124,30 +140,8 @@ class StereoMatcherNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("stereo_matcher", **{"namespace": "/lsu", **kwargs})
-        p = MatchParams()
-
-        def declare(name: str, default: Any, description: str) -> None:
-            self.declare_parameter(name, default, ParameterDescriptor(description=description))
-
-        declare("calibration_source", "topics", "where the stereo calibration comes from: 'file' (calibration_dir) "
-                "or 'topics' (stereo/{left,right}/camera_info + stereo/extrinsics)")
-        declare("calibration_dir", "", "folder with left.yaml, right.yaml, stereo.yaml (calibration_source: file)")
-        declare("depth_min_m", p.depth_min_m, "nearest accepted point along the left optical axis [m]")
-        declare("depth_max_m", p.depth_max_m, "farthest accepted point along the left optical axis [m]")
-        declare("max_gap_rows", p.max_gap_rows, "right laser samples further apart than this [rows] are not joined")
-        declare("max_step_px", p.max_step_px, "nor samples whose column jumps more than this per row [px] "
-                "(depth edges, reflections)")
-        declare("max_order_dev", p.max_order_dev, "ordering tolerance when a left point has several crossings [segments]")
-        declare("min_quality", p.min_quality, "drop laser rows whose extractor quality is below this (0..1)")
-        declare("smooth_window_rows", p.smooth_window_rows, "rows of the local quadratic fit along each laser line "
-                "(odd, >= 5; 0 = no smoothing)")
-        declare("max_reproj_px", p.max_reproj_px, "reject points whose reprojection error exceeds this [px]")
-        declare("triangulation", p.method, "triangulation method: midpoint, dlt or optimal")
-        declare("pair_buffer", 64, "laser lines kept while waiting for their partner (per side)")
-        declare("scan_timeout_s", 5.0, "after FINISHED/ABORTED, wait this long for missing snaps, then publish "
-                "the partial scan cloud")
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(lambda _: self._use_params(self._match_params()))
+        declare_parameters(self, parameter_table(), check=self._check_parameters,
+                           apply=lambda _: self._use_params(self._match_params()), apply_now=False)
 
         self.model: Optional[StereoModel] = None
         self.calibration_error = ""
@@ -180,8 +174,7 @@ class StereoMatcherNode(Node):
         # the newest few frames in DDS, and the snaps' frames (one per snap, 900 KB) are never
         # taken into Python nor wake the executor (each was a copy and a callback in the replay's
         # busiest thread). Raw: only the texture pair's image is ever decoded.
-        self._image_sub = self.create_subscription(Image, "stereo/left/image_raw", lambda _raw: None, QoSProfile(
-            depth=IMAGES_KEPT, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST),
+        self._image_sub = self.create_subscription(Image, "stereo/left/image_raw", lambda _raw: None, qos.reliable(IMAGES_KEPT),
             callback_group=PolledGroup(), raw=True)
         # where the texture image is looked for: serialized left images not yet looked at (a direct
         # replay, which has no image topic, gives its own source)
@@ -189,7 +182,7 @@ class StereoMatcherNode(Node):
         if self.get_parameter("calibration_source").value == "topics":
             # camera_info comes with every image (volatile, like the images); a volatile reader also
             # matches latched publishers (older bags), so either kind of camera is heard
-            info_qos = QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST)
+            info_qos = qos.SCAN_DATA
             self.create_subscription(CameraInfo, "stereo/left/camera_info", lambda m: self.on_info("left", m), info_qos)
             self.create_subscription(CameraInfo, "stereo/right/camera_info", lambda m: self.on_info("right", m),
                                      info_qos)
@@ -214,19 +207,14 @@ class StereoMatcherNode(Node):
         prepare(params)  # caches filled now, not on the first snap
         self.params = params
 
-    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+        """Choices and odd window sizes (the ranges are in the descriptors, checked by rclpy)."""
         for param in params:
             if param.name == "triangulation" and param.value not in METHODS:
-                return SetParametersResult(successful=False, reason=f"triangulation must be one of {', '.join(METHODS)}")
-            if param.name == "calibration_source" and param.value not in ("file", "topics"):
-                return SetParametersResult(successful=False, reason="calibration_source must be 'file' or 'topics'")
+                return f"triangulation must be one of {', '.join(METHODS)}"
             if param.name == "smooth_window_rows" and not (param.value == 0 or (param.value >= 5 and param.value % 2)):
-                return SetParametersResult(successful=False, reason="smooth_window_rows must be 0 or an odd number >= 5")
-            if param.name in ("scan_timeout_s", "max_reproj_px", "max_gap_rows", "max_step_px", "depth_max_m") and param.value <= 0:
-                return SetParametersResult(successful=False, reason=f"{param.name} must be positive")
-            if param.name == "pair_buffer" and param.value < 1:
-                return SetParametersResult(successful=False, reason="pair_buffer must be at least 1")
-        return SetParametersResult(successful=True)
+                return "smooth_window_rows must be 0 or an odd number >= 5"
+        return None
 
     def _load_calibration_file(self) -> None:
         folder = str(self.get_parameter("calibration_dir").value)
@@ -363,7 +351,7 @@ class StereoMatcherNode(Node):
             if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
                 self.scan.expected = int(msg.snaps_captured)
             self.scan.end_reason = msg.reason
-            self.scan.end_time_s = self.get_clock().now().nanoseconds / 1e9
+            self.scan.end_time_s = stamps.ns_to_seconds(self.get_clock().now().nanoseconds)
             self._check_scan_end()
 
     def _look_for_texture(self) -> None:
@@ -395,7 +383,7 @@ class StereoMatcherNode(Node):
         if scan is None or scan.end_type is None or scan.published:
             return
         complete = len(scan.snaps) >= scan.expected and scan.end_type == ScanEvent.FINISHED
-        waited = self.get_clock().now().nanoseconds / 1e9 - scan.end_time_s
+        waited = stamps.ns_to_seconds(self.get_clock().now().nanoseconds) - scan.end_time_s
         if not complete and waited < float(self.get_parameter("scan_timeout_s").value):
             return
         self.publish_scan(partial=not complete)
@@ -426,26 +414,22 @@ class StereoMatcherNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def publish_diagnostics(self) -> None:
         """Pairing counts and calibration health on /diagnostics."""
-        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: stereo matching",
-                                  hardware_id="lsu_stereo")
         if self.model is None:
-            status.level, status.message = DiagnosticStatus.ERROR, f"no calibration: {self.calibration_error}"
+            level, message = diagnostics.ERROR, f"no calibration: {self.calibration_error}"
         elif self.unmatched["left"] or self.unmatched["right"] or self.errors:
-            status.level = DiagnosticStatus.WARN
-            status.message = (f"{self.unmatched['left']} left / {self.unmatched['right']} right lines never paired, "
+            level = diagnostics.WARN
+            message = (f"{self.unmatched['left']} left / {self.unmatched['right']} right lines never paired, "
                               f"{self.errors} errors")
         else:
-            status.level, status.message = DiagnosticStatus.OK, f"{self.pairs} pairs matched"
+            level, message = diagnostics.OK, f"{self.pairs} pairs matched"
         values = {"pairs": self.pairs, "unmatched_left": self.unmatched["left"],
                   "unmatched_right": self.unmatched["right"], "buffered_left": len(self.left),
                   "buffered_right": len(self.right), "points_last_snap": self.points_last, "errors": self.errors,
                   "last_error": self.last_error,
                   "calibration": self.model.calibration_id or self.model.source if self.model else "none"}
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        diag = DiagnosticArray()
-        diag.header.stamp = self.get_clock().now().to_msg()
-        diag.status = [status]
-        self.diag_pub.publish(diag)
+        self.diag_pub.publish(diagnostics.status_array(
+            self, level, f"{self.get_fully_qualified_name()}: stereo matching", message, values,
+            hardware_id="lsu_stereo"))
 
 
 def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str, np.ndarray]:
@@ -453,18 +437,7 @@ def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str,
     return decode(from_msg(msg), names)
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``stereo_matcher``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = StereoMatcherNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(StereoMatcherNode)
 
 
 if __name__ == "__main__":

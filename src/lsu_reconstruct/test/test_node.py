@@ -230,3 +230,21 @@ def test_swapped_calibration_is_reported_not_used(ros_node, rig, tmp_path):
     node = start(ros_node, ns, calibration_source="file",
                  calibration_dir=str(rig.write_calibration(tmp_path / "c", swap=True)))
     assert node.model is None and "swapped" in node.calibration_error
+
+
+def test_every_matcher_parameter_takes_effect_when_set_or_is_refused(ros_node):
+    ns = "/lsu_rt_params"
+    node = start(ros_node, ns)
+    new = {"depth_min_m": 0.2, "depth_max_m": 0.6, "max_gap_rows": 2.5, "max_step_px": 3.0, "max_order_dev": 2.0,
+           "min_quality": 0.2, "smooth_window_rows": 7, "max_reproj_px": 0.8}
+    cases = {name: (value, lambda name=name, value=value: getattr(node.params, name) == value)
+             for name, value in new.items()}
+    cases["triangulation"] = ("dlt", lambda: node.params.method == "dlt")
+    # read where they are used (the pairing buffer's trim, the end-of-scan wait)
+    cases["pair_buffer"] = (8, lambda: node.get_parameter("pair_buffer").value == 8)
+    cases["scan_timeout_s"] = (1.5, lambda: node.get_parameter("scan_timeout_s").value == 1.5)
+    ros_node.check_parameters(node, cases)
+    for name, value in (("smooth_window_rows", 6), ("triangulation", "best"), ("min_quality", 2.0)):
+        refused = ros_node.set_parameter(f"{ns}/stereo_matcher", name, value)
+        assert not refused.successful and refused.reason, name
+    assert node.params.smooth_window_rows == 7 and node.params.method == "dlt" and node.params.min_quality == 0.2

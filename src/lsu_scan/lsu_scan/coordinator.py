@@ -26,17 +26,20 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.parameter import Parameter
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
 
 from lsu_cameras.polled import PolledGroup, take_latest
+from lsu_common import qos, stamps
+from lsu_common.node import main_of
+from lsu_common.params import declare_parameters
 from lsu_interfaces.action import Scan
 from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
@@ -47,9 +50,8 @@ from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibra
                         mechanical_lower_bound_s, new_scan_id, plan_positions)
 from .sweep_plan import SweepPlan, plan_sweep, scan_mode
 
-EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+EVENTS_QOS = qos.EVENTS
+LATCHED = qos.LATCHED
 # how long the end-of-scan laser-off call may still wait once a shutdown began: `lsu launch`
 # SIGKILLs 4 s after its SIGINT, and scan.json and the bag must be on disk before that
 SHUTDOWN_CALL_S = 0.5
@@ -63,8 +65,7 @@ class ScanCanceled(ScanAborted):
     """The user canceled the goal."""
 
 
-def _key(stamp: Any) -> tuple:
-    return (int(stamp.sec), int(stamp.nanosec))
+_key = stamps.to_ns  # an image stamp as the key of its acknowledgement
 
 
 # name -> (default, description, (low, high) or None). Every one is read when it is used, so a
@@ -89,13 +90,6 @@ PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
     "settle_tolerance_px": (DEFAULT_TOLERANCE_PX, "adaptive settle: the line counts as still when it moved less "
                                                   "than this between two frames [px]", (0.01, 5.0)),
 }
-
-
-def _descriptor(description: str, bounds: Optional[Tuple[float, float]]) -> ParameterDescriptor:
-    descriptor = ParameterDescriptor(description=description)
-    if bounds is not None:
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
-    return descriptor
 
 
 @dataclass
@@ -123,13 +117,9 @@ class ScanCoordinatorNode(Node):
         # the laser guard's books (scan thread only); the off call it sent without waiting for the reply
         self.guard = LaserGuard(pause_s=float(PARAMETERS["laser_pause_s"][0]))
         self._off_future: Any = None
-        self._guarded_ack: Optional[tuple] = None  # the image stamp whose points the "ack" deadline waits for
+        self._guarded_ack: Optional[int] = None  # the image stamp whose points the "ack" deadline waits for
         self._capture_asked = 0.0  # monotonic time the last capture was asked for
-        for name, (default, description, bounds) in PARAMETERS.items():
-            self.declare_parameter(name, default, _descriptor(description, bounds))
-        self._apply_parameters([self.get_parameter(name) for name in PARAMETERS])
-        self.add_on_set_parameters_callback(self._check_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
+        declare_parameters(self, PARAMETERS, check=self._check_parameters, apply=self._apply_parameters)
         group = ReentrantCallbackGroup()
         # The scan loop's own traffic (service calls, per-snap acknowledgements) lives on a private
         # node that the scan thread spins itself while it waits: a reply is handled in the thread
@@ -145,9 +135,9 @@ class ScanCoordinatorNode(Node):
         self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self._state: Optional[ScannerState] = None
-        self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        self._acks: Dict[int, tuple] = {}  # image stamp -> (points, monotonic arrival time)
         # adaptive settle: the laser_extractor's left lines by image stamp, subscribed at the first adaptive scan
-        self._left_lines: "OrderedDict[tuple, LaserLine]" = OrderedDict()
+        self._left_lines: "OrderedDict[int, LaserLine]" = OrderedDict()
         self._left_line_sub: Any = None
         self._cloud: Optional[PointCloud2] = None
         self._cloud_serial = 0
@@ -346,7 +336,7 @@ class ScanCoordinatorNode(Node):
                                   float(self.capture_timeout_s) + 0.3, "capture", due_s=exposure if lit else None)
             if not response.success:
                 raise ScanAborted(f"capture failed: {response.message}")
-            exposed_until = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9 + exposure
+            exposed_until = stamps.to_seconds(response.stamp) + exposure
             if not lit or self.guard.lit or exposed_until < self.guard.last_off_wall:
                 return response
             self.get_logger().warning("the capture came after the laser went off: taking it again")
@@ -395,7 +385,7 @@ class ScanCoordinatorNode(Node):
         reached us; a stamp that is missing (an older driver) or implausible (clock trouble) counts
         as no time passed, i.e. the full settle.
         """
-        stopped = int(stamp.sec) + int(stamp.nanosec) * 1e-9
+        stopped = stamps.to_seconds(stamp)
         if stopped <= 0.0:
             return None
         elapsed = time.time() - stopped  # the driver stamps with the system clock of this machine
@@ -561,7 +551,7 @@ class ScanCoordinatorNode(Node):
             self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=moved.position_steps,
                         image_stamp=response.stamp, expected_snaps=total)
             # per-phase wall times: where a snap's time goes (bench_scan reads them)
-            snap = SnapRecord(index=index, position_steps=int(moved.position_steps), stamp=f"{key[0]}.{key[1]:09d}",
+            snap = SnapRecord(index=index, position_steps=int(moved.position_steps), stamp=stamps.to_text(key),
                               skew_s=float(response.skew_s), move_s=round(t_moved - t_snap, 4),
                               settle_s=round(t_slept - t_moved, 4),
                               stop_to_reply_s=None if since_stop is None else round(since_stop, 4),
@@ -893,17 +883,4 @@ class ScanCoordinatorNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``scan_coordinator``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    node = ScanCoordinatorNode()
-    executor = MultiThreadedExecutor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(ScanCoordinatorNode, multi_threaded=True)

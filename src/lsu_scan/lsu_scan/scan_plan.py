@@ -75,7 +75,7 @@ def software_versions() -> Dict[str, str]:
     import importlib.metadata as md
 
     out = {"python": platform.python_version()}
-    for dist in ("lsu_driver", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces", "lsu_bags", "lsu_scan",
+    for dist in ("lsu_common", "lsu_driver", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces", "lsu_bags", "lsu_scan",
                  "ros-jazzy-rclpy", "numpy", "opencv-python-headless", "open3d-cpu", "rosbags"):
         try:
             out[dist] = md.version(dist)

@@ -18,7 +18,6 @@ import argparse
 import atexit
 import enum
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, List, Optional
@@ -77,25 +76,18 @@ class LsuScanner:
 
     def __init__(self, namespace: str = "/lsu", wait_s: float = 15.0) -> None:
         rosenv.apply_defaults()
-        import rclpy
         from rclpy.action import ActionClient
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from std_srvs.srv import SetBool, Trigger
+
+        from lsu_common.node import GraphClient
 
         from lsu_interfaces.action import Scan
         from lsu_interfaces.msg import ScannerState
         from lsu_interfaces.srv import MoveTo
 
-        self._rclpy = rclpy
         self._Scan = Scan
-        self.context = Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node(f"lsu_scanner_{id(self) & 0xFFFF:x}", namespace=namespace, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._spin = threading.Thread(target=self._spin_loop, daemon=True)
-        self._spin.start()
+        self._graph = GraphClient(f"lsu_scanner_{id(self) & 0xFFFF:x}", namespace)
+        self.context, self.node, self.executor = self._graph.context, self._graph.node, self._graph.executor
         self.wait_s = wait_s
         self._home = self.node.create_client(Trigger, "carriage/home")
         self._laser = self.node.create_client(SetBool, "laser/set")
@@ -111,15 +103,6 @@ class LsuScanner:
         # thread would be inside rclpy's C++ wait set while the context is destroyed (abort, exit 134).
         atexit.register(self.close)
 
-    def _spin_loop(self) -> None:
-        while self.context.ok():
-            try:
-                self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # the context went down under us during close()
-                if self.context.ok():
-                    raise
-                return
-
     def _on_state(self, msg: Any) -> None:
         self._latest_state = msg
 
@@ -129,10 +112,7 @@ class LsuScanner:
             return
         self._closed = True
         atexit.unregister(self.close)
-        self.executor.shutdown(timeout_sec=1.0)
-        self._rclpy.try_shutdown(context=self.context)
-        self._spin.join(timeout=2.0)
-        self.node.destroy_node()
+        self._graph.close()
 
     def __enter__(self) -> "LsuScanner":
         return self

@@ -28,6 +28,7 @@ from std_srvs.srv import SetBool
 
 from lsu_scan.coordinator import ScanCoordinatorNode
 from lsu_testing.plugin import FakeGoalHandle
+from lsu_common import stamps
 from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
@@ -36,10 +37,7 @@ PAUSE_S = 0.3
 EXPOSURE_S = 0.033
 
 
-def _stamp(t: float) -> Any:
-    from builtin_interfaces.msg import Time
-
-    return Time(sec=int(t), nanosec=int((t - int(t)) * 1e9))
+_stamp = stamps.from_seconds
 
 
 class Rig:

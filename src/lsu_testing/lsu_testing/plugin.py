@@ -22,7 +22,7 @@ import os
 import subprocess
 import time
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional
+from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
 
 import pytest
 
@@ -184,6 +184,43 @@ class NodeHarness:
         future = client.call_async(request)
         assert self.spin_until(future.done, timeout_s), f"no response from {client.srv_name}"
         return future.result()
+
+    def set_parameter(self, node: str, name: str, value: Any, timeout_s: float = 10.0) -> Any:
+        """Set one parameter of ``node`` (fully qualified name) through its ``set_parameters`` service, as
+        `lsu param set` does; returns the `SetParametersResult` (``successful``, ``reason``)."""
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        client = self.node.create_client(SetParameters, f"{node}/set_parameters")
+        try:
+            request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+            return self.call(client, request, timeout_s).results[0]
+        finally:
+            self.node.destroy_client(client)
+
+    def check_parameters(self, node: Any, settable: Dict[str, Tuple[Any, Callable[[], bool]]]) -> None:
+        """Every parameter of ``node`` means what it says, set through its parameter service.
+
+        ``settable``: name -> (a new valid value, a check that the node now uses it). Every
+        parameter the node declares (but ``use_sim_time``) must be either read-only, and then a set
+        is refused and the value kept, or in ``settable``, and then the set succeeds and the check
+        holds. A parameter added later without a case here fails the test.
+        """
+        name = node.get_fully_qualified_name()
+        declared = set(node._parameters) - {"use_sim_time"}
+        read_only = {p for p in declared if node.describe_parameter(p).read_only}
+        assert declared - read_only == set(settable), (
+            f"settable parameters without a case: {sorted(declared - read_only - set(settable))}; "
+            f"cases for parameters that are not settable: {sorted(set(settable) - (declared - read_only))}")
+        for pname in sorted(read_only):
+            before = node.get_parameter(pname).value
+            result = self.set_parameter(name, pname, before)
+            assert not result.successful and "read-only" in result.reason, (pname, result.reason)
+            assert node.get_parameter(pname).value == before, pname
+        for pname, (value, took_effect) in settable.items():
+            result = self.set_parameter(name, pname, value)
+            assert result.successful, (pname, result.reason)
+            assert self.spin_until(took_effect, 5.0), f"{pname} := {value!r} was accepted but did not take effect"
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=2.0)

@@ -15,6 +15,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 
 from lsu_bags.bags import BagTypes, BagWriter
+from lsu_common import stamps
 
 __all__ = ["write_sim_scan_bag", "write_board_scan_bags", "EVENTS_TOPIC", "IMAGE_TOPICS"]
 
@@ -49,7 +50,8 @@ def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequen
         Event = store.types["lsu_interfaces/msg/ScanEvent"]
 
         def stamp(ns: int):
-            return Time(sec=ns // 10**9, nanosec=ns % 10**9)
+            sec, nanosec = stamps.split_ns(ns)
+            return Time(sec=sec, nanosec=nanosec)
 
         def event(ns: int, kind: int, **fields) -> None:
             values = dict(header=Header(stamp=stamp(ns), frame_id=""), type=kind, scan_id=scan_id, expected_snaps=0,

@@ -13,11 +13,10 @@ from __future__ import annotations
 import sys
 from typing import Any, List, Optional
 
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from lsu_common.node import run_node
 from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import Step
 
@@ -27,8 +26,10 @@ class SelftestTalker(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("selftest_talker", **kwargs)
-        self.declare_parameter("rate_hz", 10.0, ParameterDescriptor(description="state publish rate [Hz]"))
-        self.declare_parameter("track_steps", 470, ParameterDescriptor(description="pretend track length [steps]"))
+        self.declare_parameter("rate_hz", 10.0, ParameterDescriptor(
+            description="state publish rate [Hz]", read_only=True))
+        self.declare_parameter("track_steps", 470, ParameterDescriptor(
+            description="pretend track length [steps]", read_only=True))
         self.position_steps = 0
         self.track_steps = int(self.get_parameter("track_steps").value)
         self.pub = self.create_publisher(ScannerState, "selftest/state", 10)
@@ -84,16 +85,7 @@ class SelftestListener(Node):
 
 
 def _main(node_class: type, args: Optional[List[str]]) -> int:
-    rclpy.init(args=args)
-    node = node_class()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(node_class, args)
 
 
 def talker_main(args: Optional[List[str]] = None) -> int:

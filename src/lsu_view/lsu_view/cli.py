@@ -7,33 +7,25 @@ from typing import Any
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.parameter import Parameter
+
+    from lsu_common.node import run_node
 
     from .node import FoxgloveBridgeNode
 
-    rclpy.init()
-    try:
-        node = FoxgloveBridgeNode(parameter_overrides=[
-            Parameter("host", value=args.host), Parameter("port", value=args.port),
-            Parameter("image_max_hz", value=float(args.image_max_hz))])
-    except RuntimeError as exc:
-        rclpy.try_shutdown()
-        raise ValueError(str(exc)) from None
-    print(f"lsu view: open Foxglove (app or https://app.foxglove.dev), 'Open connection' > "
-          f"'Foxglove WebSocket' > {node.url}; Ctrl-C stops", flush=True)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    def make() -> FoxgloveBridgeNode:
+        try:
+            return FoxgloveBridgeNode(parameter_overrides=[
+                Parameter("host", value=args.host), Parameter("port", value=args.port),
+                Parameter("image_max_hz", value=float(args.image_max_hz))])
+        except RuntimeError as exc:  # the port is taken: a one-line error of `lsu`
+            raise ValueError(str(exc)) from None
+
+    def started(node: FoxgloveBridgeNode) -> None:
+        print(f"lsu view: open Foxglove (app or https://app.foxglove.dev), 'Open connection' > "
+              f"'Foxglove WebSocket' > {node.url}; Ctrl-C stops", flush=True)
+
+    return run_node(make, [], on_started=started)
 
 
 def register(sub: "argparse._SubParsersAction[Any]") -> None:

@@ -23,23 +23,34 @@ import threading
 import time
 from typing import Any, Dict, List, Optional, Set
 
-import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from lsu_bags.bags import BagError, BagTypes
 from lsu_bags.rosmsg import InterfaceError, get_interface
+from lsu_common import qos
+from lsu_common.node import main_of
+from lsu_common.params import Param, declare_parameters
 
 from .channels import RateLimiter, TopicOffer, offered, ros2msg_schema, topic_kind
 
 #: latched outputs: the last sample, kept for late joiners
-LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LATCHED_QOS = qos.LATCHED
 #: everything else: best effort, so publishers never wait for the bridge
 STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.BEST_EFFORT,
                         durability=DurabilityPolicy.VOLATILE)
+
+
+# The server is started once with these (read-only); image_max_hz takes effect when set.
+PARAMETERS: Dict[str, Param] = {
+    "host": Param("127.0.0.1", "address the WebSocket server listens on; 127.0.0.1 = this machine only, 0.0.0.0 = "
+                  "every interface (anyone who reaches this PC sees the scan)", read_only=True),
+    "port": Param(8765, "WebSocket port (0: any free port, printed at start)", (0, 65535), read_only=True),
+    "image_max_hz": Param(5.0, "images sent to clients per topic and second at most (0: every image)", (0.0, 120.0)),
+    "client_backlog_messages": Param(32, "messages buffered per client; the oldest is dropped when a slow client "
+                                     "falls behind", (1, 4096), read_only=True),
+    "graph_poll_s": Param(0.5, "how often new topics are looked for [s]", (0.05, 10.0), read_only=True),
+}
 
 
 class _Listener:
@@ -74,25 +85,8 @@ class FoxgloveBridgeNode(Node):
         from foxglove import Context, Schema
 
         self._fx_schema = Schema
-        d = self.declare_parameter
-        d("host", "127.0.0.1", ParameterDescriptor(
-            description="address the WebSocket server listens on; 127.0.0.1 = this machine only, 0.0.0.0 = every "
-                        "interface (anyone who reaches this PC sees the scan)", read_only=True))
-        d("port", 8765, ParameterDescriptor(description="WebSocket port (0: any free port, printed at start)",
-                                            read_only=True,
-                                            integer_range=[IntegerRange(from_value=0, to_value=65535, step=1)]))
-        d("image_max_hz", 5.0, ParameterDescriptor(
-            description="images sent to clients per topic and second at most (0: every image)",
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=120.0)]))
-        d("client_backlog_messages", 32, ParameterDescriptor(
-            description="messages buffered per client; the oldest is dropped when a slow client falls behind",
-            read_only=True, integer_range=[IntegerRange(from_value=1, to_value=4096, step=1)]))
-        d("graph_poll_s", 0.5, ParameterDescriptor(description="how often new topics are looked for [s]",
-                                                   read_only=True,
-                                                   floating_point_range=[FloatingPointRange(from_value=0.05,
-                                                                                            to_value=10.0)]))
-        self._image_limiter = RateLimiter(float(self.get_parameter("image_max_hz").value))
-        self.add_on_set_parameters_callback(self._on_set)
+        self._image_limiter = RateLimiter(5.0)
+        declare_parameters(self, PARAMETERS, apply=self._apply_parameters)
         self._bag_types = BagTypes()
         self._fx_offers: Dict[str, TopicOffer] = {}
         self._fx_channels: Dict[str, Any] = {}  # topic -> foxglove Channel
@@ -121,11 +115,10 @@ class FoxgloveBridgeNode(Node):
         self.poll_graph()
 
     # -- parameters ------------------------------------------------------------------------------
-    def _on_set(self, params: List[Any]) -> SetParametersResult:
+    def _apply_parameters(self, params: List[Any]) -> None:
         for p in params:
             if p.name == "image_max_hz":
                 self._image_limiter.max_hz = float(p.value)  # the descriptor's range already refused < 0
-        return SetParametersResult(successful=True)
 
     # -- graph -> channels -----------------------------------------------------------------------
     @property
@@ -210,23 +203,7 @@ class FoxgloveBridgeNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
-    """Console script ``foxglove_bridge``."""
-    rclpy.init(args=sys.argv if args is None else args)
-    try:
-        node = FoxgloveBridgeNode()
-    except RuntimeError as exc:
-        print(f"foxglove_bridge: error: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+main = main_of(FoxgloveBridgeNode, startup_errors=(RuntimeError,), program="foxglove_bridge")
 
 
 if __name__ == "__main__":

@@ -185,3 +185,13 @@ def test_our_own_types_get_their_definitions_from_the_msg_files():
     # the first block is the type itself, then every type it uses, each after a MSG: line
     assert "laser_on" in state.split("=" * 80)[0] and "MSG: std_msgs/Header" in state
     assert "MSG: std_msgs/Header" in line
+
+
+def test_the_server_settings_are_read_only_and_the_image_rate_is_applied(bridge):
+    # the executor spins in the fixture's thread: set in-process (the same callbacks the service runs)
+    for name in ("host", "port", "client_backlog_messages", "graph_poll_s"):
+        before = bridge.get_parameter(name).value
+        result = bridge.set_parameters([Parameter(name, value=before)])[0]
+        assert not result.successful and "read-only" in result.reason, name
+    assert bridge.set_parameters([Parameter("image_max_hz", value=2.5)])[0].successful
+    assert bridge._image_limiter.max_hz == 2.5

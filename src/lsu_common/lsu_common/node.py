@@ -1,0 +1,116 @@
+"""The console-script ``main()`` of every LSU node: init, build, spin, clean shutdown, exit code.
+
+``rclpy.init`` installs rclpy's SIGINT and SIGTERM handlers: either signal ends the spin through
+``KeyboardInterrupt`` or ``ExternalShutdownException``, which is a normal end (exit code 0). The
+node is built inside the ``try`` (opening a simulated rig takes seconds, and a Ctrl-C meanwhile is
+a normal end too); ``destroy_node()`` always runs, so each node's own safe state (laser off,
+motion stopped, scan data on disk) is reached on every way out.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from typing import Callable, List, Optional, Sequence, Tuple, Type
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+
+EXIT_OK = 0
+EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); the message says why
+
+
+def run_node(make_node: Callable[[], Node], args: Optional[Sequence[str]] = None, *,
+             multi_threaded: bool = False, on_started: Optional[Callable[[Node], None]] = None,
+             startup_errors: Tuple[Type[BaseException], ...] = (), program: str = "") -> int:
+    """Run one node until Ctrl-C, SIGTERM or an external shutdown; returns the process exit code.
+
+    Args:
+        make_node: builds the node (a class, or a closure passing ``cli_args``/overrides).
+        args: ROS command-line arguments for ``rclpy.init`` (None: ``sys.argv``; ``[]`` for a
+            sub-command whose own arguments are not ROS arguments).
+        multi_threaded: spin with a `MultiThreadedExecutor` (nodes with blocking service callbacks).
+        on_started: called with the node once it is built, before spinning (e.g. print its address).
+        startup_errors: exception types that, raised while the node is built, are reported on stderr
+            as ``<program>: error: <message>`` with exit code 2 instead of a traceback; other
+            exceptions propagate after the clean shutdown.
+        program: the name in that message (default: the node class's name).
+    """
+    rclpy.init(args=list(sys.argv if args is None else args))
+    # before the node: a SIGTERM while the node is built shuts the context down, and nothing
+    # (no executor, no guard condition) can be created in it afterwards
+    executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
+    node: Optional[Node] = None
+    try:
+        try:
+            node = make_node()
+        except startup_errors as exc:
+            if not rclpy.ok():
+                return EXIT_OK  # a shutdown signal came while the node was built (see below)
+            print(f"{program or getattr(make_node, '__name__', 'node')}: error: {exc}", file=sys.stderr)
+            return EXIT_STARTUP_ERROR
+        if on_started is not None:
+            on_started(node)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # the context was shut down (SIGTERM) while the node was being built: its rclpy calls
+        # fail because of that, a normal end
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return EXIT_OK
+
+
+def main_of(node_class: Type[Node], *, multi_threaded: bool = False,
+            startup_errors: Tuple[Type[BaseException], ...] = (), program: str = ""
+            ) -> Callable[[Optional[List[str]]], int]:
+    """A console-script ``main(args=None)`` running ``node_class`` with `run_node`."""
+
+    def main(args: Optional[List[str]] = None) -> int:
+        return run_node(node_class, args, multi_threaded=multi_threaded, startup_errors=startup_errors,
+                        program=program)
+
+    main.__doc__ = f"Console script running {node_class.__name__}."
+    return main
+
+
+class GraphClient:
+    """A node in its own rclpy context, spun by a daemon thread: for libraries and tools that call the graph
+    (services, actions, topics) beside whatever else the process runs, without touching the default context.
+
+    ``close()`` shuts the context down first (the spin thread leaves its wait), then destroys the node.
+    """
+
+    def __init__(self, name: str, namespace: str = "/lsu") -> None:
+        from rclpy.context import Context
+
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, namespace=namespace, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._spin = threading.Thread(target=self._spin_loop, name=f"{name}-spin", daemon=True)
+        self._spin.start()
+
+    def _spin_loop(self) -> None:
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception:  # the context went down under us during close()
+                if self.context.ok():
+                    raise
+                return
+
+    def close(self) -> None:
+        """Leave the graph."""
+        self.executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=self.context)
+        self._spin.join(timeout=2.0)
+        self.node.destroy_node()

@@ -1,0 +1,86 @@
+"""The node runner in a real process: SIGINT and SIGTERM end it cleanly (destroy_node runs, exit 0); a start-up
+error named as such is one line on stderr and exit 2; any other error is not hidden."""
+
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+PROBE = textwrap.dedent("""
+    import sys
+    import time
+    from rclpy.node import Node
+    from lsu_common.node import run_node
+
+    class Probe(Node):
+        def __init__(self):
+            super().__init__("runner_probe", namespace="/lsu_runner_test")
+            if sys.argv[1] == "busy":
+                raise RuntimeError("port 8765 is taken; choose another")
+            if sys.argv[1] == "bug":
+                raise KeyError("not a start-up error")
+            if sys.argv[1] == "slow":  # a node that takes seconds to build (a simulated rig)
+                print("building", flush=True)
+                time.sleep(2.0)
+                from std_msgs.msg import Empty
+                self.create_publisher(Empty, "x", 1)
+
+        def destroy_node(self):
+            print("destroyed", flush=True)
+            super().destroy_node()
+
+    sys.exit(run_node(Probe, ["probe"], startup_errors=(RuntimeError,), program="probe",
+                      on_started=lambda node: print("ready", flush=True)))
+""")
+
+
+def _start(mode: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", PROBE, mode], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_node_cleanly(sig):
+    proc = _start("run")
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "destroyed" in out, "destroy_node must run on every way out (the node's safe state)"
+    assert "Traceback" not in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
+    proc = _start("slow")
+    try:
+        assert proc.stdout.readline().strip() == "building"
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "ready" not in out
+
+
+@pytest.mark.slow
+def test_start_up_errors_are_one_line_and_exit_2_other_errors_are_not_hidden():
+    busy = _start("busy")
+    out, err = busy.communicate(timeout=60)
+    assert busy.returncode == 2
+    assert err.strip().splitlines()[-1] == "probe: error: port 8765 is taken; choose another"
+    assert "Traceback" not in err and "ready" not in out
+    bug = _start("bug")
+    _, err = bug.communicate(timeout=60)
+    assert bug.returncode == 1 and "KeyError" in err
