@@ -47,7 +47,9 @@ def soak(tmp: Path) -> Dict[str, Dict[str, List[float]]]:
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
 
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    # generous capture/ack timeouts: this measures growth, not speed, and a busy host must not abort scans
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans",
+                             "capture_timeout_s:=10.0", "ack_timeout_s:=30.0"])
     samples: Dict[str, Dict[str, List[float]]] = {}
     try:
         graph.wait_for_line(r"homed: track", timeout_s=120)

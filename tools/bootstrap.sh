@@ -122,7 +122,9 @@ print(" ".join(sorted({n for n in (str(d.metadata["Name"] or "").replace("-", "_
     [ -z "$stale" ] || "$VENV/bin/python" -m pip uninstall -q -y $stale
     args=()
     for p in "${PY_PACKAGES[@]}"; do args+=(-e "src/$p"); done
-    "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps "${args[@]}" 2>&1 \
+    # no build isolation: the pinned setuptools in .venv builds them (isolation would fetch and install
+    # setuptools into a throw-away environment once per package)
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation "${args[@]}" 2>&1 \
         | grep -v -E "^WARNING: Location .* is ignored" || true
     [ -x "$VENV/bin/lsu" ] || fail "the lsu command was not installed" "see the pip output above"
     stamp_set packages "$pkg_hash"

@@ -212,11 +212,29 @@ def test_board_plane_detected_in_the_laser_off_pair_matches_the_renderer(board_b
         assert plane.stereo_offset_mm is None or plane.stereo_offset_mm < 0.1
 
 
-def test_accuracy_from_board_bags_end_to_end(board_bags, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def board_study(board_bags, tmp_path_factory):
+    """One study over the board bags plus an unusable scan (a head recorded by the graph: images and
+    events, no board in view), shared by the end-to-end test and the skipped-scan test: the usable
+    poses' figures are those of the boards alone, and one run of the study costs as much as the bags."""
+    import contextlib
+    import io
+    import shutil
+
     root, _ = board_bags
-    out = tmp_path / "report"
-    assert lsu_main(["accuracy", "--bag", str(root), "--square", "20", "-o", str(out)]) == 0
-    r = json.loads((out / "accuracy.json").read_text())
+    mixed = tmp_path_factory.mktemp("board_study") / "scans"
+    shutil.copytree(root, mixed)
+    shutil.copytree(Path(__file__).resolve().parents[3] / "test" / "data" / "bags" / "scan_head", mixed / "head" / "bag")
+    out = mixed.parent / "report"
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout):
+        rc = lsu_main(["accuracy", "--bag", str(mixed), "--square", "20", "-o", str(out)])
+    assert rc == 0
+    return out, json.loads((out / "accuracy.json").read_text()), stdout.getvalue()
+
+
+def test_accuracy_from_board_bags_end_to_end(board_study):
+    out, r, printed = board_study
     assert r["source"] == "bag" and len(r["poses"]) == 3
     text = (out / "report.md").read_text()
     assert "recorded board scans" in text and "Truth (the detected board)" in text and "curved RMS" not in text
@@ -238,7 +256,7 @@ def test_accuracy_from_board_bags_end_to_end(board_bags, tmp_path, capsys):
     reference = next(p for p in r["poses"] if p["label"] == r["reference_pose"])
     assert reference["ours"]["raw"]["sigma_mm"] <= 1.5 * limit
     assert r["trends"]["thesis_raw_sigma_mm"]["slope_per_mm"] > 0
-    assert "thesis chain" in capsys.readouterr().out
+    assert "thesis chain" in printed
 
 
 def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
@@ -264,17 +282,8 @@ def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
     assert not any((tmp_path / r).exists() for r in ("r1", "r2", "r3"))
 
 
-def test_an_unusable_scan_among_good_ones_is_skipped_and_reported(board_bags, tmp_path):
-    import shutil
-
-    root, _ = board_bags
-    mixed = tmp_path / "scans"
-    shutil.copytree(root, mixed)
-    # a head scan recorded by the graph: images and events, but no board in view
-    shutil.copytree(Path(__file__).resolve().parents[3] / "test" / "data" / "bags" / "scan_head", mixed / "head" / "bag")
-    out = tmp_path / "report"
-    assert lsu_main(["accuracy", "--bag", str(mixed), "--square", "20", "-o", str(out)]) == 0
-    r = json.loads((out / "accuracy.json").read_text())
+def test_an_unusable_scan_among_good_ones_is_skipped_and_reported(board_study):
+    out, r, _ = board_study
     assert len(r["poses"]) == 3 and len(r["skipped"]) == 1 and "no 9x6 chessboard found" in r["skipped"][0]
     assert "Scans left out of every figure" in (out / "report.md").read_text()
 
