@@ -36,10 +36,9 @@ BAG_FIGURES = ("three_sigma_mm_300_smoothed", "three_sigma_mm_300_raw", "thesis_
 
 def bag_study() -> dict:
     """`lsu accuracy --bag` on simulated board bags; returns its result."""
-    from lsu_cameras.calibration import BoardSpec
-
     from lsu_bringup.accuracy_bag import run_bag_study
     from lsu_bringup.simbags import write_board_scan_bags
+    from lsu_cameras.calibration import BoardSpec
 
     calibration = Path(__file__).resolve().parents[1] / "config" / "calibration" / "sim"
     with tempfile.TemporaryDirectory(prefix="lsu-board-bags-") as tmp:

@@ -27,7 +27,6 @@ import contextlib
 import json
 import os
 import struct
-import subprocess
 import sys
 import tempfile
 import time

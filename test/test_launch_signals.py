@@ -17,8 +17,8 @@ import pytest
 import yaml
 
 from lsu_bringup.bags import deserialize, read_messages
-from lsu_bringup.scanner import LsuScanner
 from lsu_bringup.processes import LaunchedProcess, pid_alive
+from lsu_bringup.scanner import LsuScanner
 from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow

@@ -10,6 +10,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lsu_bringup.bags import deserialize_ros, read_messages
 from lsu_bringup.testing import LSU
+from lsu_common.arrays import AnyArray
 from lsu_reconstruct.node import msg_to_cloud
 from lsu_reconstruct.pointcloud2 import decode
 
@@ -18,7 +19,7 @@ REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right
 pytestmark = pytest.mark.slow
 
 
-def xyz(msg: PointCloud2) -> np.ndarray:
+def xyz(msg: PointCloud2) -> AnyArray:
     columns = decode(msg_to_cloud(msg))
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 

@@ -14,7 +14,7 @@ cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.lsu-stamps"
 PYTHON="${PYTHON:-python3}"
-PY_PACKAGES=(lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup lsu_view)
+PY_PACKAGES=(lsu_common lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bringup lsu_view)
 
 step=""
 fail() {

@@ -20,8 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> int:
     from lsu_bringup import rosenv
-    from lsu_bringup.scanner import LsuScanner
     from lsu_bringup.processes import LaunchedProcess
+    from lsu_bringup.scanner import LsuScanner
 
     claim = rosenv.isolate()
     target = ROOT / "test" / "data" / "bags" / "scan_head"

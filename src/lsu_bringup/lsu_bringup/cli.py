@@ -11,7 +11,6 @@ import argparse
 import os
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 from . import rosenv
 
@@ -76,7 +75,7 @@ def _selection_options(p: argparse.ArgumentParser) -> None:
                    help="leave these groups or nodes out")
 
 
-def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def _launch_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("launch", help="start the nodes of a YAML launch file, one process each",
                        description="Start every node of a ROS 2 YAML launch file as its own process. "
                                    "Ctrl-C stops them all (SIGINT, then SIGTERM, then SIGKILL).")
@@ -99,7 +98,7 @@ def _launch_parsers(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.set_defaults(func=cmd_run)
 
 
-def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.ArgumentParser:
+def build_parser(env_report: rosenv.EnvReport | None = None) -> argparse.ArgumentParser:
     """The full `lsu` argument parser, plugins included."""
     from . import accuracy_cli, bag_cli, demo, doctor, graph, scanner
     from .nodes_index import command_plugins
@@ -124,7 +123,7 @@ def build_parser(env_report: Optional[rosenv.EnvReport] = None) -> argparse.Argu
     return parser
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console script `lsu`."""
     report = rosenv.apply_defaults()
     parser = build_parser(report)

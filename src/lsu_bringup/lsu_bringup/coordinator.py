@@ -18,17 +18,18 @@ import datetime as _dt
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.parameter import Parameter
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
@@ -39,8 +40,16 @@ from lsu_interfaces.msg import ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
 from .laser_guard import LaserGuard, ack_due_at
-from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
-                        mechanical_lower_bound_s, new_scan_id, plan_positions)
+from .scan_plan import (
+    ScanGoalError,
+    ScanPlan,
+    ScanRecord,
+    SnapRecord,
+    calibration_checksum,
+    mechanical_lower_bound_s,
+    new_scan_id,
+    plan_positions,
+)
 
 EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.VOLATILE)
@@ -64,7 +73,7 @@ def _key(stamp: Any) -> tuple:
 
 # name -> (default, description, (low, high) or None). Every one is read when it is used, so a
 # `param set` takes effect at the next call, deadline or scan; values outside the range are refused.
-PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
+PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "output_dir": ("", "parent folder of scans/<id>/; empty = <workspace>/scans (applies from the next scan)", None),
     "capture_timeout_s": (1.0, "a stereo/capture call longer than this aborts (+ 0.3 s for the reply; below the "
                                "laser watchdog) [s]", (0.05, 30.0)),
@@ -81,7 +90,7 @@ PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
 }
 
 
-def _descriptor(description: str, bounds: Optional[Tuple[float, float]]) -> ParameterDescriptor:
+def _descriptor(description: str, bounds: tuple[float, float] | None) -> ParameterDescriptor:
     descriptor = ParameterDescriptor(description=description)
     if bounds is not None:
         descriptor.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]))]
@@ -98,7 +107,7 @@ class ScanRun:
     record: ScanRecord
     start_state: ScannerState                         # the driver's state when the goal came
     started: float                                    # monotonic
-    captured: List[SnapRecord] = field(default_factory=list)
+    captured: list[SnapRecord] = field(default_factory=list)
     points_total: int = 0
     abort_reason: str = ""
     canceled: bool = False
@@ -112,7 +121,7 @@ class ScanCoordinatorNode(Node):
         # the laser guard's books (scan thread only); the off call it sent without waiting for the reply
         self.guard = LaserGuard(pause_s=float(PARAMETERS["laser_pause_s"][0]))
         self._off_future: Any = None
-        self._guarded_ack: Optional[tuple] = None  # the image stamp whose points the "ack" deadline waits for
+        self._guarded_ack: tuple | None = None  # the image stamp whose points the "ack" deadline waits for
         self._capture_asked = 0.0  # monotonic time the last capture was asked for
         for name, (default, description, bounds) in PARAMETERS.items():
             self.declare_parameter(name, default, _descriptor(description, bounds))
@@ -133,9 +142,9 @@ class ScanCoordinatorNode(Node):
         self.move = self._io.create_client(MoveTo, "carriage/move_to")
         self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
-        self._state: Optional[ScannerState] = None
-        self._acks: Dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
-        self._cloud: Optional[PointCloud2] = None
+        self._state: ScannerState | None = None
+        self._acks: dict[tuple, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        self._cloud: PointCloud2 | None = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
@@ -159,7 +168,7 @@ class ScanCoordinatorNode(Node):
 
     # ------------------------------------------------------------------------------ inputs
     @property
-    def state(self) -> Optional[ScannerState]:
+    def state(self) -> ScannerState | None:
         """The newest gp32_driver state received (None before the first)."""
         latest = take_latest(self._state_sub)
         if latest is not None:
@@ -188,7 +197,7 @@ class ScanCoordinatorNode(Node):
         return GoalResponse.ACCEPT
 
     # ------------------------------------------------------------------------------ parameters
-    def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+    def _check_parameters(self, changed: list[Parameter]) -> SetParametersResult:
         """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
         for param in changed:
             if param.name in ("output_dir", "calibration_dir") and param.value:
@@ -198,7 +207,7 @@ class ScanCoordinatorNode(Node):
                                                reason=f"{param.name} {path} exists and is not a folder")
         return SetParametersResult(successful=True)
 
-    def _apply_parameters(self, changed: List[Parameter]) -> None:
+    def _apply_parameters(self, changed: list[Parameter]) -> None:
         """Every accepted value takes effect now: the scan reads these attributes at each use."""
         for param in changed:
             if param.name not in PARAMETERS:
@@ -222,7 +231,7 @@ class ScanCoordinatorNode(Node):
         return self._stopping or not self.context.ok()
 
     def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True,
-              due_s: Optional[float] = None) -> Any:
+              due_s: float | None = None) -> Any:
         """One service call from the scan thread, spinning the private node until the reply is in.
 
         With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
@@ -373,7 +382,7 @@ class ScanCoordinatorNode(Node):
         if self.shutting_down:
             raise ScanAborted("scan_coordinator is shutting down")
 
-    def _since_stop_s(self, stamp: Any) -> Optional[float]:
+    def _since_stop_s(self, stamp: Any) -> float | None:
         """Seconds since the driver saw the carriage stop (``MoveTo.Response.stopped_stamp``), or None.
 
         The vibration the settle waits out decays from the stop, not from when the move's reply
@@ -497,10 +506,10 @@ class ScanCoordinatorNode(Node):
             response = self._capture(lit=False)
             self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         self._set_laser(True)
-        snap_times: List[float] = []
+        snap_times: list[float] = []
         # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
         # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
-        pending: Optional[Dict[str, Any]] = None
+        pending: dict[str, Any] | None = None
         rate = max(1.0, float(state.step_rate_steps_per_s))
         here = int(state.position_steps)
         for index, position in enumerate(plan.positions):
@@ -593,7 +602,7 @@ class ScanCoordinatorNode(Node):
             goal_handle.succeed()
         return result
 
-    def _await_ack(self, pending: Dict[str, Any]) -> int:
+    def _await_ack(self, pending: dict[str, Any]) -> int:
         """Wait until stereo_matcher published the snap's points; returns their count.
 
         ``ack_timeout_s`` after the capture without them the scan aborts; the laser guard has switched
@@ -615,7 +624,7 @@ class ScanCoordinatorNode(Node):
         return snap.points
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
-                  snap_times: List[float]) -> None:
+                  snap_times: list[float]) -> None:
         fb = Scan.Feedback(stage=stage, snap_index=index, snaps_total=total, position_steps=int(position),
                            points_so_far=int(points))
         if snap_times:
@@ -637,6 +646,7 @@ class ScanCoordinatorNode(Node):
                                       "the per-snap data is in the bag if one was recorded")
             return 0
         import numpy as np
+
         from lsu_reconstruct.cli import write_ply
         from lsu_reconstruct.node import msg_to_cloud
         from lsu_reconstruct.pipeline import SnapPoints
@@ -717,7 +727,7 @@ class ScanCoordinatorNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``scan_coordinator``."""
     rclpy.init(args=sys.argv if args is None else args)
     node = ScanCoordinatorNode()

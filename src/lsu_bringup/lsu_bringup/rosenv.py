@@ -9,9 +9,10 @@ from __future__ import annotations
 import fcntl
 import os
 import pwd
+from collections.abc import MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, MutableMapping, Optional
+from typing import IO
 
 DISCOVERY_VAR = "ROS_AUTOMATIC_DISCOVERY_RANGE"
 DOMAIN_VAR = "ROS_DOMAIN_ID"
@@ -34,7 +35,7 @@ class EnvReport:
     domain_set_by_lsu: bool
 
 
-def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
+def apply_defaults(env: MutableMapping[str, str] | None = None) -> EnvReport:
     """Make DDS localhost-only and pick a domain, unless the user explicitly chose them.
 
     Modifies ``env`` (default: ``os.environ``) in place so child processes inherit it.
@@ -101,7 +102,7 @@ class DomainClaim:
 
     def __init__(self, domain_id: int, handle: IO[str]) -> None:
         self.domain_id = domain_id
-        self._handle: Optional[IO[str]] = handle
+        self._handle: IO[str] | None = handle
 
     def release(self) -> None:
         """Give the domain back."""
@@ -110,7 +111,7 @@ class DomainClaim:
             self._handle = None
 
 
-def claim_domain(start_hint: Optional[int] = None) -> DomainClaim:
+def claim_domain(start_hint: int | None = None) -> DomainClaim:
     """Claim a free domain id from `CLAIMABLE_DOMAINS`.
 
     The search starts at a pid-dependent offset so concurrent claimers rarely race for the
@@ -135,7 +136,7 @@ def claim_domain(start_hint: Optional[int] = None) -> DomainClaim:
     )
 
 
-def isolate(env: Optional[MutableMapping[str, str]] = None) -> DomainClaim:
+def isolate(env: MutableMapping[str, str] | None = None) -> DomainClaim:
     """Localhost-only DDS plus a freshly claimed domain (tests, demos)."""
     env = os.environ if env is None else env
     claim = claim_domain()

@@ -20,8 +20,9 @@ import enum
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, List, Optional
+from typing import Any
 
 from . import rosenv
 
@@ -51,11 +52,11 @@ class ScanResult:
     points: int
     seconds: float
     output_dir: str
-    files: List[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
     status: str = ""
 
     @classmethod
-    def from_action(cls, goal_status: int, result: Any) -> "ScanResult":
+    def from_action(cls, goal_status: int, result: Any) -> ScanResult:
         """From the action's goal status (action_msgs/GoalStatus) and its ``Scan.Result``."""
         from action_msgs.msg import GoalStatus
 
@@ -101,11 +102,11 @@ class LsuScanner:
         self._laser = self.node.create_client(SetBool, "laser/set")
         self._move = self.node.create_client(MoveTo, "carriage/move_to")
         self._action = ActionClient(self.node, Scan, "scan")
-        self._latest_state: Optional[Any] = None
+        self._latest_state: Any | None = None
         self.node.create_subscription(ScannerState, "driver/state", self._on_state, 10)
-        self._goal_handle: Optional[Any] = None
-        self._result_future: Optional[Any] = None
-        self._feedback: Optional[Any] = None
+        self._goal_handle: Any | None = None
+        self._result_future: Any | None = None
+        self._feedback: Any | None = None
         self._closed = False
         # A script that never calls close() must still end cleanly: at interpreter exit the spin
         # thread would be inside rclpy's C++ wait set while the context is destroyed (abort, exit 134).
@@ -134,7 +135,7 @@ class LsuScanner:
         self._spin.join(timeout=2.0)
         self.node.destroy_node()
 
-    def __enter__(self) -> "LsuScanner":
+    def __enter__(self) -> LsuScanner:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -224,7 +225,7 @@ class LsuScanner:
         """True when the running scan has a result."""
         return self._result_future is None or self._result_future.done()
 
-    def get_feedback(self) -> Optional[Any]:
+    def get_feedback(self) -> Any | None:
         """The latest ``Scan.Feedback`` (or None)."""
         return self._feedback
 
@@ -241,7 +242,7 @@ class LsuScanner:
         response = self._wait_future(self._result_future, timeout_s, "scan result")
         return ScanResult.from_action(response.status, response.result)
 
-    def scan(self, feedback: Optional[Callable[[Any], None]] = None, **goal: Any) -> ScanResult:
+    def scan(self, feedback: Callable[[Any], None] | None = None, **goal: Any) -> ScanResult:
         """Run a scan to the end (keyword arguments of `start_scan`); returns its `ScanResult`."""
         self.start_scan(**goal)
         while not self.is_task_complete():
@@ -291,7 +292,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     return 0 if result.success else 1
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu scan`."""
     p = sub.add_parser("scan", help="run a stop-snap scan on the running graph (Ctrl-C cancels, laser off)")
     p.add_argument("--start", type=int, default=0, help="first position [steps] (default 0)")

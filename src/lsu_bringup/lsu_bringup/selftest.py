@@ -11,7 +11,7 @@ lsu_interfaces message crosses the graph through a topic and a service in both d
 from __future__ import annotations
 
 import sys
-from typing import Any, List, Optional
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
@@ -70,7 +70,7 @@ class SelftestListener(Node):
         self.echo = self.create_publisher(ScannerState, "selftest/echo", 10)
         self.sub = self.create_subscription(ScannerState, "selftest/state", self.on_state, 10)
         self.step = self.create_client(Step, "selftest/step")
-        self._pending: Optional[Any] = None
+        self._pending: Any | None = None
 
     def on_state(self, msg: ScannerState) -> None:
         self.received += 1
@@ -83,7 +83,7 @@ class SelftestListener(Node):
                 self._pending = self.step.call_async(request)
 
 
-def _main(node_class: type, args: Optional[List[str]]) -> int:
+def _main(node_class: type, args: list[str] | None) -> int:
     rclpy.init(args=args)
     node = node_class()
     try:
@@ -96,11 +96,11 @@ def _main(node_class: type, args: Optional[List[str]]) -> int:
     return 0
 
 
-def talker_main(args: Optional[List[str]] = None) -> int:
+def talker_main(args: list[str] | None = None) -> int:
     """Console script ``selftest_talker``."""
     return _main(SelftestTalker, sys.argv if args is None else args)
 
 
-def listener_main(args: Optional[List[str]] = None) -> int:
+def listener_main(args: list[str] | None = None) -> int:
     """Console script ``selftest_listener``."""
     return _main(SelftestListener, sys.argv if args is None else args)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import array
 import threading
 from pathlib import Path
-from typing import Any, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -26,13 +26,20 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
-from tf2_msgs.msg import TFMessage
 
+from lsu_common.arrays import AnyArray
 from lsu_interfaces.msg import SimTruth, StereoExtrinsics
 from lsu_interfaces.srv import CaptureStereo
+from tf2_msgs.msg import TFMessage
 
-from .calib_io import (CalibrationError, CalibrationSet, CalibrationSizeError, CameraCalibration, read_calibration_dir,
-                       read_camera_yaml)
+from .calib_io import (
+    CalibrationError,
+    CalibrationSet,
+    CalibrationSizeError,
+    CameraCalibration,
+    read_calibration_dir,
+    read_camera_yaml,
+)
 from .frames import TrackGeometry, rig_transforms, transform_msg
 from .paths import config_dir
 from .polled import PolledGroup, take_latest
@@ -42,7 +49,7 @@ from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSou
 SOURCES = ("sim", "v4l2", "folder")
 
 
-def image_msg(image: np.ndarray, stamp: Time, frame_id: str) -> Image:
+def image_msg(image: AnyArray, stamp: Time, frame_id: str) -> Image:
     """A bgr8 sensor_msgs/Image of an HxWx3 uint8 array."""
     msg = Image()
     msg.header.stamp = stamp
@@ -115,9 +122,9 @@ class StereoCameraNode(Node):
         self._lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._truth_lock = threading.Lock()
-        self._truth_msg: Optional[SimTruth] = None
-        self.source: Optional[StereoSource] = None
-        self.calibration: Optional[CalibrationSet] = None
+        self._truth_msg: SimTruth | None = None
+        self.source: StereoSource | None = None
+        self.calibration: CalibrationSet | None = None
         self.status_level = DiagnosticStatus.OK
         self.status_message = "ok"
 
@@ -129,7 +136,7 @@ class StereoCameraNode(Node):
         # then always names an image, as image pipelines expect
         self.pub_info_left = self.create_publisher(CameraInfo, "stereo/left/camera_info", sensor_qos)
         self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", sensor_qos)
-        self._info: Optional[Tuple[CameraInfo, CameraInfo]] = None
+        self._info: tuple[CameraInfo, CameraInfo] | None = None
         self.pub_extrinsics = self.create_publisher(StereoExtrinsics, "stereo/extrinsics", latched)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", latched)  # tf2's static QoS
@@ -151,7 +158,7 @@ class StereoCameraNode(Node):
         self.status_level, self.status_message = DiagnosticStatus.ERROR, message
         self.get_logger().error(message)
 
-    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
         for p in params:
             if p.name == "source" and p.value not in SOURCES:
                 return SetParametersResult(successful=False, reason=f"source must be one of {', '.join(SOURCES)}")
@@ -160,7 +167,7 @@ class StereoCameraNode(Node):
         return SetParametersResult(successful=True)
 
     @property
-    def _truth(self) -> Optional[SimTruth]:
+    def _truth(self) -> SimTruth | None:
         """The newest ``sim/truth`` received (None before the first), taken from the reader on demand."""
         with self._truth_lock:  # one reader, and `lsu run` may call this from several executor threads
             latest = take_latest(self._truth_sub)
@@ -168,7 +175,7 @@ class StereoCameraNode(Node):
                 self._truth_msg = latest
             return self._truth_msg
 
-    def _sim_carriage(self, t: float) -> "CarriageState":  # noqa: F821
+    def _sim_carriage(self, t: float) -> CarriageState:  # noqa: F821
         from .sim import CarriageState
 
         truth = self._truth
@@ -353,10 +360,10 @@ class StereoCameraNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``stereo_camera``."""
     rclpy.init(args=args)
-    node: Optional[StereoCameraNode] = None
+    node: StereoCameraNode | None = None
     try:
         # built inside the try: opening the simulated rig takes seconds, and a Ctrl-C meanwhile is a normal end
         node = StereoCameraNode()

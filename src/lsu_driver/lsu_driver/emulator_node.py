@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Any, List, Optional
+from typing import Any
 
 import rclpy
 from builtin_interfaces.msg import Time
@@ -139,7 +139,7 @@ class Gp32EmulatorNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``gp32_emulator``."""
     rclpy.init(args=sys.argv if args is None else args)
     node = Gp32EmulatorNode()

@@ -14,20 +14,20 @@ from __future__ import annotations
 
 import sys
 import threading
-from typing import Any, List, Optional
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import TransformStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
-from geometry_msgs.msg import TransformStamped
 from std_srvs.srv import SetBool, Trigger
-from tf2_msgs.msg import TFMessage
 
 from lsu_interfaces.msg import CarriagePosition, ScannerState
 from lsu_interfaces.srv import MoveTo, Step
+from tf2_msgs.msg import TFMessage
 
 from . import protocol as p
 from .client import DeviceError, Gp32Client, Gp32Error, MotionResult, NotConnected
@@ -74,11 +74,11 @@ class Gp32DriverNode(Node):
         self._lock = threading.Lock()
         self.laser_on = False
         self.moving = False
-        self.target: Optional[int] = None
+        self.target: int | None = None
         self.fault = ""
         self.reconnects = 0
         self.counts = {"malformed": 0}
-        self._last_state: Optional[tuple] = None
+        self._last_state: tuple | None = None
         self._auto_homed = False
 
         services = ReentrantCallbackGroup()  # a move may block while stop and state keep going
@@ -167,8 +167,8 @@ class Gp32DriverNode(Node):
             self._publish_carriage(event.position, event.device_ms, False, "done")
         self._publish_state(force=True)
 
-    def _publish_carriage(self, position: int, device_ms: Optional[int], moving: bool, source: str,
-                          bracket: Optional[tuple] = None) -> None:
+    def _publish_carriage(self, position: int, device_ms: int | None, moving: bool, source: str,
+                          bracket: tuple | None = None) -> None:
         """One timed position: a device stamp mapped to ROS time (v2), or the middle of a round trip."""
         if device_ms is not None:
             mapped = self.client.map_device_ms(device_ms)
@@ -388,7 +388,7 @@ class Gp32DriverNode(Node):
             response.success, response.message = False, str(exc)
         return response
 
-    def _on_set_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _on_set_parameters(self, params: list[Any]) -> SetParametersResult:
         for param in params:
             try:
                 if param.name == "step_rate_steps_per_s":
@@ -424,7 +424,7 @@ class Gp32DriverNode(Node):
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``gp32_driver``."""
     rclpy.init(args=sys.argv if args is None else args)
     node = Gp32DriverNode()

@@ -9,24 +9,25 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Dict, Tuple, Union
 
 import cv2
 import numpy as np
 
-BufferLike = Union[bytes, bytearray, memoryview, np.ndarray]
+from lsu_common.arrays import AnyArray
+
+BufferLike = bytes | bytearray | memoryview | AnyArray
 
 # OpenCV names Bayer patterns after the 2x2 block starting at pixel (1, 1), ROS after the one
 # at (0, 0); so ROS "rggb" is OpenCV "BG" (the same table cv_bridge uses).
-_BAYER_TO_BGR: Dict[str, int] = {
+_BAYER_TO_BGR: dict[str, int] = {
     "bayer_rggb8": cv2.COLOR_BayerBG2BGR,
     "bayer_bggr8": cv2.COLOR_BayerRG2BGR,
     "bayer_gbrg8": cv2.COLOR_BayerGR2BGR,
     "bayer_grbg8": cv2.COLOR_BayerGB2BGR,
 }
-_CHANNELS: Dict[str, int] = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, **{k: 1 for k in _BAYER_TO_BGR}}
+_CHANNELS: dict[str, int] = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, **{k: 1 for k in _BAYER_TO_BGR}}
 
-SUPPORTED_ENCODINGS: Tuple[str, ...] = tuple(sorted(_CHANNELS))
+SUPPORTED_ENCODINGS: tuple[str, ...] = tuple(sorted(_CHANNELS))
 
 
 class ImageFormatError(ValueError):
@@ -119,7 +120,7 @@ def parse_image_cdr(raw: BufferLike) -> ImageCdr:
     return ImageCdr(sec, nanosec, frame_id, height, width, encoding, is_bigendian, step, data)
 
 
-def decode_image(data: BufferLike, width: int, height: int, encoding: str, step: int = 0) -> np.ndarray:
+def decode_image(data: BufferLike, width: int, height: int, encoding: str, step: int = 0) -> AnyArray:
     """An image buffer as a BGR (H, W, 3) or mono (H, W) uint8 array.
 
     Args:
@@ -162,7 +163,7 @@ def decode_image(data: BufferLike, width: int, height: int, encoding: str, step:
     return cv2.cvtColor(np.ascontiguousarray(pixels), cv2.COLOR_RGBA2BGR)
 
 
-def encode_image(bgr: np.ndarray, encoding: str) -> bytes:
+def encode_image(bgr: AnyArray, encoding: str) -> bytes:
     """Inverse of `decode_image` for tests and tools: BGR (or mono) uint8 -> packed buffer of ``encoding``.
 
     Bayer encodings sample the colour image on the named 2x2 pattern (no interpolation).

@@ -23,7 +23,7 @@ from __future__ import annotations
 import datetime as _dt
 import sys
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -117,7 +117,7 @@ class FaceProcessorNode(Node):
         declare("marker_max_triangles", 60000, "triangles sent in the scan/mesh Marker (0 = all)")
         self.add_on_set_parameters_callback(self._check_parameters)
 
-        self.latest: Optional[ScanResult] = None
+        self.latest: ScanResult | None = None
         self.scan_id = ""
         self.scan_dir = ""
         self.processed = 0
@@ -134,7 +134,7 @@ class FaceProcessorNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
 
     # ------------------------------------------------------------------ parameters
-    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _check_parameters(self, params: list[Any]) -> SetParametersResult:
         choices = {"smoothing": SMOOTH_METHODS, "nose_method": NOSE_METHODS, "signature_method": SIGNATURE_METHODS}
         for p in params:
             if p.name in choices and p.value not in choices[p.name]:
@@ -208,7 +208,7 @@ class FaceProcessorNode(Node):
             tip = result.frame.origin if result.frame is not None else result.nose.tip
             self.nose_pub.publish(PointStamped(header=header, point=Point(x=float(tip[0]), y=float(tip[1]),
                                                                           z=float(tip[2]))))
-        files: List[Path] = []
+        files: list[Path] = []
         if result.mesh is not None and bool(self._value("write_files")):
             try:
                 files = write_outputs(result, self._folder(), int(self._value("render_size_px")))
@@ -225,7 +225,7 @@ class FaceProcessorNode(Node):
             what += f", {len(files)} files in {files[0].parent}"
         self.get_logger().info(what)
 
-    def _process_msg(self, msg: PointCloud2) -> Optional[ScanResult]:
+    def _process_msg(self, msg: PointCloud2) -> ScanResult | None:
         from lsu_reconstruct.pointcloud2 import Cloud, PointField, decode
 
         cloud = Cloud(fields=[PointField(f.name, f.offset, f.datatype, f.count) for f in msg.fields],
@@ -326,7 +326,7 @@ class FaceProcessorNode(Node):
         self.diag_pub.publish(diag)
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``face_processor``."""
     rclpy.init(args=sys.argv if args is None else args)
     node = FaceProcessorNode()

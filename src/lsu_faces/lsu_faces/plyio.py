@@ -10,9 +10,10 @@ properties of any type, and an optional ``face`` element of vertex index lists.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, Optional, Tuple
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["PlyError", "read_ply"]
 
@@ -28,7 +29,7 @@ class PlyError(ValueError):
     """The file is not a PLY this reader understands; the message names the file and the problem."""
 
 
-def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.ndarray]]:
+def read_ply(path: str | Path) -> tuple[dict[str, AnyArray], AnyArray | None]:
     """(vertex columns by property name, faces (M, 3) int64 or None) of a PLY file."""
     path = Path(path)
     if not path.is_file():
@@ -59,8 +60,8 @@ def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.nda
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise PlyError(f"{path}: unsupported PLY format '{fmt}'")
     order = "<" if fmt != "binary_big_endian" else ">"
-    vertices: Dict[str, np.ndarray] = {}
-    faces: Optional[np.ndarray] = None
+    vertices: dict[str, AnyArray] = {}
+    faces: AnyArray | None = None
     if fmt == "ascii":
         tokens = raw[body_start:].split()
         pos = 0
@@ -111,13 +112,13 @@ def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.nda
     return _checked(vertices, faces, path)
 
 
-def _triangles(rows: list, path: Path) -> np.ndarray:
+def _triangles(rows: list, path: Path) -> AnyArray:
     if any(len(r) != 3 for r in rows):
         raise PlyError(f"{path}: only triangle faces are supported")
     return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
 
 
-def _checked(vertices: Dict[str, np.ndarray], faces: Optional[np.ndarray], path: Path):
+def _checked(vertices: dict[str, AnyArray], faces: AnyArray | None, path: Path):
     if not all(k in vertices for k in ("x", "y", "z")):
         raise PlyError(f"{path}: the vertex element has no x, y, z properties")
     n = len(vertices["x"])

@@ -15,9 +15,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .matching import LineArrays, MatchParams
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
@@ -52,7 +54,7 @@ def lsu_typestore() -> Any:
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
-    types: Dict[str, Any] = {}
+    types: dict[str, Any] = {}
     for path in sorted(interfaces_msg_dir().glob("*.msg")):
         types.update(get_types_from_msg(path.read_text(), f"lsu_interfaces/msg/{path.stem}"))
     store.register(types)
@@ -69,7 +71,7 @@ def _line(msg: Any) -> LineArrays:
                       image_width=int(msg.image_width), image_height=int(msg.image_height))
 
 
-def _image(msg: Any) -> np.ndarray:
+def _image(msg: Any) -> AnyArray:
     channels = {"bgr8": 3, "rgb8": 3, "mono8": 1}
     if msg.encoding not in channels:
         raise BagError(f"texture image encoding '{msg.encoding}' is not supported (bgr8, rgb8, mono8)")
@@ -81,7 +83,7 @@ def _image(msg: Any) -> np.ndarray:
     return img[:, :, ::-1] if msg.encoding == "rgb8" else img
 
 
-def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineArrays]], Optional[np.ndarray], Dict[str, int]]:
+def read_bag(path: str | Path) -> tuple[list[tuple[int, int, LineArrays, LineArrays]], AnyArray | None, dict[str, int]]:
     """Stereo laser-line pairs of a bag: ``[(snap, stamp_ns, left, right)]``, the texture image (or None), counts."""
     from rosbags.highlevel import AnyReader
 
@@ -89,9 +91,9 @@ def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineA
     if not path.exists():
         raise FileNotFoundError(f"bag {path} not found")
     store = lsu_typestore()
-    lines: Dict[str, Dict[int, LineArrays]] = {"left": {}, "right": {}}
-    snaps: Dict[int, int] = {}
-    texture_keys: List[int] = []
+    lines: dict[str, dict[int, LineArrays]] = {"left": {}, "right": {}}
+    snaps: dict[int, int] = {}
+    texture_keys: list[int] = []
     try:
         with AnyReader([path], default_typestore=store) as reader:
             wanted = {}
@@ -140,7 +142,7 @@ def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineA
     return pairs, texture, counts
 
 
-def read_pairs(folder: "str | Path") -> List[Tuple[int, int, LineArrays, LineArrays]]:
+def read_pairs(folder: str | Path) -> list[tuple[int, int, LineArrays, LineArrays]]:
     """Laser lines of ``left_*.png`` / ``right_*.png`` image pairs (same suffix), found by lsu_extract's detector."""
     try:
         from lsu_extract.extractor import extract_laser_line
@@ -170,7 +172,7 @@ def read_pairs(folder: "str | Path") -> List[Tuple[int, int, LineArrays, LineArr
     return pairs
 
 
-def write_ply(path: "str | Path", cloud: SnapPoints) -> Path:
+def write_ply(path: str | Path, cloud: SnapPoints) -> Path:
     """Binary little-endian PLY with x y z (float, metres), red green blue (uchar), u v (float), snap (uint)."""
     path = Path(path)
     n = len(cloud)
@@ -214,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu reconstruct` (``lsu.commands`` entry point)."""
     defaults = MatchParams()
     p = subparsers.add_parser("reconstruct", help="laser lines of a recorded scan -> point cloud (PLY)",

@@ -23,7 +23,6 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Tuple
 
 import numpy as np
 import yaml
@@ -43,15 +42,15 @@ class LaserSheetError(ValueError):
 class LaserSheet:
     """The fitted sheet and how well it fits."""
 
-    normal: Tuple[float, float, float]  # unit normal, left optical frame
+    normal: tuple[float, float, float]  # unit normal, left optical frame
     c0_m: float                          # plane offset at position 0 [m]
     m_per_step: float                    # offset change per carriage step [m]
     residual_mm: float                   # RMS point-to-sheet distance of the kept points [mm]
     points: int                          # points kept by the fit
     rejected: int                        # points trimmed as outliers
-    positions: Tuple[int, int]           # carriage range the points came from [steps]
+    positions: tuple[int, int]           # carriage range the points came from [steps]
 
-    def plane(self, position_steps: float) -> Tuple[FloatArray, float]:
+    def plane(self, position_steps: float) -> tuple[FloatArray, float]:
         """(n, c) with the sheet's centre plane ``n . X = c`` at ``position_steps``."""
         return np.asarray(self.normal, float), float(self.c0_m + self.m_per_step * position_steps)
 
@@ -72,7 +71,7 @@ class LaserSheet:
         return o + t[:, None] * d
 
 
-def _solve(points: FloatArray, positions: FloatArray) -> Tuple[FloatArray, float, float, FloatArray]:
+def _solve(points: FloatArray, positions: FloatArray) -> tuple[FloatArray, float, float, FloatArray]:
     """Least-squares (n, c0, k) and the eigenvalues of the reduced problem (ascending)."""
     design = np.column_stack([np.ones_like(positions), positions])
     # project the point coordinates off span{1, p}: what c0 + k p cannot explain
@@ -127,14 +126,14 @@ def fit_laser_sheet(points: FloatArray, positions: FloatArray, trim_sigmas: floa
                       positions=(int(p.min()), int(p.max())))
 
 
-def write_laser_yaml(sheet: LaserSheet, path: "str | Path") -> Path:
+def write_laser_yaml(sheet: LaserSheet, path: str | Path) -> Path:
     """``laser.yaml`` beside left/right/stereo.yaml (same folder, readable by every user: 0644)."""
     path = Path(path)
     data = {"model": "translating_plane", "frame_id": "lsu_left_optical",
             "normal": [round(v, 9) for v in sheet.normal], "c0_m": round(sheet.c0_m, 9),
             "m_per_step": round(sheet.m_per_step, 12), "residual_mm": round(sheet.residual_mm, 4),
             "points": sheet.points, "rejected": sheet.rejected, "positions": list(sheet.positions),
-            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     text = ("# Laser light sheet: n . X = c0_m + m_per_step * position_steps (left optical frame, metres).\n"
             + yaml.safe_dump(data, sort_keys=False))
     path.write_text(text)
@@ -142,7 +141,7 @@ def write_laser_yaml(sheet: LaserSheet, path: "str | Path") -> Path:
     return path
 
 
-def read_laser_yaml(path: "str | Path") -> LaserSheet:
+def read_laser_yaml(path: str | Path) -> LaserSheet:
     """The sheet written by `write_laser_yaml`; LaserSheetError naming the file when it is not one."""
     path = Path(path)
     try:

@@ -19,7 +19,7 @@ import struct
 import sys
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -34,6 +34,7 @@ from sensor_msgs.msg import PointField as RosPointField
 from std_msgs.msg import Header
 
 from lsu_cameras.polled import PolledGroup, take_all
+from lsu_common.arrays import AnyArray
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
 from .matching import LineArrays, MatchParams, prepare
@@ -75,14 +76,14 @@ def msg_to_cloud(msg: PointCloud2) -> Cloud:
 
 def line_from_msg(msg: LaserLine) -> LineArrays:
     """lsu_interfaces/LaserLine -> :class:`LineArrays`."""
-    def arr(values: Any) -> np.ndarray:
+    def arr(values: Any) -> AnyArray:
         return np.frombuffer(values, dtype=np.float32).astype(np.float64) if len(values) else np.zeros(0)
 
     return LineArrays(u=arr(msg.u), v=arr(msg.v), peak=arr(msg.peak), width=arr(msg.width),
                       quality=arr(msg.quality), image_width=msg.image_width, image_height=msg.image_height)
 
 
-def image_to_array(msg: Image) -> np.ndarray:
+def image_to_array(msg: Image) -> AnyArray:
     """bgr8 / rgb8 / mono8 sensor_msgs/Image -> HxWx3 bgr uint8 array."""
     channels = {"bgr8": 3, "rgb8": 3, "mono8": 1, "bgra8": 4, "rgba8": 4}
     if msg.encoding not in channels:
@@ -116,11 +117,11 @@ def _cdr_stamp_key(raw: bytes) -> int:
 class _Scan:
     scan_id: str
     expected: int
-    snaps: Dict[int, SnapPoints] = field(default_factory=dict)
-    texture_key: Optional[int] = None
-    texture: Optional[np.ndarray] = None
+    snaps: dict[int, SnapPoints] = field(default_factory=dict)
+    texture_key: int | None = None
+    texture: AnyArray | None = None
     frames_after_texture: int = 0        # left frames seen stamped after the texture's, while it is missing
-    end_type: Optional[int] = None       # FINISHED or ABORTED once known
+    end_type: int | None = None       # FINISHED or ABORTED once known
     end_reason: str = ""
     end_time_s: float = 0.0
     published: bool = False
@@ -156,22 +157,22 @@ class StereoMatcherNode(Node):
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(lambda _: self._use_params(self._match_params()))
 
-        self.model: Optional[StereoModel] = None
+        self.model: StereoModel | None = None
         self.calibration_error = ""
         self._use_params(self._match_params())
-        self.left: "OrderedDict[int, LaserLine]" = OrderedDict()
-        self.right: "OrderedDict[int, LaserLine]" = OrderedDict()
+        self.left: OrderedDict[int, LaserLine] = OrderedDict()
+        self.right: OrderedDict[int, LaserLine] = OrderedDict()
         self.unmatched = {"left": 0, "right": 0}
         self.pairs = 0
         self.points_last = 0
         self.errors = 0
         self.last_error = ""
         self.free_snap = 0
-        self.scan: Optional[_Scan] = None
-        self.snap_of_stamp: Dict[int, int] = {}
-        self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
-        self._camera_info: Dict[str, CameraInfo] = {}
-        self._extrinsics: Optional[StereoExtrinsics] = None
+        self.scan: _Scan | None = None
+        self.snap_of_stamp: dict[int, int] = {}
+        self.waiting: OrderedDict[int, SnapPoints] = OrderedDict()  # pairs whose SNAP event is not in yet
+        self._camera_info: dict[str, CameraInfo] = {}
+        self._extrinsics: StereoExtrinsics | None = None
 
         self.points_pub = self.create_publisher(PointCloud2, "points", 10)
         self.cloud_pub = self.create_publisher(PointCloud2, "scan/cloud", LATCHED)
@@ -215,7 +216,7 @@ class StereoMatcherNode(Node):
         prepare(params)  # caches filled now, not on the first snap
         self.params = params
 
-    def _check_parameters(self, params: List[Any]) -> SetParametersResult:
+    def _check_parameters(self, params: list[Any]) -> SetParametersResult:
         for param in params:
             if param.name == "triangulation" and param.value not in METHODS:
                 return SetParametersResult(successful=False, reason=f"triangulation must be one of {', '.join(METHODS)}")
@@ -449,12 +450,12 @@ class StereoMatcherNode(Node):
         self.diag_pub.publish(diag)
 
 
-def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str, np.ndarray]:
+def decode_msg(msg: PointCloud2, names: list[str] | None = None) -> dict[str, AnyArray]:
     """Columns of a sensor_msgs/PointCloud2 (any layout) as numpy arrays."""
     return decode(msg_to_cloud(msg), names)
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``stereo_matcher``."""
     rclpy.init(args=sys.argv if args is None else args)
     node = StereoMatcherNode()

@@ -21,7 +21,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Any, Dict, List, Optional, Set
+from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
@@ -47,7 +47,7 @@ class _Listener:
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.subscribers: Dict[int, Set[int]] = {}  # channel id -> client ids
+        self.subscribers: dict[int, set[int]] = {}  # channel id -> client ids
         self.changed = threading.Event()
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
@@ -60,7 +60,7 @@ class _Listener:
             self.subscribers.get(channel.id, set()).discard(client.id)
         self.changed.set()
 
-    def watched(self) -> Set[int]:
+    def watched(self) -> set[int]:
         with self.lock:
             return {cid for cid, clients in self.subscribers.items() if clients}
 
@@ -94,11 +94,11 @@ class FoxgloveBridgeNode(Node):
         self._image_limiter = RateLimiter(float(self.get_parameter("image_max_hz").value))
         self.add_on_set_parameters_callback(self._on_set)
         self._bag_types = BagTypes()
-        self._fx_offers: Dict[str, TopicOffer] = {}
-        self._fx_channels: Dict[str, Any] = {}  # topic -> foxglove Channel
-        self._fx_topic_of: Dict[int, str] = {}  # channel id -> topic
-        self._ros_subs: Dict[str, Any] = {}  # topic -> rclpy subscription (only while watched)
-        self._skipped_topics: Set[str] = set()
+        self._fx_offers: dict[str, TopicOffer] = {}
+        self._fx_channels: dict[str, Any] = {}  # topic -> foxglove Channel
+        self._fx_topic_of: dict[int, str] = {}  # channel id -> topic
+        self._ros_subs: dict[str, Any] = {}  # topic -> rclpy subscription (only while watched)
+        self._skipped_topics: set[str] = set()
         self._fx_listener = _Listener()
         self._fx_context = Context()
         host = str(self.get_parameter("host").value)
@@ -121,7 +121,7 @@ class FoxgloveBridgeNode(Node):
         self.poll_graph()
 
     # -- parameters ------------------------------------------------------------------------------
-    def _on_set(self, params: List[Any]) -> SetParametersResult:
+    def _on_set(self, params: list[Any]) -> SetParametersResult:
         for p in params:
             if p.name == "image_max_hz":
                 self._image_limiter.max_hz = float(p.value)  # the descriptor's range already refused < 0
@@ -129,7 +129,7 @@ class FoxgloveBridgeNode(Node):
 
     # -- graph -> channels -----------------------------------------------------------------------
     @property
-    def offers(self) -> Dict[str, TopicOffer]:
+    def offers(self) -> dict[str, TopicOffer]:
         """Topic -> what is advertised for it."""
         return dict(self._fx_offers)
 
@@ -191,7 +191,7 @@ class FoxgloveBridgeNode(Node):
         limiter = self._image_limiter if offer.kind == "image" else None
         topic = offer.topic
 
-        def on_message(data: bytes, info: Dict[str, Any]) -> None:
+        def on_message(data: bytes, info: dict[str, Any]) -> None:
             if limiter is not None and not limiter.allow(topic, time.monotonic()):
                 return
             channel.log(data, log_time=int(info.get("received_timestamp") or 0) or time.time_ns())
@@ -199,18 +199,18 @@ class FoxgloveBridgeNode(Node):
         return on_message
 
     @property
-    def watched_topics(self) -> List[str]:
+    def watched_topics(self) -> list[str]:
         """Topics the bridge is subscribed to right now (a client watches them)."""
         return sorted(self._ros_subs)
 
     def destroy_node(self) -> None:
-        server: Optional[Any] = getattr(self, "server", None)
+        server: Any | None = getattr(self, "server", None)
         if server is not None:
             server.stop()
         super().destroy_node()
 
 
-def main(args: Optional[List[str]] = None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Console script ``foxglove_bridge``."""
     rclpy.init(args=sys.argv if args is None else args)
     try:
