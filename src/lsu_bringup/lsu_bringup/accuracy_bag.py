@@ -123,6 +123,7 @@ def read_board_scans(bag: Path, skip: Callable[[str], None] | None = None) -> It
                             f"cameras' images; record with `lsu scan --record` (it has: {', '.join(sorted(topics))})")
     types = BagTypes()
     scans: dict[str, dict] = {}
+    assert events is not None  # else missing above
     for message in read_messages(bag, [events]):
         ev = deserialize(message, types)
         key = int(ev.image_stamp.sec) * 10**9 + int(ev.image_stamp.nanosec)
@@ -133,8 +134,8 @@ def read_board_scans(bag: Path, skip: Callable[[str], None] | None = None) -> It
             scan["snaps"][key] = int(ev.index)
     wanted = {key for s in scans.values() for key in [s["texture"], *s["snaps"]] if key is not None}
     frames: dict[tuple[str, int], AnyArray] = {}
-    side_of = {topic: side for side, topic in images.items()}
-    for message in read_messages(bag, list(images.values())):
+    side_of = {topic: side for side, topic in images.items() if topic is not None}
+    for message in read_messages(bag, list(side_of)):
         msg = deserialize(message, types)
         key = int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
         if key in wanted:
@@ -144,7 +145,7 @@ def read_board_scans(bag: Path, skip: Callable[[str], None] | None = None) -> It
     for scan_id, scan in scans.items():
         name = scan_id if folder == scan_id else f"{folder}:{scan_id}"
         problem = ""
-        tex = (None, None)
+        tex: tuple[AnyArray | None, AnyArray | None] = (None, None)
         if scan["texture"] is None:
             problem = (f"{name}: no laser-off (TEXTURE) pair, so the board cannot be detected; scan with texture on "
                        f"(the default of `lsu scan`)")
@@ -159,8 +160,10 @@ def read_board_scans(bag: Path, skip: Callable[[str], None] | None = None) -> It
             continue
         pairs = [(index, frames[("left", key)], frames[("right", key)]) for key, index in sorted(scan["snaps"].items())
                  if ("left", key) in frames and ("right", key) in frames]
+        left_tex, right_tex = tex
+        assert left_tex is not None and right_tex is not None  # else a problem above
         if pairs:
-            yield BoardScan(name, (tex[0], tex[1]), pairs)
+            yield BoardScan(name, (left_tex, right_tex), pairs)
 
 
 def _solve(image: AnyArray, board, K: AnyArray, D: AnyArray) -> tuple[AnyArray, AnyArray, float] | None:

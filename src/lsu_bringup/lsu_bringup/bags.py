@@ -417,7 +417,7 @@ class BagWriter:
 
 
 # ----------------------------------------------------------------------------- reader
-_READ_ERRORS: tuple[type, ...] = (ReaderError, OSError, EOFError, KeyError, IndexError, AssertionError,
+_READ_ERRORS: tuple[type[Exception], ...] = (ReaderError, OSError, EOFError, KeyError, IndexError, AssertionError,
                                   struct.error, ValueError, TypeError)
 try:  # sqlite3 storage errors come from apsw (a rosbags dependency)
     import apsw

@@ -189,7 +189,7 @@ def multi_host_checks(env: Mapping[str, str], report: EnvReport | None = None) -
             checks.append(Check("FAIL", "multi-host peer", f"{peer} does not resolve to an IPv4 address; write "
                                 f"the other PC's address in {PEERS_VAR}"))
             continue
-        source = route_to(target)
+        source = route_to(str(target))
         if source is None:
             checks.append(Check("FAIL", "multi-host peer", f"{peer} ({target}): no route from this machine; "
                                 "connect the network / check the address"))

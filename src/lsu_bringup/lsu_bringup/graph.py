@@ -348,7 +348,8 @@ def _value_to_python(value: Any) -> Any:
     from rclpy.parameter import parameter_value_to_python
 
     result = parameter_value_to_python(value)
-    return list(result) if isinstance(result, (tuple, array_types())) else result
+    # array.array and ndarray are iterable; mypy cannot tell from the tuple built at run time
+    return list(result) if isinstance(result, (tuple, array_types())) else result  # type: ignore[call-overload]
 
 
 def array_types() -> tuple[type, ...]:

@@ -136,7 +136,7 @@ class Launcher:
                 child.reader.join(timeout=1.0)
         left = self._alive()
         if left:
-            self.say(f"could not stop: {', '.join(f'{c.spec.label} pid {c.process.pid}' for c in left)}")
+            self.say(f"could not stop: {', '.join(f'{c.spec.label} pid {c.process.pid}' for c in left if c.process)}")
         else:
             self.say("all nodes stopped")
 

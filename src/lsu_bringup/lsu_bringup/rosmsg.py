@@ -23,7 +23,7 @@ class InterfaceError(ValueError):
     """An interface type name that cannot be resolved, or data that does not fit a message."""
 
 
-def get_interface(type_name: str, kind: str | None = None) -> type:
+def get_interface(type_name: str, kind: str | None = None) -> type[Any]:
     """Class of ``pkg/msg/Name`` (or ``pkg/Name`` with ``kind`` = msg/srv/action).
 
     Raises:

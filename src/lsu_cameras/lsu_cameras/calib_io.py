@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import yaml
 
-from lsu_common.arrays import AnyArray
+from lsu_common.arrays import AnyArray, FloatArray
 
 __all__ = [
     "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
@@ -123,7 +123,7 @@ class StereoCalibration:
         return float(np.linalg.norm(self.translation))
 
 
-def skew(v: AnyArray) -> AnyArray:
+def skew(v: AnyArray) -> FloatArray:
     """Cross-product matrix [v]x with [v]x @ w == cross(v, w)."""
     x, y, z = np.asarray(v, dtype=np.float64).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -160,6 +160,7 @@ def _matrix(rows: int, cols: int, data: AnyArray) -> dict[str, Any]:
 
 def camera_to_dict(cal: CameraCalibration) -> dict[str, Any]:
     """The ROS camera_calibration YAML mapping of one camera."""
+    assert cal.projection_matrix is not None  # __post_init__ sets it
     return {
         "image_width": int(cal.image_width),
         "image_height": int(cal.image_height),
@@ -174,6 +175,7 @@ def camera_to_dict(cal: CameraCalibration) -> dict[str, Any]:
 
 def stereo_to_dict(cal: StereoCalibration) -> dict[str, Any]:
     """The ``stereo.yaml`` mapping of CONTRIBUTING.md."""
+    assert cal.essential is not None  # __post_init__ sets it
     out: dict[str, Any] = {
         "image_width": int(cal.image_width),
         "image_height": int(cal.image_height),
@@ -222,7 +224,7 @@ def check_extrinsics(R: AnyArray, T: AnyArray, source: str) -> None:
 def _same_up_to_scale(a: AnyArray, b: AnyArray, tol: float) -> bool:
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    return min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol
+    return bool(min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol)
 
 
 def check_epipolar(K1: AnyArray, K2: AnyArray, R: AnyArray, T: AnyArray, E: AnyArray | None,
@@ -257,7 +259,7 @@ def _load_yaml(path: Path) -> dict[str, Any]:
     return data
 
 
-def _read_matrix(path: Path, data: dict[str, Any], key: str, shape: tuple[int, int]) -> AnyArray:
+def _read_matrix(path: Path, data: dict[str, Any], key: str, shape: tuple[int, int]) -> FloatArray:
     if key not in data:
         rows, cols = shape if shape[0] * shape[1] else (1, "N")
         raise CalibrationParseError(f"{path}: missing field '{key}'; write it as {{rows: {rows}, cols: {cols}, "
@@ -351,6 +353,7 @@ def _check_sides(path: Path, cam: CameraCalibration, expect_left: bool) -> None:
         raise CalibrationSwappedError(f"{path}: camera_name '{cam.camera_name}' says this is the {other} "
                                       f"camera; left.yaml and right.yaml look swapped")
     # a right projection matrix carries -fx' * baseline in P[0,3], a left one 0
+    assert cam.projection_matrix is not None  # __post_init__ sets it
     tx = float(cam.projection_matrix[0, 3])
     if expect_left and tx < -1e-9:
         raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {tx:.3f} (a left camera has 0, a "
@@ -401,7 +404,7 @@ def calibration_checksum(directory: os.PathLike | str) -> str:
 # ---------------------------------------------------------------------- writing
 def _atomic_write_all(files: Iterable[tuple[Path, str]]) -> None:
     """Write every file or none: all go to temporaries first, then are renamed into place (mode 0644)."""
-    staged = []
+    staged: list[tuple[Path, Path]] = []
     try:
         for path, text in files:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -411,12 +414,12 @@ def _atomic_write_all(files: Iterable[tuple[Path, str]]) -> None:
             # mkstemp creates 0600; calibration files are read by other users' nodes and tools
             os.chmod(tmp, 0o644)
             staged.append((Path(tmp), path))
-        for tmp, path in staged:
-            os.replace(tmp, path)
+        for staged_tmp, target in staged:
+            os.replace(staged_tmp, target)
     finally:
-        for tmp, _ in staged:
-            if tmp.exists():
-                tmp.unlink()
+        for staged_tmp, _ in staged:
+            if staged_tmp.exists():
+                staged_tmp.unlink()
 
 
 def write_calibration_dir(directory: os.PathLike | str, left: CameraCalibration, right: CameraCalibration,

@@ -173,7 +173,7 @@ def calibrate_stereo(pairs: Sequence[tuple[str, AnyArray, AnyArray]], board: Boa
     """
     if not pairs:
         raise CalibrationError("no image pairs given")
-    sizes = {}
+    sizes: dict[tuple[int, int], list[str]] = {}
     for name, left, right in pairs:
         for side, image in (("left", left), ("right", right)):
             sizes.setdefault((image.shape[1], image.shape[0]), []).append(f"{name} ({side})")
@@ -238,10 +238,10 @@ def calibrate_stereo(pairs: Sequence[tuple[str, AnyArray, AnyArray]], board: Boa
         kept[k].reason = ""
     img_l, img_r = [img_l[k] for k in active], [img_r[k] for k in active]
     date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    left = CameraCalibration(size[0], size[1], K_l, D_l, "lsu_left")
-    right = CameraCalibration(size[0], size[1], K_r, D_r, "lsu_right")
+    left_cal = CameraCalibration(size[0], size[1], K_l, D_l, "lsu_left")
+    right_cal = CameraCalibration(size[0], size[1], K_r, D_r, "lsu_right")
     stereo = StereoCalibration(size[0], size[1], R, T.reshape(3), E, F / np.linalg.norm(F), rms_s, date)
-    return StereoCalibrationResult(left, right, stereo, float(rms_l), float(rms_r), views,
+    return StereoCalibrationResult(left_cal, right_cal, stereo, float(rms_l), float(rms_r), views,
                                    (_coverage(img_l, size), _coverage(img_r, size)))
 
 

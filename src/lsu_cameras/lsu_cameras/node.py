@@ -13,7 +13,7 @@ from __future__ import annotations
 import array
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import rclpy
@@ -46,6 +46,9 @@ from .polled import PolledGroup, take_latest
 from .profiles import ProfileError, load_profile
 from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
 
+if TYPE_CHECKING:  # the simulator is imported only when the node simulates
+    from .sim import CarriageState
+
 SOURCES = ("sim", "v4l2", "folder")
 
 
@@ -74,6 +77,7 @@ def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
     msg.d = [float(x) for x in cal.distortion_coefficients]
     msg.k = [float(x) for x in cal.camera_matrix.reshape(-1)]
     msg.r = [float(x) for x in cal.rectification_matrix.reshape(-1)]
+    assert cal.projection_matrix is not None  # CameraCalibration.__post_init__ sets it
     msg.p = [float(x) for x in cal.projection_matrix.reshape(-1)]
     return msg
 
@@ -175,7 +179,7 @@ class StereoCameraNode(Node):
                 self._truth_msg = latest
             return self._truth_msg
 
-    def _sim_carriage(self, t: float) -> CarriageState:  # noqa: F821
+    def _sim_carriage(self, t: float) -> CarriageState:
         from .sim import CarriageState
 
         truth = self._truth
@@ -257,6 +261,7 @@ class StereoCameraNode(Node):
         ext.header.frame_id = left_id
         ext.right_frame_id = right_id
         s = cal.stereo
+        assert s.essential is not None and s.fundamental is not None  # reading a calibration fills both
         ext.rotation = [float(x) for x in s.rotation.reshape(-1)]
         ext.translation = [float(x) for x in s.translation]
         ext.essential = [float(x) for x in s.essential.reshape(-1)]

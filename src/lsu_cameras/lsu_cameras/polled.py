@@ -29,7 +29,7 @@ class PolledGroup(CallbackGroup):
 
 def take_all(subscription: Any) -> list[Any]:
     """Every message waiting in a `PolledGroup` subscription's reader, oldest first (serialized bytes if raw)."""
-    taken_all = []
+    taken_all: list[Any] = []
     with subscription.handle:  # raises InvalidHandle once destroyed, like an executor's take
         while True:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)

@@ -11,12 +11,16 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 
 from lsu_common.arrays import AnyArray
 
 from .profiles import Profile, apply_profile
+
+if TYPE_CHECKING:  # the simulator is imported only when a SimSource is made
+    from .sim import CarriageState, SimulatedRig
 
 
 class CameraError(RuntimeError):
@@ -158,7 +162,7 @@ class V4l2Source(StereoSource):
         for _ in range(self.flush_frames):
             for cap in self._caps:
                 cap.grab()
-        stamps = []
+        stamps: list[tuple[float, float]] = []  # (host time, driver ms) per camera
         for side, cap in zip(("left", "right"), self._caps):
             if not cap.grab():
                 raise CameraError(f"{side} camera '{self.devices[len(stamps)]}' returned no frame (unplugged?)")
@@ -188,7 +192,7 @@ class V4l2Source(StereoSource):
 class SimSource(StereoSource):
     """The simulated rig; ``carriage(t)`` says where the carriage is at time t (from /lsu/sim/truth or a parameter)."""
 
-    def __init__(self, rig: SimulatedRig, carriage: Callable[[float], CarriageState],  # noqa: F821
+    def __init__(self, rig: SimulatedRig, carriage: Callable[[float], CarriageState],
                  clock: Callable[[], float] = time.time) -> None:
         self.rig = rig
         self.carriage = carriage

@@ -139,7 +139,7 @@ class Gp32Client:
         self._replies: queue.Queue[tuple[p.Ok | p.Err, float]] = queue.Queue()
         self._state = threading.Condition()
         self._event_seq = 0
-        self._events: list[p.Line] = []       # recent events (bounded), newest last
+        self._events: list[p.Line | _PortLostMarker] = []       # recent events (bounded), newest last
         self.last_stop_s: float | None = None  # host time of the last stop (see MotionResult.stopped_at_s)
         self.last_stop_uncertainty_s: float | None = None
         self._listeners: list[Listener] = []

@@ -526,11 +526,15 @@ class Gp32Emulator:
             else:
                 time.sleep(0.005)
             return
-        try:
-            readable, _, _ = select.select([master], [], [], self._idle_timeout(now))
-            data = os.read(master, 4096) if readable else b""
-        except (OSError, ValueError, TypeError):
-            data = b""
+        data = b""
+        if master is None:  # no pty (closing): nothing to read; wait instead of spinning
+            time.sleep(0.005)
+        else:
+            try:
+                readable, _, _ = select.select([master], [], [], self._idle_timeout(now))
+                data = os.read(master, 4096) if readable else b""
+            except (OSError, ValueError):
+                pass  # the pty closed under us: like a line with nothing on it
         with self._lock:
             if data:
                 self._inbuf += data
@@ -643,7 +647,7 @@ class Gp32Emulator:
                     return {"ok": True, "events": list(self.timed_events)}
             fault = request.get("fault")
             if fault == "garbage":
-                self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]
+                self.inject_garbage(int(str(request.get("bytes", 16))))
             elif fault == "garbage_rate":
                 self.set_faults(garbage_probability=request.get("probability", 0.2))
             elif fault == "drop":

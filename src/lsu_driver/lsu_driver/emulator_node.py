@@ -107,7 +107,7 @@ class Gp32EmulatorNode(Node):
                                  "in (firmware/gp32/lsu.c); leave rate_steps_per_s and watchdog_ms at their "
                                  "defaults with unit:=firmware, and send S/W commands instead")
             image = build().sim_image  # make: a no-op when the image is up to date
-            self.emulator = Gp32Firmware(config, faults, link=link, control=control or f"{link}.ctl", image=image)
+            self.emulator: Gp32Emulator | Gp32Firmware = Gp32Firmware(config, faults, link=link, control=control or f"{link}.ctl", image=image)
         else:
             self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
         self.emulator.on_change = self._on_change

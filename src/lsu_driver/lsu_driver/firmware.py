@@ -559,7 +559,7 @@ class Gp32Firmware:
                 return {"ok": True, "truth": asdict(self.truth())}
             fault = request.get("fault")
             if fault == "garbage":
-                self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]
+                self.inject_garbage(int(str(request.get("bytes", 16))))
             elif fault == "reset":
                 self.reset()
             elif fault == "stall":

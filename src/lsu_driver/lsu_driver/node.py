@@ -258,7 +258,7 @@ class Gp32DriverNode(Node):
         else:
             status.level = DiagnosticStatus.OK
         status.message = self.fault or "ok"
-        values = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
+        values: dict[str, object] = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
                   "track_steps": c.track_steps, "malformed_lines": c.malformed_lines,
                   "stale_replies": c.stale_replies, "reconnects": self.reconnects, "protocol_version": c.version}
         uncertainty, drift = c.clock_uncertainty_s(), c.clock_drift_ppm()

@@ -12,6 +12,7 @@ bytes, never anything else. The same module serves the host (client) and the emu
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
 PROTOCOL_VERSION = 2
@@ -133,7 +134,7 @@ Command = (Identify | Status | Laser | GoTo | Move | Home | Sweep | Stop | SetRa
            | SetPositionRate)
 
 _INT = r"([+-]?\d{1,6})"
-_COMMAND_FORMS = [
+_COMMAND_FORMS: list[tuple[re.Pattern[str], Callable[[re.Match[str]], Command]]] = [
     (re.compile(r"\?"), lambda m: Identify()),
     (re.compile(r"P"), lambda m: Status()),
     (re.compile(r"L([01])"), lambda m: Laser(m.group(1) == "1")),
@@ -313,7 +314,7 @@ def _ms(text: str | None) -> int | None:
         raise ValueError(f"millisecond count {value} does not fit 32 bits")
     return value
 
-_LINE_FORMS = [
+_LINE_FORMS: list[tuple[re.Pattern[str], Callable[[re.Match[str]], Line]]] = [
     (re.compile(r"OK(?: ([ -~]{1,60}))?"), lambda m: Ok(m.group(1) or "")),
     (re.compile(r"ERR ([1-9]) ([ -~]{1,58})"), lambda m: Err(int(m.group(1)), m.group(2))),
     (re.compile(r"!BOOT " + DEVICE_NAME + r" v(\d{1,3})"), lambda m: Boot(int(m.group(1)))),

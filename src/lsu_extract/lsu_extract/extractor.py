@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -516,14 +517,18 @@ _NO_COLS.setflags(write=False)
 
 
 def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
-          uniqueness: AnyArray | None = None) -> dict[str, AnyArray]:
-    """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given."""
+          uniqueness: AnyArray | None = None) -> dict[str, Any]:
+    """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given.
+
+    Every entry is an array except "saturated", None when no row clipped.
+    """
+    kept: dict[str, Any]
     ok = fit["valid"]
     if ok is None:  # every row valid: nothing to drop
         kept = {name: fit[name] for name in _FIELDS}
         kept["v"] = rows
     else:
-        kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]
+        kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]  # _FIELDS are never None
         kept["v"] = rows[ok]
     saturated = fit["saturated"]
     kept["saturated"] = saturated if saturated is None or ok is None else saturated[ok]
@@ -572,11 +577,12 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)
         if threshold < params.min_contrast:
             params = _at_contrast(params, threshold)
-    chunks: list[dict[str, AnyArray]] = []
+    chunks: list[dict[str, Any]] = []
     full_searched = 0
     pending: AnyArray | None = None  # None = every row
     if params.window_px > 0:
         w = params.window_px
+        assert coarse is not None  # sampled whenever window_px > 0
         cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)

@@ -76,7 +76,8 @@ def parse_image_cdr(raw: BufferLike) -> ImageCdr:
     Raises:
         ImageFormatError: the buffer is not a whole serialized Image (truncated, bad lengths).
     """
-    view = memoryview(raw).cast("B")
+    # an ndarray exports the buffer protocol; typeshed says so only from Python 3.12 on
+    view = memoryview(raw).cast("B")  # type: ignore[arg-type]
     total = len(view)
     if total < 4 or view[0] != 0 or view[1] not in (0, 1):
         raise ImageFormatError(f"serialized Image of {total} bytes has no CDR encapsulation header; "

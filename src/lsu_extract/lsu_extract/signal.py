@@ -132,6 +132,7 @@ class LaserSignal:
         """
         pixels = self._sliding(self.image, length)[starts]
         texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
+        other: AnyArray | None
         if self.colour:
             red, other = self._planes(pixels, texture)
         else:

@@ -39,6 +39,7 @@ parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import sparse
@@ -379,7 +380,7 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
     rms_scale = 0.003 + 2.0 * noise_m
     sub = np.arange(0, len(tpl.points), 3)          # coarse stage: a third of the template
 
-    def verify(T0: AnyArray, idx: AnyArray, distances: tuple[float, ...]) -> tuple[float, object, dict[str, float]]:
+    def verify(T0: AnyArray, idx: AnyArray, distances: tuple[float, ...]) -> tuple[float, Any, dict[str, float]]:
         reg = icp_point_to_plane(tpl.points[idx], samples, snormals, T0, distances=distances, iterations=6,
                                  tree=tree, trim=0.2)
         out = reg.T[:3, 2]           # the fitted face must look at the scanner (its z axis towards the camera)
@@ -401,7 +402,7 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         return conf, reg, cover
 
     tpl_relief, tpl_narrow = _relief(tpl.points), _relief(tpl.points, 0.012, 0.02)
-    rough = []
+    rough: list[tuple[float, int, AnyArray, Any]] = []
     for c, n, q in zip(centres, normals, prominence):
         frame = face_frame(c, n)
         T0 = np.eye(4)

@@ -198,7 +198,7 @@ class Gallery:
             cur = conn.execute("INSERT INTO faces (name, signature, method, date, mesh_file, points_used) "
                                "VALUES (?, ?, ?, ?, ?, ?)", (name, blob, signature.method, date, str(mesh_file),
                                                             int(signature.points_used)))
-            return int(cur.lastrowid)
+            return int(cur.lastrowid or 0)  # set by every INSERT
 
     def list(self) -> builtins.list[GalleryEntry]:
         """Every entry, oldest first (empty when the gallery file does not exist yet)."""
@@ -218,7 +218,7 @@ class Gallery:
             if name is not None:
                 n = conn.execute("DELETE FROM faces WHERE name = ?", (name,)).rowcount
             else:
-                n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id),)).rowcount
+                n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id or 0),)).rowcount
         if n == 0:
             raise LookupError(f"gallery {self.path} has no entry {'named ' + repr(name) if name else entry_id}")
         self._vacuum()

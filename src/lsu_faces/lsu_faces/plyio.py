@@ -10,6 +10,7 @@ properties of any type, and an optional ``face`` element of vertex index lists.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,7 @@ def read_ply(path: str | Path) -> tuple[dict[str, AnyArray], AnyArray | None]:
     body_start = raw.index(b"\n", end) + 1
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     fmt = ""
-    elements = []
+    elements: list[dict[str, Any]] = []
     for line in header:
         parts = line.split()
         if not parts:
@@ -108,7 +109,7 @@ def read_ply(path: str | Path) -> tuple[dict[str, AnyArray], AnyArray | None]:
             arr = np.frombuffer(raw, dtype=dt, count=el["count"], offset=offset)
             offset += need
             if el["name"] == "vertex":
-                vertices = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name in dt.names}
+                vertices = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name in dt.names or ()}
     return _checked(vertices, faces, path)
 
 

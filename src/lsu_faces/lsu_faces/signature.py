@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.special import ndtr, ndtri
@@ -82,7 +83,7 @@ class Signature:
     def to_bytes(self) -> bytes:
         """Serialise (numpy .npz in memory): what the gallery stores."""
         buf = io.BytesIO()
-        fields = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
+        fields: dict[str, Any] = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
         np.savez_compressed(buf, data=self.data.astype(np.float32), points_used=np.array(self.points_used),
                             version=np.array(SIGNATURE_VERSION), **{f"p_{k}": v for k, v in fields.items()})
         return buf.getvalue()
@@ -97,7 +98,7 @@ class Signature:
                     raise SignatureError(f"stored signature has version {version}, this software makes version "
                                          f"{SIGNATURE_VERSION}; the two are not comparable: remove the entry and "
                                          f"enrol the person again")
-                kw = {}
+                kw: dict[str, Any] = {}
                 for k, f in SignatureParams.__dataclass_fields__.items():
                     value = z[f"p_{k}"]
                     kw[k] = str(value) if f.type in ("str", str) else value.item()

@@ -26,9 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from lsu_common.arrays import FloatArray
 
 # an acceptable sheet: its second-best direction must fit at least this much worse than the best
 MIN_CONDITION = 25.0
@@ -149,7 +148,7 @@ def read_laser_yaml(path: str | Path) -> LaserSheet:
         normal = tuple(float(v) for v in data["normal"])
         if len(normal) != 3 or abs(np.linalg.norm(normal) - 1.0) > 1e-6:
             raise ValueError("normal must be a unit vector of 3 numbers")
-        return LaserSheet(normal=normal, c0_m=float(data["c0_m"]), m_per_step=float(data["m_per_step"]),  # type: ignore[arg-type]
+        return LaserSheet(normal=normal, c0_m=float(data["c0_m"]), m_per_step=float(data["m_per_step"]),
                           residual_mm=float(data.get("residual_mm", float("nan"))), points=int(data.get("points", 0)),
                           rejected=int(data.get("rejected", 0)),
                           positions=tuple(int(v) for v in data.get("positions", (0, 0))))  # type: ignore[arg-type]

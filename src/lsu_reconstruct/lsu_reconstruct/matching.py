@@ -64,11 +64,10 @@ class LineArrays:
             value = getattr(self, name)
             if value is not None:
                 arr = np.asarray(value, dtype=np.float64).reshape(-1)
-                if arr.size == 0:
-                    arr = None  # an extractor may leave optional arrays empty
-                elif arr.size != n:
+                if arr.size not in (0, n):
                     raise LaserLineError(f"laser line '{name}' has {arr.size} entries for {n} rows")
-                setattr(self, name, arr)
+                # an extractor may leave optional arrays empty
+                setattr(self, name, arr if arr.size else None)
 
     def __len__(self) -> int:
         return int(self.u.size)

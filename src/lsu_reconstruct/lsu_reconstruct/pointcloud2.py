@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lsu_common.arrays import AnyArray
+from lsu_common.arrays import AnyArray, Float32Array, U8Image
 
 __all__ = ["PointField", "Cloud", "CloudError", "LSU_FIELDS", "layout", "encode", "decode", "pack_rgb",
            "unpack_rgb", "INT8", "UINT8", "INT16", "UINT16", "INT32", "UINT32", "FLOAT32", "FLOAT64"]
@@ -101,14 +101,14 @@ def _dtype(fields: Iterable[PointField], point_step: int, bigendian: bool,
     return np.dtype({**spec, "itemsize": point_step})
 
 
-def pack_rgb(rgb: AnyArray) -> AnyArray:
+def pack_rgb(rgb: AnyArray) -> Float32Array:
     """(N, 3) uint8 R, G, B -> (N,) float32 whose bits are 0x00RRGGBB (PCL / RViz 'rgb')."""
     rgb = np.asarray(rgb, dtype=np.uint32).reshape(-1, 3)
     bits = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
     return bits.astype("<u4").view("<f4").astype(np.float32)
 
 
-def unpack_rgb(rgb: AnyArray) -> AnyArray:
+def unpack_rgb(rgb: AnyArray) -> U8Image:
     """(N,) packed float32 'rgb' -> (N, 3) uint8 R, G, B."""
     bits = np.ascontiguousarray(rgb, dtype=np.float32).view(np.uint32)
     return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=1).astype(np.uint8)

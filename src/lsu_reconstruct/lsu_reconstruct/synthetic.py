@@ -124,7 +124,7 @@ class Plane:
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=float)
-        scale = np.linalg.norm(n)
+        scale = float(np.linalg.norm(n))
         self.normal = n / scale
         self.offset = float(self.offset) / scale
 

@@ -24,6 +24,7 @@ import threading
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
@@ -90,18 +91,18 @@ class FoxgloveClient:
         except ConnectionClosed:
             pass
 
-    def _on_text(self, msg: dict[str, object]) -> None:
+    def _on_text(self, msg: dict[str, Any]) -> None:
         op = msg.get("op")
         with self._changed:
             if op == "serverInfo":
                 self.server_info = msg
             elif op == "advertise":
-                for ch in msg["channels"]:  # type: ignore[union-attr]
+                for ch in msg["channels"]:
                     self.channels[int(ch["id"])] = AdvertisedChannel(
                         int(ch["id"]), ch["topic"], ch["encoding"], ch["schemaName"], ch.get("schema", ""),
                         ch.get("schemaEncoding", ""))
             elif op == "unadvertise":
-                for cid in msg["channelIds"]:  # type: ignore[union-attr]
+                for cid in msg["channelIds"]:
                     self.channels.pop(int(cid), None)
             self._changed.notify_all()
 

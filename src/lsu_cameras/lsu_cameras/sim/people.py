@@ -31,6 +31,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -115,10 +116,10 @@ def build_assets(makehuman_dir: str | Path, lps_dir: str | Path, out_dir: str | 
     # person frame: origin at the head centre, x subject's left (image right), y down, z away from the camera
     flip = np.array([1.0, -1.0, -1.0])
     verts_m = (V[used] - _HEAD_CENTRE_DM) * 0.1 * flip
-    arrays: dict[str, AnyArray] = {"vertices": verts_m.astype(np.float32), "triangles": tris.astype(np.int32),
+    arrays: dict[str, Any] = {"vertices": verts_m.astype(np.float32), "triangles": tris.astype(np.int32),
                                      "eye_triangle": (tri_part == 1), "nose_vertex": np.array(inv[_NOSE_VERTEX])}
     mods = json.loads((mh / "modifiers" / "modeling_modifiers.json").read_text())
-    sliders: list[dict[str, object]] = []
+    sliders: list[dict[str, Any]] = []
     names: list[str] = []
 
     def add_target(name: str, path: Path) -> None:
@@ -145,8 +146,8 @@ def build_assets(makehuman_dir: str | Path, lps_dir: str | Path, out_dir: str | 
     for unit in _EXPRESSION_UNITS:
         add_target(f"expr:{unit}", mh / "targets" / "expression" / "units" / "caucasian" / f"{unit}.target")
     arrays["sliders_json"] = np.array(json.dumps([s for s in sliders if all(f in names for f in s["files"])]))
-    files = [out / "makehuman_bust.npz"]
-    np.savez_compressed(files[0], **arrays)
+    assets = [out / "makehuman_bust.npz"]
+    np.savez_compressed(assets[0], **arrays)
     # Lee Perry-Smith: +Y up, +Z the face direction, arbitrary units -> the person frame in metres
     LV, lfaces, _ = _read_obj(lps / "LeePerrySmith.obj")
     lv = LV * _LPS_UNIT_M * flip
@@ -157,10 +158,10 @@ def build_assets(makehuman_dir: str | Path, lps_dir: str | Path, out_dir: str | 
     # origin at the cranium's middle: 0.10 m behind the nose tip, level with it
     centre = lv[nose] + np.array([0.0, -0.01, 0.10])
     lv = lv - centre
-    files.append(out / "leeperrysmith_bust.npz")
-    np.savez_compressed(files[1], vertices=lv.astype(np.float32), triangles=ltris.astype(np.int32),
+    assets.append(out / "leeperrysmith_bust.npz")
+    np.savez_compressed(assets[1], vertices=lv.astype(np.float32), triangles=ltris.astype(np.int32),
                         nose_vertex=np.array(nose))
-    return files
+    return assets
 
 
 # ------------------------------------------------------------------------------------------ assets
@@ -216,7 +217,7 @@ def _identity_weights(seed: int, sigma: float, sliders: list[dict[str, object]])
     right: dict[str, float] = {}
     for s in sliders:
         t = str(s["target"])
-        files = list(s["files"])  # type: ignore[arg-type]
+        files = [str(f) for f in s["files"]]  # type: ignore[attr-defined]
         base = t[2:] if t.startswith(("l-", "r-")) else None
         v = rng.normal(0.0, sigma)
         if base is not None and t.startswith("l-") and base in right:

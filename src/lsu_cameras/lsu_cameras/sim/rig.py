@@ -30,6 +30,7 @@ import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -89,7 +90,7 @@ class LaserTruth:
 
     def to_npz(self, path: str | os.PathLike) -> None:
         """Save as an .npz (keys: position_steps, plane_normal, plane_offset_m, {left,right}_{points_m,...})."""
-        arrays: dict[str, AnyArray] = {"position_steps": np.array(self.position_steps),
+        arrays: dict[str, Any] = {"position_steps": np.array(self.position_steps),
                                          "plane_normal": self.plane_normal, "plane_offset_m": np.array(self.plane_offset_m)}
         for side in ("left", "right"):
             cam = getattr(self, side)
@@ -384,6 +385,7 @@ class SimulatedRig:
             if state.laser_on:
                 _, offsets, origin = laser[k]
                 idx, value = self._laser_radiance(view, offsets, origin)
+                assert view.speckle is not None  # set for both views in __init__
                 speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rng)
                 if speckle is not None:
                     value *= speckle[:, None]

@@ -54,7 +54,7 @@ def uniform_albedo(bgr: Sequence[float]) -> AlbedoFn:
     return albedo
 
 
-def mottled_albedo(bgr: Sequence[float], contrast: float = 0.12, seed: int = 0, scale_m: float = 0.02) -> AlbedoFn:
+def mottled_albedo(bgr: Sequence[float] | AnyArray, contrast: float = 0.12, seed: int = 0, scale_m: float = 0.02) -> AlbedoFn:
     """A colour with a smooth, seeded 3D texture (sum of random sinusoids): paper, skin, plaster."""
     rng = np.random.default_rng(seed)
     freqs = rng.normal(size=(6, 3)) / scale_m
@@ -133,7 +133,7 @@ def board_albedo(origin: AnyArray, axis_x: AnyArray, axis_y: AnyArray, square_m:
     return albedo
 
 
-def make_board(pose_R: AnyArray, pose_t: Sequence[float], inner_corners: tuple[int, int] = (9, 6),
+def make_board(pose_R: AnyArray, pose_t: Sequence[float] | AnyArray, inner_corners: tuple[int, int] = (9, 6),
                square_m: float = 0.025, margin_squares: float = 1.0, name: str = "board") -> SceneObject:
     """A flat calibration chessboard; corners (board frame) at (i*s, j*s, 0), i < cols, j < rows.
 
