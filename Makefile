@@ -12,12 +12,13 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= $(shell echo $$(( $$$$ % 100 + 1 )))
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: help setup demo test test-faults bench lock clean distclean
+.PHONY: help setup demo lint test test-faults bench lock clean distclean
 
 help:
 	@echo "make setup   - create .venv, install pinned ROS 2 Jazzy wheels, build lsu_interfaces (idempotent)"
 	@echo "make demo    - set up if needed, run the LSU graph on the emulated unit and show what it does"
-	@echo "make test    - set up if needed, run the whole test suite"
+	@echo "make lint    - ruff check, then mypy over every package under src/ (settings: pyproject.toml)"
+	@echo "make test    - set up if needed, lint, run the whole test suite"
 	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
 	@echo "make bench   - run the benchmarks, JSON in bench/results/ and a table in bench/results/SUMMARY.md"
 	@echo "make lock    - re-resolve requirements.in into requirements.lock"
@@ -29,7 +30,12 @@ setup:
 demo: setup
 	$(LSU) demo
 
-test: setup
+# ruff over every Python file of the workspace, mypy over the packages (the file patterns are in
+# pyproject.toml, so new packages are included); mypy's cache lives in .venv
+lint: setup
+	cd $(ROOT) && $(VENV)/bin/ruff check && $(VENV)/bin/mypy
+
+test: lint
 	cd $(ROOT) && $(VENV)/bin/python -m pytest $(PYTEST_ARGS)
 
 # the fault-injection suite alone (make test runs it too); summary in test-results/faults.json

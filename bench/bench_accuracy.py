@@ -36,9 +36,8 @@ BAG_FIGURES = ("three_sigma_mm_300_smoothed", "three_sigma_mm_300_raw", "thesis_
 
 def bag_study() -> dict:
     """`lsu accuracy --bag` on simulated board bags; returns its result."""
-    from lsu_cameras.calibration import BoardSpec
-
     from lsu_accuracy.accuracy_bag import run_bag_study
+    from lsu_cameras.calibration import BoardSpec
     from lsu_testing.simbags import write_board_scan_bags
 
     calibration = Path(__file__).resolve().parents[1] / "config" / "calibration" / "sim"

@@ -28,22 +28,23 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import dataclasses  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Dict, List, Optional, Sequence, Tuple  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import open3d as o3d  # noqa: E402
 from common import RESULTS, median, time_calls, write_result  # noqa: E402
 
+from lsu_cameras.sim import RigGeometry, SceneObject, SimulatedRig, build_scene, load_rig, make_plane  # noqa: E402
+from lsu_cameras.sim.scenes import uniform_albedo  # noqa: E402
+from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_extract import devdata  # noqa: E402
 from lsu_extract.detectors import METHODS, SUBPIXEL_METHODS  # noqa: E402
 from lsu_extract.extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line  # noqa: E402
 from lsu_extract.synthetic import LineScene, render_line  # noqa: E402
-import open3d as o3d  # noqa: E402
-from lsu_cameras.sim import RigGeometry, SceneObject, SimulatedRig, build_scene, load_rig, make_plane  # noqa: E402
-from lsu_cameras.sim.scenes import uniform_albedo  # noqa: E402
 
 cv2.setNumThreads(1)
 DEFAULT_SCENE = LineScene()  # 640x480, FWHM 4 px, ambient 10 %, reddish texture, read 1 DN + shot 0.05 DN/DN
@@ -73,7 +74,7 @@ def reddish_texture(seed: int):
     radii = rng.uniform(0.0015, 0.005, 80)
     depth = rng.uniform(0.1, 0.3, 80)
 
-    def albedo(points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    def albedo(points: AnyArray, du: AnyArray, dv: AnyArray) -> AnyArray:
         wave = np.sin(points @ freqs.T + phases)
         mottle = 0.36 * wave[:, :6].mean(axis=1) + 0.10 * wave[:, 6:].mean(axis=1)
         out = base[None, :] * (1.0 + mottle[:, None])
@@ -85,7 +86,7 @@ def reddish_texture(seed: int):
     return albedo
 
 
-def _rectangle(center: np.ndarray, ax: np.ndarray, ay: np.ndarray, width_m: float, height_m: float,
+def _rectangle(center: AnyArray, ax: AnyArray, ay: AnyArray, width_m: float, height_m: float,
                name: str) -> SceneObject:
     corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.5
     verts = center + corners[:, :1] * width_m * ax + corners[:, 1:] * height_m * ay
@@ -95,7 +96,7 @@ def _rectangle(center: np.ndarray, ax: np.ndarray, ay: np.ndarray, width_m: floa
     return SceneObject(name, mesh, uniform_albedo((0.05, 0.05, 0.05)), 0.0)
 
 
-def laser_slit(geometry: RigGeometry) -> List[SceneObject]:
+def laser_slit(geometry: RigGeometry) -> list[SceneObject]:
     """Two dark plates 30 mm ahead of the track that mask the laser fan above and below +-SLIT_HALF_OPEN.
 
     They sit between the cameras (76 mm wide, clear of both fields of view: the laser-off frames
@@ -108,7 +109,7 @@ def laser_slit(geometry: RigGeometry) -> List[SceneObject]:
             for side in (-1, 1)]
 
 
-def rig_scenes() -> Dict[str, Tuple[SimulatedRig, Sequence[float], Sequence[int]]]:
+def rig_scenes() -> dict[str, tuple[SimulatedRig, Sequence[float], Sequence[int]]]:
     """name -> (rig, carriage positions, noise seeds): plane and head at default light, the ambient wall."""
     geometry = load_rig()
     bright = dataclasses.replace(geometry, lighting=dataclasses.replace(geometry.lighting, ambient=0.5))
@@ -122,12 +123,12 @@ def rig_scenes() -> Dict[str, Tuple[SimulatedRig, Sequence[float], Sequence[int]
     }
 
 
-RigFrame = Tuple[np.ndarray, np.ndarray]  # (BGR image, true laser pixels (N, 2): u, integer row v)
+RigFrame = tuple[AnyArray, AnyArray]  # (BGR image, true laser pixels (N, 2): u, integer row v)
 
 
-def rig_frames(rig: SimulatedRig, positions: Sequence[float], seeds: Sequence[int]) -> List[RigFrame]:
+def rig_frames(rig: SimulatedRig, positions: Sequence[float], seeds: Sequence[int]) -> list[RigFrame]:
     """Left and right images of each position and noise seed, with the renderer's laser pixels."""
-    frames: List[RigFrame] = []
+    frames: list[RigFrame] = []
     for position in positions:
         for seed in seeds:
             pair = rig.render(position, seed=RIG_SEED + 1000 * seed + int(position), with_truth=True)
@@ -135,7 +136,7 @@ def rig_frames(rig: SimulatedRig, positions: Sequence[float], seeds: Sequence[in
     return frames
 
 
-def score(result: LaserLineResult, truth_px: np.ndarray) -> Tuple[np.ndarray, int, int, int]:
+def score(result: LaserLineResult, truth_px: AnyArray) -> tuple[AnyArray, int, int, int]:
     """(errors of the detections within MATCH_PX of a true pixel of their row, false, missed, true rows).
 
     A row may hold several true crossings (the line jumps at a silhouette): a detection is
@@ -157,10 +158,10 @@ def score(result: LaserLineResult, truth_px: np.ndarray) -> Tuple[np.ndarray, in
     return err[good], int((~good).sum()), int(true_rows.size - np.unique(dv[good]).size), int(true_rows.size)
 
 
-def rig_accuracy(frames: List[RigFrame], method: str, params: Optional[ExtractorParams] = None) -> Dict[str, float]:
+def rig_accuracy(frames: list[RigFrame], method: str, params: ExtractorParams | None = None) -> dict[str, float]:
     """RMS column error [px], false rows [% of all rows] and missed rows [% of rows with laser] over ``frames``."""
     params = params or ExtractorParams(method=method)
-    errs: List[np.ndarray] = []
+    errs: list[AnyArray] = []
     false = missed = true_rows = all_rows = 0
     for image, truth_px in frames:
         e, f, m, t = score(extract_laser_line(image, params), truth_px)
@@ -181,7 +182,7 @@ PREVIOUS = {"method": "blais_rioux4", "contrast_sigmas": 0.0, "saturation_level"
 SATURATED_SCENE = LineScene(amplitude_dn=420.0, leak_green=0.10, leak_blue=0.08, fwhm_px=7.0)
 
 
-def dev_sets() -> Dict[str, List[devdata.DevImage]]:
+def dev_sets() -> dict[str, list[devdata.DevImage]]:
     """The real development images by set (`lsu_extract.devdata`); empty when they are not beside the repository."""
     try:
         return {"weld": devdata.weld_images(), "globe": devdata.globe_images(), "photos": devdata.photo_images(),
@@ -191,13 +192,13 @@ def dev_sets() -> Dict[str, List[devdata.DevImage]]:
         return {}
 
 
-def dev_scores(sets: Dict[str, List[devdata.DevImage]], params: ExtractorParams, texture: bool = False,
-               names: Sequence[str] = ("weld", "globe", "photos", "box")) -> Dict[str, devdata.RowScore]:
+def dev_scores(sets: dict[str, list[devdata.DevImage]], params: ExtractorParams, texture: bool = False,
+               names: Sequence[str] = ("weld", "globe", "photos", "box")) -> dict[str, devdata.RowScore]:
     """Score of ``params`` on each set (with the laser-off frame as ``texture`` where asked and present), and "all"."""
-    out: Dict[str, devdata.RowScore] = {}
+    out: dict[str, devdata.RowScore] = {}
     total = devdata.RowScore()
 
-    def run(dev: devdata.DevImage) -> Tuple[np.ndarray, np.ndarray]:
+    def run(dev: devdata.DevImage) -> tuple[AnyArray, AnyArray]:
         result = extract_laser_line(dev.image, params, texture=dev.texture if texture else None)
         return result.v, result.u
 
@@ -211,9 +212,9 @@ def dev_scores(sets: Dict[str, List[devdata.DevImage]], params: ExtractorParams,
 
 
 def saturated_error(params: ExtractorParams, frames: int = 4, scene: LineScene = SATURATED_SCENE
-                    ) -> Tuple[float, float]:
+                    ) -> tuple[float, float]:
     """RMS column error [px] and whole-pixel detections [%] on the clipped analytic line with crosstalk."""
-    errs: List[np.ndarray] = []
+    errs: list[AnyArray] = []
     whole = found = 0
     for seed in range(frames):
         image, truth, _ = render_line(scene.with_(seed=seed, texture_seed=seed))
@@ -225,10 +226,10 @@ def saturated_error(params: ExtractorParams, frames: int = 4, scene: LineScene =
     return float(np.sqrt(np.mean(err ** 2))), 100.0 * whole / max(found, 1)
 
 
-def timing_params(image: np.ndarray, params: Dict[str, ExtractorParams]) -> Dict[str, Tuple[float, float]]:
+def timing_params(image: AnyArray, params: dict[str, ExtractorParams]) -> dict[str, tuple[float, float]]:
     """Like `timing`, for named parameter sets, all interleaved with np.copy of ``image`` in the same run."""
-    runs: Dict[str, List[float]] = {name: [] for name in params}
-    copies: List[float] = []
+    runs: dict[str, list[float]] = {name: [] for name in params}
+    copies: list[float] = []
     for _ in range(5):
         copies += time_calls(lambda: np.copy(image), repeat=60)
         for name, p in params.items():
@@ -239,9 +240,9 @@ def timing_params(image: np.ndarray, params: Dict[str, ExtractorParams]) -> Dict
 
 
 # ---------------------------------------------------------------- analytic lines
-def rms_error(method: str, scene: LineScene, frames: int = FRAMES) -> Tuple[float, float]:
+def rms_error(method: str, scene: LineScene, frames: int = FRAMES) -> tuple[float, float]:
     """RMS column error [px] over detected visible rows, and the fraction of visible rows detected."""
-    errs: List[np.ndarray] = []
+    errs: list[AnyArray] = []
     found = total = 0
     for seed in range(frames):
         image, truth, visible = render_line(scene.with_(seed=seed, texture_seed=seed))
@@ -255,7 +256,7 @@ def rms_error(method: str, scene: LineScene, frames: int = FRAMES) -> Tuple[floa
     return (float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")), found / max(total, 1)
 
 
-def false_and_missed(method: str, frames: int = 10) -> Tuple[float, float]:
+def false_and_missed(method: str, frames: int = 10) -> tuple[float, float]:
     """At 50 % ambient on reddish texture with a weak reflection: false and missed rows in %.
 
     False: a detection in a row without laser, or more than 2 px from the true line.
@@ -276,14 +277,14 @@ def false_and_missed(method: str, frames: int = 10) -> Tuple[float, float]:
     return 100.0 * false / image.shape[0] / frames, 100.0 * missed / visible_rows
 
 
-def timing(image: np.ndarray, methods: Sequence[str]) -> Dict[str, Tuple[float, float]]:
+def timing(image: AnyArray, methods: Sequence[str]) -> dict[str, tuple[float, float]]:
     """Median ms per call of each method on ``image`` and its ratio to np.copy of it, timed alternately."""
-    out: Dict[str, Tuple[float, float]] = {}
-    copies: List[float] = []
+    out: dict[str, tuple[float, float]] = {}
+    copies: list[float] = []
     for method in methods:
         params = ExtractorParams(method=method)
-        runs: List[float] = []
-        mine: List[float] = []
+        runs: list[float] = []
+        mine: list[float] = []
         for _ in range(5):  # interleave so both see the same machine load
             mine += time_calls(lambda: np.copy(image), repeat=60)
             runs += time_calls(lambda: extract_laser_line(image, params), repeat=60)
@@ -293,7 +294,7 @@ def timing(image: np.ndarray, methods: Sequence[str]) -> Dict[str, Tuple[float, 
     return out
 
 
-def plot(tables: Dict[str, Tuple[str, Sequence[float], Dict[str, List[float]]]], path: Path) -> None:
+def plot(tables: dict[str, tuple[str, Sequence[float], dict[str, list[float]]]], path: Path) -> None:
     """Panels of RMS error vs a scene parameter, one polyline per method (OpenCV drawing)."""
     colours = {"thesis": (60, 60, 60), "gaussian3": (200, 120, 0), "parabola": (0, 160, 220),
                "com": (160, 0, 160), "blais_rioux4": (0, 150, 0), "blais_rioux8": (0, 0, 220), "blais_rioux": (0, 120, 120)}
@@ -325,8 +326,8 @@ def plot(tables: Dict[str, Tuple[str, Sequence[float], Dict[str, List[float]]]],
     cv2.imwrite(str(path), canvas)
 
 
-def real_light_figures(figures: Dict[str, float], units: Dict[str, str],
-                       frames: Dict[str, List[RigFrame]]) -> str:
+def real_light_figures(figures: dict[str, float], units: dict[str, str],
+                       frames: dict[str, list[RigFrame]]) -> str:
     """The figures of real light (real photographs, the clipped line, 1152x768 timing) into ``figures``; the notes."""
     default = ExtractorParams()
     previous = ExtractorParams(**PREVIOUS)
@@ -454,7 +455,7 @@ def main() -> int:
           "error vs ambient light": ("ambient (fraction of full scale)", ambients, ambient_tab)},
          RESULTS / "extract.png")
 
-    figures: Dict[str, float] = {
+    figures: dict[str, float] = {
         "extract_ms_median": times[DEFAULT_METHOD][0],
         "extract_over_copy_ratio": times[DEFAULT_METHOD][1],
         "rms_px_default": both[DEFAULT_METHOD]["rms_px"],

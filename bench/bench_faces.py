@@ -28,7 +28,6 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List
 
 import numpy as np
 
@@ -46,7 +45,7 @@ from lsu_faces.synthetic import fast_scan  # noqa: E402
 IDENTITIES = int(os.environ.get("LSU_BENCH_FACES_IDS", "16"))
 PROBES = 2
 from lsu_accuracy.accuracy import rig_speckle_limit  # noqa: E402
-from lsu_cameras.sim import load_rig  # noqa: E402
+from lsu_common.arrays import AnyArray  # noqa: E402
 
 # one point's depth sigma at the speckle limit: no extraction gets a single point below it
 NOISE_M = rig_speckle_limit(load_rig())["depth_mm"] / 1000.0
@@ -56,7 +55,7 @@ FAR = DEFAULT_FALSE_ACCEPT
 EXPRESSIONS = ("smile", "open_mouth", "surprise")
 
 
-def probe_specs(ident: int) -> List[PersonSpec]:
+def probe_specs(ident: int) -> list[PersonSpec]:
     rng = np.random.default_rng(np.random.SeedSequence([0xBE, ident]))
     out = []
     for k in range(PROBES):
@@ -86,8 +85,8 @@ class Sensors:
         return np.stack([c[k] for k in "xyz"], axis=1).astype(np.float64), objs[0].extra["nose_tip_m"]
 
 
-def face_record(pts: np.ndarray, truth: np.ndarray, old_finder: bool) -> Dict[str, object]:
-    rec: Dict[str, object] = {"sig": None, "nose_err_mm": float("inf")}
+def face_record(pts: AnyArray, truth: AnyArray, old_finder: bool) -> dict[str, object]:
+    rec: dict[str, object] = {"sig": None, "nose_err_mm": float("inf")}
     t0 = time.perf_counter()
     try:
         nose, frame, mask = embed_face(pts)
@@ -104,7 +103,7 @@ def face_record(pts: np.ndarray, truth: np.ndarray, old_finder: bool) -> Dict[st
     return rec
 
 
-def identification(gallery: List[Dict[str, object]], probes: List[Dict[str, object]]) -> Dict[str, float]:
+def identification(gallery: list[dict[str, object]], probes: list[dict[str, object]]) -> dict[str, float]:
     """Rank-1, open-set false accepts / rejects at FAR, with the model fitted on the gallery's impostor pairs."""
     sigs = [g["sig"] for g in gallery]
     impostor = [compare(a, b)[1] for i, a in enumerate(sigs) for b in sigs[i + 1:]
@@ -151,7 +150,7 @@ print([repr(compare(sigs[0], s)[1]) for s in sigs[1:]], sigs[0].data.tobytes().h
 """
 
 
-def same_result_across_processes(clouds: List[np.ndarray]) -> float:
+def same_result_across_processes(clouds: list[AnyArray]) -> float:
     """1 when two fresh processes give bit-identical signatures and distances for the same clouds."""
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "clouds.npz"
@@ -161,7 +160,7 @@ def same_result_across_processes(clouds: List[np.ndarray]) -> float:
     return 1.0 if outs[0] == outs[1] and outs[0].strip() else 0.0
 
 
-def smoothing_figures(scans: List[Dict[str, np.ndarray]]) -> Dict[str, float]:
+def smoothing_figures(scans: list[dict[str, AnyArray]]) -> dict[str, float]:
     """Relief volume change of scanned face meshes (30 Laplacian iterations at 0.1 vs 30 Taubin passes), and
     of a closed noisy sphere."""
     import open3d as o3d
@@ -186,13 +185,13 @@ def smoothing_figures(scans: List[Dict[str, np.ndarray]]) -> Dict[str, float]:
 def main() -> None:
     t_start = time.perf_counter()
     sensors = Sensors()
-    figures: Dict[str, float] = {}
-    units: Dict[str, str] = {}
-    same_clouds: List[np.ndarray] = []
-    smooth_scans: List[Dict[str, np.ndarray]] = []
-    nose_errs: Dict[str, List[float]] = {"rig": [], "depth": []}
-    old_errs: List[float] = []
-    face_ms: List[float] = []
+    figures: dict[str, float] = {}
+    units: dict[str, str] = {}
+    same_clouds: list[AnyArray] = []
+    smooth_scans: list[dict[str, AnyArray]] = []
+    nose_errs: dict[str, list[float]] = {"rig": [], "depth": []}
+    old_errs: list[float] = []
+    face_ms: list[float] = []
     for sensor in ("rig", "depth"):
         gallery, probes = [], []
         for ident in range(IDENTITIES):

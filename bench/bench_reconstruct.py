@@ -21,9 +21,9 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median, time_calls, write_result  # noqa: E402
 
 from lsu_cameras.sim import SimulatedRig, build_scene, load_rig  # noqa: E402
+from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_extract.detectors import SUBPIXEL_METHODS  # noqa: E402
 from lsu_extract.extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line  # noqa: E402
 from lsu_reconstruct import synthetic as S  # noqa: E402
@@ -64,7 +65,7 @@ def line_arrays(res: LaserLineResult) -> LineArrays:
     return LineArrays(res.u, res.v, res.peak, res.width, res.quality, res.image_width, res.image_height)
 
 
-def column_errors(res: LaserLineResult, truth_pixels: np.ndarray, height: int) -> np.ndarray:
+def column_errors(res: LaserLineResult, truth_pixels: AnyArray, height: int) -> AnyArray:
     """Extracted minus true column [px] on the rows where both exist (one true crossing per row here)."""
     true_u = np.full(height, np.nan)
     rows = np.rint(truth_pixels[:, 1]).astype(np.intp)
@@ -77,22 +78,22 @@ def column_errors(res: LaserLineResult, truth_pixels: np.ndarray, height: int) -
 class RigSweep:
     """Everything one scan of the simulated rig gives: clouds per chain and per-row extraction errors."""
 
-    clouds: Dict[str, List[np.ndarray]] = field(default_factory=dict)
-    col_err: Dict[str, List[np.ndarray]] = field(default_factory=dict)
+    clouds: dict[str, list[AnyArray]] = field(default_factory=dict)
+    col_err: dict[str, list[AnyArray]] = field(default_factory=dict)
     snaps: int = 0
-    seconds: Dict[str, float] = field(default_factory=dict)
-    timing_lines: Optional[Tuple[LineArrays, LineArrays, LineArrays, LineArrays]] = None
+    seconds: dict[str, float] = field(default_factory=dict)
+    timing_lines: tuple[LineArrays, LineArrays, LineArrays, LineArrays] | None = None
 
     @staticmethod
-    def add(store: Dict[str, List[np.ndarray]], key: str, value: np.ndarray) -> None:
+    def add(store: dict[str, list[AnyArray]], key: str, value: AnyArray) -> None:
         """Append one snap's array to ``store[key]``."""
         store.setdefault(key, []).append(value)
 
-    def cloud(self, key: str) -> np.ndarray:
+    def cloud(self, key: str) -> AnyArray:
         """All points [m] of one chain."""
         return np.concatenate(self.clouds[key]) if self.clouds.get(key) else np.zeros((0, 3))
 
-    def errors(self, key: str) -> np.ndarray:
+    def errors(self, key: str) -> AnyArray:
         """All column errors [px] of one extraction method and side."""
         return np.concatenate(self.col_err[key]) if self.col_err.get(key) else np.zeros(0)
 
@@ -109,8 +110,8 @@ CHAIN_NAMES = (("default", "", ""), ("unsmoothed", "", "_unsmoothed"), ("thesis"
                ("truth_px", "", "_truth_px"))
 
 
-def rig_sweep(model: StereoModel, scene_name: str, distance_m: Optional[float],
-              other_methods: Sequence[str] = ()) -> Tuple[RigSweep, object]:
+def rig_sweep(model: StereoModel, scene_name: str, distance_m: float | None,
+              other_methods: Sequence[str] = ()) -> tuple[RigSweep, object]:
     """Render a stop-snap scan of one scene, extract both lines with both methods, reconstruct every chain.
 
     ``other_methods``: further lsu_extract sub-pixel methods to compare, each through the default
@@ -156,15 +157,15 @@ def rig_sweep(model: StereoModel, scene_name: str, distance_m: Optional[float],
     return out, scene[0]
 
 
-def plane_distances_mm(points: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def plane_distances_mm(points: AnyArray, point: AnyArray, normal: AnyArray) -> AnyArray:
     """Signed distances [mm] of points to the TRUE plane (renderer's scene geometry)."""
     return (points - point) @ normal * 1000.0
 
 
-def rig_figures(model: StereoModel, figures: Dict[str, float]) -> Tuple[RigSweep, List[str]]:
+def rig_figures(model: StereoModel, figures: dict[str, float]) -> tuple[RigSweep, list[str]]:
     """Plane at 250/300/350 mm and the sphere on the simulated rig; returns the 300 mm sweep (for timing)."""
-    notes: List[str] = []
-    sweep300: Optional[RigSweep] = None
+    notes: list[str] = []
+    sweep300: RigSweep | None = None
     for depth in RIG_PLANE_DEPTHS_M:
         mm = int(round(depth * 1000))
         sweep, plane = rig_sweep(model, "plane", depth, OTHER_METHODS if mm == 300 else ())
@@ -232,7 +233,7 @@ def rig_figures(model: StereoModel, figures: Dict[str, float]) -> Tuple[RigSweep
 
 
 # ================================================================ synthetic lines
-def sweep(rig: S.Rig, scene: Sequence, xs: Sequence[float]) -> List[Tuple[S.LineSamples, S.LineSamples]]:
+def sweep(rig: S.Rig, scene: Sequence, xs: Sequence[float]) -> list[tuple[S.LineSamples, S.LineSamples]]:
     """Noise-free left/right lines of a stop-snap sweep."""
     out = []
     for x in xs:
@@ -241,8 +242,8 @@ def sweep(rig: S.Rig, scene: Sequence, xs: Sequence[float]) -> List[Tuple[S.Line
     return out
 
 
-def cloud(model: StereoModel, lines: List[Tuple[S.LineSamples, S.LineSamples]], params: MatchParams,
-          noise_px: float, chain: str = "subpixel") -> np.ndarray:
+def cloud(model: StereoModel, lines: list[tuple[S.LineSamples, S.LineSamples]], params: MatchParams,
+          noise_px: float, chain: str = "subpixel") -> AnyArray:
     """All points of a sweep, with fresh seeded noise (or pixel quantisation for the thesis chain)."""
     rng = np.random.default_rng(SEED)
     pts = []
@@ -257,13 +258,13 @@ def cloud(model: StereoModel, lines: List[Tuple[S.LineSamples, S.LineSamples]], 
     return np.concatenate(pts)
 
 
-def plane_stats(points: np.ndarray, plane: S.Plane) -> Tuple[float, float, int]:
+def plane_stats(points: AnyArray, plane: S.Plane) -> tuple[float, float, int]:
     """sigma and mean [mm] of the signed distance to the TRUE plane, and the point count."""
     d = (points @ plane.normal - plane.offset) * 1000.0
     return float(d.std()), float(d.mean()), int(len(d))
 
 
-def synthetic_figures(figures: Dict[str, float]) -> Tuple[StereoModel, S.Rig]:
+def synthetic_figures(figures: dict[str, float]) -> tuple[StereoModel, S.Rig]:
     """Accuracy on analytic lines with assumed 0.05 px noise (matcher alone), all names prefixed ``synthetic_``."""
     rig = S.default_rig()
     model = StereoModel.from_folder(rig.write_calibration(Path(tempfile.mkdtemp(prefix="lsu_bench_calib_"))))
@@ -304,8 +305,8 @@ def synthetic_figures(figures: Dict[str, float]) -> Tuple[StereoModel, S.Rig]:
     return model, rig
 
 
-def timing_figures(model: StereoModel, lines: Tuple[LineArrays, LineArrays, LineArrays, LineArrays],
-                   figures: Dict[str, float]) -> None:
+def timing_figures(model: StereoModel, lines: tuple[LineArrays, LineArrays, LineArrays, LineArrays],
+                   figures: dict[str, float]) -> None:
     """Match + triangulate one real snap (rig, plane at 300 mm, extracted lines), per method and chain."""
     left, right, tleft, tright = lines
     default = MatchParams()
@@ -333,7 +334,7 @@ def unit_of(name: str) -> str:
 
 
 def main() -> None:
-    figures: Dict[str, float] = {}
+    figures: dict[str, float] = {}
     t0 = time.perf_counter()
     model = StereoModel.from_folder(SIM_CALIBRATION)
     sweep300, rig_notes = rig_figures(model, figures)

@@ -169,8 +169,8 @@ def replay(bag: Path, window: int = 4) -> dict:
     from sensor_msgs.msg import Image, PointCloud2
 
     from lsu_bags.bags import deserialize_ros, read_messages
-    from lsu_testing.plugin import LaunchedProcess
     from lsu_interfaces.msg import ScanEvent
+    from lsu_testing.plugin import LaunchedProcess
 
     images = {}  # (topic, stamp) -> CDR bytes; the stamp is read straight from the CDR header
     events = []
@@ -391,8 +391,8 @@ REPLAY_NOTES = (
 
 def sim_bag(tmp: Path) -> Path:
     """A recorded-like scan bag of synthetic head 7, 0..470 step 2 with the texture pair, without the graph."""
-    from lsu_testing.simbags import write_sim_scan_bag
     from lsu_cameras.sim import build_scene, load_rig
+    from lsu_testing.simbags import write_sim_scan_bag
 
     geometry = load_rig()
     return write_sim_scan_bag(tmp / "bag", build_scene("head:7", geometry), list(range(0, 471, 2)), seed=7,
@@ -449,9 +449,9 @@ def settle_figures(tmp: Path) -> dict:
 
     LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which).
     """
-    from lsu_tools.demo import accuracy_against_scene
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
+    from lsu_tools.demo import accuracy_against_scene
 
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/settle"])
     runs: dict = {"fixed": [], "adaptive": []}
@@ -544,8 +544,8 @@ def sweep_accuracy() -> dict:
     """Part 5, without ROS: RMS to the rendered head of sweeps against stop-snap, same scene and physics."""
     from lsu_accuracy.accuracy import surface_rms_mm
     from lsu_accuracy.sweep_sim import stopsnap_scene, sweep_scene
-    from lsu_config import config_dir
     from lsu_cameras.sim import build_scene, load_rig
+    from lsu_config import config_dir
     from lsu_reconstruct.laser_sheet import read_laser_yaml
     from lsu_reconstruct.stereo import StereoModel
 

@@ -18,11 +18,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List
-
-from scipy.stats import theilslopes
 
 from common import write_result
+from scipy.stats import theilslopes
 
 from lsu_scan import rosenv
 
@@ -43,14 +41,14 @@ def open_fds(pid: int) -> int:
     return len(os.listdir(f"/proc/{pid}/fd"))
 
 
-def soak(tmp: Path) -> Dict[str, Dict[str, List[float]]]:
+def soak(tmp: Path) -> dict[str, dict[str, list[float]]]:
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
 
     # generous capture/ack timeouts: this measures growth, not speed, and a busy host must not abort scans
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans",
                              "capture_timeout_s:=10.0", "ack_timeout_s:=30.0"])
-    samples: Dict[str, Dict[str, List[float]]] = {}
+    samples: dict[str, dict[str, list[float]]] = {}
     try:
         graph.wait_for_line(r"homed: track", timeout_s=120)
         graph.wait_for_line(r"source 'sim' open", timeout_s=120)
@@ -84,8 +82,8 @@ def main() -> int:
             samples = soak(Path(tmp))
     finally:
         claim.release()
-    figures: Dict[str, float] = {}
-    units: Dict[str, str] = {}
+    figures: dict[str, float] = {}
+    units: dict[str, str] = {}
     slopes = {}
     for name, s in sorted(samples.items()):
         slope = float(theilslopes(s["rss_mb"], range(len(s["rss_mb"])))[0]) if len(s["rss_mb"]) > 1 else 0.0

@@ -15,8 +15,8 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable, Dict, List, Optional
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -28,7 +28,7 @@ def _version(module: str) -> str:
         return f"unavailable ({exc.__class__.__name__})"
 
 
-def machine_info() -> Dict[str, object]:
+def machine_info() -> dict[str, object]:
     """CPU, core count and library versions, recorded with every result."""
     cpu = platform.processor() or platform.machine()
     try:
@@ -42,7 +42,7 @@ def machine_info() -> Dict[str, object]:
             "numpy": _version("numpy"), "opencv": _version("cv2"), "open3d": _version("open3d")}
 
 
-def time_calls(fn: Callable[[], object], repeat: int = 50, warmup: int = 3) -> List[float]:
+def time_calls(fn: Callable[[], object], repeat: int = 50, warmup: int = 3) -> list[float]:
     """Wall times of ``repeat`` calls of ``fn`` in milliseconds (after ``warmup`` untimed calls)."""
     for _ in range(warmup):
         fn()
@@ -54,25 +54,25 @@ def time_calls(fn: Callable[[], object], repeat: int = 50, warmup: int = 3) -> L
     return out
 
 
-def median(values: List[float]) -> float:
+def median(values: list[float]) -> float:
     """Median of a list."""
     return float(statistics.median(values))
 
 
-def percentile(values: List[float], pct: float) -> float:
+def percentile(values: list[float], pct: float) -> float:
     """``pct`` percentile (nearest rank)."""
     ordered = sorted(values)
     index = min(len(ordered) - 1, max(0, int(round(pct / 100.0 * len(ordered) + 0.5)) - 1))
     return float(ordered[index])
 
 
-def write_result(area: str, figures: Dict[str, float], units: Dict[str, str], notes: str = "",
-                 extra: Optional[Dict[str, object]] = None) -> Path:
+def write_result(area: str, figures: dict[str, float], units: dict[str, str], notes: str = "",
+                 extra: dict[str, object] | None = None) -> Path:
     """Write ``bench/results/<area>.json`` and print a short summary; returns the path."""
     RESULTS.mkdir(parents=True, exist_ok=True)
-    record: Dict[str, object] = {
+    record: dict[str, object] = {
         "area": area,
-        "when": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "when": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "machine": machine_info(),
         "figures": {k: float(v) for k, v in figures.items()},
         "units": units,

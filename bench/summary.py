@@ -11,12 +11,11 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional, Tuple
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 # (area, figure, target text, test) - the acceptance figures of the issues; other figures stay in the JSON
-HEADLINES: List[Tuple[str, str, str, Optional[str]]] = [
+HEADLINES: list[tuple[str, str, str, str | None]] = [
     ("driver", "roundtrip_ms_median", "", None),
     ("firmware", "flash_bytes", "<= 32768 (GP32 flash)", "<= 32768"),
     ("firmware", "ram_bytes", "<= 512 (GP32 RAM)", "<= 512"),
@@ -67,7 +66,7 @@ HEADLINES: List[Tuple[str, str, str, Optional[str]]] = [
 ]
 
 
-def _met(value: float, test: Optional[str]) -> str:
+def _met(value: float, test: str | None) -> str:
     if test is None:
         return ""
     op, _, ref = test.partition(" ")
@@ -83,7 +82,7 @@ def _met(value: float, test: Optional[str]) -> str:
 
 def summary(results: Path = RESULTS) -> str:
     """The Markdown table of the headline figures found under ``results``."""
-    data: Dict[str, dict] = {}
+    data: dict[str, dict] = {}
     for path in sorted(results.glob("*.json")):
         data[path.stem] = json.loads(path.read_text())
     lines = ["| area | figure | value | target | met | measured |", "|---|---|---|---|---|---|"]

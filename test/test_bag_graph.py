@@ -10,12 +10,12 @@ import re
 import signal
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any
 
 import pytest
 from rosbags.highlevel import AnyReader
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.rosbag2 import Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 pytestmark = pytest.mark.slow
 
@@ -40,9 +40,10 @@ def one_line_error(result: Any) -> str:
 @pytest.mark.parametrize("storage,stop", [("mcap", signal.SIGINT), ("sqlite3", signal.SIGTERM)])
 def test_record_info_play_round_trip(ros_node, launch, capsys, tmp_path, storage, stop):
     import rclpy
-    from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.serialization import deserialize_message
+
+    from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
     ns = f"/bagrt_{storage}"
     pub_node = ros_node.add(rclpy.create_node("bag_round_trip_publisher", context=ros_node.context))
@@ -91,7 +92,7 @@ def test_record_info_play_round_trip(ros_node, launch, capsys, tmp_path, storage
 
     for pub in pubs.values():  # the live publishers go: what arrives now comes from the bag
         pub_node.destroy_publisher(pub)
-    received: Dict[str, List[Tuple[float, bytes]]] = {t: [] for t in pubs}
+    received: dict[str, list[tuple[float, bytes]]] = {t: [] for t in pubs}
     types = {"laser_line": LaserLine, "events": ScanEvent, "extrinsics": StereoExtrinsics}
     for topic, qos in (("laser_line", 10), ("events", events_qos), ("extrinsics", latched_qos)):
         ros_node.node.create_subscription(

@@ -17,9 +17,9 @@ import pytest
 import yaml
 
 from lsu_bags.bags import deserialize, read_messages
+from lsu_driver.emulator import send_control
 from lsu_scan.scanner import LsuScanner
 from lsu_tools.processes import LaunchedProcess, pid_alive
-from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow
 SIM_LAUNCH = Path(__file__).resolve().parents[1] / "config" / "launch" / "sim.launch.yaml"

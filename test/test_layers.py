@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
-from typing import Dict, Set
 
 import pytest
 
@@ -18,7 +17,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 _BASE = {"lsu_interfaces", "tf2_msgs", "lsu_common", "lsu_config"}
 # package -> the LSU packages it may import (lower layers only)
-ALLOWED: Dict[str, Set[str]] = {
+ALLOWED: dict[str, set[str]] = {
     "lsu_common": set(),
     "lsu_config": set(),
     "lsu_bags": {"lsu_interfaces", "lsu_common"},
@@ -39,9 +38,9 @@ def python_packages():
     return sorted(p.name for p in SRC.iterdir() if (p / p.name / "__init__.py").is_file())
 
 
-def imported_lsu_packages(package: str, src: Path = SRC) -> Dict[str, Set[str]]:
+def imported_lsu_packages(package: str, src: Path = SRC) -> dict[str, set[str]]:
     """LSU package -> the modules of ``package`` that import it (tests excluded)."""
-    found: Dict[str, Set[str]] = {}
+    found: dict[str, set[str]] = {}
     for path in sorted((src / package / package).rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Import):
@@ -70,7 +69,7 @@ def test_imports_only_point_down(package):
 
 
 def test_the_layers_have_no_circle():
-    state: Dict[str, str] = {}
+    state: dict[str, str] = {}
 
     def visit(package: str, path: tuple) -> None:
         if state.get(package) == "done":

@@ -10,6 +10,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from lsu_bags.bags import read_messages
+from lsu_common.arrays import AnyArray
 from lsu_testing.plugin import LSU
 from lsu_view.wsclient import FoxgloveClient
 
@@ -18,7 +19,7 @@ REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right
 pytestmark = pytest.mark.slow
 
 
-def xyz(payload: bytes, store) -> np.ndarray:
+def xyz(payload: bytes, store) -> AnyArray:
     cloud = store.deserialize_cdr(payload, "sensor_msgs/msg/PointCloud2")
     offsets = {f.name: f.offset for f in cloud.fields}
     raw = np.frombuffer(cloud.data.tobytes(), dtype=np.uint8).reshape(cloud.width * cloud.height, cloud.point_step)

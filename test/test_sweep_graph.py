@@ -14,15 +14,16 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from lsu_bags.bags import deserialize_ros, read_messages
+from lsu_bags.pointcloud2 import decode, from_msg
+from lsu_common.arrays import AnyArray
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LSU, LaunchedProcess
-from lsu_bags.pointcloud2 import decode, from_msg
 
 pytestmark = pytest.mark.slow
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
 
 
-def xyz(msg: PointCloud2) -> np.ndarray:
+def xyz(msg: PointCloud2) -> AnyArray:
     columns = decode(from_msg(msg))
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 

@@ -82,5 +82,5 @@ def test_doctor_on_the_rig_host_names_the_peer_route_and_interface():
     assert done.returncode == 0, out + done.stderr
     assert "OK    multi-host discovery" in out and "SUBNET" in out, out
     peer = hosts.addresses["processing"]
-    assert f"OK    multi-host peer" in out and f"{peer} ({peer}) via {hosts.interfaces['rig']} " \
+    assert "OK    multi-host peer" in out and f"{peer} ({peer}) via {hosts.interfaces['rig']} " \
         f"{hosts.addresses['rig']}" in out, out

@@ -30,11 +30,13 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["AccuracyError", "Pose", "StudyConfig", "ChainScan", "ChainSpec", "CHAINS", "GAUSSIAN_EXPECTED_PCT",
            "LAPLACIAN_ITERATIONS", "LAPLACIAN_FACTORS", "TAUBIN_PASSES", "default_poses", "plane_pose_object",
@@ -81,7 +83,7 @@ class StudyConfig:
     poses: int = 10
     step: int = 8
     seed: int = 20261123
-    calibration: Optional[Path] = None     # None: <workspace>/config/calibration/sim (the rig's true calibration)
+    calibration: Path | None = None     # None: <workspace>/config/calibration/sim (the rig's true calibration)
     min_distance_m: float = 0.20
     max_distance_m: float = 0.45
     curved_scene: str = "sphere"
@@ -103,8 +105,8 @@ class StudyConfig:
 class ChainScan:
     """Points of one chain over a whole scan: xyz [m, left frame] and the left pixel (u, v) of each."""
 
-    xyz: np.ndarray
-    uv: np.ndarray
+    xyz: AnyArray
+    uv: AnyArray
     snaps: int = 0
 
 
@@ -114,9 +116,9 @@ class ChainSpec:
 
     name: str
     extractor_method: str          # "" = lsu_extract's DEFAULT_METHOD
-    smooth_window_rows: Optional[int]  # None = MatchParams default
+    smooth_window_rows: int | None  # None = MatchParams default
     matching: str                  # "subpixel" | "thesis"
-    mesh_smoothing: Tuple[str, int, float]  # (method, iterations, Laplacian factor) applied for "smoothed"
+    mesh_smoothing: tuple[str, int, float]  # (method, iterations, Laplacian factor) applied for "smoothed"
     description: str
 
 
@@ -131,7 +133,7 @@ CHAINS = (
 )
 
 
-def default_poses(n: int, min_m: float = 0.20, max_m: float = 0.45) -> List[Pose]:
+def default_poses(n: int, min_m: float = 0.20, max_m: float = 0.45) -> list[Pose]:
     """``n`` poses from ``min_m`` to ``max_m``, tilts cycled from `TILTS_DEG`; one pose faces the rig at 300 mm."""
     distances = np.linspace(min_m, max_m, n)
     tilts = [TILTS_DEG[i % len(TILTS_DEG)] for i in range(n)]
@@ -145,7 +147,7 @@ def default_poses(n: int, min_m: float = 0.20, max_m: float = 0.45) -> List[Pose
     return [Pose(float(d), *t) for d, t in zip(distances, tilts)]
 
 
-def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
+def _rotation(axis: AnyArray, deg: float) -> AnyArray:
     import cv2
 
     R, _ = cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * math.radians(deg))
@@ -162,7 +164,7 @@ def plane_pose_object(geometry, pose: Pose):
     return make_plane(center, normal, size_m=0.8, name=f"board {pose.label}")
 
 
-def board_pose_object(geometry, pose: Pose, square_m: float = 0.02, inner_corners: Tuple[int, int] = (9, 6)):
+def board_pose_object(geometry, pose: Pose, square_m: float = 0.02, inner_corners: tuple[int, int] = (9, 6)):
     """The sim's chessboard at a pose: centre ``pose.distance_m`` in front of the rig, tilted like
     `plane_pose_object`; ``extra["pose_R"]`` / ``extra["pose_t"]`` hold its true pose (left frame)."""
     from lsu_cameras.sim import make_board
@@ -194,11 +196,11 @@ class ChainRunner:
                             for spec in self.chains}
         self._match = {spec.name: (MatchParams() if spec.smooth_window_rows is None
                                    else MatchParams(smooth_window_rows=spec.smooth_window_rows)) for spec in self.chains}
-        self._xyz: Dict[str, List[np.ndarray]] = {s.name: [] for s in self.chains}
-        self._uv: Dict[str, List[np.ndarray]] = {s.name: [] for s in self.chains}
+        self._xyz: dict[str, list[AnyArray]] = {s.name: [] for s in self.chains}
+        self._uv: dict[str, list[AnyArray]] = {s.name: [] for s in self.chains}
         self._snaps = {s.name: 0 for s in self.chains}
 
-    def add_pair(self, left: np.ndarray, right: np.ndarray, snap: int) -> None:
+    def add_pair(self, left: AnyArray, right: AnyArray, snap: int) -> None:
         """Extract, match and triangulate one laser-on pair (BGR or mono uint8) with every chain."""
         from lsu_extract.extractor import extract_laser_line
         from lsu_reconstruct.pipeline import reconstruct_snap
@@ -215,7 +217,7 @@ class ChainRunner:
                 self._uv[spec.name].append(np.column_stack([pts.u, pts.v]))
                 self._snaps[spec.name] += 1
 
-    def scans(self) -> Dict[str, ChainScan]:
+    def scans(self) -> dict[str, ChainScan]:
         """What every chain reconstructed so far."""
         return {s.name: ChainScan(np.concatenate(self._xyz[s.name]) if self._xyz[s.name] else np.zeros((0, 3)),
                                   np.concatenate(self._uv[s.name]) if self._uv[s.name] else np.zeros((0, 2)),
@@ -223,7 +225,7 @@ class ChainRunner:
 
 
 def scan_scene(model, geometry, objects: Sequence, step: int, seed: int,
-               chains: Sequence[ChainSpec] = CHAINS) -> Dict[str, ChainScan]:
+               chains: Sequence[ChainSpec] = CHAINS) -> dict[str, ChainScan]:
     """Stop-snap scan of a sim scene (carriage 0..track end every ``step``), reconstructed by every chain.
 
     Each pair is rendered once (settled carriage, laser on, render noise seeded ``seed + step``) and
@@ -239,13 +241,13 @@ def scan_scene(model, geometry, objects: Sequence, step: int, seed: int,
     return runner.scans()
 
 
-def plane_distances_mm(xyz: np.ndarray, point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def plane_distances_mm(xyz: AnyArray, point: AnyArray, normal: AnyArray) -> AnyArray:
     """Signed distances [mm] of points to the plane through ``point`` with unit ``normal``."""
     n = np.asarray(normal, dtype=np.float64)
     return (np.asarray(xyz) - np.asarray(point)) @ (n / np.linalg.norm(n)) * 1000.0
 
 
-def fit_plane(xyz: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def fit_plane(xyz: AnyArray) -> tuple[AnyArray, AnyArray]:
     """Least-squares plane (centroid, unit normal) by SVD: the free fit a rig without truth would make."""
     pts = np.asarray(xyz, dtype=np.float64)
     if len(pts) < 3:
@@ -255,7 +257,7 @@ def fit_plane(xyz: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return c, vt[-1]
 
 
-def gaussian_table(residuals: np.ndarray) -> Tuple[float, float, float]:
+def gaussian_table(residuals: AnyArray) -> tuple[float, float, float]:
     """Percent of residuals within 1, 2, 3 standard deviations of their mean (thesis Table 2)."""
     r = np.asarray(residuals, dtype=np.float64)
     if len(r) < 2:
@@ -264,7 +266,7 @@ def gaussian_table(residuals: np.ndarray) -> Tuple[float, float, float]:
     return tuple(float(np.mean(z <= k) * 100.0) for k in (1, 2, 3))  # type: ignore[return-value]
 
 
-def error_stats(d_mm: np.ndarray) -> Dict[str, float]:
+def error_stats(d_mm: AnyArray) -> dict[str, float]:
     """Mean (bias), median, sigma, RMS, 3 sigma and the thesis' bound |bias| + 3 sigma of signed distances [mm]."""
     d = np.asarray(d_mm, dtype=np.float64)
     if len(d) == 0:
@@ -275,7 +277,7 @@ def error_stats(d_mm: np.ndarray) -> Dict[str, float]:
             "bound_mm": abs(mean) + 3.0 * sigma, "max_abs_mm": float(np.abs(d).max())}
 
 
-def linear_fit(x: Sequence[float], y: Sequence[float]) -> Tuple[float, float]:
+def linear_fit(x: Sequence[float], y: Sequence[float]) -> tuple[float, float]:
     """Least-squares straight line ``y = slope * x + intercept`` (the thesis' trend lines, Fig. 43)."""
     x_arr, y_arr = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     if len(x_arr) < 2 or np.ptp(x_arr) == 0:
@@ -296,7 +298,7 @@ def mesh_scan(scan: ChainScan):
     return mesh, used
 
 
-def smooth_vertices(mesh, method: str, iterations: int, factor: float) -> np.ndarray:
+def smooth_vertices(mesh, method: str, iterations: int, factor: float) -> AnyArray:
     """Vertices after lsu_faces smoothing (``method`` ``default`` = SmoothParams(), ``laplacian``, ``taubin``)."""
     from lsu_faces.smoothing import SmoothParams, smooth
 
@@ -309,7 +311,7 @@ def smooth_vertices(mesh, method: str, iterations: int, factor: float) -> np.nda
     return smooth(mesh.vertices, mesh.triangles, params)
 
 
-def surface_distances_m(objects: Sequence, xyz: np.ndarray) -> np.ndarray:
+def surface_distances_m(objects: Sequence, xyz: AnyArray) -> AnyArray:
     """Distance [m] of each point to the rendered scene meshes (open3d ray-casting scene: exact truth)."""
     import open3d as o3d
 
@@ -319,13 +321,13 @@ def surface_distances_m(objects: Sequence, xyz: np.ndarray) -> np.ndarray:
     return scene.compute_distance(o3d.core.Tensor(np.asarray(xyz, dtype=np.float32))).numpy().astype(np.float64)
 
 
-def surface_rms_mm(objects: Sequence, xyz: np.ndarray) -> float:
+def surface_rms_mm(objects: Sequence, xyz: AnyArray) -> float:
     """RMS distance [mm] of points to the rendered scene meshes."""
     d = surface_distances_m(objects, xyz)
     return float(np.sqrt(np.mean(d * d)) * 1000.0)
 
 
-def _smoothing_grid() -> List[Tuple[str, str, int, float]]:
+def _smoothing_grid() -> list[tuple[str, str, int, float]]:
     """(label, method, iterations, factor) of the smoothing study, the raw mesh first."""
     grid = [("none", "none", 0, 0.0)]
     grid += [(f"laplacian {it} x {f:g}", "laplacian", it, f) for it in LAPLACIAN_ITERATIONS for f in LAPLACIAN_FACTORS]
@@ -333,18 +335,18 @@ def _smoothing_grid() -> List[Tuple[str, str, int, float]]:
     return grid
 
 
-def evaluate_pose(scans: Dict[str, ChainScan], p0: np.ndarray, n: np.ndarray, label: str,
+def evaluate_pose(scans: dict[str, ChainScan], p0: AnyArray, n: AnyArray, label: str,
                   hint: str = "use a smaller --step or keep the poses inside 200..450 mm",
-                  keep: Optional[Callable[[np.ndarray], np.ndarray]] = None) -> Tuple[Dict, Dict, Dict]:
+                  keep: Callable[[AnyArray], AnyArray] | None = None) -> tuple[dict, dict, dict]:
     """Statistics of one pose for every chain against its truth plane (``p0``, unit ``n``, left frame).
 
     ``keep(xyz) -> bool mask`` selects the points on the target (a real board has a wall behind it).
     Returns (row: per-chain statistics, z: normalised residuals per chain for the pooled Gaussian
     table, meshes: per chain (mesh, used vertex indices, p0, n) for the smoothing study).
     """
-    row: Dict = {}
-    pooled: Dict[str, np.ndarray] = {}
-    meshes: Dict[str, Tuple] = {}
+    row: dict = {}
+    pooled: dict[str, AnyArray] = {}
+    meshes: dict[str, tuple] = {}
     for spec in CHAINS:
         scan = scans[spec.name]
         if keep is not None and len(scan.xyz):
@@ -373,8 +375,8 @@ def evaluate_pose(scans: Dict[str, ChainScan], p0: np.ndarray, n: np.ndarray, la
     return row, pooled, meshes
 
 
-def summarise(result: Dict, per_pose: List[Dict], pooled_z: Dict[str, List[np.ndarray]], ref_index: int,
-              ref_meshes: Dict[str, Tuple]) -> Dict:
+def summarise(result: dict, per_pose: list[dict], pooled_z: dict[str, list[AnyArray]], ref_index: int,
+              ref_meshes: dict[str, tuple]) -> dict:
     """Fill ``result`` with the Gaussian table, the trends, the board smoothing study and the figures."""
     result["poses"] = per_pose
     # Gaussian table: every pose's residuals normalised by its own mean and sigma, pooled (the thesis
@@ -388,7 +390,7 @@ def summarise(result: Dict, per_pose: List[Dict], pooled_z: Dict[str, List[np.nd
     result["gaussian"]["thesis_rig"] = list(THESIS_GAUSSIAN_PCT)
 
     # Error against the mean distance from the left camera's optical centre (thesis Fig. 43, 46).
-    trends: Dict = {}
+    trends: dict = {}
     for spec in CHAINS:
         dist = [r[spec.name]["mean_distance_mm"] for r in per_pose]
         for state in ("raw", "smoothed"):
@@ -399,7 +401,7 @@ def summarise(result: Dict, per_pose: List[Dict], pooled_z: Dict[str, List[np.nd
     result["trends"] = trends
 
     # Smoothing study on the reference board: noise left after each smoother, per chain.
-    smoothing: Dict = result.setdefault("smoothing", {})
+    smoothing: dict = result.setdefault("smoothing", {})
     smoothing["plane_300"] = {}
     for spec in CHAINS:
         mesh, used, p0, n = ref_meshes[spec.name]
@@ -434,7 +436,7 @@ def summarise(result: Dict, per_pose: List[Dict], pooled_z: Dict[str, List[np.nd
     return result
 
 
-def rig_speckle_limit(geometry, distance_m: float = REFERENCE_DISTANCE_M, with_lens_blur: bool = False) -> Dict[str, float]:
+def rig_speckle_limit(geometry, distance_m: float = REFERENCE_DISTANCE_M, with_lens_blur: bool = False) -> dict[str, float]:
     """`lsu_reconstruct.speckle.speckle_limit` for a simulated rig's optics at ``distance_m`` (JSON-ready).
 
     ``with_lens_blur``: include the rig's Gaussian PSF, which the renderer applies to the intensity after
@@ -448,7 +450,7 @@ def rig_speckle_limit(geometry, distance_m: float = REFERENCE_DISTANCE_M, with_l
                          geometry.sensor.psf_sigma_px if with_lens_blur else 0.0).as_dict()
 
 
-def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> Dict:
+def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> dict:
     """The whole study on the simulated rig; returns a JSON-ready dict (see `write_report`)."""
     from lsu_cameras.sim import build_scene, load_rig
     from lsu_config import config_dir
@@ -461,17 +463,17 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
     model = StereoModel.from_folder(calibration)
     geometry = load_rig()
     poses = default_poses(config.poses, config.min_distance_m, config.max_distance_m)
-    per_pose: List[Dict] = []
-    pooled_z: Dict[str, List[np.ndarray]] = {c.name: [] for c in CHAINS}
+    per_pose: list[dict] = []
+    pooled_z: dict[str, list[AnyArray]] = {c.name: [] for c in CHAINS}
     ref_index = None
-    ref_meshes: Dict[str, Tuple] = {}
+    ref_meshes: dict[str, tuple] = {}
     for i, pose in enumerate(poses):
         t0 = time.perf_counter()
         board = plane_pose_object(geometry, pose)
         p0, n = board.extra["point"], board.extra["normal"]
         scans = scan_scene(model, geometry, [board], config.step, config.seed + 1000 * i)
         stats, z, meshes = evaluate_pose(scans, p0, n, f"pose {pose.label}")
-        row: Dict = {"pose": asdict(pose), "label": pose.label, **stats}
+        row: dict = {"pose": asdict(pose), "label": pose.label, **stats}
         for name, zs in z.items():
             pooled_z[name].append(zs)
         if ref_index is None and pose.distance_m == REFERENCE_DISTANCE_M and pose.yaw_deg == 0.0 \
@@ -483,7 +485,7 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
     if ref_index is None:
         raise AccuracyError("no pose at 300 mm facing the rig: keep 300 mm inside the distance range")
 
-    result: Dict = {"source": "sim", "truth": "the renderer's plane",
+    result: dict = {"source": "sim", "truth": "the renderer's plane",
                     "config": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(config).items()},
                     "calibration": str(calibration), "chains": {c.name: c.description for c in CHAINS},
                     "default_smoothing": asdict(SmoothParams())}
@@ -508,7 +510,7 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
     # Detail loss: the same smoothers on a curved truth; RMS distance from the rendered surface.
     curved_objects = build_scene(config.curved_scene, geometry)
     scans = scan_scene(model, geometry, curved_objects, config.step, config.seed + 999_000)
-    curved: Dict = {}
+    curved: dict = {}
     for spec in CHAINS:
         mesh, used = mesh_scan(scans[spec.name])
         rows = []
@@ -529,7 +531,7 @@ def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], Non
 
 
 # ---------------------------------------------------------------- report
-def _plots(result: Dict, out: Path) -> List[str]:
+def _plots(result: dict, out: Path) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -609,7 +611,7 @@ def _fmt(x: float, digits: int = 3) -> str:
     return f"{x:.{digits}f}"
 
 
-def _speckle_lines(result: Dict) -> List[str]:
+def _speckle_lines(result: dict) -> list[str]:
     """The speckle-limit section of report.md (simulated study only: a real rig's optics are not known here)."""
     if "speckle" not in result:
         return []
@@ -630,7 +632,7 @@ def _speckle_lines(result: Dict) -> List[str]:
             f"{f['thesis_plane_sigma_mm_300'] / max(f['speckle_limit_mm_300'], 1e-300):.2f} |", ""]
 
 
-def write_report(result: Dict, out_dir: Path) -> List[Path]:
+def write_report(result: dict, out_dir: Path) -> list[Path]:
     """Write report.md, the PNG plots and accuracy.json into ``out_dir``; returns the files written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

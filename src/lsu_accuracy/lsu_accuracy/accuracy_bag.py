@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Dict, Iterator, List, Optional, Tuple
 
 import numpy as np
 
 from lsu_common import stamps
+from lsu_common.arrays import AnyArray
 from lsu_common.images import msg_to_array
 
 from .accuracy import CHAINS, AccuracyError, ChainRunner, evaluate_pose, summarise
@@ -44,34 +45,34 @@ class BoardScan:
     """One recorded scan of the board: the laser-off pair and the laser snaps (BGR or mono uint8)."""
 
     name: str
-    texture: Tuple[np.ndarray, np.ndarray]
-    snaps: List[Tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    texture: tuple[AnyArray, AnyArray]
+    snaps: list[tuple[int, AnyArray, AnyArray]] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
 class BoardPlane:
     """The detected board: board frame -> left frame ``X = R @ X_board + t`` and how well it is known."""
 
-    R: np.ndarray
-    t: np.ndarray
-    extent_m: Tuple[float, float, float, float]   # checkered area in board coordinates: x0, x1, y0, y1
+    R: AnyArray
+    t: AnyArray
+    extent_m: tuple[float, float, float, float]   # checkered area in board coordinates: x0, x1, y0, y1
     reprojection_px: float                        # RMS corner reprojection error in the left image
-    stereo_offset_mm: Optional[float] = None      # right-image pose, at the board centre, off the left plane
-    stereo_tilt_deg: Optional[float] = None       # angle between the two poses' normals
+    stereo_offset_mm: float | None = None      # right-image pose, at the board centre, off the left plane
+    stereo_tilt_deg: float | None = None       # angle between the two poses' normals
 
     @property
-    def center(self) -> np.ndarray:
+    def center(self) -> AnyArray:
         """Centre of the checkered area [m, left frame]."""
         x0, x1, y0, y1 = self.extent_m
         return self.R @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]) + self.t
 
     @property
-    def normal(self) -> np.ndarray:
+    def normal(self) -> AnyArray:
         """Unit normal pointing towards the left camera (the sim study's sign: positive = in front)."""
         n = self.R[:, 2]
         return -n if float(n @ self.center) > 0 else n
 
-    def on_board(self, xyz: np.ndarray) -> np.ndarray:
+    def on_board(self, xyz: AnyArray) -> AnyArray:
         """Mask of points over the checkered area and within `BACKGROUND_GATE_MM` of the plane."""
         local = (np.asarray(xyz, dtype=np.float64) - self.t) @ self.R
         x0, x1, y0, y1 = self.extent_m
@@ -79,7 +80,7 @@ class BoardPlane:
                 & (np.abs(local[:, 2]) * 1000.0 <= BACKGROUND_GATE_MM))
 
 
-def find_bags(root: Path | str) -> List[Path]:
+def find_bags(root: Path | str) -> list[Path]:
     """The bag folders at or under ``root`` (a folder with metadata.yaml is a bag)."""
     root = Path(root)
     if not root.exists():
@@ -94,12 +95,12 @@ def find_bags(root: Path | str) -> List[Path]:
     return bags
 
 
-def _suffix_topic(topics: Dict[str, Tuple[str, tuple]], suffix: str, msgtype: str) -> Optional[str]:
+def _suffix_topic(topics: dict[str, tuple[str, tuple]], suffix: str, msgtype: str) -> str | None:
     found = [t for t, (ty, _) in topics.items() if t.endswith(suffix) and ty == msgtype]
     return found[0] if found else None
 
 
-def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) -> Iterator[BoardScan]:
+def read_board_scans(bag: Path, skip: Callable[[str], None] | None = None) -> Iterator[BoardScan]:
     """The scans of one bag, one per ``scan_id`` with a TEXTURE pair and at least one SNAP pair.
 
     With ``skip``, a scan that cannot be used (no laser-off pair) is reported to it and the others
@@ -121,7 +122,8 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
         raise AccuracyError(f"bag {bag} has no {', '.join(missing)}: the board study needs the scan events and both "
                             f"cameras' images; record with `lsu scan --record` (it has: {', '.join(sorted(topics))})")
     types = BagTypes()
-    scans: Dict[str, Dict] = {}
+    scans: dict[str, dict] = {}
+    assert events is not None  # else missing above
     for message in read_messages(bag, [events]):
         ev = deserialize(message, types)
         key = stamps.to_ns(ev.image_stamp)
@@ -131,9 +133,9 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
         elif ev.type == _SNAP:
             scan["snaps"][key] = int(ev.index)
     wanted = {key for s in scans.values() for key in [s["texture"], *s["snaps"]] if key is not None}
-    frames: Dict[Tuple[str, int], np.ndarray] = {}
-    side_of = {topic: side for side, topic in images.items()}
-    for message in read_messages(bag, list(images.values())):
+    frames: dict[tuple[str, int], AnyArray] = {}
+    side_of = {topic: side for side, topic in images.items() if topic is not None}
+    for message in read_messages(bag, list(side_of)):
         msg = deserialize(message, types)
         key = stamps.to_ns(msg.header.stamp)
         if key in wanted:
@@ -142,7 +144,7 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
     for scan_id, scan in scans.items():
         name = scan_id if folder == scan_id else f"{folder}:{scan_id}"
         problem = ""
-        tex = (None, None)
+        tex: tuple[AnyArray | None, AnyArray | None] = (None, None)
         if scan["texture"] is None:
             problem = (f"{name}: no laser-off (TEXTURE) pair, so the board cannot be detected; scan with texture on "
                        f"(the default of `lsu scan`)")
@@ -157,11 +159,13 @@ def read_board_scans(bag: Path, skip: Optional[Callable[[str], None]] = None) ->
             continue
         pairs = [(index, frames[("left", key)], frames[("right", key)]) for key, index in sorted(scan["snaps"].items())
                  if ("left", key) in frames and ("right", key) in frames]
+        left_tex, right_tex = tex
+        assert left_tex is not None and right_tex is not None  # else a problem above
         if pairs:
-            yield BoardScan(name, (tex[0], tex[1]), pairs)
+            yield BoardScan(name, (left_tex, right_tex), pairs)
 
 
-def _solve(image: np.ndarray, board, K: np.ndarray, D: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray, float]]:
+def _solve(image: AnyArray, board, K: AnyArray, D: AnyArray) -> tuple[AnyArray, AnyArray, float] | None:
     import cv2
 
     from lsu_cameras.calibration import find_board
@@ -181,7 +185,7 @@ def _solve(image: np.ndarray, board, K: np.ndarray, D: np.ndarray) -> Optional[T
     return cv2.Rodrigues(rvec)[0], tvec.reshape(3), rms
 
 
-def detect_board_plane(texture: Tuple[np.ndarray, np.ndarray], model, board, name: str = "scan") -> BoardPlane:
+def detect_board_plane(texture: tuple[AnyArray, AnyArray], model, board, name: str = "scan") -> BoardPlane:
     """The board's pose from the laser-off pair: solved in the left image, checked against the right one.
 
     Raises:
@@ -207,7 +211,7 @@ def detect_board_plane(texture: Tuple[np.ndarray, np.ndarray], model, board, nam
     return BoardPlane(R, t, extent, rms, offset, tilt)
 
 
-def _pose_of(plane: BoardPlane) -> Dict[str, float]:
+def _pose_of(plane: BoardPlane) -> dict[str, float]:
     n, c = plane.normal, plane.center
     # the board's tilt seen from the left camera: yaw about its y axis, pitch about its x axis
     return {"distance_m": float(np.linalg.norm(c)), "yaw_deg": math.degrees(math.atan2(-n[0], -n[2])),
@@ -215,7 +219,7 @@ def _pose_of(plane: BoardPlane) -> Dict[str, float]:
 
 
 def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
-                  progress: Callable[[str], None] = lambda s: None) -> Dict:
+                  progress: Callable[[str], None] = lambda s: None) -> dict:
     """The study on recorded board scans; returns the same JSON-ready dict as `accuracy.run_study`.
 
     The reference pose (the headline figures) is the scan nearest to 300 mm among those tilted
@@ -226,10 +230,10 @@ def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
 
     t_start = time.perf_counter()
     model = StereoModel.from_folder(calibration)
-    per_pose: List[Dict] = []
-    pooled_z: Dict[str, List[np.ndarray]] = {c.name: [] for c in CHAINS}
-    meshes_of: List[Dict[str, Tuple]] = []
-    skipped: List[str] = []  # one unusable scan (board out of view, a head scan in the folder) loses only itself
+    per_pose: list[dict] = []
+    pooled_z: dict[str, list[AnyArray]] = {c.name: [] for c in CHAINS}
+    meshes_of: list[dict[str, tuple]] = []
+    skipped: list[str] = []  # one unusable scan (board out of view, a head scan in the folder) loses only itself
 
     def measure(scan: BoardScan) -> None:
         t0 = time.perf_counter()
@@ -274,12 +278,12 @@ def run_bag_study(bag_dir: Path | str, calibration: Path | str, board,
                             f"needs >= 2 poses at different distances (the thesis-style study uses >= 8). "
                             f"Skipped: {why}")
 
-    def tilt(p: Dict) -> float:
+    def tilt(p: dict) -> float:
         return math.hypot(p["pose"]["yaw_deg"], p["pose"]["pitch_deg"])
 
     candidates = [i for i, p in enumerate(per_pose) if tilt(p) < 20.0] or list(range(len(per_pose)))
     ref_index = min(candidates, key=lambda i: abs(per_pose[i]["pose"]["distance_m"] - 0.30))
-    result: Dict = {"source": "bag", "truth": "the board plane detected in each scan's laser-off left image",
+    result: dict = {"source": "bag", "truth": "the board plane detected in each scan's laser-off left image",
                     "config": {"bag": str(bag_dir), "board": f"{board.cols}x{board.rows}",
                                "square_mm": board.square_m * 1000.0, "calibration": str(calibration),
                                "background_gate_mm": BACKGROUND_GATE_MM},

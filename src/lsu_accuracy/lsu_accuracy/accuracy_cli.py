@@ -58,7 +58,7 @@ def _finish(result: dict, output: Path) -> int:
     return 0
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `accuracy` to the `lsu` parser."""
     p = sub.add_parser("accuracy", help="accuracy study (thesis ch. 9): board poses, Gaussian table, smoothing",
                        description="Scan a flat board at several poses (200..450 mm, tilted), fit planes, and "

@@ -15,10 +15,12 @@ scans of a flat target at two distances, fitted with `fit_laser_sheet` (what
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["SweepScan", "sweep_scene", "stopsnap_scene", "fit_sim_laser_sheet", "sweep_frame_count"]
 
@@ -32,12 +34,12 @@ VIBRATION_FREQ_HZ = 22.0
 class SweepScan:
     """A reconstructed scan: points (left frame, m), lines (frames or snaps with points), per-source counts."""
 
-    xyz: np.ndarray
+    xyz: AnyArray
     lines: int
     frames: int
     seconds: float                      # simulated carriage time of the scan [s]
-    stats: Dict[str, int] = field(default_factory=dict)
-    checked_xyz: Optional[np.ndarray] = None  # stop-snap with a sheet: the points that pass the sweep's sheet check
+    stats: dict[str, int] = field(default_factory=dict)
+    checked_xyz: AnyArray | None = None  # stop-snap with a sheet: the points that pass the sweep's sheet check
 
 
 def sweep_frame_count(start: int, end: int, rate_steps_s: float, fps: float) -> int:
@@ -45,7 +47,7 @@ def sweep_frame_count(start: int, end: int, rate_steps_s: float, fps: float) -> 
     return int(np.floor(abs(end - start) / rate_steps_s * fps)) + 1
 
 
-def _lines(image: np.ndarray):
+def _lines(image: AnyArray):
     from lsu_extract.extractor import extract_laser_line
     from lsu_reconstruct.matching import LineArrays
 
@@ -56,7 +58,7 @@ def _lines(image: np.ndarray):
 def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0,
                 start: int = 0, end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0,
                 position_rate_hz: float = 20.0, seed: int = 0, params=None,
-                frames: Optional[int] = None) -> SweepScan:
+                frames: int | None = None) -> SweepScan:
     """Render and reconstruct a sweep (module doc); ``frames`` limits the count (tests)."""
     from lsu_cameras.sim import CarriageState, SimulatedRig
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
@@ -71,8 +73,8 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
     track = CarriageTrack(stamps, np.rint(start + direction * rate_steps_s * stamps))
     count = sweep_frame_count(start, end, rate_steps_s, fps) if frames is None else int(frames)
     exposure = geometry.sensor.exposure_s
-    xyz: List[np.ndarray] = []
-    stats: Dict[str, int] = {}
+    xyz: list[AnyArray] = []
+    stats: dict[str, int] = {}
     lines = 0
     for index in range(count):
         t = index / fps  # the left camera's nominal exposure start; the rig draws each camera's jitter
@@ -80,6 +82,7 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
         if t + exposure > duration:  # the carriage stopped at the end: the last frames see it there
             state = CarriageState(float(end), True)
         frame = rig.render(state, capture_time_s=t, seed=seed + index)
+        assert frame.exposure_start_s[0] is not None and frame.exposure_start_s[1] is not None  # given capture_time_s
         sweep_frame = SweepFrame(index, _lines(frame.left), _lines(frame.right), float(frame.exposure_start_s[0]),
                                  float(frame.exposure_start_s[1]), exposure)
         out = reconstruct_sweep_frame(model, sheet, track, sweep_frame, params)
@@ -104,8 +107,8 @@ def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int 
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
 
     rig = SimulatedRig(geometry, objects, seed=seed)
-    xyz: List[np.ndarray] = []
-    checked: List[np.ndarray] = []
+    xyz: list[AnyArray] = []
+    checked: list[AnyArray] = []
     positions = list(range(start, end + 1, step))
     for index, position in enumerate(positions):
         state = CarriageState(float(position), True, stopped_at_s=0.0,

@@ -37,7 +37,8 @@ def test_gaussian_table_of_uniform_samples_differs_from_normal():
 def test_fit_plane_recovers_a_known_plane():
     rng = np.random.default_rng(3)
     n = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])
-    a = np.cross(n, [0.0, 1.0, 0.0]); a /= np.linalg.norm(a)
+    a = np.cross(n, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
     b = np.cross(n, a)
     p0 = np.array([0.01, 0.02, 0.3])
     st = rng.uniform(-0.05, 0.05, (5000, 2))
@@ -180,7 +181,6 @@ BOARD_POSES = (A.Pose(0.26), A.Pose(0.30), A.Pose(0.35, yaw_deg=15.0, pitch_deg=
 def board_bags(tmp_path_factory):
     """One scan bag per board pose, written from the simulated rig; the renderer's boards are the truth."""
     from lsu_cameras.sim import load_rig
-
     from lsu_testing.simbags import write_board_scan_bags
 
     root = tmp_path_factory.mktemp("board_scans")
@@ -190,10 +190,9 @@ def board_bags(tmp_path_factory):
 
 
 def test_board_plane_detected_in_the_laser_off_pair_matches_the_renderer(board_bags):
+    from lsu_accuracy.accuracy_bag import detect_board_plane, find_bags, read_board_scans
     from lsu_cameras.calibration import BoardSpec
     from lsu_reconstruct.stereo import StereoModel
-
-    from lsu_accuracy.accuracy_bag import detect_board_plane, find_bags, read_board_scans
 
     root, boards = board_bags
     model = StereoModel.from_folder(Path(A.__file__).resolve().parents[3] / "config" / "calibration" / "sim")
@@ -260,9 +259,8 @@ def test_accuracy_from_board_bags_end_to_end(board_study):
 
 
 def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
-    from lsu_cameras.sim import build_scene, load_rig
-
     from lsu_bags.bags import BagWriter
+    from lsu_cameras.sim import build_scene, load_rig
     from lsu_testing.simbags import EVENTS_TOPIC, write_sim_scan_bag
 
     with BagWriter(tmp_path / "events_only" / "bag") as bag:

@@ -19,8 +19,9 @@ import shutil
 import signal
 import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Set
+from typing import Any
 
 from lsu_common import stamps
 
@@ -91,26 +92,26 @@ class BagRecorder:
     topics are skipped with a warning. Call :meth:`close` to finalise the bag.
     """
 
-    def __init__(self, node: Any, topics: Optional[Sequence[str]], out_dir: Path | str, storage: str = "mcap", *,
-                 compress: bool = False, all_topics: bool = False, exclude: Optional[str] = None,
-                 types: Optional[bags.BagTypes] = None, poll_s: float = 0.5,
-                 log: Optional[Callable[[str], None]] = None,
-                 on_failure: Optional[Callable[[BagError], None]] = None) -> None:
+    def __init__(self, node: Any, topics: Sequence[str] | None, out_dir: Path | str, storage: str = "mcap", *,
+                 compress: bool = False, all_topics: bool = False, exclude: str | None = None,
+                 types: bags.BagTypes | None = None, poll_s: float = 0.5,
+                 log: Callable[[str], None] | None = None,
+                 on_failure: Callable[[BagError], None] | None = None) -> None:
         if not topics and not all_topics:
             raise BagError("nothing to record: name topics or use --all")
         self.node = node
         self.all_topics = all_topics
-        self.wanted: Set[str] = {node.resolve_topic_name(t) for t in (topics or ())}
+        self.wanted: set[str] = {node.resolve_topic_name(t) for t in (topics or ())}
         try:
             self.exclude = re.compile(exclude) if exclude else None
         except re.error as exc:
             raise BagError(f"--exclude '{exclude}' is not a regular expression: {exc}") from None
         self.log = log or (lambda text: node.get_logger().info(text))
         self.on_failure = on_failure
-        self.failure: Optional[BagError] = None
+        self.failure: BagError | None = None
         self.writer = bags.BagWriter(out_dir, storage, compress=compress, types=types)
-        self._subscriptions: Dict[str, Any] = {}
-        self._skipped: Set[str] = set()
+        self._subscriptions: dict[str, Any] = {}
+        self._skipped: set[str] = set()
         self._closed = False
         self._lock = threading.Lock()
         self._started = time.monotonic()
@@ -124,12 +125,12 @@ class BagRecorder:
         return self.writer.path
 
     @property
-    def counts(self) -> Dict[str, int]:
+    def counts(self) -> dict[str, int]:
         """Messages written per topic so far."""
         return dict(self.writer.counts)
 
     @property
-    def recording(self) -> Dict[str, str]:
+    def recording(self) -> dict[str, str]:
         """Topic -> type of every topic being recorded."""
         return self.writer.topics
 
@@ -178,10 +179,10 @@ class BagRecorder:
             cls, name, self._callback(name), qos, raw=True)
         self.log(f"recording {name} [{msgtype}]")
 
-    def _callback(self, topic: str) -> Callable[[bytes, Dict[str, Any]], None]:
+    def _callback(self, topic: str) -> Callable[[bytes, dict[str, Any]], None]:
         writer = self.writer
 
-        def on_message(data: bytes, info: Dict[str, Any]) -> None:
+        def on_message(data: bytes, info: dict[str, Any]) -> None:
             # the middleware's receive time, like rosbag2; fall back to now if the rmw gives none
             stamp = int(info.get("received_timestamp") or 0) or time.time_ns()
             writer.write(topic, stamp, data)
@@ -215,10 +216,10 @@ class BagPlayer:
     calling thread; publishing needs no spinning.
     """
 
-    def __init__(self, node: Any, bag_dir: Path | str, *, topics: Optional[Sequence[str]] = None,
-                 exclude: Optional[Sequence[str]] = None, rate: float = 1.0, loop: bool = False,
-                 wait_subscribers_s: float = 1.0, expect: Optional[Dict[str, int]] = None,
-                 types: Optional[bags.BagTypes] = None, log: Optional[Callable[[str], None]] = None) -> None:
+    def __init__(self, node: Any, bag_dir: Path | str, *, topics: Sequence[str] | None = None,
+                 exclude: Sequence[str] | None = None, rate: float = 1.0, loop: bool = False,
+                 wait_subscribers_s: float = 1.0, expect: dict[str, int] | None = None,
+                 types: bags.BagTypes | None = None, log: Callable[[str], None] | None = None) -> None:
         self.node = node
         self.path = Path(bag_dir)
         self.loop = loop
@@ -239,9 +240,9 @@ class BagPlayer:
         definitions = bags.stored_definitions(self.path)
         types = types or bags.BagTypes()
         #: topic -> why it is not played (its type cannot be loaded here, or its definition cannot be translated)
-        self.skipped: Dict[str, str] = {}
-        self.converters: Dict[str, bags.Converter] = {}
-        self.publishers: Dict[str, Any] = {}
+        self.skipped: dict[str, str] = {}
+        self.converters: dict[str, bags.Converter] = {}
+        self.publishers: dict[str, Any] = {}
         try:
             for name in selected:
                 msgtype, offered = available[name]
@@ -262,10 +263,10 @@ class BagPlayer:
         if not self.publishers:
             raise BagError(f"nothing to play in {self.path}: " + "; ".join(self.skipped.values())
                            if self.skipped else f"nothing to play in {self.path}: every topic was excluded")
-        self.topics: List[str] = list(self.publishers)
+        self.topics: list[str] = list(self.publishers)
         self.published = 0
 
-    def wait_for_subscribers(self, stop: Optional[threading.Event] = None) -> bool:
+    def wait_for_subscribers(self, stop: threading.Event | None = None) -> bool:
         """Wait up to ``wait_subscribers_s`` until every publisher has a subscriber; True if all have.
 
         When it had to wait, it waits MATCH_GRACE_S more: our writer has matched the reader,
@@ -284,7 +285,7 @@ class BagPlayer:
             stop.wait(MATCH_GRACE_S)
         return True
 
-    def play(self, stop: Optional[threading.Event] = None) -> int:
+    def play(self, stop: threading.Event | None = None) -> int:
         """Publish the bag (again and again with ``loop``) until done or ``stop`` is set.
 
         Returns the number of messages published.
@@ -343,9 +344,9 @@ class _RosSession:
         self.node = rclpy.create_node(name, context=self.context, start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self._previous: Dict[int, Any] = {}
+        self._previous: dict[int, Any] = {}
 
-    def __enter__(self) -> "_RosSession":
+    def __enter__(self) -> _RosSession:
         for sig in (signal.SIGINT, signal.SIGTERM):
             self._previous[sig] = signal.signal(sig, lambda *_: self.stop.set())
         return self
@@ -399,7 +400,7 @@ def cmd_play(args: argparse.Namespace) -> int:
     """`lsu bag play`."""
     if args.wait_subscribers < 0:
         raise BagError(f"--wait-subscribers must be >= 0 seconds, got {args.wait_subscribers:g}")
-    expect: Dict[str, int] = {}
+    expect: dict[str, int] = {}
     for item in args.expect:
         topic, _, count = item.rpartition("=")
         if not topic or not count.isdigit() or int(count) < 1:
@@ -435,7 +436,7 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu bag record|play|info`."""
     bag = subparsers.add_parser("bag", help="record, play and inspect rosbag2 bags (mcap, sqlite3)",
                                 description="Standard rosbag2 folders (metadata.yaml + .mcap or .db3), "

@@ -24,29 +24,38 @@ the cause and what to do.
 from __future__ import annotations
 
 import os
+import queue
 import re
 import struct
 import sys
 import threading
-import queue
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, NamedTuple
 
 import yaml
-from rosbags.interfaces import Connection, ConnectionExtRosbag2, Nodetype, Qos, QosDurability, QosHistory
-from rosbags.interfaces import QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderError, StoragePlugin, Writer
-from rosbags.rosbag2 import WriterError
+from rosbags.interfaces import (
+    Connection,
+    ConnectionExtRosbag2,
+    Nodetype,
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 
 from lsu_common import stamps
 
 #: storage plugins we write (both are read)
-STORAGES: Tuple[str, ...] = ("mcap", "sqlite3")
+STORAGES: tuple[str, ...] = ("mcap", "sqlite3")
 #: rosbag2 metadata version written; 9 is what ROS 2 Jazzy's rosbag2 writes
 BAG_VERSION = 9
 #: a duration that means "infinite" in rosbag2 metadata (rmw's RMW_DURATION_INFINITE)
@@ -80,7 +89,7 @@ class TopicInfo:
     msgtype: str
     count: int
     serialization_format: str
-    qos: Tuple[Qos, ...]
+    qos: tuple[Qos, ...]
 
 
 @dataclass(frozen=True)
@@ -88,7 +97,7 @@ class BagInfo:
     """Summary of a bag (what ``ros2 bag info`` prints)."""
 
     path: Path
-    files: Tuple[str, ...]
+    files: tuple[str, ...]
     size_bytes: int
     storage: str
     ros_distro: str
@@ -96,7 +105,7 @@ class BagInfo:
     start_ns: int
     end_ns: int
     message_count: int
-    topics: Tuple[TopicInfo, ...]
+    topics: tuple[TopicInfo, ...]
 
     @property
     def duration_ns(self) -> int:
@@ -115,7 +124,7 @@ class PlaybackQos:
 
 
 # ----------------------------------------------------------------------------- types
-def default_msg_dirs() -> List[Path]:
+def default_msg_dirs() -> list[Path]:
     """Folders laid out ``<dir>/<pkg>/msg/<Name>.msg``: the install's share folders (ament layout)."""
     dirs = [Path(sys.prefix) / "share"]
     for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
@@ -124,7 +133,7 @@ def default_msg_dirs() -> List[Path]:
     return dirs
 
 
-def _referenced(desc: Tuple[Any, Any]) -> Iterator[str]:
+def _referenced(desc: tuple[Any, Any]) -> Iterator[str]:
     """Type names a rosbags field descriptor refers to (nested through arrays and sequences)."""
     kind, rest = desc
     if kind == Nodetype.NAME:
@@ -142,7 +151,7 @@ class BagTypes:
     Thread-safe.
     """
 
-    def __init__(self, msg_dirs: Optional[Sequence[Path]] = None) -> None:
+    def __init__(self, msg_dirs: Sequence[Path] | None = None) -> None:
         self.typestore = get_typestore(Stores.ROS2_JAZZY)
         self.msg_dirs = [Path(d) for d in (default_msg_dirs() if msg_dirs is None else msg_dirs)]
         self._lock = threading.Lock()
@@ -151,7 +160,7 @@ class BagTypes:
         """True when the typestore already has ``msgtype``."""
         return msgtype in self.typestore.fielddefs
 
-    def _find_msg(self, msgtype: str) -> Optional[Path]:
+    def _find_msg(self, msgtype: str) -> Path | None:
         parts = msgtype.split("/")
         if len(parts) != 3 or parts[1] != "msg":
             return None
@@ -161,7 +170,7 @@ class BagTypes:
                 return candidate
         return None
 
-    def ensure(self, msgtype: str, topic: Optional[str] = None) -> None:
+    def ensure(self, msgtype: str, topic: str | None = None) -> None:
         """Make ``msgtype`` (and every type it uses) known to the typestore.
 
         Raises:
@@ -171,7 +180,7 @@ class BagTypes:
         with self._lock:
             if self.known(msgtype):
                 return
-            found: Dict[str, Any] = {}
+            found: dict[str, Any] = {}
             pending = [msgtype]
             while pending:
                 name = pending.pop()
@@ -199,7 +208,7 @@ class BagTypes:
             except TypesysError as exc:
                 raise BagError(f"cannot register '{msgtype}': {exc}") from None
 
-    def msgdef(self, msgtype: str) -> Tuple[str, str]:
+    def msgdef(self, msgtype: str) -> tuple[str, str]:
         """``(ros2msg definition text, RIHS01 hash)`` of a known type, as stored in the bag."""
         text, _ = self.typestore.generate_msgdef(msgtype, ros_version=2)
         return text, self.typestore.hash_rihs01(msgtype)
@@ -250,7 +259,7 @@ class _WriterThread:
     """
 
     def __init__(self, name: str) -> None:
-        self._queue: "queue.SimpleQueue[Optional[Tuple[Future, Callable[..., Any], tuple, dict]]]" = \
+        self._queue: queue.SimpleQueue[tuple[Future, Callable[..., Any], tuple, dict] | None] = \
             queue.SimpleQueue()
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -300,7 +309,7 @@ class BagWriter:
     """
 
     def __init__(self, out_dir: Path | str, storage: str = "mcap", *, compress: bool = False,
-                 types: Optional[BagTypes] = None) -> None:
+                 types: BagTypes | None = None) -> None:
         if storage not in STORAGES:
             raise BagError(f"unknown storage '{storage}'; use one of: {', '.join(STORAGES)}")
         self.path = Path(out_dir)
@@ -310,10 +319,10 @@ class BagWriter:
         self.storage = storage
         self.types = types or BagTypes()
         self._io = _WriterThread("lsu-bag-writer")
-        self._connections: Dict[str, Connection] = {}
+        self._connections: dict[str, Connection] = {}
         self._lock = threading.Lock()
-        self.counts: Dict[str, int] = {}
-        self._error: Optional[BaseException] = None
+        self.counts: dict[str, int] = {}
+        self._error: BaseException | None = None
         self._open = False
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         mode = (CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE) if compress else None
@@ -324,21 +333,21 @@ class BagWriter:
             raise BagError(f"cannot create bag {self.path}: {exc}") from None
         self._open = True
 
-    def _create(self, plugin: StoragePlugin, mode: Optional[CompressionMode]) -> Writer:
+    def _create(self, plugin: StoragePlugin, mode: CompressionMode | None) -> Writer:
         writer = Writer(self.path, version=BAG_VERSION, storage_plugin=plugin)
         if mode is not None:
             writer.set_compression(mode, CompressionFormat.ZSTD)
         writer.open()
         return writer
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
-    def topics(self) -> Dict[str, str]:
+    def topics(self) -> dict[str, str]:
         """Topic -> type of every topic added so far."""
         with self._lock:
             return {name: conn.msgtype for name, conn in self._connections.items()}
@@ -407,7 +416,7 @@ class BagWriter:
 
 
 # ----------------------------------------------------------------------------- reader
-_READ_ERRORS: Tuple[type, ...] = (ReaderError, OSError, EOFError, KeyError, IndexError, AssertionError,
+_READ_ERRORS: tuple[type[Exception], ...] = (ReaderError, OSError, EOFError, KeyError, IndexError, AssertionError,
                                   struct.error, ValueError, TypeError)
 try:  # sqlite3 storage errors come from apsw (a rosbags dependency)
     import apsw
@@ -459,7 +468,7 @@ _METADATA_ERRORS = ("Could not load YAML", "A metadata key is missing", "Invalid
                     "Storage plugin", "Some database files are missing", "Could not read metadata")
 
 
-def _metadata_problem(path: Path, exc: BaseException) -> Optional[str]:
+def _metadata_problem(path: Path, exc: BaseException) -> str | None:
     """The message for a bag folder whose metadata.yaml (not its storage) is broken, else None.
 
     The storage file of a rosbag2 folder holds every message with its topic and type (mcap also
@@ -504,7 +513,7 @@ def _cause(exc: BaseException) -> str:
     return text.splitlines()[0]
 
 
-def read_messages(bag_dir: Path | str, topics: Optional[Iterable[str]] = None) -> Iterator[BagMessage]:
+def read_messages(bag_dir: Path | str, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
     """Messages of a bag in timestamp order, optionally only those of ``topics``.
 
     Raises:
@@ -517,7 +526,7 @@ def read_messages(bag_dir: Path | str, topics: Optional[Iterable[str]] = None) -
         if not connections:
             return
         iterator = reader.messages(connections=connections)
-        seen: Dict[int, int] = {}
+        seen: dict[int, int] = {}
         while True:
             try:
                 connection, timestamp, data = next(iterator)
@@ -536,7 +545,7 @@ def read_messages(bag_dir: Path | str, topics: Optional[Iterable[str]] = None) -
                                f"corrupt")
 
 
-def _select(reader: Reader, path: Path, topics: Optional[Iterable[str]]) -> List[Connection]:
+def _select(reader: Reader, path: Path, topics: Iterable[str] | None) -> list[Connection]:
     if topics is None:
         return list(reader.connections)
     wanted = set(topics)
@@ -546,14 +555,14 @@ def _select(reader: Reader, path: Path, topics: Optional[Iterable[str]]) -> List
     return [c for c in reader.connections if c.topic in wanted]
 
 
-def bag_topics(bag_dir: Path | str) -> Dict[str, Tuple[str, Tuple[Qos, ...]]]:
+def bag_topics(bag_dir: Path | str) -> dict[str, tuple[str, tuple[Qos, ...]]]:
     """Topic -> (type, recorded publisher QoS profiles) of a bag."""
     with open_bag(bag_dir) as reader:
         return {c.topic: (c.msgtype, tuple(c.ext.offered_qos_profiles) if isinstance(c.ext, ConnectionExtRosbag2)
                           else ()) for c in reader.connections}
 
 
-def stored_definitions(bag_dir: Path | str) -> Dict[str, Tuple[str, str]]:
+def stored_definitions(bag_dir: Path | str) -> dict[str, tuple[str, str]]:
     """Topic -> (type, the ``ros2msg`` definition stored in the bag, '' when it holds none or IDL)."""
     from rosbags.interfaces import MessageDefinitionFormat
 
@@ -565,7 +574,7 @@ def stored_definitions(bag_dir: Path | str) -> Dict[str, Tuple[str, str]]:
 Converter = Callable[[bytes], bytes]
 
 
-def definition_converter(topic: str, msgtype: str, stored: str, types: BagTypes) -> Tuple[Optional[Converter], str]:
+def definition_converter(topic: str, msgtype: str, stored: str, types: BagTypes) -> tuple[Converter | None, str]:
     """How to play a topic recorded with definition ``stored`` to subscribers of the installed type.
 
     Returns ``(None, '')`` when both have the same wire format (or the bag stores no definition),
@@ -597,7 +606,7 @@ def definition_converter(topic: str, msgtype: str, stored: str, types: BagTypes)
                (("adds", new - old), ("drops", old - new)) if names]
     note = (f"topic '{topic}': the bag's {msgtype} differs from the installed one; translated (the installed type "
             f"{'; '.join(changes) or 'changes nested types'}: added fields are zero)")
-    cache: Dict[str, Any] = {}
+    cache: dict[str, Any] = {}
 
     def convert(data: bytes) -> bytes:
         return bytes(migrate_bytes(recorded, installed, msgtype, msgtype, cache, data, src_is2=True, dst_is2=True))
@@ -609,7 +618,7 @@ def bag_info(bag_dir: Path | str) -> BagInfo:
     """Summary of a bag from its metadata and storage index (no message is read)."""
     path = Path(bag_dir)
     with open_bag(path) as reader:
-        counts: Dict[Tuple[str, str], TopicInfo] = {}
+        counts: dict[tuple[str, str], TopicInfo] = {}
         for c in reader.connections:
             ext = c.ext if isinstance(c.ext, ConnectionExtRosbag2) else None
             key = (c.topic, c.msgtype)
@@ -665,7 +674,7 @@ def _mcap_chunk_compression(paths: Sequence[Path]) -> str:
 
 def _stamp(ns: int) -> str:
     sec, nsec = stamps.split_ns(ns)
-    when = datetime.fromtimestamp(sec, tz=timezone.utc)
+    when = datetime.fromtimestamp(sec, tz=UTC)
     return f"{when:%b %d %Y %H:%M:%S}.{nsec:09d} UTC ({stamps.to_text(ns)})"
 
 
@@ -702,7 +711,7 @@ def format_info(info: BagInfo) -> str:
 
 
 # ------------------------------------------------------------------------ deserialise
-def deserialize(message: BagMessage, types: Optional[BagTypes] = None) -> Any:
+def deserialize(message: BagMessage, types: BagTypes | None = None) -> Any:
     """A bag message as a rosbags dataclass (no ROS install needed)."""
     types = types or BagTypes()
     types.ensure(message.msgtype, message.topic)
@@ -731,7 +740,7 @@ class PlaybackClock:
     """
 
     rate: float
-    first_ns: Optional[int] = None
+    first_ns: int | None = None
     origin_s: float = 0.0
 
     def __post_init__(self) -> None:

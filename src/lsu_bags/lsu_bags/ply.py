@@ -10,10 +10,13 @@ hand-written for the same reason: open3d's writer would drop ``u v`` and ``snap`
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Dict, Mapping, Optional, Sequence, Tuple
+from typing import Any
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["PlyError", "read_ply", "write_ply", "write_cloud_ply"]
 
@@ -29,7 +32,7 @@ class PlyError(ValueError):
     """The file is not a PLY this reader understands; the message names the file and the problem."""
 
 
-def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.ndarray]]:
+def read_ply(path: str | Path) -> tuple[dict[str, AnyArray], AnyArray | None]:
     """(vertex columns by property name, faces (M, 3) int64 or None) of a PLY file."""
     path = Path(path)
     if not path.is_file():
@@ -41,7 +44,7 @@ def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.nda
     body_start = raw.index(b"\n", end) + 1
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     fmt = ""
-    elements = []
+    elements: list[dict[str, Any]] = []
     for line in header:
         parts = line.split()
         if not parts:
@@ -60,8 +63,8 @@ def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.nda
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise PlyError(f"{path}: unsupported PLY format '{fmt}'")
     order = "<" if fmt != "binary_big_endian" else ">"
-    vertices: Dict[str, np.ndarray] = {}
-    faces: Optional[np.ndarray] = None
+    vertices: dict[str, AnyArray] = {}
+    faces: AnyArray | None = None
     if fmt == "ascii":
         tokens = raw[body_start:].split()
         pos = 0
@@ -108,17 +111,17 @@ def read_ply(path: "str | Path") -> Tuple[Dict[str, np.ndarray], Optional[np.nda
             arr = np.frombuffer(raw, dtype=dt, count=el["count"], offset=offset)
             offset += need
             if el["name"] == "vertex":
-                vertices = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name in dt.names}
+                vertices = {name: arr[name].astype(arr[name].dtype.newbyteorder("=")) for name in dt.names or ()}
     return _checked(vertices, faces, path)
 
 
-def _triangles(rows: list, path: Path) -> np.ndarray:
+def _triangles(rows: list, path: Path) -> AnyArray:
     if any(len(r) != 3 for r in rows):
         raise PlyError(f"{path}: only triangle faces are supported")
     return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
 
 
-def _checked(vertices: Dict[str, np.ndarray], faces: Optional[np.ndarray], path: Path):
+def _checked(vertices: dict[str, AnyArray], faces: AnyArray | None, path: Path):
     if not all(k in vertices for k in ("x", "y", "z")):
         raise PlyError(f"{path}: the vertex element has no x, y, z properties")
     n = len(vertices["x"])
@@ -132,7 +135,7 @@ _PLY_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": 
               "f8": "double"}
 
 
-def write_ply(path: "str | Path", vertices: "Mapping[str, np.ndarray]", comments: Sequence[str] = ()) -> Path:
+def write_ply(path: str | Path, vertices: Mapping[str, AnyArray], comments: Sequence[str] = ()) -> Path:
     """Binary little-endian PLY of one vertex element: a property per column, in the mapping's order.
 
     Each column's numpy dtype gives its PLY type (int8..uint32, float32, float64); returns ``path``.
@@ -159,7 +162,7 @@ def write_ply(path: "str | Path", vertices: "Mapping[str, np.ndarray]", comments
     return path
 
 
-def write_cloud_ply(path: "str | Path", columns: "Mapping[str, np.ndarray]", comment: str = "lsu") -> Path:
+def write_cloud_ply(path: str | Path, columns: Mapping[str, AnyArray], comment: str = "lsu") -> Path:
     """An LSU cloud from PointCloud2 columns (x y z [m], packed rgb, u v, snap) as the PLY the project reads.
 
     Properties: x y z (float, metres, lsu_left_optical), red green blue (uchar), u v (float, left

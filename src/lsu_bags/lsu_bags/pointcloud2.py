@@ -13,10 +13,13 @@ end of a row); writing uses the LSU layout of ARCHITECTURE.md unless told otherw
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence
+from typing import Any
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["PointField", "Cloud", "CloudError", "LSU_FIELDS", "layout", "encode", "decode", "from_msg", "pack_rgb",
            "unpack_rgb", "INT8", "UINT8", "INT16", "UINT16", "INT32", "UINT32", "FLOAT32", "FLOAT64"]
@@ -46,7 +49,7 @@ class PointField:
 class Cloud:
     """The layout and bytes of a PointCloud2, without the header."""
 
-    fields: List[PointField]
+    fields: list[PointField]
     data: bytes
     width: int
     height: int = 1
@@ -61,9 +64,9 @@ class Cloud:
         return int(self.width) * int(self.height)
 
 
-def layout(names_types: Sequence[tuple], point_step: Optional[int] = None) -> tuple:
+def layout(names_types: Sequence[tuple], point_step: int | None = None) -> tuple:
     """Packed fields for ``[(name, datatype), ...]``; returns ``(fields, point_step)``."""
-    fields: List[PointField] = []
+    fields: list[PointField] = []
     offset = 0
     for name, datatype in names_types:
         fields.append(PointField(name, offset, datatype, 1))
@@ -79,9 +82,9 @@ LSU_FIELDS, LSU_POINT_STEP = layout([("x", FLOAT32), ("y", FLOAT32), ("z", FLOAT
 
 
 def _dtype(fields: Iterable[PointField], point_step: int, bigendian: bool,
-           names: Optional[Sequence[str]] = None) -> np.dtype:
+           names: Sequence[str] | None = None) -> np.dtype:
     order = ">" if bigendian else "<"
-    spec: Dict[str, list] = {"names": [], "formats": [], "offsets": []}
+    spec: dict[str, list] = {"names": [], "formats": [], "offsets": []}
     for f in fields:
         if names is not None and f.name not in names:
             continue
@@ -99,21 +102,21 @@ def _dtype(fields: Iterable[PointField], point_step: int, bigendian: bool,
     return np.dtype({**spec, "itemsize": point_step})
 
 
-def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+def pack_rgb(rgb: AnyArray) -> AnyArray:
     """(N, 3) uint8 R, G, B -> (N,) float32 whose bits are 0x00RRGGBB (PCL / RViz 'rgb')."""
     rgb = np.asarray(rgb, dtype=np.uint32).reshape(-1, 3)
     bits = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
     return bits.astype("<u4").view("<f4").astype(np.float32)
 
 
-def unpack_rgb(rgb: np.ndarray) -> np.ndarray:
+def unpack_rgb(rgb: AnyArray) -> AnyArray:
     """(N,) packed float32 'rgb' -> (N, 3) uint8 R, G, B."""
     bits = np.ascontiguousarray(rgb, dtype=np.float32).view(np.uint32)
     return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=1).astype(np.uint8)
 
 
-def encode(columns: Mapping[str, np.ndarray], fields: Optional[List[PointField]] = None,
-           point_step: Optional[int] = None, is_bigendian: bool = False, height: int = 1) -> Cloud:
+def encode(columns: Mapping[str, AnyArray], fields: list[PointField] | None = None,
+           point_step: int | None = None, is_bigendian: bool = False, height: int = 1) -> Cloud:
     """Pack named columns (each of length N, or (N, count)) into a :class:`Cloud`.
 
     Without ``fields`` the LSU layout is used. Bytes between and after fields (padding) are zero.
@@ -153,7 +156,7 @@ def from_msg(msg: Any) -> Cloud:
                  row_step=msg.row_step, is_bigendian=msg.is_bigendian, is_dense=msg.is_dense)
 
 
-def decode(cloud: Cloud, names: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
+def decode(cloud: Cloud, names: Sequence[str] | None = None) -> dict[str, AnyArray]:
     """Unpack a :class:`Cloud` into native-endian columns (N,) or (N, count); ``names`` limits the fields.
 
     Unknown fields are simply skipped when ``names`` is given, row padding (``row_step`` larger

@@ -9,7 +9,8 @@ from __future__ import annotations
 import array
 import importlib
 import re
-from typing import Any, Dict, Mapping, Optional
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -22,7 +23,7 @@ class InterfaceError(ValueError):
     """An interface type name that cannot be resolved, or data that does not fit a message."""
 
 
-def get_interface(type_name: str, kind: Optional[str] = None) -> type:
+def get_interface(type_name: str, kind: str | None = None) -> type[Any]:
     """Class of ``pkg/msg/Name`` (or ``pkg/Name`` with ``kind`` = msg/srv/action).
 
     Raises:
@@ -55,7 +56,7 @@ def _is_message(value: Any) -> bool:
     return hasattr(value, "get_fields_and_field_types")
 
 
-def to_data(msg: Any, array_limit: Optional[int] = None) -> Any:
+def to_data(msg: Any, array_limit: int | None = None) -> Any:
     """A message as nested dicts/lists of plain Python values (YAML-ready).
 
     Arrays longer than ``array_limit`` keep their first items and end with a note
@@ -76,12 +77,12 @@ def to_data(msg: Any, array_limit: Optional[int] = None) -> Any:
     return msg
 
 
-def to_yaml(msg: Any, array_limit: Optional[int] = DEFAULT_ARRAY_LIMIT) -> str:
+def to_yaml(msg: Any, array_limit: int | None = DEFAULT_ARRAY_LIMIT) -> str:
     """A message as YAML text, the way `ros2 topic echo` prints it."""
     return yaml.safe_dump(to_data(msg, array_limit), sort_keys=False, default_flow_style=False, width=100)
 
 
-def fill(msg: Any, data: Optional[Mapping[str, Any]]) -> Any:
+def fill(msg: Any, data: Mapping[str, Any] | None) -> Any:
     """Set the fields of ``msg`` from nested dicts/lists; returns ``msg``.
 
     Raises:
@@ -91,7 +92,7 @@ def fill(msg: Any, data: Optional[Mapping[str, Any]]) -> Any:
         return msg
     if not isinstance(data, Mapping):
         raise InterfaceError(f"{type(msg).__name__} needs a mapping like '{{field: value}}', got {data!r}")
-    fields: Dict[str, str] = msg.get_fields_and_field_types()
+    fields: dict[str, str] = msg.get_fields_and_field_types()
     for key, value in data.items():
         if key not in fields:
             raise InterfaceError(f"{type(msg).__name__} has no field '{key}' (fields: {', '.join(fields)})")
@@ -140,7 +141,7 @@ def _checked(type_str: str, value: Any) -> Any:
     return value
 
 
-def parse_yaml_mapping(text: str) -> Dict[str, Any]:
+def parse_yaml_mapping(text: str) -> dict[str, Any]:
     """Parse the YAML argument of `lsu topic pub` / `lsu service call` (``""`` = defaults)."""
     if not text.strip():
         return {}

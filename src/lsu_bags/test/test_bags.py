@@ -12,7 +12,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, Dict, List, Tuple
+from typing import Any
 
 import pytest
 import yaml
@@ -53,7 +53,7 @@ def serialized(msg: Any) -> bytes:
     return serialize_message(msg)
 
 
-def write_laser_bag(path: Path, storage: str, compress: bool, n: int = 5) -> List[Tuple[int, bytes]]:
+def write_laser_bag(path: Path, storage: str, compress: bool, n: int = 5) -> list[tuple[int, bytes]]:
     """A bag with ``n`` LaserLines on /lsu/stereo/left/laser_line, 10 ms apart; returns (t, bytes)."""
     written = []
     with bags.BagWriter(path, storage, compress=compress) as bag:
@@ -261,11 +261,11 @@ def _publisher_node(ros_node: Any) -> Any:
 
 @pytest.mark.parametrize("storage", bags.STORAGES)
 def test_recorder_stores_graph_bytes_qos_and_late_topics(ros_node, tmp_path, storage):
-    from lsu_interfaces.msg import StereoExtrinsics
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
 
     from lsu_bags.bag_cli import BagRecorder
+    from lsu_interfaces.msg import StereoExtrinsics
 
     pub_node = _publisher_node(ros_node)
     lines = pub_node.create_publisher(type(laser_line(0)), "/bagtest/laser_line", 10)
@@ -274,7 +274,7 @@ def test_recorder_stores_graph_bytes_qos_and_late_topics(ros_node, tmp_path, sto
     extrinsics = pub_node.create_publisher(StereoExtrinsics, "/bagtest/extrinsics", latched_qos)
     latched = StereoExtrinsics(right_frame_id="lsu_right_optical", rms_px=0.12)
     extrinsics.publish(latched)  # before the recorder exists: it must still get it (transient-local)
-    noted: List[str] = []
+    noted: list[str] = []
     recorder = BagRecorder(ros_node.node, None, tmp_path / "bag", storage, all_topics=True, poll_s=0.2,
                            log=noted.append)
     assert ros_node.spin_until(lambda: {"/bagtest/laser_line", "/bagtest/extrinsics"} <= set(recorder.recording))
@@ -295,7 +295,7 @@ def test_recorder_stores_graph_bytes_qos_and_late_topics(ros_node, tmp_path, sto
     assert "/rosout" not in recorder.recording and "/parameter_events" not in recorder.recording
     assert any("recording /bagtest/late [std_msgs/msg/String]" in n for n in noted)
 
-    got: Dict[str, List[bags.BagMessage]] = {}
+    got: dict[str, list[bags.BagMessage]] = {}
     for m in bags.read_messages(tmp_path / "bag"):
         got.setdefault(m.topic, []).append(m)
     # compare decoded messages: CDR padding bytes are not defined, so two serializers may differ there
@@ -321,7 +321,7 @@ def test_recorder_fails_clearly_on_a_named_topic_of_unknown_type(ros_node, tmp_p
 
     pub_node = _publisher_node(ros_node)
     pub_node.create_publisher(type(laser_line(0)), "/bagtest/mystery", 10)
-    failures: List[BagError] = []
+    failures: list[BagError] = []
     recorder = BagRecorder(ros_node.node, ["/bagtest/mystery"], tmp_path / "bag", "mcap", poll_s=0.1,
                            types=bags.BagTypes(msg_dirs=[]), on_failure=failures.append)
     try:
@@ -333,10 +333,10 @@ def test_recorder_fails_clearly_on_a_named_topic_of_unknown_type(ros_node, tmp_p
 
 
 def test_player_keeps_bytes_timing_and_latching(ros_node, tmp_path):
-    from lsu_interfaces.msg import StereoExtrinsics
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
     from lsu_bags.bag_cli import BagPlayer
+    from lsu_interfaces.msg import StereoExtrinsics
 
     path = tmp_path / "bag"
     gap_ns = 300_000_000
@@ -351,7 +351,7 @@ def test_player_keeps_bytes_timing_and_latching(ros_node, tmp_path):
         for i, data in enumerate(sent):
             bag.write("/bagplay/laser_line", t0 + (i + 1) * gap_ns, data)
 
-    arrivals: List[Tuple[float, bytes]] = []
+    arrivals: list[tuple[float, bytes]] = []
     ros_node.node.create_subscription(type(laser_line(0)), "/bagplay/laser_line",
                                       lambda data: arrivals.append((time.monotonic(), data)), 10, raw=True)
     player = BagPlayer(ros_node.node, path, rate=2.0, wait_subscribers_s=0.0)
@@ -364,7 +364,7 @@ def test_player_keeps_bytes_timing_and_latching(ros_node, tmp_path):
     try:
         assert ros_node.spin_until(lambda: len(arrivals) == 4 and done.is_set(), 15.0)
         # a subscriber that comes after play ended still gets the latched message
-        late: List[bytes] = []
+        late: list[bytes] = []
         latched_qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
         ros_node.node.create_subscription(StereoExtrinsics, "/bagplay/extrinsics", late.append, latched_qos,
@@ -439,9 +439,9 @@ def test_player_skips_what_it_cannot_load_translates_an_older_range_and_plays_th
 
     path = tmp_path / "bag"
     write_third_party_bag(path)
-    lines: List[str] = []
-    ranges: List[Any] = []
-    chatter: List[Any] = []
+    lines: list[str] = []
+    ranges: list[Any] = []
+    chatter: list[Any] = []
     ros_node.node.create_subscription(Range, "/range", ranges.append, 10)
     ros_node.node.create_subscription(String, "/chatter", chatter.append, 10)
     player = BagPlayer(ros_node.node, path, wait_subscribers_s=10.0, log=lines.append)
@@ -462,7 +462,7 @@ def test_player_leaves_out_excluded_topics(ros_node, tmp_path):
 
     path = tmp_path / "bag"
     write_third_party_bag(path)
-    lines: List[str] = []
+    lines: list[str] = []
     player = BagPlayer(ros_node.node, path, exclude=["/widgets", "/range"], wait_subscribers_s=0.0, log=lines.append)
     try:
         assert player.topics == ["/chatter"] and lines == []

@@ -5,8 +5,20 @@ import struct
 import numpy as np
 import pytest
 
-from lsu_bags.pointcloud2 import (FLOAT32, FLOAT64, UINT8, UINT32, LSU_FIELDS, Cloud, CloudError, PointField,
-                                         decode, encode, pack_rgb, unpack_rgb)
+from lsu_bags.pointcloud2 import (
+    FLOAT32,
+    FLOAT64,
+    LSU_FIELDS,
+    UINT8,
+    UINT32,
+    Cloud,
+    CloudError,
+    PointField,
+    decode,
+    encode,
+    pack_rgb,
+    unpack_rgb,
+)
 
 
 def columns(n=37, seed=5):

@@ -18,13 +18,16 @@ import datetime as _dt
 import hashlib
 import os
 import tempfile
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Iterable, Optional, Tuple
+from typing import Any
 
 import cv2
 import numpy as np
 import yaml
+
+from lsu_common.arrays import AnyArray, FloatArray
 
 __all__ = [
     "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
@@ -67,11 +70,11 @@ class CameraCalibration:
 
     image_width: int
     image_height: int
-    camera_matrix: np.ndarray                      # K, 3x3
-    distortion_coefficients: np.ndarray            # plumb_bob [k1, k2, p1, p2, k3]
+    camera_matrix: AnyArray                      # K, 3x3
+    distortion_coefficients: AnyArray            # plumb_bob [k1, k2, p1, p2, k3]
     camera_name: str = "camera"
-    rectification_matrix: np.ndarray = field(default_factory=lambda: np.eye(3))
-    projection_matrix: Optional[np.ndarray] = None  # 3x4; [K | 0] when not rectified
+    rectification_matrix: AnyArray = field(default_factory=lambda: np.eye(3))
+    projection_matrix: AnyArray | None = None  # 3x4; [K | 0] when not rectified
     distortion_model: str = "plumb_bob"
 
     def __post_init__(self) -> None:
@@ -83,7 +86,7 @@ class CameraCalibration:
         self.projection_matrix = np.asarray(self.projection_matrix, dtype=np.float64).reshape(3, 4)
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         """(width, height) in pixels."""
         return (int(self.image_width), int(self.image_height))
 
@@ -94,10 +97,10 @@ class StereoCalibration:
 
     image_width: int
     image_height: int
-    rotation: np.ndarray          # 3x3
-    translation: np.ndarray       # (3,) metres
-    essential: Optional[np.ndarray] = None
-    fundamental: Optional[np.ndarray] = None
+    rotation: AnyArray          # 3x3
+    translation: AnyArray       # (3,) metres
+    essential: AnyArray | None = None
+    fundamental: AnyArray | None = None
     rms_px: float = 0.0
     date: str = ""
     left_frame_id: str = "lsu_left_optical"
@@ -112,7 +115,7 @@ class StereoCalibration:
         if self.fundamental is not None:
             self.fundamental = np.asarray(self.fundamental, dtype=np.float64).reshape(3, 3)
         if not self.date:
-            self.date = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+            self.date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
     @property
     def baseline_m(self) -> float:
@@ -120,21 +123,21 @@ class StereoCalibration:
         return float(np.linalg.norm(self.translation))
 
 
-def skew(v: np.ndarray) -> np.ndarray:
+def skew(v: AnyArray) -> FloatArray:
     """Cross-product matrix [v]x with [v]x @ w == cross(v, w)."""
     x, y, z = np.asarray(v, dtype=np.float64).reshape(3)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def fundamental_from(left: CameraCalibration, right: CameraCalibration, rotation: np.ndarray,
-                     translation: np.ndarray) -> np.ndarray:
+def fundamental_from(left: CameraCalibration, right: CameraCalibration, rotation: AnyArray,
+                     translation: AnyArray) -> AnyArray:
     """F for undistorted pixels, x_right^T F x_left = 0, scaled so that ||F|| = 1."""
     return check_epipolar(left.camera_matrix, right.camera_matrix, np.asarray(rotation, dtype=np.float64).reshape(3, 3),
                           np.asarray(translation, dtype=np.float64).reshape(3), None, None, "")[1]
 
 
 def rectify(left: CameraCalibration, right: CameraCalibration, stereo: StereoCalibration,
-            alpha: float = 0.0) -> Tuple[CameraCalibration, CameraCalibration]:
+            alpha: float = 0.0) -> tuple[CameraCalibration, CameraCalibration]:
     """Both cameras with the rectification of the pair (R1, P1, R2, P2 of ``cv2.stereoRectify``).
 
     As ROS camera_calibration's stereo calibrator: zero disparity at infinity, ``alpha`` 0 (only
@@ -151,12 +154,13 @@ def rectify(left: CameraCalibration, right: CameraCalibration, stereo: StereoCal
     return out[0], out[1]
 
 
-def _matrix(rows: int, cols: int, data: np.ndarray) -> Dict[str, Any]:
+def _matrix(rows: int, cols: int, data: AnyArray) -> dict[str, Any]:
     return {"rows": rows, "cols": cols, "data": [float(x) for x in np.asarray(data, dtype=np.float64).reshape(-1)]}
 
 
-def camera_to_dict(cal: CameraCalibration) -> Dict[str, Any]:
+def camera_to_dict(cal: CameraCalibration) -> dict[str, Any]:
     """The ROS camera_calibration YAML mapping of one camera."""
+    assert cal.projection_matrix is not None  # __post_init__ sets it
     return {
         "image_width": int(cal.image_width),
         "image_height": int(cal.image_height),
@@ -169,9 +173,10 @@ def camera_to_dict(cal: CameraCalibration) -> Dict[str, Any]:
     }
 
 
-def stereo_to_dict(cal: StereoCalibration) -> Dict[str, Any]:
+def stereo_to_dict(cal: StereoCalibration) -> dict[str, Any]:
     """The ``stereo.yaml`` mapping of CONTRIBUTING.md."""
-    out: Dict[str, Any] = {
+    assert cal.essential is not None  # __post_init__ sets it
+    out: dict[str, Any] = {
         "image_width": int(cal.image_width),
         "image_height": int(cal.image_height),
         "left_frame_id": cal.left_frame_id,
@@ -188,14 +193,14 @@ def stereo_to_dict(cal: StereoCalibration) -> Dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- validation shared with array inputs
-def check_camera_matrix(K: np.ndarray, source: str, name: str = "camera_matrix") -> None:
+def check_camera_matrix(K: AnyArray, source: str, name: str = "camera_matrix") -> None:
     """Refuse a K that is not [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with positive focal lengths."""
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or np.any(K[1:, 0] != 0) or K[2, 1] != 0:
         raise CalibrationParseError(f"{source}: {name} is not a camera matrix [[fx, s, cx], [0, fy, cy], "
                                     f"[0, 0, 1]] with positive focal lengths: {K.tolist()}")
 
 
-def check_extrinsics(R: np.ndarray, T: np.ndarray, source: str) -> None:
+def check_extrinsics(R: AnyArray, T: AnyArray, source: str) -> None:
     """Refuse a non-rotation R, a zero or implausible baseline, and swapped cameras (right centre at x <= 0)."""
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0.99:
         raise CalibrationInconsistentError(f"{source}: rotation R is not a rotation matrix (R R^T != I or det "
@@ -216,14 +221,14 @@ def check_extrinsics(R: np.ndarray, T: np.ndarray, source: str) -> None:
                                            f"metres (the LSU's is ~0.122 m)")
 
 
-def _same_up_to_scale(a: np.ndarray, b: np.ndarray, tol: float) -> bool:
+def _same_up_to_scale(a: AnyArray, b: AnyArray, tol: float) -> bool:
     a = a / np.linalg.norm(a)
     b = b / np.linalg.norm(b)
-    return min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol
+    return bool(min(np.linalg.norm(a - b), np.linalg.norm(a + b)) < tol)
 
 
-def check_epipolar(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, T: np.ndarray, E: Optional[np.ndarray],
-                   F: Optional[np.ndarray], source: str) -> Tuple[np.ndarray, np.ndarray]:
+def check_epipolar(K1: AnyArray, K2: AnyArray, R: AnyArray, T: AnyArray, E: AnyArray | None,
+                   F: AnyArray | None, source: str) -> tuple[AnyArray, AnyArray]:
     """E = [T]x R and F = K2^-T E K1^-1 (unit norm); stored E/F (when given, non-zero) must equal them up to scale."""
     Ed = skew(T) @ R
     Fd = np.linalg.inv(K2).T @ Ed @ np.linalg.inv(K1)
@@ -239,7 +244,7 @@ def check_epipolar(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, T: np.ndarray,
 
 
 # ---------------------------------------------------------------------- reading
-def _load_yaml(path: Path) -> Dict[str, Any]:
+def _load_yaml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise CalibrationFileError(f"calibration file {path} not found; run `lsu calibrate` or point "
                                    f"calibration_dir at a folder with left.yaml, right.yaml and stereo.yaml")
@@ -254,7 +259,7 @@ def _load_yaml(path: Path) -> Dict[str, Any]:
     return data
 
 
-def _read_matrix(path: Path, data: Dict[str, Any], key: str, shape: Tuple[int, int]) -> np.ndarray:
+def _read_matrix(path: Path, data: dict[str, Any], key: str, shape: tuple[int, int]) -> FloatArray:
     if key not in data:
         rows, cols = shape if shape[0] * shape[1] else (1, "N")
         raise CalibrationParseError(f"{path}: missing field '{key}'; write it as {{rows: {rows}, cols: {cols}, "
@@ -273,7 +278,7 @@ def _read_matrix(path: Path, data: Dict[str, Any], key: str, shape: Tuple[int, i
     return arr.reshape(shape) if shape[0] * shape[1] else arr
 
 
-def _read_size(path: Path, data: Dict[str, Any]) -> Tuple[int, int]:
+def _read_size(path: Path, data: dict[str, Any]) -> tuple[int, int]:
     try:
         w, h = int(data["image_width"]), int(data["image_height"])
     except KeyError as exc:
@@ -335,7 +340,7 @@ class CalibrationSet:
     source: str = ""
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         """(width, height) shared by the three files."""
         return self.left.image_size
 
@@ -348,6 +353,7 @@ def _check_sides(path: Path, cam: CameraCalibration, expect_left: bool) -> None:
         raise CalibrationSwappedError(f"{path}: camera_name '{cam.camera_name}' says this is the {other} "
                                       f"camera; left.yaml and right.yaml look swapped")
     # a right projection matrix carries -fx' * baseline in P[0,3], a left one 0
+    assert cam.projection_matrix is not None  # __post_init__ sets it
     tx = float(cam.projection_matrix[0, 3])
     if expect_left and tx < -1e-9:
         raise CalibrationSwappedError(f"{path}: projection_matrix has P[0,3] = {tx:.3f} (a left camera has 0, a "
@@ -396,9 +402,9 @@ def calibration_checksum(directory: os.PathLike | str) -> str:
 
 
 # ---------------------------------------------------------------------- writing
-def _atomic_write_all(files: Iterable[Tuple[Path, str]]) -> None:
+def _atomic_write_all(files: Iterable[tuple[Path, str]]) -> None:
     """Write every file or none: all go to temporaries first, then are renamed into place (mode 0644)."""
-    staged = []
+    staged: list[tuple[Path, Path]] = []
     try:
         for path, text in files:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -408,12 +414,12 @@ def _atomic_write_all(files: Iterable[Tuple[Path, str]]) -> None:
             # mkstemp creates 0600; calibration files are read by other users' nodes and tools
             os.chmod(tmp, 0o644)
             staged.append((Path(tmp), path))
-        for tmp, path in staged:
-            os.replace(tmp, path)
+        for staged_tmp, target in staged:
+            os.replace(staged_tmp, target)
     finally:
-        for tmp, _ in staged:
-            if tmp.exists():
-                tmp.unlink()
+        for staged_tmp, _ in staged:
+            if staged_tmp.exists():
+                staged_tmp.unlink()
 
 
 def write_calibration_dir(directory: os.PathLike | str, left: CameraCalibration, right: CameraCalibration,
@@ -428,7 +434,7 @@ def write_calibration_dir(directory: os.PathLike | str, left: CameraCalibration,
     if stereo.fundamental is None:
         stereo.fundamental = fundamental_from(left, right, stereo.rotation, stereo.translation)
 
-    def dump(d: Dict[str, Any]) -> str:
+    def dump(d: dict[str, Any]) -> str:
         return prefix + yaml.safe_dump(d, sort_keys=False, default_flow_style=None, width=200)
 
     left.camera_name = left.camera_name if left.camera_name != "camera" else "lsu_left"

@@ -13,12 +13,14 @@ from __future__ import annotations
 import datetime as _dt
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .calib_io import CameraCalibration, StereoCalibration
 
@@ -36,7 +38,7 @@ class BoardSpec:
     square_m: float = 0.025
 
     @classmethod
-    def parse(cls, text: str, square_mm: float) -> "BoardSpec":
+    def parse(cls, text: str, square_mm: float) -> BoardSpec:
         """From ``"9x6"`` and a square size in millimetres."""
         match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
         if not match:
@@ -50,7 +52,7 @@ class BoardSpec:
         return cls(cols, rows, square_mm / 1000.0)
 
     @property
-    def object_points(self) -> np.ndarray:
+    def object_points(self) -> AnyArray:
         """Corner coordinates on the board (metres, z = 0), row-major like OpenCV's detections."""
         j, i = np.mgrid[0:self.rows, 0:self.cols]
         return np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1).astype(np.float32) * self.square_m
@@ -76,8 +78,8 @@ class StereoCalibrationResult:
     stereo: StereoCalibration
     left_rms_px: float
     right_rms_px: float
-    views: List[ViewResult] = field(default_factory=list)
-    coverage: Tuple[float, float] = (0.0, 0.0)   # fraction of the image area covered by corners (left, right)
+    views: list[ViewResult] = field(default_factory=list)
+    coverage: tuple[float, float] = (0.0, 0.0)   # fraction of the image area covered by corners (left, right)
 
     def summary(self) -> str:
         """Human-readable report (one line per view)."""
@@ -92,14 +94,14 @@ class StereoCalibrationResult:
         return "\n".join(lines)
 
 
-def to_gray(image: np.ndarray) -> np.ndarray:
+def to_gray(image: AnyArray) -> AnyArray:
     """8-bit grayscale of a BGR or gray image."""
     if image.ndim == 2:
         return image
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
 
 
-def find_board(image: np.ndarray, board: BoardSpec) -> Optional[np.ndarray]:
+def find_board(image: AnyArray, board: BoardSpec) -> AnyArray | None:
     """Sub-pixel inner corners (N,1,2 float32) of ``board`` in ``image``, or None when not found."""
     gray = to_gray(image)
     found, corners = cv2.findChessboardCorners(gray, (board.cols, board.rows),
@@ -113,7 +115,7 @@ def find_board(image: np.ndarray, board: BoardSpec) -> Optional[np.ndarray]:
     return cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), criteria)
 
 
-def larger_board_visible(image: np.ndarray, board: BoardSpec) -> Optional[Tuple[int, int]]:
+def larger_board_visible(image: AnyArray, board: BoardSpec) -> tuple[int, int] | None:
     """(cols, rows) of a board one corner wider or taller than ``board`` when it is found in ``image``.
 
     findChessboardCorners can lock onto part of a larger board; a calibration with the wrong
@@ -127,8 +129,8 @@ def larger_board_visible(image: np.ndarray, board: BoardSpec) -> Optional[Tuple[
     return None
 
 
-def _view_errors(obj: List[np.ndarray], img: List[np.ndarray], K: np.ndarray, D: np.ndarray,
-                 rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> np.ndarray:
+def _view_errors(obj: list[AnyArray], img: list[AnyArray], K: AnyArray, D: AnyArray,
+                 rvecs: Sequence[AnyArray], tvecs: Sequence[AnyArray]) -> AnyArray:
     errs = []
     for o, i, r, t in zip(obj, img, rvecs, tvecs):
         proj, _ = cv2.projectPoints(o, r, t, K, D)
@@ -136,13 +138,13 @@ def _view_errors(obj: List[np.ndarray], img: List[np.ndarray], K: np.ndarray, D:
     return np.array(errs)
 
 
-def _calibrate_mono(obj: List[np.ndarray], img: List[np.ndarray], size: Tuple[int, int], flags: int):
+def _calibrate_mono(obj: list[AnyArray], img: list[AnyArray], size: tuple[int, int], flags: int):
     rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
     return rms, K, D.reshape(-1)[:5], _view_errors(obj, img, K, D, rvecs, tvecs)
 
 
-def _calibrate_extrinsics(obj: List[np.ndarray], img_l: List[np.ndarray], img_r: List[np.ndarray], K_l: np.ndarray,
-                          D_l: np.ndarray, K_r: np.ndarray, D_r: np.ndarray, size: Tuple[int, int]):
+def _calibrate_extrinsics(obj: list[AnyArray], img_l: list[AnyArray], img_r: list[AnyArray], K_l: AnyArray,
+                          D_l: AnyArray, K_r: AnyArray, D_r: AnyArray, size: tuple[int, int]):
     """R, T, E, F with the intrinsics fixed, and each view's stereo RMS error (worst of its two images)."""
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-10)
     out = cv2.stereoCalibrateExtended(obj, img_l, img_r, K_l, D_l, K_r, D_r, size, None, None,
@@ -151,7 +153,7 @@ def _calibrate_extrinsics(obj: List[np.ndarray], img_l: List[np.ndarray], img_r:
     return float(out[0]), out[5], out[6], out[7], out[8], per_view
 
 
-def _coverage(points: List[np.ndarray], size: Tuple[int, int]) -> float:
+def _coverage(points: list[AnyArray], size: tuple[int, int]) -> float:
     """Fraction of a 8x6 grid over the image that holds at least one detected corner."""
     grid = np.zeros((6, 8), bool)
     for p in points:
@@ -162,7 +164,7 @@ def _coverage(points: List[np.ndarray], size: Tuple[int, int]) -> float:
     return float(grid.mean())
 
 
-def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board: BoardSpec, min_views: int = 8,
+def calibrate_stereo(pairs: Sequence[tuple[str, AnyArray, AnyArray]], board: BoardSpec, min_views: int = 8,
                      outlier_factor: float = 3.0, fix_k3: bool = True) -> StereoCalibrationResult:
     """Calibrate both cameras and their extrinsics from ``(name, left_image, right_image)`` pairs.
 
@@ -171,7 +173,7 @@ def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board:
     """
     if not pairs:
         raise CalibrationError("no image pairs given")
-    sizes = {}
+    sizes: dict[tuple[int, int], list[str]] = {}
     for name, left, right in pairs:
         for side, image in (("left", left), ("right", right)):
             sizes.setdefault((image.shape[1], image.shape[0]), []).append(f"{name} ({side})")
@@ -180,7 +182,7 @@ def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board:
                            for (w, h), names in sizes.items())
         raise CalibrationError(f"images of different sizes cannot be calibrated together ({detail})")
     size = next(iter(sizes))
-    views: List[ViewResult] = []
+    views: list[ViewResult] = []
     obj, img_l, img_r, kept = [], [], [], []
     for name, left, right in pairs:
         cl, cr = find_board(left, board), find_board(right, board)
@@ -235,11 +237,11 @@ def calibrate_stereo(pairs: Sequence[Tuple[str, np.ndarray, np.ndarray]], board:
         kept[k].used = True
         kept[k].reason = ""
     img_l, img_r = [img_l[k] for k in active], [img_r[k] for k in active]
-    date = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    left = CameraCalibration(size[0], size[1], K_l, D_l, "lsu_left")
-    right = CameraCalibration(size[0], size[1], K_r, D_r, "lsu_right")
+    date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    left_cal = CameraCalibration(size[0], size[1], K_l, D_l, "lsu_left")
+    right_cal = CameraCalibration(size[0], size[1], K_r, D_r, "lsu_right")
     stereo = StereoCalibration(size[0], size[1], R, T.reshape(3), E, F / np.linalg.norm(F), rms_s, date)
-    return StereoCalibrationResult(left, right, stereo, float(rms_l), float(rms_r), views,
+    return StereoCalibrationResult(left_cal, right_cal, stereo, float(rms_l), float(rms_r), views,
                                    (_coverage(img_l, size), _coverage(img_r, size)))
 
 
@@ -251,11 +253,11 @@ _SIDE_NAME = re.compile(r"^(left|right)[_-]?(.+)$", re.IGNORECASE)
 class PairFolder:
     """Image pairs read from a folder, and what could not be used, by name."""
 
-    pairs: List[Tuple[str, np.ndarray, np.ndarray]]
-    unpaired: List[str] = field(default_factory=list)
-    unreadable: List[Tuple[str, str]] = field(default_factory=list)   # (file, why)
+    pairs: list[tuple[str, AnyArray, AnyArray]]
+    unpaired: list[str] = field(default_factory=list)
+    unreadable: list[tuple[str, str]] = field(default_factory=list)   # (file, why)
 
-    def report(self) -> List[str]:
+    def report(self) -> list[str]:
         """One line per problem, for the user."""
         lines = [f"skipped {name}: no partner image (expected the same number with the other side's name)"
                  for name in self.unpaired]
@@ -263,7 +265,7 @@ class PairFolder:
         return lines
 
 
-def _read_image(path: Path) -> Tuple[Optional[np.ndarray], str]:
+def _read_image(path: Path) -> tuple[AnyArray | None, str]:
     """(BGR image, '') or (None, why). ``cv2.imread`` decodes a truncated JPEG with only a warning
     (the missing part grey), which later reads as "no board found": such files are named by their
     missing end-of-image marker here."""
@@ -279,9 +281,9 @@ def _read_image(path: Path) -> Tuple[Optional[np.ndarray], str]:
     return image, ""
 
 
-def _side_files(directory: Path) -> Dict[str, Dict[str, Path]]:
+def _side_files(directory: Path) -> dict[str, dict[str, Path]]:
     """{'left': {key: path}, 'right': {key: path}} from left/ + right/ sub-folders or leftNN / left_NN names."""
-    sides: Dict[str, Dict[str, Path]] = {"left": {}, "right": {}}
+    sides: dict[str, dict[str, Path]] = {"left": {}, "right": {}}
     subdirs = {side: directory / side for side in sides if (directory / side).is_dir()}
     if len(subdirs) == 2:
         for side, folder in subdirs.items():

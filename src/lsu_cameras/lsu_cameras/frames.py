@@ -20,10 +20,11 @@ Pure numpy/scipy: the nodes turn these `RigTransform` values into TransformStamp
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from lsu_common.arrays import AnyArray
 
 from .calib_io import StereoCalibration
 
@@ -47,16 +48,16 @@ class RigTransform:
 
     parent: str
     child: str
-    translation: np.ndarray   # (3,) metres
-    rotation: np.ndarray      # 3x3
+    translation: AnyArray   # (3,) metres
+    rotation: AnyArray      # 3x3
 
     @property
-    def quaternion_xyzw(self) -> np.ndarray:
+    def quaternion_xyzw(self) -> AnyArray:
         """The rotation as a unit quaternion (x, y, z, w), geometry_msgs order."""
         return Rotation.from_matrix(self.rotation).as_quat()
 
 
-def base_axes(stereo: StereoCalibration) -> np.ndarray:
+def base_axes(stereo: StereoCalibration) -> AnyArray:
     """Columns: ``lsu_base``'s x (forward), y (left), z (up) expressed in the left optical frame."""
     centre_right = -stereo.rotation.T @ stereo.translation
     baseline = centre_right / np.linalg.norm(centre_right)          # left -> right
@@ -69,7 +70,7 @@ def base_axes(stereo: StereoCalibration) -> np.ndarray:
 
 
 def rig_transforms(stereo: StereoCalibration, track: TrackGeometry = TrackGeometry(),
-                   base_frame: str = BASE_FRAME) -> List[RigTransform]:
+                   base_frame: str = BASE_FRAME) -> list[RigTransform]:
     """The static transforms: base -> left optical, base -> right optical, base -> laser origin."""
     M = base_axes(stereo)                                           # left optical <- base rotation
     centre_right = -stereo.rotation.T @ stereo.translation
@@ -84,7 +85,7 @@ def rig_transforms(stereo: StereoCalibration, track: TrackGeometry = TrackGeomet
     ]
 
 
-def transform_msg(t: RigTransform, stamp: "object") -> "object":
+def transform_msg(t: RigTransform, stamp: object) -> object:
     """A geometry_msgs/TransformStamped of ``t`` (imported here: this module stays importable without ROS)."""
     from geometry_msgs.msg import TransformStamped
 

@@ -15,13 +15,15 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any
 
 import cv2
 import numpy as np
 
+from lsu_common.arrays import AnyArray
 from lsu_common.images import ImageFormatError, msg_to_array
 
 from .calibration import BoardSpec, CalibrationError, StereoCalibrationResult, calibrate_stereo, find_board
@@ -43,18 +45,18 @@ class BoardParams:
     size: float
     skew: float
 
-    def as_array(self) -> np.ndarray:
+    def as_array(self) -> AnyArray:
         """``[x, y, size, skew]``."""
         return np.array([self.x, self.y, self.size, self.skew])
 
 
-def _outside_corners(corners: np.ndarray, board: BoardSpec) -> np.ndarray:
+def _outside_corners(corners: AnyArray, board: BoardSpec) -> AnyArray:
     """The four extreme inner corners, in order up-left, up-right, down-right, down-left (4x2)."""
     grid = np.asarray(corners, dtype=np.float64).reshape(board.rows, board.cols, 2)
     return np.stack([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
 
 
-def board_params(corners: np.ndarray, board: BoardSpec, image_size: Tuple[int, int]) -> BoardParams:
+def board_params(corners: AnyArray, board: BoardSpec, image_size: tuple[int, int]) -> BoardParams:
     """X, Y, size and skew of a detected board (``corners`` as from `find_board`) in a ``(w, h)`` image.
 
     X and Y are the corner centroid mapped so that a board touching the left/top edge is 0 and one
@@ -87,10 +89,10 @@ class AcceptedView:
     """A kept stereo view: its images, detections and parameters in both cameras."""
 
     number: int                 # 1-based, in order of acceptance
-    left: np.ndarray
-    right: np.ndarray
-    corners_left: np.ndarray
-    corners_right: np.ndarray
+    left: AnyArray
+    right: AnyArray
+    corners_left: AnyArray
+    corners_right: AnyArray
     params_left: BoardParams
     params_right: BoardParams
 
@@ -101,8 +103,8 @@ class Verdict:
 
     accepted: bool
     reason: str = ""                      # why rejected (empty when accepted)
-    view: Optional[AcceptedView] = None   # the new view when accepted
-    nearest: Optional[int] = None         # number of the closest kept view (too-close rejections)
+    view: AcceptedView | None = None   # the new view when accepted
+    nearest: int | None = None         # number of the closest kept view (too-close rejections)
     distance: float = float("nan")        # parameter distance to that view
 
 
@@ -121,7 +123,7 @@ class Coverage:
 #: far less room to move. With these, 40 seeded sessions of `random_board_poses` on the simulated
 #: rig (0.33-0.50 m, tilts up to 35 deg) were good enough after a median of 12 views (at most 20)
 #: with at most one repeat rejected, while boards at one distance or never tilted never are.
-DEFAULT_RANGES: Dict[str, float] = {"X": 0.25, "Y": 0.25, "size": 0.08, "skew": 0.30}
+DEFAULT_RANGES: dict[str, float] = {"X": 0.25, "Y": 0.25, "size": 0.08, "skew": 0.30}
 
 
 @dataclass
@@ -136,9 +138,9 @@ class CoverageTracker:
     board: BoardSpec
     min_views: int = 12
     min_distance: float = 0.06
-    ranges: Dict[str, float] = field(default_factory=lambda: dict(DEFAULT_RANGES))
-    views: List[AcceptedView] = field(default_factory=list)
-    image_size: Optional[Tuple[int, int]] = None
+    ranges: dict[str, float] = field(default_factory=lambda: dict(DEFAULT_RANGES))
+    views: list[AcceptedView] = field(default_factory=list)
+    image_size: tuple[int, int] | None = None
 
     def __post_init__(self) -> None:
         if self.min_views < 1:
@@ -147,7 +149,7 @@ class CoverageTracker:
         if missing:
             raise LiveCalibrationError(f"coverage ranges need a positive value for {', '.join(missing)}")
 
-    def consider(self, left: np.ndarray, right: np.ndarray) -> Verdict:
+    def consider(self, left: AnyArray, right: AnyArray) -> Verdict:
         """Detect the board in both images and keep the pair if it adds coverage."""
         size = (int(left.shape[1]), int(left.shape[0]))
         if (right.shape[1], right.shape[0]) != size:
@@ -162,8 +164,8 @@ class CoverageTracker:
             return Verdict(False, f"board not found in {missing} image")
         return self.add_detection(left, right, corners_l, corners_r)
 
-    def add_detection(self, left: np.ndarray, right: np.ndarray, corners_left: np.ndarray,
-                      corners_right: np.ndarray) -> Verdict:
+    def add_detection(self, left: AnyArray, right: AnyArray, corners_left: AnyArray,
+                      corners_right: AnyArray) -> Verdict:
         """Keep an already detected pair if it is far enough from every kept view."""
         size = (int(left.shape[1]), int(left.shape[0]))
         p_l = board_params(corners_left, self.board, size)
@@ -181,7 +183,7 @@ class CoverageTracker:
         self.views.append(view)
         return Verdict(True, view=view)
 
-    def coverage(self) -> List[Coverage]:
+    def coverage(self) -> list[Coverage]:
         """Per-parameter range over the kept views (worse camera) and progress towards the required span."""
         out = []
         for k, name in enumerate(PARAMETERS):
@@ -204,12 +206,12 @@ class CoverageTracker:
         """``X [####  ] Y [###   ] size [##    ] skew [#     ]`` progress bars (full only when reached)."""
         return " ".join(f"{c.name} [{'#' * int(c.progress * width):<{width}}]" for c in self.coverage())
 
-    def pairs(self) -> List[Tuple[str, np.ndarray, np.ndarray]]:
+    def pairs(self) -> list[tuple[str, AnyArray, AnyArray]]:
         """Kept views as ``(name, left, right)`` for `calibrate_stereo`."""
         return [(f"{v.number:03d}", v.left, v.right) for v in self.views]
 
 
-def save_pairs(views: Sequence[AcceptedView], directory: Path | str) -> List[Path]:
+def save_pairs(views: Sequence[AcceptedView], directory: Path | str) -> list[Path]:
     """Write ``left_NNN.png`` / ``right_NNN.png`` of each view so ``lsu calibrate --pairs`` can redo the run."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -228,16 +230,16 @@ class LiveResult:
     """How a live session ended and, when it calibrated, the calibration."""
 
     captures: int
-    views: List[AcceptedView]
+    views: list[AcceptedView]
     good_enough: bool
     stopped_by: str                                  # "good enough" | "max views" | "interrupted"
-    calibration: Optional[StereoCalibrationResult] = None
+    calibration: StereoCalibrationResult | None = None
 
 
-def run_live_calibration(capture: Callable[[], Tuple[np.ndarray, np.ndarray]], tracker: CoverageTracker,
-                         interval_s: float = 1.0, max_captures: Optional[int] = None, min_views: int = 8,
-                         save_dir: Optional[Path | str] = None, report: Callable[[str], None] = print,
-                         stop: Optional[threading.Event] = None, max_failures: int = 3) -> LiveResult:
+def run_live_calibration(capture: Callable[[], tuple[AnyArray, AnyArray]], tracker: CoverageTracker,
+                         interval_s: float = 1.0, max_captures: int | None = None, min_views: int = 8,
+                         save_dir: Path | str | None = None, report: Callable[[str], None] = print,
+                         stop: threading.Event | None = None, max_failures: int = 3) -> LiveResult:
     """Capture, judge and report pairs until the coverage suffices, then calibrate like ``--pairs``.
 
     ``capture()`` returns one fresh ``(left, right)`` pair or raises `LiveCalibrationError` when the
@@ -296,7 +298,7 @@ def run_live_calibration(capture: Callable[[], Tuple[np.ndarray, np.ndarray]], t
     return LiveResult(captures, list(tracker.views), good, stopped_by, result)
 
 
-def image_from_msg(msg: Any) -> np.ndarray:
+def image_from_msg(msg: Any) -> AnyArray:
     """A BGR (or gray) uint8 array of a sensor_msgs/Image (`lsu_common.images`; bgr8, rgb8, mono8, bgra8, rgba8, Bayer)."""
     try:
         return np.ascontiguousarray(msg_to_array(msg))
@@ -326,7 +328,7 @@ class CaptureClient:
                                        "`lsu launch sim` (simulated rig) or `lsu launch lab` (the unit), in the "
                                        "same ROS_DOMAIN_ID")
 
-    def capture(self) -> Tuple[np.ndarray, np.ndarray]:
+    def capture(self) -> tuple[AnyArray, AnyArray]:
         """One fresh pair as BGR arrays; raises `LiveCalibrationError` when the node reports a failure."""
         future = self.client.call_async(self._request)
         end = time.monotonic() + self.timeout_s
@@ -344,7 +346,7 @@ class CaptureClient:
         """Leave the graph."""
         self._graph.close()
 
-    def __enter__(self) -> "CaptureClient":
+    def __enter__(self) -> CaptureClient:
         return self
 
     def __exit__(self, *exc: object) -> None:

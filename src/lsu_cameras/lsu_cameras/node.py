@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
@@ -20,7 +20,6 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
-from tf2_msgs.msg import TFMessage
 
 from lsu_common import diagnostics, qos, stamps
 from lsu_common.images import bgr_to_msg
@@ -28,14 +27,24 @@ from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import SimTruth, StereoExtrinsics
 from lsu_interfaces.srv import CaptureStereo
+from tf2_msgs.msg import TFMessage
 
-from .calib_io import (CalibrationError, CalibrationSet, CalibrationSizeError, CameraCalibration, read_calibration_dir,
-                       read_camera_yaml)
+from .calib_io import (
+    CalibrationError,
+    CalibrationSet,
+    CalibrationSizeError,
+    CameraCalibration,
+    read_calibration_dir,
+    read_camera_yaml,
+)
 from .frames import TrackGeometry, rig_transforms, transform_msg
 from .paths import config_dir
 from .polled import PolledGroup, take_latest
 from .profiles import ProfileError, load_profile
 from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
+
+if TYPE_CHECKING:  # the simulator is imported only when the node simulates
+    from .sim import CarriageState
 
 SOURCES = ("sim", "v4l2", "folder")
 
@@ -44,7 +53,7 @@ image_msg = bgr_to_msg  # a bgr8 sensor_msgs/Image of an HxWx3 uint8 array
 
 
 R = True  # read_only: the source, calibration and frames are opened and published once, at start-up
-PARAMETERS: Dict[str, Param] = {
+PARAMETERS: dict[str, Param] = {
     "source": Param("sim", "camera source: sim | v4l2 | folder", read_only=R),
     "devices": Param(["/dev/video0", "/dev/video1"], "v4l2: left and right devices", read_only=R),
     "folder": Param("", "folder: directory of left_*.png/right_*.png pairs", read_only=R),
@@ -83,6 +92,7 @@ def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
     msg.distortion_model = cal.distortion_model
     msg.d = [float(x) for x in cal.distortion_coefficients]
     msg.k = [float(x) for x in cal.camera_matrix.reshape(-1)]
+    assert cal.rectification_matrix is not None and cal.projection_matrix is not None  # __post_init__ sets both
     msg.r = [float(x) for x in cal.rectification_matrix.reshape(-1)]
     msg.p = [float(x) for x in cal.projection_matrix.reshape(-1)]
     return msg
@@ -102,9 +112,9 @@ class StereoCameraNode(Node):
         self._lock = threading.Lock()
         self._publish_lock = threading.Lock()
         self._truth_lock = threading.Lock()
-        self._truth_msg: Optional[SimTruth] = None
-        self.source: Optional[StereoSource] = None
-        self.calibration: Optional[CalibrationSet] = None
+        self._truth_msg: SimTruth | None = None
+        self.source: StereoSource | None = None
+        self.calibration: CalibrationSet | None = None
         self.status_level = diagnostics.OK
         self.status_message = "ok"
 
@@ -116,7 +126,7 @@ class StereoCameraNode(Node):
         # then always names an image, as image pipelines expect
         self.pub_info_left = self.create_publisher(CameraInfo, "stereo/left/camera_info", sensor_qos)
         self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", sensor_qos)
-        self._info: Optional[Tuple[CameraInfo, CameraInfo]] = None
+        self._info: tuple[CameraInfo, CameraInfo] | None = None
         self.pub_extrinsics = self.create_publisher(StereoExtrinsics, "stereo/extrinsics", latched)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", latched)  # tf2's static QoS
@@ -144,14 +154,14 @@ class StereoCameraNode(Node):
             self.destroy_timer(self.preview)
         self.preview = self.create_timer(1.0 / rate_hz, self._on_preview) if rate_hz > 0 else None
 
-    def _apply_parameters(self, params: List[Any]) -> None:
+    def _apply_parameters(self, params: list[Any]) -> None:
         """preview_rate_hz restarts the preview timer; the other settable ones are read where they are used."""
         for p in params:
             if p.name == "preview_rate_hz":
                 self._set_preview_rate(float(p.value))
 
     @property
-    def _truth(self) -> Optional[SimTruth]:
+    def _truth(self) -> SimTruth | None:
         """The newest ``sim/truth`` received (None before the first), taken from the reader on demand."""
         with self._truth_lock:  # one reader, and `lsu run` may call this from several executor threads
             latest = take_latest(self._truth_sub)
@@ -159,7 +169,7 @@ class StereoCameraNode(Node):
                 self._truth_msg = latest
             return self._truth_msg
 
-    def _sim_carriage(self, t: float) -> "CarriageState":  # noqa: F821
+    def _sim_carriage(self, t: float) -> CarriageState:
         from .sim import CarriageState
 
         truth = self._truth
@@ -245,6 +255,7 @@ class StereoCameraNode(Node):
         s = cal.stereo
         ext.rotation = [float(x) for x in s.rotation.reshape(-1)]
         ext.translation = [float(x) for x in s.translation]
+        assert s.essential is not None and s.fundamental is not None  # reading a calibration fills both
         ext.essential = [float(x) for x in s.essential.reshape(-1)]
         ext.fundamental = [float(x) for x in s.fundamental.reshape(-1)]
         ext.rms_px = float(s.rms_px)

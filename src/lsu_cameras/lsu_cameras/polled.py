@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, List, Optional
+from typing import Any
 
 from rclpy.callback_groups import CallbackGroup
 
@@ -27,9 +27,9 @@ class PolledGroup(CallbackGroup):
         pass
 
 
-def take_all(subscription: Any) -> List[Any]:
+def take_all(subscription: Any) -> list[Any]:
     """Every message waiting in a `PolledGroup` subscription's reader, oldest first (serialized bytes if raw)."""
-    taken_all = []
+    taken_all: list[Any] = []
     with subscription.handle:  # raises InvalidHandle once destroyed, like an executor's take
         while True:
             taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
@@ -38,7 +38,7 @@ def take_all(subscription: Any) -> List[Any]:
             taken_all.append(taken[0])
 
 
-def take_latest(subscription: Any) -> Optional[Any]:
+def take_latest(subscription: Any) -> Any | None:
     """The newest message waiting in a `PolledGroup` subscription's reader (None if none arrived since)."""
     waiting = take_all(subscription)
     return waiting[-1] if waiting else None

@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Protocol
+from typing import Any, Protocol
 
 import cv2
 import yaml
@@ -22,7 +22,7 @@ class ProfileError(ValueError):
     """A profile is missing, does not parse, or names an unknown control."""
 
 
-V4L2_CONTROLS: Dict[str, int] = {
+V4L2_CONTROLS: dict[str, int] = {
     "brightness": cv2.CAP_PROP_BRIGHTNESS,
     "contrast": cv2.CAP_PROP_CONTRAST,
     "saturation": cv2.CAP_PROP_SATURATION,
@@ -54,7 +54,7 @@ class Profile:
     """A named set of control values."""
 
     name: str
-    controls: Dict[str, float]
+    controls: dict[str, float]
 
 
 def load_profile(name_or_path: str) -> Profile:
@@ -71,7 +71,7 @@ def load_profile(name_or_path: str) -> Profile:
         raise ProfileError(f"{path}: not valid YAML: {exc}") from None
     if not isinstance(data, dict) or not isinstance(data.get("controls"), dict):
         raise ProfileError(f"{path}: expected a mapping with a 'controls' mapping of V4L2 control -> value")
-    controls: Dict[str, float] = {}
+    controls: dict[str, float] = {}
     for key, value in data["controls"].items():
         if key not in V4L2_CONTROLS:
             raise ProfileError(f"{path}: unknown control '{key}'; known controls: {', '.join(sorted(V4L2_CONTROLS))}")
@@ -82,9 +82,9 @@ def load_profile(name_or_path: str) -> Profile:
     return Profile(str(data.get("name", path.stem)), controls)
 
 
-def apply_profile(capture: Capture, profile: Profile, tolerance: float = 0.5) -> List[str]:
+def apply_profile(capture: Capture, profile: Profile, tolerance: float = 0.5) -> list[str]:
     """Set every control, read it back; returns one message per control that did not take."""
-    problems: List[str] = []
+    problems: list[str] = []
     for key, value in profile.controls.items():
         prop = V4L2_CONTROLS[key]
         accepted = capture.set(prop, value)
@@ -101,6 +101,6 @@ def profile_path(name: str) -> os.PathLike:
     return config_dir() / "profiles" / f"{name}.yaml"
 
 
-def describe(profile: Profile) -> Dict[str, Any]:
+def describe(profile: Profile) -> dict[str, Any]:
     """Profile as a plain mapping (for logs/diagnostics)."""
     return {"name": profile.name, **profile.controls}

@@ -8,14 +8,19 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, List, Optional, Sequence, Tuple, Union
+from typing import TYPE_CHECKING
 
 import cv2
-import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .profiles import Profile, apply_profile
+
+if TYPE_CHECKING:  # the simulator is imported only when a SimSource is made
+    from .sim import CarriageState, SimulatedRig
 
 
 class CameraError(RuntimeError):
@@ -26,8 +31,8 @@ class CameraError(RuntimeError):
 class StereoPair:
     """One synchronized pair."""
 
-    left: np.ndarray            # HxWx3 uint8 BGR
-    right: np.ndarray
+    left: AnyArray            # HxWx3 uint8 BGR
+    right: AnyArray
     time_s: float               # capture time (source clock: wall or sim time) given to both images
     skew_s: float = 0.0         # right - left exposure time difference
     label: str = ""             # e.g. the folder pair's file suffix
@@ -38,17 +43,17 @@ class StereoSource(abc.ABC):
 
     @property
     @abc.abstractmethod
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         """(width, height) of both images."""
 
     @abc.abstractmethod
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         """A fresh pair exposed after this call started."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (optional: a source without devices keeps this no-op)
         """Release devices."""
 
-    def report(self) -> List[str]:
+    def report(self) -> list[str]:
         """Problems found while opening (e.g. profile read-back mismatches)."""
         return []
 
@@ -56,7 +61,7 @@ class StereoSource(abc.ABC):
 class FolderSource(StereoSource):
     """Replays ``left_*.png`` / ``right_*.png`` pairs in name order, looping."""
 
-    def __init__(self, folder: Union[str, Path], loop: bool = True) -> None:
+    def __init__(self, folder: str | Path, loop: bool = True) -> None:
         self.folder = Path(folder)
         if not self.folder.is_dir():
             raise CameraError(f"image folder '{self.folder}' not found (parameter 'folder')")
@@ -72,7 +77,7 @@ class FolderSource(StereoSource):
         first = self._read(*self._paths[0])
         self._size = (first[0].shape[1], first[0].shape[0])
 
-    def _read(self, left: Path, right: Path) -> Tuple[np.ndarray, np.ndarray]:
+    def _read(self, left: Path, right: Path) -> tuple[AnyArray, AnyArray]:
         images = []
         for path in (left, right):
             image = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -85,7 +90,7 @@ class FolderSource(StereoSource):
         return images[0], images[1]
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         return self._size
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
@@ -112,14 +117,14 @@ class V4l2Source(StereoSource):
     timestamps when they exist, else from the host time of each grab.
     """
 
-    def __init__(self, devices: Sequence[Union[str, int]], size: Tuple[int, int] = (640, 480),
-                 profile: Optional[Profile] = None, flush_frames: int = 2,
-                 opener: Callable[..., "cv2.VideoCapture"] = cv2.VideoCapture) -> None:
+    def __init__(self, devices: Sequence[str | int], size: tuple[int, int] = (640, 480),
+                 profile: Profile | None = None, flush_frames: int = 2,
+                 opener: Callable[..., cv2.VideoCapture] = cv2.VideoCapture) -> None:
         if len(devices) != 2:
             raise CameraError(f"need exactly two devices (left, right), got {list(devices)}")
         self.devices = list(devices)
         self.flush_frames = flush_frames
-        self._problems: List[str] = []
+        self._problems: list[str] = []
         self._caps = []
         try:
             for side, dev in zip(("left", "right"), self.devices):
@@ -146,10 +151,10 @@ class V4l2Source(StereoSource):
             raise
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         return self._size
 
-    def report(self) -> List[str]:
+    def report(self) -> list[str]:
         return list(self._problems)
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
@@ -157,7 +162,7 @@ class V4l2Source(StereoSource):
         for _ in range(self.flush_frames):
             for cap in self._caps:
                 cap.grab()
-        stamps = []
+        stamps: list[tuple[float, float]] = []  # (host time, driver ms) per camera
         for side, cap in zip(("left", "right"), self._caps):
             if not cap.grab():
                 raise CameraError(f"{side} camera '{self.devices[len(stamps)]}' returned no frame (unplugged?)")
@@ -187,14 +192,14 @@ class V4l2Source(StereoSource):
 class SimSource(StereoSource):
     """The simulated rig; ``carriage(t)`` says where the carriage is at time t (from /lsu/sim/truth or a parameter)."""
 
-    def __init__(self, rig: "SimulatedRig", carriage: Callable[[float], "CarriageState"],  # noqa: F821
+    def __init__(self, rig: SimulatedRig, carriage: Callable[[float], CarriageState],
                  clock: Callable[[], float] = time.time) -> None:
         self.rig = rig
         self.carriage = carriage
         self.clock = clock
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         return self.rig.geometry.image_size
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:

@@ -14,8 +14,14 @@ from sensor_msgs.msg import Image
 from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.calibration import BoardSpec
 from lsu_cameras.cli import cmd_calibrate
-from lsu_cameras.live import (CaptureClient, CoverageTracker, LiveCalibrationError, board_params, image_from_msg,
-                              run_live_calibration)
+from lsu_cameras.live import (
+    CaptureClient,
+    CoverageTracker,
+    LiveCalibrationError,
+    board_params,
+    image_from_msg,
+    run_live_calibration,
+)
 from lsu_cameras.node import StereoCameraNode
 from lsu_cameras.sim import load_rig
 from lsu_cameras.sim.boards import random_board_poses, render_board_pairs

@@ -65,6 +65,7 @@ def test_capture_publishes_a_pair_with_its_camera_info_and_latched_extrinsics(ro
 def test_tf_static_places_the_cameras_as_stereo_yaml_does(ros_node):
     import yaml
     from scipy.spatial.transform import Rotation
+
     from tf2_msgs.msg import TFMessage
 
     make_node(ros_node)

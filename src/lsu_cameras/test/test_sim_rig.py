@@ -1,6 +1,5 @@
 """The simulated rig: exact ground truth, physically plausible images, deterministic synthetic heads."""
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -10,8 +9,17 @@ from scipy.spatial.transform import Rotation
 
 from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.paths import config_dir
-from lsu_cameras.sim import (CarriageState, SceneError, SimulatedRig, build_scene, load_rig, make_head, make_plane,
-                             write_true_calibration)
+from lsu_cameras.sim import (
+    CarriageState,
+    SceneError,
+    SimulatedRig,
+    build_scene,
+    load_rig,
+    make_head,
+    make_plane,
+    write_true_calibration,
+)
+from lsu_common.arrays import AnyArray
 
 RIG_YAML = config_dir() / "sim_rig.yaml"
 
@@ -37,7 +45,7 @@ def plane_rig():
     return SimulatedRig(geometry, [make_plane((0.0, 0.0, 0.30), (0.0, 0.0, -1.0))], seed=7)
 
 
-def laser_centroids(image: np.ndarray, columns: np.ndarray, rows: np.ndarray, half: int = 7):
+def laser_centroids(image: AnyArray, columns: AnyArray, rows: AnyArray, half: int = 7):
     """Red-minus-background centroid and second-moment width around the given columns (test's own estimator)."""
     red = image[:, :, 2].astype(float)
     out_c, out_w = [], []

@@ -6,7 +6,7 @@ import pytest
 
 from lsu_cameras.calib_io import CalibrationParseError, CalibrationSizeError, read_calibration_dir, read_camera_yaml
 from lsu_cameras.paths import config_dir
-from lsu_cameras.profiles import V4L2_CONTROLS, Profile, ProfileError, apply_profile, load_profile
+from lsu_cameras.profiles import V4L2_CONTROLS, ProfileError, apply_profile, load_profile
 from lsu_cameras.sources import CameraError, FolderSource, V4l2Source
 
 

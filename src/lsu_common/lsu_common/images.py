@@ -9,26 +9,28 @@ cv_bridge itself is not on PyPI, which is why this is written here.
 from __future__ import annotations
 
 import array
-from typing import Any, Dict, Tuple, Union
+from typing import Any
 
 import cv2
 import numpy as np
 
-BufferLike = Union[bytes, bytearray, memoryview, np.ndarray]
+from lsu_common.arrays import AnyArray
+
+BufferLike = bytes | bytearray | memoryview | AnyArray
 
 # OpenCV names Bayer patterns after the 2x2 block starting at pixel (1, 1), ROS after the one
 # at (0, 0); so ROS "rggb" is OpenCV "BG" (the same table cv_bridge uses).
-_BAYER_TO_BGR: Dict[str, int] = {
+_BAYER_TO_BGR: dict[str, int] = {
     "bayer_rggb8": cv2.COLOR_BayerBG2BGR,
     "bayer_bggr8": cv2.COLOR_BayerRG2BGR,
     "bayer_gbrg8": cv2.COLOR_BayerGR2BGR,
     "bayer_grbg8": cv2.COLOR_BayerGB2BGR,
 }
-_CHANNELS: Dict[str, int] = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, **{k: 1 for k in _BAYER_TO_BGR}}
+_CHANNELS: dict[str, int] = {"bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4, "mono8": 1, **{k: 1 for k in _BAYER_TO_BGR}}
 
-SUPPORTED_ENCODINGS: Tuple[str, ...] = tuple(sorted(_CHANNELS))
+SUPPORTED_ENCODINGS: tuple[str, ...] = tuple(sorted(_CHANNELS))
 # OpenCV type names some drivers publish for the same layouts
-_ALIASES: Dict[str, str] = {"8uc1": "mono8", "8uc3": "bgr8"}
+_ALIASES: dict[str, str] = {"8uc1": "mono8", "8uc3": "bgr8"}
 
 
 class ImageFormatError(ValueError):
@@ -50,7 +52,7 @@ def check_encoding(encoding: str) -> str:
     return name
 
 
-def decode_image(data: BufferLike, width: int, height: int, encoding: str, step: int = 0) -> np.ndarray:
+def decode_image(data: BufferLike, width: int, height: int, encoding: str, step: int = 0) -> AnyArray:
     """An image buffer as a BGR (H, W, 3) or mono (H, W) uint8 array.
 
     Args:
@@ -93,7 +95,7 @@ def decode_image(data: BufferLike, width: int, height: int, encoding: str, step:
     return cv2.cvtColor(np.ascontiguousarray(pixels), cv2.COLOR_RGBA2BGR)
 
 
-def encode_image(bgr: np.ndarray, encoding: str) -> bytes:
+def encode_image(bgr: AnyArray, encoding: str) -> bytes:
     """Inverse of `decode_image` for tests and tools: BGR (or mono) uint8 -> packed buffer of ``encoding``.
 
     Bayer encodings sample the colour image on the named 2x2 pattern (no interpolation).
@@ -121,12 +123,12 @@ def encode_image(bgr: np.ndarray, encoding: str) -> bytes:
     return np.ascontiguousarray(out).tobytes()
 
 
-def msg_to_array(msg: Any) -> np.ndarray:
+def msg_to_array(msg: Any) -> AnyArray:
     """A sensor_msgs/Image (ROS or rosbags message) as BGR (H, W, 3) or mono (H, W) uint8 (see `decode_image`)."""
     return decode_image(msg.data, int(msg.width), int(msg.height), str(msg.encoding), int(msg.step))
 
 
-def msg_to_bgr(msg: Any) -> np.ndarray:
+def msg_to_bgr(msg: Any) -> AnyArray:
     """A sensor_msgs/Image as a contiguous BGR (H, W, 3) uint8 array (mono is repeated on the 3 channels)."""
     image = msg_to_array(msg)
     if image.ndim == 2:
@@ -134,7 +136,7 @@ def msg_to_bgr(msg: Any) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def bgr_to_msg(image: np.ndarray, stamp: Any, frame_id: str) -> Any:
+def bgr_to_msg(image: AnyArray, stamp: Any, frame_id: str) -> Any:
     """A bgr8 sensor_msgs/Image of a BGR (H, W, 3) uint8 array, with one copy of the pixels."""
     from sensor_msgs.msg import Image
 

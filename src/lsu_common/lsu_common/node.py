@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from typing import Callable, List, Optional, Sequence, Tuple, Type
+from collections.abc import Callable, Sequence
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
@@ -21,9 +21,9 @@ EXIT_OK = 0
 EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); the message says why
 
 
-def run_node(make_node: Callable[[], Node], args: Optional[Sequence[str]] = None, *,
-             multi_threaded: bool = False, on_started: Optional[Callable[[Node], None]] = None,
-             startup_errors: Tuple[Type[BaseException], ...] = (), program: str = "") -> int:
+def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *,
+             multi_threaded: bool = False, on_started: Callable[[Node], None] | None = None,
+             startup_errors: tuple[type[BaseException], ...] = (), program: str = "") -> int:
     """Run one node until Ctrl-C, SIGTERM or an external shutdown; returns the process exit code.
 
     Args:
@@ -41,7 +41,7 @@ def run_node(make_node: Callable[[], Node], args: Optional[Sequence[str]] = None
     # before the node: a SIGTERM while the node is built shuts the context down, and nothing
     # (no executor, no guard condition) can be created in it afterwards
     executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
-    node: Optional[Node] = None
+    node: Node | None = None
     try:
         try:
             node = make_node()
@@ -68,12 +68,12 @@ def run_node(make_node: Callable[[], Node], args: Optional[Sequence[str]] = None
     return EXIT_OK
 
 
-def main_of(node_class: Type[Node], *, multi_threaded: bool = False,
-            startup_errors: Tuple[Type[BaseException], ...] = (), program: str = ""
-            ) -> Callable[[Optional[List[str]]], int]:
+def main_of(node_class: type[Node], *, multi_threaded: bool = False,
+            startup_errors: tuple[type[BaseException], ...] = (), program: str = ""
+            ) -> Callable[..., int]:
     """A console-script ``main(args=None)`` running ``node_class`` with `run_node`."""
 
-    def main(args: Optional[List[str]] = None) -> int:
+    def main(args: list[str] | None = None) -> int:
         return run_node(node_class, args, multi_threaded=multi_threaded, startup_errors=startup_errors,
                         program=program)
 

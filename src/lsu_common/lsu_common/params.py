@@ -18,7 +18,8 @@ instead of silently doing nothing.
 
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple, Union
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NamedTuple
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 
@@ -28,13 +29,13 @@ class Param(NamedTuple):
 
     default: Any
     description: str
-    range: Optional[Tuple[float, float]] = None  # inclusive (low, high); None for strings, bools, arrays
+    range: tuple[float, float] | None = None  # inclusive (low, high); None for strings, bools, arrays
     read_only: bool = False                      # start-up only: a later set is refused
 
 
-ParamRow = Union[Param, Tuple[Any, ...]]
-Check = Callable[[List[Any]], "Optional[str] | SetParametersResult"]
-Apply = Callable[[List[Any]], None]
+ParamRow = Param | tuple[Any, ...]
+Check = Callable[[list[Any]], "str | None | SetParametersResult"]
+Apply = Callable[[list[Any]], None]
 
 
 def as_param(row: ParamRow) -> Param:
@@ -57,8 +58,8 @@ def descriptor(row: ParamRow) -> ParameterDescriptor:
     return d
 
 
-def declare_parameters(node: Any, table: Mapping[str, ParamRow], *, check: Optional[Check] = None,
-                       apply: Optional[Apply] = None, apply_now: bool = True) -> Dict[str, Any]:
+def declare_parameters(node: Any, table: Mapping[str, ParamRow], *, check: Check | None = None,
+                       apply: Apply | None = None, apply_now: bool = True) -> dict[str, Any]:
     """Declare every parameter of ``table`` on ``node``; returns their start-up values by name.
 
     Args:
@@ -82,7 +83,7 @@ def declare_parameters(node: Any, table: Mapping[str, ParamRow], *, check: Optio
     return {p.name: p.value for p in current}
 
 
-def _result(outcome: "Optional[str] | SetParametersResult") -> SetParametersResult:
+def _result(outcome: str | None | SetParametersResult) -> SetParametersResult:
     if isinstance(outcome, SetParametersResult):
         return outcome
     if outcome:

@@ -21,7 +21,7 @@ def to_ns(stamp: Any) -> int:
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
-def split_ns(ns: int) -> "tuple[int, int]":
+def split_ns(ns: int) -> tuple[int, int]:
     """``(sec, nanosec)`` of integer nanoseconds, ``0 <= nanosec < 1e9`` (floor division, also before 1970)."""
     sec, nanosec = divmod(int(ns), NS_PER_S)
     return sec, nanosec

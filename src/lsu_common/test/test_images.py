@@ -5,8 +5,15 @@ import pytest
 from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
 
-from lsu_common.images import (SUPPORTED_ENCODINGS, ImageFormatError, UnsupportedEncodingError, bgr_to_msg,
-                               encode_image, msg_to_array, msg_to_bgr)
+from lsu_common.images import (
+    SUPPORTED_ENCODINGS,
+    ImageFormatError,
+    UnsupportedEncodingError,
+    bgr_to_msg,
+    encode_image,
+    msg_to_array,
+    msg_to_bgr,
+)
 
 
 def _bgr(seed=3, h=6, w=8):

@@ -1,7 +1,7 @@
 """Table-driven parameters: the descriptor rclpy enforces, and a set through the parameter service that is
 applied (post-set) or refused (range, read-only, on-set check) with the old value kept."""
 
-from typing import Any, Dict, List
+from typing import Any
 
 import pytest
 from rclpy.node import Node
@@ -33,17 +33,17 @@ def test_descriptors_carry_description_range_of_the_default_type_and_read_only()
 class TableNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("table_node", **{"namespace": "/lsu_params_test", **kwargs})
-        self.applied: List[List[str]] = []
-        self.values: Dict[str, Any] = {}
+        self.applied: list[list[str]] = []
+        self.values: dict[str, Any] = {}
         self.declared = declare_parameters(self, TABLE, check=self._check, apply=self._apply)
 
-    def _check(self, changed: List[Any]) -> Any:
+    def _check(self, changed: list[Any]) -> Any:
         for p in changed:
             if p.name == "mode" and p.value not in ("fast", "slow"):
                 return f"mode must be fast or slow, not {p.value}"
         return None
 
-    def _apply(self, changed: List[Any]) -> None:
+    def _apply(self, changed: list[Any]) -> None:
         self.applied.append(sorted(p.name for p in changed))
         self.values.update({p.name: p.value for p in changed})
 

@@ -8,7 +8,6 @@ import signal
 import sys
 import threading
 import time
-from typing import List, Optional
 
 import serial
 
@@ -146,7 +145,7 @@ def cmd_console(args: argparse.Namespace) -> int:
 def cmd_fault(args: argparse.Namespace) -> int:
     request: dict
     kind = args.kind
-    value: Optional[str] = args.value
+    value: str | None = args.value
     if kind == "garbage":
         request = {"fault": "garbage", "bytes": int(value or 16)}
     elif kind == "garbage-rate":
@@ -212,7 +211,7 @@ def cmd_firmware_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu gp32 emulate|send|console|fault|firmware`."""
     gp32 = sub.add_parser("gp32", help="GP32 unit: emulator, console, raw commands, faults").add_subparsers(
         dest="verb", required=True)
@@ -265,4 +264,4 @@ def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None
     p_fwr.set_defaults(func=cmd_firmware_run)
 
 
-__all__: List[str] = ["register"]
+__all__: list[str] = ["register"]

@@ -30,8 +30,8 @@ import queue
 import termios
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Tuple, Union
 
 import serial
 
@@ -94,13 +94,13 @@ class MotionResult:
     """How a motion ended."""
 
     position: int                 # step counter when it stopped
-    target: Optional[int]         # requested absolute target (None for a sweep)
-    end_sensor: Optional[int]     # sensor (0 start / 1 end) that tripped during the motion, if any
+    target: int | None         # requested absolute target (None for a sweep)
+    end_sensor: int | None     # sensor (0 start / 1 end) that tripped during the motion, if any
     # host (wall-clock) time the carriage stopped: v2, the !DONE's device stamp mapped through `clock`;
     # v1 (or no round trip yet), the arrival of the !DONE
-    stopped_at_s: Optional[float] = None
-    stopped_device_ms: Optional[int] = None   # v2: the device's counter when it stopped
-    stopped_uncertainty_s: Optional[float] = None  # how far stopped_at_s can be off (None: arrival time)
+    stopped_at_s: float | None = None
+    stopped_device_ms: int | None = None   # v2: the device's counter when it stopped
+    stopped_uncertainty_s: float | None = None  # how far stopped_at_s can be off (None: arrival time)
 
     @property
     def reached(self) -> bool:
@@ -122,33 +122,33 @@ class Gp32Client:
         self.retries = retries
         self.reconnect = reconnect
         self.motion_margin = motion_margin
-        self.identity: Optional[p.IdentifyInfo] = None
-        self.last_status: Optional[p.StatusInfo] = None
+        self.identity: p.IdentifyInfo | None = None
+        self.last_status: p.StatusInfo | None = None
         self.rate_steps_per_s = 200
         self.track_steps = 0
         self.homed = False
-        self.position: Optional[int] = None   # step counter as last reported (status or !DONE)
+        self.position: int | None = None   # step counter as last reported (status or !DONE)
         self.malformed_lines = 0
         self.stale_replies = 0
         self.position_rate_hz = 0             # !POS events per second during motion (v2), set at every connect
         self.clock = DeviceClock()            # the device's ms counter -> host time (v2; renewed at !BOOT)
         self._clock_lock = threading.Lock()
-        self._serial: Optional[serial.Serial] = None
+        self._serial: serial.Serial | None = None
         self._cmd_lock = threading.Lock()
         # replies with the host time their line was complete
-        self._replies: "queue.Queue[Tuple[Union[p.Ok, p.Err], float]]" = queue.Queue()
+        self._replies: queue.Queue[tuple[p.Ok | p.Err, float]] = queue.Queue()
         self._state = threading.Condition()
         self._event_seq = 0
-        self._events: List[p.Line] = []       # recent events (bounded), newest last
-        self.last_stop_s: Optional[float] = None  # host time of the last stop (see MotionResult.stopped_at_s)
-        self.last_stop_uncertainty_s: Optional[float] = None
-        self._listeners: List[Listener] = []
-        self._error_listeners: List[Callable[[p.MalformedLine], None]] = []
-        self._connection_listeners: List[Callable[[bool, str], None]] = []
+        self._events: list[p.Line | _PortLostMarker] = []       # recent events (bounded), newest last
+        self.last_stop_s: float | None = None  # host time of the last stop (see MotionResult.stopped_at_s)
+        self.last_stop_uncertainty_s: float | None = None
+        self._listeners: list[Listener] = []
+        self._error_listeners: list[Callable[[p.MalformedLine], None]] = []
+        self._connection_listeners: list[Callable[[bool, str], None]] = []
         self._connected = False
         self._closing = False
-        self._reader: Optional[threading.Thread] = None
-        self._supervisor: Optional[threading.Thread] = None
+        self._reader: threading.Thread | None = None
+        self._supervisor: threading.Thread | None = None
         self._lost = threading.Event()
 
     # ------------------------------------------------------------------------------ listeners
@@ -175,7 +175,7 @@ class Gp32Client:
         return self.identity.version if self.identity else 0
 
     # ------------------------------------------------------------------------------ device clock
-    def _add_clock_sample(self, sent_s: float, recv_s: float, device_ms: Optional[int]) -> None:
+    def _add_clock_sample(self, sent_s: float, recv_s: float, device_ms: int | None) -> None:
         if device_ms is None:
             return
         with self._clock_lock:
@@ -185,7 +185,7 @@ class Gp32Client:
         with self._clock_lock:
             self.clock = DeviceClock()
 
-    def map_device_ms(self, device_ms: int) -> Optional[Tuple[float, float]]:
+    def map_device_ms(self, device_ms: int) -> tuple[float, float] | None:
         """(host time [s], uncertainty [s]) of a device stamp, or None before the first round trip."""
         with self._clock_lock:
             try:
@@ -193,7 +193,7 @@ class Gp32Client:
             except ClockSyncError:
                 return None
 
-    def clock_uncertainty_s(self) -> Optional[float]:
+    def clock_uncertainty_s(self) -> float | None:
         """How far a mapped device stamp can be off now [s], or None before the first round trip."""
         with self._clock_lock:
             try:
@@ -201,7 +201,7 @@ class Gp32Client:
             except ClockSyncError:
                 return None
 
-    def clock_drift_ppm(self) -> Optional[float]:
+    def clock_drift_ppm(self) -> float | None:
         """Estimated drift of the device clock [ppm], or None before the first round trip."""
         with self._clock_lock:
             try:
@@ -229,7 +229,7 @@ class Gp32Client:
             self._supervisor.start()
         return info
 
-    def __enter__(self) -> "Gp32Client":
+    def __enter__(self) -> Gp32Client:
         self.connect()
         return self
 
@@ -400,7 +400,7 @@ class Gp32Client:
         return self._command_timed(cmd, accept, retry)[0]
 
     def _command_timed(self, cmd: p.Command, accept: Callable[[p.Ok], bool] = lambda ok: True,
-                       retry: bool = True) -> Tuple[p.Ok, float, float]:
+                       retry: bool = True) -> tuple[p.Ok, float, float]:
         """`_command` and the host times that bracket the device's handling of it: (reply, sent, received).
 
         ``sent`` is the first attempt's: a reply to an earlier attempt, delayed, stays inside the bracket.
@@ -408,7 +408,7 @@ class Gp32Client:
         line = p.encode_command(cmd)
         text = line.decode().strip()
         attempts = 1 + (self.retries if retry else 0)
-        sent_s: Optional[float] = None
+        sent_s: float | None = None
         with self._cmd_lock:
             for attempt in range(attempts):
                 ser = self._serial
@@ -468,7 +468,7 @@ class Gp32Client:
         """``P`` -> position, laser, moving, sensors, homed (v2: and the device's counter)."""
         return self.status_timed()[0]
 
-    def status_timed(self) -> Tuple[p.StatusInfo, float, float]:
+    def status_timed(self) -> tuple[p.StatusInfo, float, float]:
         """``P`` and the host times bracketing the device's reading of it: (status, sent, received).
 
         With a v2 device the reply's stamp feeds `clock`.
@@ -555,11 +555,11 @@ class Gp32Client:
         raise MotionTimeout(f"{what} did not finish within {timeout_s:.1f} s (stalled motor or broken end "
                             "sensor?); stop sent")
 
-    def _run_motion(self, cmd: p.Command, distance: float, target: Optional[int], timeout_s: Optional[float],
+    def _run_motion(self, cmd: p.Command, distance: float, target: int | None, timeout_s: float | None,
                     what: str) -> MotionResult:
         since = self._event_seq
         self._command(cmd, accept=lambda ok: ok.payload == "", retry=isinstance(cmd, p.GoTo))
-        sensor: List[int] = []
+        sensor: list[int] = []
 
         def done(event: p.Line) -> bool:
             if isinstance(event, p.EndSensor):
@@ -572,7 +572,7 @@ class Gp32Client:
         return MotionResult(event.position, target, sensor[-1] if sensor else None, self.last_stop_s,
                             event.device_ms, self.last_stop_uncertainty_s)
 
-    def move_to(self, position: int, timeout_s: Optional[float] = None) -> MotionResult:
+    def move_to(self, position: int, timeout_s: float | None = None) -> MotionResult:
         """``G<pos>`` and wait until the carriage stopped; returns where it stopped.
 
         Raises:
@@ -583,12 +583,12 @@ class Gp32Client:
         distance = abs(position - known) if known is not None else max(position, self.track_steps or 470)
         return self._run_motion(p.GoTo(position), distance, position, timeout_s, f"move to {position}")
 
-    def step(self, steps: int, timeout_s: Optional[float] = None) -> MotionResult:
+    def step(self, steps: int, timeout_s: float | None = None) -> MotionResult:
         """``M<n>`` and wait until the carriage stopped."""
         start = self.status().position
         return self._run_motion(p.Move(steps), abs(steps), start + steps, timeout_s, f"step of {steps:+d}")
 
-    def home(self, timeout_s: Optional[float] = None) -> int:
+    def home(self, timeout_s: float | None = None) -> int:
         """``H`` and wait for ``!HOME``: returns the measured track length (steps)."""
         since = self._event_seq
         self._command(p.Home(), accept=lambda ok: ok.payload == "")
@@ -598,7 +598,7 @@ class Gp32Client:
         assert isinstance(event, p.HomeDone)
         return event.track
 
-    def recent_events(self) -> List[p.Line]:
+    def recent_events(self) -> list[p.Line]:
         """The last events received (newest last), for diagnostics and tests."""
         with self._state:
             return [e for e in self._events if not isinstance(e, _PortLostMarker)]

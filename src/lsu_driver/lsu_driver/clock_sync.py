@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, Optional, Tuple
 
 import numpy as np
 
@@ -61,14 +60,14 @@ class DeviceClock:
                  max_drift: float = 1e-3, resolution_ms: float = 1.0) -> None:
         if window < 2:
             raise ValueError("window must hold at least 2 samples")
-        self._samples: Deque[Tuple[float, float, float]] = deque(maxlen=window)  # (device s unwrapped, mid, half rtt)
+        self._samples: deque[tuple[float, float, float]] = deque(maxlen=window)  # (device s unwrapped, mid, half rtt)
         self._best_fraction = best_fraction
         self._wrap_ms = wrap_ms
         self._max_drift = max_drift
         self._resolution_s = resolution_ms / 1000.0
-        self._last_raw: Optional[int] = None
+        self._last_raw: int | None = None
         self._wraps = 0
-        self._fit: Optional[Tuple[float, float, float]] = None  # (offset, 1 + drift, uncertainty)
+        self._fit: tuple[float, float, float] | None = None  # (offset, 1 + drift, uncertainty)
 
     # -------------------------------------------------------------------------------- input
     def _unwrap(self, device_ms: int) -> float:
@@ -87,7 +86,7 @@ class DeviceClock:
         self._fit = None
 
     # -------------------------------------------------------------------------------- output
-    def _solve(self) -> Tuple[float, float, float]:
+    def _solve(self) -> tuple[float, float, float]:
         if not self._samples:
             raise ClockSyncError("no round trip with the device yet: the device clock cannot be mapped")
         data = np.array(self._samples)
@@ -109,7 +108,7 @@ class DeviceClock:
         uncertainty = float(np.min(half) + spread + self._resolution_s)
         return offset, scale, uncertainty
 
-    def _current(self) -> Tuple[float, float, float]:
+    def _current(self) -> tuple[float, float, float]:
         if self._fit is None:
             self._fit = self._solve()
         return self._fit

@@ -32,9 +32,9 @@ import socket
 import threading
 import time
 import tty
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Deque, Dict, List, Optional, Tuple
 
 from . import protocol as p
 
@@ -56,7 +56,7 @@ class EmulatorConfig:
     vibration_tau_s: float = 0.040              # decay time constant of the residual vibration
     vibration_freq_hz: float = 22.0             # oscillation frequency of the carriage on its belt
     protocol_version: int = p.PROTOCOL_VERSION  # 1: the v1 firmware (no T, R, !POS or stamps)
-    clock_start_ms: Optional[int] = None        # device counter at power-on; None: seeded random 32-bit value
+    clock_start_ms: int | None = None        # device counter at power-on; None: seeded random 32-bit value
     clock_drift_ppm: float = 150.0              # how much faster the device counts than the host
     clock_seed: int = 0                         # seeds the random clock start
 
@@ -98,7 +98,7 @@ class Truth:
                 * math.cos(2.0 * math.pi * self.vibration_freq_hz * dt))
 
 
-def overstep_gain(config: EmulatorConfig, rate: Optional[float]) -> float:
+def overstep_gain(config: EmulatorConfig, rate: float | None) -> float:
     """Travel of one pulse [true steps] at ``rate`` steps/s: 1 below the overstep threshold, rising
     linearly to 1 + ``overstep_gain_at_max`` at the maximum rate; 1 for ``None`` (from rest)."""
     if rate is None:
@@ -108,13 +108,13 @@ def overstep_gain(config: EmulatorConfig, rate: Optional[float]) -> float:
     return 1.0 + config.overstep_gain_at_max * min(1.0, max(0.0, x))
 
 
-def sensors_at(config: EmulatorConfig, position: float) -> Tuple[bool, bool]:
+def sensors_at(config: EmulatorConfig, position: float) -> tuple[bool, bool]:
     """(start, end) beam broken with the carriage at ``position`` [true steps]."""
     eps = 1e-6  # 467 pulses x (470/467) must trip the end sensor despite rounding
     return position <= eps, position >= config.track_steps - eps
 
 
-def pulse_travel(config: EmulatorConfig, position: float, direction: int, rate: Optional[float]) -> float:
+def pulse_travel(config: EmulatorConfig, position: float, direction: int, rate: float | None) -> float:
     """The carriage position after one pulse; the sensors at both ends are the mechanical stops."""
     moved = position + direction * overstep_gain(config, rate)
     return min(float(config.track_steps), max(0.0, moved))
@@ -125,7 +125,7 @@ def stop_vibration_amplitude(config: EmulatorConfig, rate: float) -> float:
     return config.vibration_amplitude_steps * rate / 200.0
 
 
-def open_pty(link: Optional[Path]) -> Tuple[int, int, str]:
+def open_pty(link: Path | None) -> tuple[int, int, str]:
     """A raw pty pair (master, slave, slave path); ``link`` (if given) points at the slave."""
     master, slave = os.openpty()
     tty.setraw(slave)  # bytes pass unchanged: no echo, no CR/LF translation
@@ -139,7 +139,7 @@ def open_pty(link: Optional[Path]) -> Tuple[int, int, str]:
     return master, slave, path
 
 
-def close_pty(master: Optional[int], slave: Optional[int], link: Optional[Path], path: str) -> None:
+def close_pty(master: int | None, slave: int | None, link: Path | None, path: str) -> None:
     """Close a pair from `open_pty` and remove ``link`` if it still points at ``path``."""
     for fd in (master, slave):
         if fd is not None:
@@ -154,7 +154,7 @@ def close_pty(master: Optional[int], slave: Optional[int], link: Optional[Path],
 class ControlServer:
     """A UNIX socket that answers JSON-line requests with ``handler(request)`` (one thread)."""
 
-    def __init__(self, path: Path, handler: Callable[[Dict[str, object]], Dict[str, object]]) -> None:
+    def __init__(self, path: Path, handler: Callable[[dict[str, object]], dict[str, object]]) -> None:
         self.path = path
         self._handler = handler
         if path.exists() or path.is_symlink():
@@ -177,7 +177,7 @@ class ControlServer:
         while self._running:
             try:
                 conn, _ = self._sock.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return
@@ -197,7 +197,7 @@ class ControlServer:
 class _Motion:
     kind: str                    # "goto", "move", "home", "sweep"
     direction: int               # +1 away from the start sensor, -1 towards it
-    pulses: Optional[int]        # pulses to send; None = until a sensor (homing, sweep)
+    pulses: int | None        # pulses to send; None = until a sensor (homing, sweep)
     rate: float
     started: float               # monotonic time of the phase start
     sent: int = 0
@@ -213,8 +213,8 @@ class Gp32Emulator:
     see `handle_control`).
     """
 
-    def __init__(self, config: Optional[EmulatorConfig] = None, faults: Optional[Faults] = None,
-                 link: Optional[str] = None, control: Optional[str] = None) -> None:
+    def __init__(self, config: EmulatorConfig | None = None, faults: Faults | None = None,
+                 link: str | None = None, control: str | None = None) -> None:
         self.config = config or EmulatorConfig()
         self.faults = faults or Faults()
         self.link = Path(link) if link else None
@@ -222,15 +222,15 @@ class Gp32Emulator:
         self._lock = threading.RLock()
         self._rng = random.Random(self.faults.seed)
         self._running = False
-        self._thread: Optional[threading.Thread] = None
-        self._control: Optional[ControlServer] = None
-        self._master: Optional[int] = None
-        self._slave: Optional[int] = None
+        self._thread: threading.Thread | None = None
+        self._control: ControlServer | None = None
+        self._master: int | None = None
+        self._slave: int | None = None
         self.device_path = ""
         self._inbuf = b""
-        self._outq: List[Tuple[float, bytes]] = []
-        self._unplugged_until: Optional[float] = None
-        self.log: List[str] = []          # every line in and out, for tests and debugging
+        self._outq: list[tuple[float, bytes]] = []
+        self._unplugged_until: float | None = None
+        self.log: list[str] = []          # every line in and out, for tests and debugging
         self.boot_count = 0
         self._true = float(self.config.start_position_steps)
         if self.config.protocol_version not in p.SUPPORTED_VERSIONS:
@@ -238,11 +238,11 @@ class Gp32Emulator:
         self._clock_start_ms = (self.config.clock_start_ms if self.config.clock_start_ms is not None
                                 else random.Random(self.config.clock_seed).randrange(p.MS_WRAP))
         # stamped events with the true host time of the instant they report: {"line", "device_ms", "wall_s"}
-        self.timed_events: Deque[Dict[str, object]] = collections.deque(maxlen=512)
+        self.timed_events: collections.deque[dict[str, object]] = collections.deque(maxlen=512)
         self._stamp_wall = 0.0
         # called (from the firmware thread) whenever the discrete state changes: motion started or
         # stopped, laser, homing, reset; the ROS node publishes the truth at once instead of polling
-        self.on_change: Optional[Callable[[], None]] = None
+        self.on_change: Callable[[], None] | None = None
         self._change_key: tuple = ()
         self._power_on()
 
@@ -254,7 +254,7 @@ class Gp32Emulator:
         self.rate = self.config.rate_steps_per_s
         self.watchdog_ms = self.config.watchdog_ms
         self.track_measured = 0
-        self._motion: Optional[_Motion] = None
+        self._motion: _Motion | None = None
         self._last_command = time.monotonic()
         self._stopped_at_wall = 0.0
         self._vib_amp = 0.0
@@ -269,13 +269,13 @@ class Gp32Emulator:
     def v2(self) -> bool:
         return self.config.protocol_version >= 2
 
-    def device_ms(self, mono: Optional[float] = None) -> int:
+    def device_ms(self, mono: float | None = None) -> int:
         """The device's millisecond counter at monotonic time ``mono`` (now by default)."""
         elapsed = (time.monotonic() if mono is None else mono) - self._clock_mono0
         ticks = math.floor(elapsed * 1000.0 * (1.0 + self.config.clock_drift_ppm * 1e-6))
         return (self._clock_start_ms + ticks) % p.MS_WRAP
 
-    def _stamp(self) -> Optional[int]:
+    def _stamp(self) -> int | None:
         """The counter now (None for a v1 unit), with the true host time logged by `_send_timed`."""
         if not self.v2:
             return None
@@ -290,7 +290,7 @@ class Gp32Emulator:
             self.timed_events.append({"line": p.encode_line(line).decode().strip(), "device_ms": device_ms,
                                       "wall_s": self._stamp_wall})
 
-    def start(self) -> "Gp32Emulator":
+    def start(self) -> Gp32Emulator:
         """Open the pty (and link, control socket) and start the firmware thread; sends ``!BOOT``."""
         self._open_pty()
         self._running = True
@@ -301,7 +301,7 @@ class Gp32Emulator:
             self._control = ControlServer(self.control_path, self.handle_control)
         return self
 
-    def __enter__(self) -> "Gp32Emulator":
+    def __enter__(self) -> Gp32Emulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -324,10 +324,10 @@ class Gp32Emulator:
         self._master = self._slave = None
 
     # ---------------------------------------------------------------------------- physics
-    def _sensors(self) -> Tuple[bool, bool]:
+    def _sensors(self) -> tuple[bool, bool]:
         return sensors_at(self.config, self._true)
 
-    def _pulse(self, motion: _Motion) -> Optional[int]:
+    def _pulse(self, motion: _Motion) -> int | None:
         """One step pulse; returns the sensor (0/1) that tripped in the direction of travel."""
         self.counter += motion.direction
         motion.sent += 1
@@ -404,7 +404,7 @@ class Gp32Emulator:
             self._send(p.WatchdogFired())
 
     # ---------------------------------------------------------------------------- commands
-    def _start_motion(self, kind: str, direction: int, pulses: Optional[int], phase: str = "") -> None:
+    def _start_motion(self, kind: str, direction: int, pulses: int | None, phase: str = "") -> None:
         self._motion = _Motion(kind, direction, pulses, float(self.rate), time.monotonic(), phase=phase)
         self._velocity = direction * self.rate
         self._stopped_at_wall = 0.0
@@ -526,11 +526,15 @@ class Gp32Emulator:
             else:
                 time.sleep(0.005)
             return
-        try:
-            readable, _, _ = select.select([master], [], [], self._idle_timeout(now))
-            data = os.read(master, 4096) if readable else b""
-        except (OSError, ValueError, TypeError):
-            data = b""
+        data = b""
+        if master is None:  # no pty (closing): nothing to read; wait instead of spinning
+            time.sleep(0.005)
+        else:
+            try:
+                readable, _, _ = select.select([master], [], [], self._idle_timeout(now))
+                data = os.read(master, 4096) if readable else b""
+            except (OSError, ValueError):
+                pass  # the pty closed under us: like a line with nothing on it
         with self._lock:
             if data:
                 self._inbuf += data
@@ -626,7 +630,7 @@ class Gp32Emulator:
             self.faults = Faults(seed=self.faults.seed)
 
     # ---------------------------------------------------------------------------- control channel
-    def handle_control(self, request: Dict[str, object]) -> Dict[str, object]:
+    def handle_control(self, request: dict[str, object]) -> dict[str, object]:
         """One control request (also what the UNIX socket speaks, one JSON object per line).
 
         ``{"fault": "garbage", "bytes": 20}``, ``{"fault": "garbage_rate", "probability": 0.2}``,
@@ -643,7 +647,7 @@ class Gp32Emulator:
                     return {"ok": True, "events": list(self.timed_events)}
             fault = request.get("fault")
             if fault == "garbage":
-                self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]
+                self.inject_garbage(int(str(request.get("bytes", 16))))
             elif fault == "garbage_rate":
                 self.set_faults(garbage_probability=request.get("probability", 0.2))
             elif fault == "drop":
@@ -665,7 +669,7 @@ class Gp32Emulator:
         return {"ok": True}
 
 
-def send_control(path: str, request: Dict[str, object], timeout_s: float = 5.0) -> Dict[str, object]:
+def send_control(path: str, request: dict[str, object], timeout_s: float = 5.0) -> dict[str, object]:
     """Send one request to an emulator's control socket and return its answer."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout_s)

@@ -10,7 +10,7 @@ control socket (`lsu gp32 fault`).
 from __future__ import annotations
 
 import time
-from typing import Any, Dict, List
+from typing import Any
 
 from rclpy.node import Node
 
@@ -22,10 +22,9 @@ from lsu_interfaces.msg import SimTruth
 from .emulator import EmulatorConfig, Faults, Gp32Emulator, Truth
 from .firmware import Gp32Firmware, build
 
-
 _DEFAULTS = EmulatorConfig()
 R = True  # read_only: the unit's power-on configuration and start-up faults (run-time faults: `lsu gp32 fault`)
-PARAMETERS: Dict[str, Param] = {
+PARAMETERS: dict[str, Param] = {
     "unit": Param("emulator", "emulator (Python) | firmware (firmware/gp32 in the HC08 simulator)", read_only=R),
     "link": Param("/tmp/lsu-gp32", "stable symlink to the emulated serial port (what the driver opens)", read_only=R),
     "control": Param("", "UNIX socket for run-time faults; empty = <link>.ctl", read_only=R),
@@ -106,7 +105,7 @@ class Gp32EmulatorNode(Node):
                                  "in (firmware/gp32/lsu.c); leave rate_steps_per_s and watchdog_ms at their "
                                  "defaults with unit:=firmware, and send S/W commands instead")
             image = build().sim_image  # make: a no-op when the image is up to date
-            self.emulator = Gp32Firmware(config, faults, link=link, control=control or f"{link}.ctl", image=image)
+            self.emulator: Gp32Emulator | Gp32Firmware = Gp32Firmware(config, faults, link=link, control=control or f"{link}.ctl", image=image)
         else:
             self.emulator = Gp32Emulator(config, faults, link=link, control=control or f"{link}.ctl")
         self.emulator.on_change = self._on_change
@@ -116,7 +115,7 @@ class Gp32EmulatorNode(Node):
         self.get_logger().info(f"GP32 {unit} on {self.emulator.device_path} (link {link}, control "
                                f"{self.emulator.control_path})")
 
-    def _apply_parameters(self, params: List[Any]) -> None:
+    def _apply_parameters(self, params: list[Any]) -> None:
         for param in params:
             if param.name == "truth_rate_hz":
                 self.destroy_timer(self.timer)

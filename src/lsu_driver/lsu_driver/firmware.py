@@ -37,13 +37,23 @@ import subprocess
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Deque, Dict, List, Optional, Tuple
 
 from . import protocol as p
-from .emulator import (ControlServer, EmulatorConfig, Faults, Truth, close_pty, open_pty, overstep_gain, pulse_travel,
-                       sensors_at, stop_vibration_amplitude)
+from .emulator import (
+    ControlServer,
+    EmulatorConfig,
+    Faults,
+    Truth,
+    close_pty,
+    open_pty,
+    overstep_gain,
+    pulse_travel,
+    sensors_at,
+    stop_vibration_amplitude,
+)
 
 # byte codes of the simulator link (firmware/gp32/hal_sim.c)
 IN_TICK, IN_SENSORS, IN_HIGH_BYTE, IN_CREDIT = 0x80, 0xC0, 0xC4, 0xC5
@@ -83,7 +93,7 @@ def firmware_dir() -> Path:
     return root / "firmware" / "gp32"
 
 
-def toolchain_missing() -> Optional[str]:
+def toolchain_missing() -> str | None:
     """Why the firmware cannot be built and run here, or None when sdcc, shc08 and make exist."""
     missing = [tool for tool in ("sdcc", "shc08", "make") if shutil.which(tool) is None]
     if not missing:
@@ -141,7 +151,7 @@ class Build:
     sim_size: ImageSize
 
 
-def build(source: Optional[Path] = None, out: Optional[Path] = None, baud: int = 9600) -> Build:
+def build(source: Path | None = None, out: Path | None = None, baud: int = 9600) -> Build:
     """Compile the firmware with SDCC (``make`` in firmware/gp32) and check that it fits the GP32.
 
     Raises:
@@ -182,8 +192,8 @@ class Gp32Firmware:
     Faults: garbage bytes, a stalled motor and reset; the emulator covers the rest.
     """
 
-    def __init__(self, config: Optional[EmulatorConfig] = None, faults: Optional[Faults] = None,
-                 link: Optional[str] = None, control: Optional[str] = None, image: Optional[Path] = None) -> None:
+    def __init__(self, config: EmulatorConfig | None = None, faults: Faults | None = None,
+                 link: str | None = None, control: str | None = None, image: Path | None = None) -> None:
         self.config = config or EmulatorConfig()
         self.faults = faults or Faults()
         self.link = Path(link) if link else None
@@ -192,18 +202,18 @@ class Gp32Firmware:
         self._rng = random.Random(self.faults.seed)
         self._lock = threading.RLock()
         self._running = False
-        self._thread: Optional[threading.Thread] = None
-        self._control: Optional[ControlServer] = None
-        self._sim: Optional[subprocess.Popen] = None
-        self._master: Optional[int] = None
-        self._slave: Optional[int] = None
-        self._sim_fds: List[int] = []
+        self._thread: threading.Thread | None = None
+        self._control: ControlServer | None = None
+        self._sim: subprocess.Popen | None = None
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._sim_fds: list[int] = []
         self._sim_in = self._sim_out = -1
         self.device_path = ""
-        self.log: List[str] = []
+        self.log: list[str] = []
         self.boot_count = 0
-        self.steps: Deque[StepRecord] = collections.deque(maxlen=4096)
-        self.on_change: Optional[Callable[[], None]] = None
+        self.steps: collections.deque[StepRecord] = collections.deque(maxlen=4096)
+        self.on_change: Callable[[], None] | None = None
         self._position = float(self.config.start_position_steps)
         self._booted = threading.Event()  # the firmware's !BOOT line since the last power-on
         self._power_request = threading.Event()  # (re)start the simulator, from the board's own thread
@@ -213,7 +223,7 @@ class Gp32Firmware:
 
     def _reset_board_state(self) -> None:
         self._fw_ms = 0                   # milliseconds sent to the firmware
-        self._stamp: List[int] = []       # millisecond bytes of the pulse being read
+        self._stamp: list[int] = []       # millisecond bytes of the pulse being read
         self._credit = 0                  # pulses the firmware sends before it waits for the sensors
         self._in_stamp = False
         self._t0 = time.monotonic()
@@ -222,15 +232,15 @@ class Gp32Firmware:
         self._counter = 0
         self._homed = False
         self._moving = False
-        self._rate: Optional[float] = None
+        self._rate: float | None = None
         self._stopped_at_wall = 0.0
         self._vib_amp = 0.0
-        self._recent_ms: Deque[int] = collections.deque(maxlen=_RATE_WINDOW + 1)
-        self._pending: Deque[bytes] = collections.deque()  # host command lines not answered yet
+        self._recent_ms: collections.deque[int] = collections.deque(maxlen=_RATE_WINDOW + 1)
+        self._pending: collections.deque[bytes] = collections.deque()  # host command lines not answered yet
         self._change_key: tuple = ()
 
     # ----------------------------------------------------------------------------- lifecycle
-    def start(self) -> "Gp32Firmware":
+    def start(self) -> Gp32Firmware:
         """Start shc08 with the image, open the client's pty; the firmware sends ``!BOOT``."""
         reason = toolchain_missing()
         if reason:
@@ -246,7 +256,7 @@ class Gp32Firmware:
             self._control = ControlServer(self.control_path, self.handle_control)
         return self
 
-    def __enter__(self) -> "Gp32Firmware":
+    def __enter__(self) -> Gp32Firmware:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -311,7 +321,7 @@ class Gp32Firmware:
         at_start, at_end = sensors_at(self.config, self._position)
         return (1 if at_start else 0) | (2 if at_end else 0)
 
-    def _measured_rate(self) -> Optional[float]:
+    def _measured_rate(self) -> float | None:
         """Steps/s of the running pulse train in firmware time; None for a pulse from rest."""
         times = [t for t in self._recent_ms]
         if len(times) < 2 or times[-1] - times[-2] > _FROM_REST_MS:
@@ -494,7 +504,7 @@ class Gp32Firmware:
                 vibration_tau_s=self.config.vibration_tau_s, vibration_freq_hz=self.config.vibration_freq_hz,
                 boot_count=self.boot_count)
 
-    def reset(self, carriage_at: Optional[float] = None, wait_s: float = 10.0) -> None:
+    def reset(self, carriage_at: float | None = None, wait_s: float = 10.0) -> None:
         """Power-cycle the microcontroller: the simulator restarts the image and this returns once
         the firmware has sent ``!BOOT``. The carriage stays where it is, or is put at
         ``carriage_at`` [steps] (a test starting from a known place)."""
@@ -541,7 +551,7 @@ class Gp32Firmware:
         with self._lock:
             self.faults = Faults(seed=self.faults.seed)
 
-    def handle_control(self, request: Dict[str, object]) -> Dict[str, object]:
+    def handle_control(self, request: dict[str, object]) -> dict[str, object]:
         """The control requests of `Gp32Emulator.handle_control` that the firmware unit supports:
         truth, garbage, reset, stall, clear."""
         try:
@@ -549,7 +559,7 @@ class Gp32Firmware:
                 return {"ok": True, "truth": asdict(self.truth())}
             fault = request.get("fault")
             if fault == "garbage":
-                self.inject_garbage(int(request.get("bytes", 16)))  # type: ignore[arg-type]
+                self.inject_garbage(int(str(request.get("bytes", 16))))
             elif fault == "reset":
                 self.reset()
             elif fault == "stall":
@@ -563,7 +573,7 @@ class Gp32Firmware:
             return {"ok": False, "error": str(exc)}
         return {"ok": True}
 
-    def step_jitter_ms(self, rate: float, firmware_time: bool = False) -> Tuple[float, int]:
+    def step_jitter_ms(self, rate: float, firmware_time: bool = False) -> tuple[float, int]:
         """Largest deviation of a pulse interval from 1/rate [ms] over the pulse trains of the
         recorded steps (gaps longer than a stop excluded), and the number of intervals: as the board
         received them (wall clock), or in the firmware's own milliseconds (``firmware_time``)."""

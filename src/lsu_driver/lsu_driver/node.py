@@ -13,27 +13,27 @@ a running move fails with the reason; moves are refused until the carriage is ho
 from __future__ import annotations
 
 import threading
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TransformStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
-from geometry_msgs.msg import TransformStamped
 from std_srvs.srv import SetBool, Trigger
-from tf2_msgs.msg import TFMessage
 
 from lsu_common import diagnostics, stamps
 from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import CarriagePosition, ScannerState
 from lsu_interfaces.srv import MoveTo, Step
+from tf2_msgs.msg import TFMessage
 
 from . import protocol as p
 from .client import DeviceError, Gp32Client, Gp32Error, MotionResult, NotConnected
 
 # Start-up-only parameters are read_only (the port is opened, the frames named once); the others
 # take effect when set (`_apply_parameters`), or are refused with the reason.
-PARAMETERS: Dict[str, Param] = {
+PARAMETERS: dict[str, Param] = {
     "port": Param("/tmp/lsu-gp32", "serial device of the GP32 (emulator: its --link path)", read_only=True),
     "baud": Param(115200, "serial baud rate (9600 for the original RS232 link)", read_only=True),
     "command_timeout_s": Param(1.0, "reply timeout per command [s]", (0.01, 30.0)),
@@ -80,11 +80,11 @@ class Gp32DriverNode(Node):
         self._lock = threading.Lock()
         self.laser_on = False
         self.moving = False
-        self.target: Optional[int] = None
+        self.target: int | None = None
         self.fault = ""
         self.reconnects = 0
         self.counts = {"malformed": 0}
-        self._last_state: Optional[tuple] = None
+        self._last_state: tuple | None = None
         self._auto_homed = False
 
         services = ReentrantCallbackGroup()  # a move may block while stop and state keep going
@@ -174,8 +174,8 @@ class Gp32DriverNode(Node):
             self._publish_carriage(event.position, event.device_ms, False, "done")
         self._publish_state(force=True)
 
-    def _publish_carriage(self, position: int, device_ms: Optional[int], moving: bool, source: str,
-                          bracket: Optional[tuple] = None) -> None:
+    def _publish_carriage(self, position: int, device_ms: int | None, moving: bool, source: str,
+                          bracket: tuple | None = None) -> None:
         """One timed position: a device stamp mapped to ROS time (v2), or the middle of a round trip."""
         if device_ms is not None:
             mapped = self.client.map_device_ms(device_ms)
@@ -257,7 +257,7 @@ class Gp32DriverNode(Node):
     def _diagnostics(self) -> None:
         c = self.client
         level = diagnostics.ERROR if not c.connected else diagnostics.WARN if self.fault else diagnostics.OK
-        values = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
+        values: dict[str, object] = {"connected": c.connected, "homed": c.homed, "position_steps": c.position, "laser_on": self.laser_on,
                   "track_steps": c.track_steps, "malformed_lines": c.malformed_lines,
                   "stale_replies": c.stale_replies, "reconnects": self.reconnects, "protocol_version": c.version}
         uncertainty, drift = c.clock_uncertainty_s(), c.clock_drift_ppm()
@@ -334,7 +334,7 @@ class Gp32DriverNode(Node):
             response.stopped_stamp = stamps.from_seconds(stopped_at)
         return response
 
-    def _move_at_rate(self, position: int, timeout: Optional[float], rate: float) -> MotionResult:
+    def _move_at_rate(self, position: int, timeout: float | None, rate: float) -> MotionResult:
         """``move_to`` at ``rate`` steps/s for this move alone (0: the node's rate); the node's rate is set back."""
         rate = int(round(rate)) if rate > 0 else 0
         if not rate or rate == int(self.rate):
@@ -397,7 +397,7 @@ class Gp32DriverNode(Node):
             response.success, response.message = False, str(exc)
         return response
 
-    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+    def _check_parameters(self, params: list[Any]) -> str | None:
         """Ranges and read-only are rclpy's; the unit's settings are sent here, so a refusal reaches the setter.
 
         The GP32 is the judge of its own settings (a v1 unit has no timed positions, a lost link
@@ -418,7 +418,7 @@ class Gp32DriverNode(Node):
                 return f"the GP32 refused {param.name}: {exc}"
         return None
 
-    def _apply_parameters(self, params: List[Any]) -> None:
+    def _apply_parameters(self, params: list[Any]) -> None:
         """Accepted values take effect: the next configure uses them, the poll timer runs at the new rate."""
         for param in params:
             if param.name == "step_rate_steps_per_s":

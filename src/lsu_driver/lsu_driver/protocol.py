@@ -12,8 +12,8 @@ bytes, never anything else. The same module serves the host (client) and the emu
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Optional, Union
 
 PROTOCOL_VERSION = 2
 SUPPORTED_VERSIONS = (1, 2)  # what the client speaks; v2 features are used only with a v2 device
@@ -130,11 +130,11 @@ class SetPositionRate:
     hz: int
 
 
-Command = Union[Identify, Status, Laser, GoTo, Move, Home, Sweep, Stop, SetRate, SetWatchdog, ReadClock,
-                SetPositionRate]
+Command = (Identify | Status | Laser | GoTo | Move | Home | Sweep | Stop | SetRate | SetWatchdog | ReadClock
+           | SetPositionRate)
 
 _INT = r"([+-]?\d{1,6})"
-_COMMAND_FORMS = [
+_COMMAND_FORMS: list[tuple[re.Pattern[str], Callable[[re.Match[str]], Command]]] = [
     (re.compile(r"\?"), lambda m: Identify()),
     (re.compile(r"P"), lambda m: Status()),
     (re.compile(r"L([01])"), lambda m: Laser(m.group(1) == "1")),
@@ -268,7 +268,7 @@ class Done:
     """``!DONE <pos>[ <ms>]``: a motion ended at step counter ``position``; v2: at device ms ``device_ms``."""
 
     position: int
-    device_ms: Optional[int] = None
+    device_ms: int | None = None
 
 
 @dataclass(frozen=True)
@@ -284,7 +284,7 @@ class HomeDone:
     """``!HOME <track>[ <ms>]``: homing finished, ``track`` steps between the sensors (v2: at ``device_ms``)."""
 
     track: int
-    device_ms: Optional[int] = None
+    device_ms: int | None = None
 
 
 @dataclass(frozen=True)
@@ -299,14 +299,14 @@ class WatchdogFired:
     """``!WDOG``: the laser watchdog switched the laser off."""
 
 
-Reply = Union[Ok, Err]
-Event = Union[Boot, Done, Position, HomeDone, EndSensor, WatchdogFired]
-Line = Union[Ok, Err, Boot, Done, Position, HomeDone, EndSensor, WatchdogFired]
+Reply = Ok | Err
+Event = Boot | Done | Position | HomeDone | EndSensor | WatchdogFired
+Line = Ok | Err | Boot | Done | Position | HomeDone | EndSensor | WatchdogFired
 
 _MS = r"(\d{1,10})"  # an unsigned 32-bit millisecond count
 
 
-def _ms(text: Optional[str]) -> Optional[int]:
+def _ms(text: str | None) -> int | None:
     if text is None:
         return None
     value = int(text)
@@ -314,7 +314,7 @@ def _ms(text: Optional[str]) -> Optional[int]:
         raise ValueError(f"millisecond count {value} does not fit 32 bits")
     return value
 
-_LINE_FORMS = [
+_LINE_FORMS: list[tuple[re.Pattern[str], Callable[[re.Match[str]], Line]]] = [
     (re.compile(r"OK(?: ([ -~]{1,60}))?"), lambda m: Ok(m.group(1) or "")),
     (re.compile(r"ERR ([1-9]) ([ -~]{1,58})"), lambda m: Err(int(m.group(1)), m.group(2))),
     (re.compile(r"!BOOT " + DEVICE_NAME + r" v(\d{1,3})"), lambda m: Boot(int(m.group(1)))),
@@ -393,7 +393,7 @@ class StatusInfo:
     at_start: bool
     at_end: bool
     homed: bool
-    device_ms: Optional[int] = None   # v2: the device's counter when it read this status
+    device_ms: int | None = None   # v2: the device's counter when it read this status
 
 
 _IDENT = re.compile(DEVICE_NAME + r" v(\d{1,3}) track=(\d{1,6}) speed=(\d{1,4})")
@@ -401,7 +401,7 @@ _STATUS = re.compile(r"P(-?\d{1,6}) L([01]) M([01]) E([01])([01]) H([01])(?: T" 
 _CLOCK = re.compile(r"T" + _MS)
 
 
-def parse_identify(payload: str, raw: Optional[bytes] = None) -> IdentifyInfo:
+def parse_identify(payload: str, raw: bytes | None = None) -> IdentifyInfo:
     """``LSU-GP32 v1 track=470 speed=200`` -> IdentifyInfo; MalformedLine otherwise."""
     match = _IDENT.fullmatch(payload)
     if not match:
@@ -414,7 +414,7 @@ def format_identify(info: IdentifyInfo) -> str:
     return f"{DEVICE_NAME} v{info.version} track={info.track_steps} speed={info.rate_steps_per_s}"
 
 
-def parse_status(payload: str, raw: Optional[bytes] = None) -> StatusInfo:
+def parse_status(payload: str, raw: bytes | None = None) -> StatusInfo:
     """``P235 L1 M0 E00 H1`` (v1) / ``P235 L1 M0 E00 H1 T81234`` (v2) -> StatusInfo; MalformedLine otherwise."""
     match = _STATUS.fullmatch(payload)
     if not match:
@@ -435,7 +435,7 @@ def format_status(info: StatusInfo) -> str:
             + ("" if info.device_ms is None else f" T{info.device_ms}"))
 
 
-def parse_clock(payload: str, raw: Optional[bytes] = None) -> int:
+def parse_clock(payload: str, raw: bytes | None = None) -> int:
     """``T81234`` (the ``T`` reply, v2) -> the device's millisecond counter; MalformedLine otherwise."""
     match = _CLOCK.fullmatch(payload)
     try:

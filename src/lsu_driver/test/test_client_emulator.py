@@ -8,8 +8,15 @@ import time
 import pytest
 
 from lsu_driver import protocol as p
-from lsu_driver.client import (CommandTimeout, DeviceError, DeviceReset, Gp32Client, MotionTimeout, NotConnected,
-                               VersionMismatch)
+from lsu_driver.client import (
+    CommandTimeout,
+    DeviceError,
+    DeviceReset,
+    Gp32Client,
+    MotionTimeout,
+    NotConnected,
+    VersionMismatch,
+)
 from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator
 
 

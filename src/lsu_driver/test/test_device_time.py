@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Dict, List, Tuple
 
 import pytest
 
@@ -30,7 +29,7 @@ class Recorder:
 
     def __init__(self, client: Gp32Client) -> None:
         self.client = client
-        self.mapped: List[Tuple[p.Line, float, float, float]] = []  # (event, host stamp, uncertainty, arrival)
+        self.mapped: list[tuple[p.Line, float, float, float]] = []  # (event, host stamp, uncertainty, arrival)
         client.add_listener(self)
 
     def __call__(self, event: p.Line) -> None:
@@ -40,7 +39,7 @@ class Recorder:
             self.mapped.append((event, mapped[0], mapped[1], time.time()))
 
 
-def truth_by_line(control: str) -> Dict[str, float]:
+def truth_by_line(control: str) -> dict[str, float]:
     answer = send_control(control, {"get": "events"})
     assert answer["ok"]
     return {e["line"]: e["wall_s"] for e in answer["events"]}  # type: ignore[index,union-attr]

@@ -5,15 +5,13 @@ Ground truth: the GP32 data sheet's memory map (flash 0x8000-0xfdff, RAM 0x40-0x
 
 from __future__ import annotations
 
-from typing import Dict
-
 FLASH = (0x8000, 0xFE00)
 VECTORS = {0xFFFE: "reset", 0xFFF2: "TIM1 overflow", 0xFFE4: "SCI receive", 0xFFE2: "SCI transmit"}
 
 
-def read_hex(path) -> Dict[int, int]:
+def read_hex(path) -> dict[int, int]:
     """Address -> byte of an Intel HEX file (data records only; checksums verified)."""
-    memory: Dict[int, int] = {}
+    memory: dict[int, int] = {}
     for line in path.read_text().split():
         raw = bytes.fromhex(line[1:])
         assert sum(raw) & 0xFF == 0, f"bad checksum in {line}"
@@ -39,7 +37,7 @@ def test_the_image_fits_the_gp32_and_every_vector_points_into_flash(firmware_bui
 
 def test_the_s19_image_holds_the_same_bytes_as_the_hex(firmware_build):
     memory = read_hex(firmware_build.hex)
-    s19: Dict[int, int] = {}
+    s19: dict[int, int] = {}
     for line in firmware_build.s19.read_text().split():
         if line.startswith("S1"):
             raw = bytes.fromhex(line[2:])

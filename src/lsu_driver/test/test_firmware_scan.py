@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from lsu_driver.emulator import send_control
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LaunchedProcess
-from lsu_driver.emulator import send_control
 
 pytestmark = pytest.mark.slow
 

@@ -5,11 +5,11 @@ import time
 import pytest
 from std_srvs.srv import SetBool, Trigger
 
-from lsu_interfaces.msg import CarriagePosition, ScannerState, SimTruth
-from lsu_interfaces.srv import MoveTo, Step
 from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator
 from lsu_driver.emulator_node import Gp32EmulatorNode
 from lsu_driver.node import Gp32DriverNode
+from lsu_interfaces.msg import CarriagePosition, ScannerState, SimTruth
+from lsu_interfaces.srv import MoveTo, Step
 
 
 @pytest.fixture

@@ -8,13 +8,11 @@ from __future__ import annotations
 import re
 import statistics
 import time
-from typing import List
 
 import pytest
 import serial
 
 from lsu_driver import protocol as p
-
 
 _STAMPED = re.compile(rb"((?:!DONE|!POS|!HOME) -?\d+|OK P.* H[01]) T?\d+\n")
 
@@ -32,10 +30,10 @@ class Line:
     def __init__(self, path: str) -> None:
         self.port = serial.Serial(path, 115200, timeout=0.05)
         self.buffer = b""
-        self.since_command: List[bytes] = []  # every line since the last command was sent
-        self.raw_since_command: List[bytes] = []
+        self.since_command: list[bytes] = []  # every line since the last command was sent
+        self.raw_since_command: list[bytes] = []
 
-    def read_lines(self, until: float) -> List[bytes]:
+    def read_lines(self, until: float) -> list[bytes]:
         lines = []
         while time.monotonic() < until:
             self.buffer += self.port.read(max(1, self.port.in_waiting))
@@ -47,7 +45,7 @@ class Line:
         self.since_command += lines
         return lines
 
-    def ask(self, command: bytes, settle_s: float = 0.1, timeout_s: float = 3.0) -> List[bytes]:
+    def ask(self, command: bytes, settle_s: float = 0.1, timeout_s: float = 3.0) -> list[bytes]:
         """The lines after sending ``command``: up to its reply (OK/ERR), then ``settle_s`` more (so a
         second reply would show)."""
         self.since_command = []
@@ -59,7 +57,7 @@ class Line:
         self.read_lines(time.monotonic() + settle_s)
         return self.since_command
 
-    def wait_for(self, wanted: bytes, timeout_s: float) -> List[bytes]:
+    def wait_for(self, wanted: bytes, timeout_s: float) -> list[bytes]:
         """Every line since the last command, once ``wanted`` is among them (or the timeout passed)."""
         end = time.monotonic() + timeout_s
         while time.monotonic() < end and wanted not in self.since_command:

@@ -6,16 +6,18 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 import cv2
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .detectors import METHODS
 from .extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line
 
 
-def read_image(path: Path) -> np.ndarray:
+def read_image(path: Path) -> AnyArray:
     """A picture file as a BGR (or mono) uint8 array.
 
     Raises:
@@ -34,7 +36,7 @@ def read_image(path: Path) -> np.ndarray:
     return image
 
 
-def draw_overlay(image: np.ndarray, result: LaserLineResult) -> np.ndarray:
+def draw_overlay(image: AnyArray, result: LaserLineResult) -> AnyArray:
     """The image (dimmed) with each detected centre as a dot coloured from red (low) to green (high quality)."""
     base = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     out = (base.astype(np.float32) * 0.6).astype(np.uint8)
@@ -52,7 +54,7 @@ def overlay_path(target: Path, image: Path, many: bool) -> Path:
     return target.with_name(f"{target.stem}_{image.stem}{target.suffix or '.png'}")
 
 
-def summary(result: LaserLineResult) -> Dict[str, Any]:
+def summary(result: LaserLineResult) -> dict[str, Any]:
     """Counts and medians of a result, for people and for JSON."""
     found = len(result)
     return {
@@ -64,7 +66,7 @@ def summary(result: LaserLineResult) -> Dict[str, Any]:
     }
 
 
-def describe(record: Dict[str, Any]) -> str:
+def describe(record: dict[str, Any]) -> str:
     """One line about one image's result."""
     head = f"{record['image']}: "
     if not record["rows_detected"]:
@@ -80,7 +82,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     """Run the extractor on each image; print a line (or JSON) per image; write overlays."""
     params = ExtractorParams(method=args.method, min_contrast=args.min_contrast, window_px=args.window)
     texture = read_image(Path(args.texture)) if args.texture else None
-    records: List[Dict[str, Any]] = []
+    records: list[dict[str, Any]] = []
     for name in args.images:
         path = Path(name)
         image = read_image(path)
@@ -103,7 +105,7 @@ def cmd_extract(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu extract` (the ``lsu.commands`` entry point of lsu_extract)."""
     defaults = ExtractorParams()
     p = subparsers.add_parser(
@@ -124,7 +126,7 @@ def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     p.set_defaults(func=cmd_extract)
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Stand-alone entry (same as `lsu extract`)."""
     parser = argparse.ArgumentParser(prog="lsu")
     register(parser.add_subparsers(dest="command", required=True))

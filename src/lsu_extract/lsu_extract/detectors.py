@@ -21,28 +21,30 @@ A pure module: numpy only, no ROS.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 THESIS = "thesis"
 _TINY = 1e-6
 
 
-def clamp(values: np.ndarray, low: float, high: float) -> np.ndarray:
+def clamp(values: AnyArray, low: float, high: float) -> AnyArray:
     """``np.clip`` without its Python-level dispatch, which costs more than the work on these small arrays."""
     return np.minimum(np.maximum(values, low), high)
 
 
-def parabola_offset(profile: np.ndarray) -> np.ndarray:
+def parabola_offset(profile: AnyArray) -> AnyArray:
     """3-point parabola vertex offset from the centre column of ``profile`` (n, 2R+1)."""
     r = profile.shape[1] // 2
     a, b, c = profile[:, r - 1], profile[:, r], profile[:, r + 1]
     return _vertex(a, b, c)
 
 
-def gaussian3_offset(profile: np.ndarray) -> np.ndarray:
+def gaussian3_offset(profile: AnyArray) -> AnyArray:
     """3-point Gaussian (log-parabola) offset; samples at or below zero are floored."""
     r = profile.shape[1] // 2
     # The floor keeps log finite on noisy flanks; at that point the row is weak and its quality low.
@@ -50,7 +52,7 @@ def gaussian3_offset(profile: np.ndarray) -> np.ndarray:
     return _vertex(logs[:, 0], logs[:, 1], logs[:, 2])
 
 
-def _vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+def _vertex(a: AnyArray, b: AnyArray, c: AnyArray) -> AnyArray:
     den = a - 2.0 * b + c
     ok = den < 0.0  # a maximum; flat or inverted triples (plateaus, noise) keep the integer peak
     off = np.zeros_like(b)
@@ -58,7 +60,7 @@ def _vertex(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     return clamp(off, -0.5, 0.5)
 
 
-def com_offset(profile: np.ndarray) -> np.ndarray:
+def com_offset(profile: AnyArray) -> AnyArray:
     """Centre of mass of the contiguous part of the peak above half its height (offset from centre)."""
     r = profile.shape[1] // 2
     level = 0.5 * profile[:, r:r + 1]
@@ -75,7 +77,7 @@ def com_offset(profile: np.ndarray) -> np.ndarray:
     return off
 
 
-def _blais_rioux_kernel(half: int) -> np.ndarray:
+def _blais_rioux_kernel(half: int) -> AnyArray:
     """(2 * half + 3, 3) matrix whose columns give the filter g at the centre column -1, 0, +1.
 
     ``g(i) = sum_k f(i - k) - f(i + k)`` for k = 1..half, over the 2 * half + 3 samples centred on
@@ -89,10 +91,10 @@ def _blais_rioux_kernel(half: int) -> np.ndarray:
     return kernel
 
 
-_BR_KERNELS: Dict[int, np.ndarray] = {half: _blais_rioux_kernel(half) for half in (2, 4)}
+_BR_KERNELS: dict[int, AnyArray] = {half: _blais_rioux_kernel(half) for half in (2, 4)}
 
 
-def blais_rioux_kernel(order: int, size: int) -> np.ndarray:
+def blais_rioux_kernel(order: int, size: int) -> AnyArray:
     """The Blais-Rioux filter of ``order`` (4 or 8) at the centre column -1, 0, +1 of a ``size``-sample profile.
 
     ``profile @ blais_rioux_kernel(order, size)`` gives (g(r - 1), g(r), g(r + 1)), r = size // 2,
@@ -106,12 +108,12 @@ def blais_rioux_kernel(order: int, size: int) -> np.ndarray:
     return kernel
 
 
-def blais_rioux_zero_crossing(gm: np.ndarray, g0: np.ndarray, gp: np.ndarray) -> np.ndarray:
+def blais_rioux_zero_crossing(gm: AnyArray, g0: AnyArray, gp: AnyArray) -> AnyArray:
     """Offset of the zero crossing of g next to the peak from g at the columns -1, 0, +1 (in [-1, 1])."""
     return blais_rioux_crossing(-g0, g0 - gm, gp - g0)
 
 
-def blais_rioux_crossing(neg_g0: np.ndarray, rise_left: np.ndarray, rise_right: np.ndarray) -> np.ndarray:
+def blais_rioux_crossing(neg_g0: AnyArray, rise_left: AnyArray, rise_right: AnyArray) -> AnyArray:
     """`blais_rioux_zero_crossing` from -g(0), g(0) - g(-1) and g(+1) - g(0), all linear in the profile.
 
     g < 0 left of the peak and > 0 right of it; its zero crossing is interpolated on the segment
@@ -127,17 +129,17 @@ def blais_rioux_crossing(neg_g0: np.ndarray, rise_left: np.ndarray, rise_right: 
     return neg_g0 / np.maximum(np.maximum(rise, np.abs(neg_g0)), _TINY)
 
 
-def _blais_rioux(profile: np.ndarray, order: int) -> np.ndarray:
+def _blais_rioux(profile: AnyArray, order: int) -> AnyArray:
     g = profile @ blais_rioux_kernel(order, profile.shape[1]).astype(profile.dtype, copy=False)
     return blais_rioux_zero_crossing(g[:, 0], g[:, 1], g[:, 2]).astype(profile.dtype, copy=False)
 
 
-def blais_rioux4_offset(profile: np.ndarray) -> np.ndarray:
+def blais_rioux4_offset(profile: AnyArray) -> AnyArray:
     """Blais-Rioux 4th-order zero-crossing offset."""
     return _blais_rioux(profile, 4)
 
 
-def blais_rioux8_offset(profile: np.ndarray) -> np.ndarray:
+def blais_rioux8_offset(profile: AnyArray) -> AnyArray:
     """Blais-Rioux 8th-order zero-crossing offset."""
     return _blais_rioux(profile, 8)
 
@@ -145,13 +147,13 @@ def blais_rioux8_offset(profile: np.ndarray) -> np.ndarray:
 ADAPTIVE_WIDTH_PX = 5.0  # blais_rioux: lines wider than this (FWHM) take the 8th-order filter
 
 
-def blais_rioux_offset(profile: np.ndarray) -> np.ndarray:
+def blais_rioux_offset(profile: AnyArray) -> AnyArray:
     """Blais-Rioux of the order the line's width asks for (4th up to `ADAPTIVE_WIDTH_PX` FWHM, else 8th)."""
     left, right, _ = half_max_crossings(profile)
     return np.where(right - left > ADAPTIVE_WIDTH_PX, _blais_rioux(profile, 8), _blais_rioux(profile, 4))
 
 
-SUBPIXEL_METHODS: Dict[str, Callable[[np.ndarray], np.ndarray]] = {
+SUBPIXEL_METHODS: dict[str, Callable[[AnyArray], AnyArray]] = {
     "gaussian3": gaussian3_offset,
     "parabola": parabola_offset,
     "com": com_offset,
@@ -159,22 +161,22 @@ SUBPIXEL_METHODS: Dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "blais_rioux8": blais_rioux8_offset,
     "blais_rioux": blais_rioux_offset,
 }
-METHODS: Tuple[str, ...] = (THESIS, *SUBPIXEL_METHODS)
+METHODS: tuple[str, ...] = (THESIS, *SUBPIXEL_METHODS)
 # How many pixels each side of the peak an estimator reads (rows nearer the border are dropped).
-METHOD_SUPPORT_PX: Dict[str, int] = {"gaussian3": 1, "parabola": 1, "com": 1, "blais_rioux4": 3, "blais_rioux8": 5,
+METHOD_SUPPORT_PX: dict[str, int] = {"gaussian3": 1, "parabola": 1, "com": 1, "blais_rioux4": 3, "blais_rioux8": 5,
                                      "blais_rioux": 5}
 # Methods that are a linear filter of the profile followed by a zero crossing: the filter ignores a
 # constant background, so the extractor applies it to the raw profile in the same product as the
 # background estimate.
-BLAIS_RIOUX_ORDER: Dict[str, Tuple[int, ...]] = {"blais_rioux4": (4,), "blais_rioux8": (8,), "blais_rioux": (4, 8)}
+BLAIS_RIOUX_ORDER: dict[str, tuple[int, ...]] = {"blais_rioux4": (4,), "blais_rioux8": (8,), "blais_rioux": (4, 8)}
 
 
 _WALK_STEP = np.array([1, -1])  # the two walks of `half_max_crossings`: right, left
 _WALK_STEP.setflags(write=False)
 
 
-def half_max_crossings(profile: np.ndarray, base: Optional[np.ndarray] = None
-                       ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def half_max_crossings(profile: AnyArray, base: AnyArray | None = None
+                       ) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Sub-pixel positions (relative to the centre column) where the peak falls to half its height.
 
     Walks out from the centre on each side to the first sample below half the centre value
@@ -213,14 +215,14 @@ def half_max_crossings(profile: np.ndarray, base: Optional[np.ndarray] = None
 class PixelLine:
     """Pixel-level detections of the thesis detector (one per row that has laser pixels)."""
 
-    u: np.ndarray      # column of the maximum red [px]
-    v: np.ndarray      # row [px]
-    peak: np.ndarray   # red value at that column
-    width: np.ndarray  # number of laser pixels in the row
-    quality: np.ndarray
+    u: AnyArray      # column of the maximum red [px]
+    v: AnyArray      # row [px]
+    peak: AnyArray   # red value at that column
+    width: AnyArray  # number of laser pixels in the row
+    quality: AnyArray
 
 
-def thesis_detector(image: np.ndarray, red_threshold: int, blue_threshold: int) -> PixelLine:
+def thesis_detector(image: AnyArray, red_threshold: int, blue_threshold: int) -> PixelLine:
     """The thesis' detector (ch. 6.1.5), faithfully: pixel level, whole frame.
 
     Per row, candidate laser pixels have red above ``red_threshold`` and blue below

@@ -31,13 +31,15 @@ A pure module: numpy, scipy and OpenCV, no ROS.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import cv2
 import numpy as np
 from scipy.signal import medfilt, savgol_filter
+
+from lsu_common.arrays import AnyArray
 
 WELD_FRAME_PX = 4        # weld panels: border cut off (plot frame)
 MATCH_PX = 2.0           # a detection this close to a reference run (or inside it) is on the line
@@ -57,7 +59,7 @@ def repo_root() -> Path:
     return Path(__file__).resolve().parents[3]
 
 
-def devdata_dir(root: Optional[Path] = None) -> Path:
+def devdata_dir(root: Path | None = None) -> Path:
     """``<repo>/../shared/devdata``, or `DevDataMissing` naming the path and what to do."""
     path = ((root or repo_root()) / ".." / "shared" / "devdata").resolve()
     if not (path / "weld_laser_stripes_gk").is_dir():
@@ -66,7 +68,7 @@ def devdata_dir(root: Optional[Path] = None) -> Path:
     return path
 
 
-def _read(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+def _read(path: Path, flags: int = cv2.IMREAD_COLOR) -> AnyArray:
     image = cv2.imread(str(path), flags)
     if image is None:
         raise DevDataMissing(f"cannot read {path}: the development data is incomplete; lay shared/ anew")
@@ -83,9 +85,9 @@ class RowReference:
     there). ``scored[v]``: detections in the row are scored at all (False: unclear rows).
     """
 
-    runs: Tuple[Tuple[Tuple[float, float, float], ...], ...]
-    clear: np.ndarray
-    scored: np.ndarray
+    runs: tuple[tuple[tuple[float, float, float], ...], ...]
+    clear: AnyArray
+    scored: AnyArray
 
 
 @dataclass(frozen=True)
@@ -93,13 +95,13 @@ class DevImage:
     """One real image to extract from, with its reference; ``texture`` is the laser-off frame if any."""
 
     name: str
-    image: np.ndarray
+    image: AnyArray
     reference: RowReference
-    texture: Optional[np.ndarray] = None
+    texture: AnyArray | None = None
     single_line: bool = True              # False: two lines per row, scored for false rows only
 
 
-def _runs_of(mask_row: np.ndarray, weight: Optional[np.ndarray] = None) -> List[Tuple[float, float, float]]:
+def _runs_of(mask_row: AnyArray, weight: AnyArray | None = None) -> list[tuple[float, float, float]]:
     cols = np.flatnonzero(mask_row)
     if cols.size == 0:
         return []
@@ -111,8 +113,8 @@ def _runs_of(mask_row: np.ndarray, weight: Optional[np.ndarray] = None) -> List[
     return out
 
 
-def laser_pixels(on: np.ndarray, off: np.ndarray, min_dn: float = LASER_MIN_DN, sigmas: float = 3.0
-                 ) -> Tuple[np.ndarray, np.ndarray]:
+def laser_pixels(on: AnyArray, off: AnyArray, min_dn: float = LASER_MIN_DN, sigmas: float = 3.0
+                 ) -> tuple[AnyArray, AnyArray]:
     """(laser mask, red rise) of a laser-on / laser-off BGR pair.
 
     Laser light adds red and only a little green and blue (colour crosstalk); a person or a
@@ -130,7 +132,7 @@ def laser_pixels(on: np.ndarray, off: np.ndarray, min_dn: float = LASER_MIN_DN, 
     return mask, red
 
 
-def pair_reference(on: np.ndarray, off: np.ndarray) -> RowReference:
+def pair_reference(on: AnyArray, off: AnyArray) -> RowReference:
     """Reference of an on/off pair, conservative both ways: any faint laser light (`laser_pixels`: 6 DN, 3
     sigmas) makes a detection correct; a row counts for missed rows only where a run of the strict mask
     (12 DN, 6 sigmas) peaks at `CLEAR_MIN_DN` or more."""
@@ -147,13 +149,13 @@ def pair_reference(on: np.ndarray, off: np.ndarray) -> RowReference:
 class HandReference:
     """A hand-checked centre polyline of the line (image x, y per vertex), its band and the rows it covers."""
 
-    pieces: Tuple[Tuple[Tuple[float, float], ...], ...]   # each piece: vertices (u, v), v increasing
+    pieces: tuple[tuple[tuple[float, float], ...], ...]   # each piece: vertices (u, v), v increasing
     band_px: float
-    unclear_rows: Tuple[Tuple[int, int], ...]             # inclusive row ranges left unscored
+    unclear_rows: tuple[tuple[int, int], ...]             # inclusive row ranges left unscored
 
 
 # Read off the photographs: the vertices are the red maximum of the row, checked by eye on an overlay.
-HAND_REFERENCES: Dict[str, HandReference] = {
+HAND_REFERENCES: dict[str, HandReference] = {
     # wall line, box front, floor; rows 336-371 hold the end of the wall line and the box's top edge together
     "capopaul_box_wall_crop.png": HandReference(
         pieces=(((130.0, 0.0), (128.5, 335.0)), ((210.5, 372.0), (211.0, 450.0)),
@@ -172,7 +174,7 @@ HAND_REFERENCES: Dict[str, HandReference] = {
 
 def hand_reference(ref: HandReference, height: int) -> RowReference:
     """The `RowReference` of a hand-drawn polyline: one run of +-band around it in each covered row."""
-    runs: List[Tuple[Tuple[float, float, float], ...]] = [() for _ in range(height)]
+    runs: list[tuple[tuple[float, float, float], ...]] = [() for _ in range(height)]
     clear = np.zeros(height, bool)
     for piece in ref.pieces:
         us, vs = np.array([p[0] for p in piece]), np.array([p[1] for p in piece])
@@ -188,10 +190,10 @@ def hand_reference(ref: HandReference, height: int) -> RowReference:
     return RowReference(tuple(runs), clear & scored, scored)
 
 
-def _stripe_tracks(mask: np.ndarray) -> List[List[Tuple[int, Tuple[float, float, float]]]]:
+def _stripe_tracks(mask: AnyArray) -> list[list[tuple[int, tuple[float, float, float]]]]:
     """Runs of ``mask`` linked down the rows into stripes: a run joins the stripe whose last run (at most
     3 rows up) has its centre within 3 px; where two stripes touch (one wide run) both lose that row."""
-    tracks: List[List[Tuple[int, Tuple[float, float, float]]]] = []
+    tracks: list[list[tuple[int, tuple[float, float, float]]]] = []
     for v in range(mask.shape[0]):
         for run in _runs_of(mask[v]):
             if run[1] - run[0] > 12:
@@ -204,7 +206,7 @@ def _stripe_tracks(mask: np.ndarray) -> List[List[Tuple[int, Tuple[float, float,
     return tracks
 
 
-def weld_views(image: np.ndarray, mask: np.ndarray, name: str) -> List[DevImage]:
+def weld_views(image: AnyArray, mask: AnyArray, name: str) -> list[DevImage]:
     """One view per labelled stripe of a weld photograph (see the module doc): the photograph
     transposed, every other labelled stripe painted over (OpenCV inpainting); its reference is the
     stripe's rows where its mask is a single narrow run (two stripes touching, a crossing: left out)."""
@@ -216,7 +218,7 @@ def weld_views(image: np.ndarray, mask: np.ndarray, name: str) -> List[DevImage]
     m = mask.T[e:-e, e:-e] > 127
     mask_t[:min(height, m.shape[0]), :min(width, m.shape[1])] = m[:height, :width]
     tracks = [t for t in _stripe_tracks(mask_t) if len(t) >= 40]
-    views: List[DevImage] = []
+    views: list[DevImage] = []
     for k, track in enumerate(tracks):
         own = np.zeros((height, width), np.uint8)
         for v, (first, last, _) in track:
@@ -224,7 +226,7 @@ def weld_views(image: np.ndarray, mask: np.ndarray, name: str) -> List[DevImage]
         own = cv2.dilate(own, np.ones((5, 5), np.uint8))
         others = cv2.dilate(mask_t.astype(np.uint8), np.ones((15, 15), np.uint8)) & (1 - own)
         view = cv2.inpaint(image_t, others, 5, cv2.INPAINT_TELEA)
-        runs: List[Tuple[Tuple[float, float, float], ...]] = [() for _ in range(height)]
+        runs: list[tuple[tuple[float, float, float], ...]] = [() for _ in range(height)]
         clear = np.zeros(height, bool)
         for v, run in track:
             runs[v] = (run,)
@@ -235,10 +237,10 @@ def weld_views(image: np.ndarray, mask: np.ndarray, name: str) -> List[DevImage]
 
 
 # ---------------------------------------------------------------- the sets
-def weld_images(root: Optional[Path] = None, samples: Optional[Sequence[int]] = None) -> List[DevImage]:
+def weld_images(root: Path | None = None, samples: Sequence[int] | None = None) -> list[DevImage]:
     """The views of every weld photograph (`weld_views`), or of the numbered ``samples``."""
     folder = devdata_dir(root) / "weld_laser_stripes_gk"
-    out: List[DevImage] = []
+    out: list[DevImage] = []
     paths = sorted(folder.glob("sample*_input.png"))
     if samples is not None:
         paths = [folder / f"sample{k:02d}_input.png" for k in samples]
@@ -248,10 +250,10 @@ def weld_images(root: Optional[Path] = None, samples: Optional[Sequence[int]] = 
     return out
 
 
-def globe_images(root: Optional[Path] = None) -> List[DevImage]:
+def globe_images(root: Path | None = None) -> list[DevImage]:
     """The four one-laser frames of the globe (1920x1080) with their laser-off frame."""
     folder = devdata_dir(root) / "semiteleporter_turntable" / "globe_1080p"
-    out: List[DevImage] = []
+    out: list[DevImage] = []
     for step in ("00", "16"):
         off = _read(folder / f"{step}-off.png")
         for side in ("left", "right"):
@@ -260,28 +262,28 @@ def globe_images(root: Optional[Path] = None) -> List[DevImage]:
     return out
 
 
-def box_images(root: Optional[Path] = None, pairs: Sequence[int] = tuple(range(2, 32))) -> List[DevImage]:
+def box_images(root: Path | None = None, pairs: Sequence[int] = tuple(range(2, 32))) -> list[DevImage]:
     """The box pairs (640x480, both lasers lit: two lines per row): all 30, or the numbered ``pairs``
     (`BOX_MOVING_PAIRS`: a person walks behind between the two frames)."""
     folder = devdata_dir(root) / "semiteleporter_turntable" / "box_vga"
-    out: List[DevImage] = []
+    out: list[DevImage] = []
     for k in pairs:
         on, off = _read(folder / f"{2 * k:02d}_on.png"), _read(folder / f"{2 * k + 1:02d}_off.png")
         out.append(DevImage(f"box pair {k}", on, pair_reference(on, off), texture=off, single_line=False))
     return out
 
 
-def photo_images(root: Optional[Path] = None) -> List[DevImage]:
+def photo_images(root: Path | None = None) -> list[DevImage]:
     """The two single photographs with their hand-checked reference."""
     folder = devdata_dir(root) / "laser_photos_mit_misc"
-    out: List[DevImage] = []
+    out: list[DevImage] = []
     for name, ref in HAND_REFERENCES.items():
         image = _read(folder / name)
         out.append(DevImage(name, image, hand_reference(ref, image.shape[0])))
     return out
 
 
-def single_line_images(root: Optional[Path] = None) -> List[DevImage]:
+def single_line_images(root: Path | None = None) -> list[DevImage]:
     """Every image with one line per row: weld views, globe frames, the two photographs."""
     return weld_images(root) + globe_images(root) + photo_images(root)
 
@@ -297,9 +299,9 @@ class RowScore:
     false: int = 0           # detections in scored rows away from every reference run
     detections: int = 0
     whole_px: int = 0        # detections at a whole-pixel column (a flat top the estimator could not centre)
-    residuals: Optional[np.ndarray] = None
+    residuals: AnyArray | None = None
 
-    def add(self, other: "RowScore") -> None:
+    def add(self, other: RowScore) -> None:
         self.rows += other.rows
         self.clear_rows += other.clear_rows
         self.missed += other.missed
@@ -327,7 +329,7 @@ class RowScore:
         return float(np.sqrt(np.mean(r ** 2))) if r is not None and r.size else float("nan")
 
 
-def score_rows(dev: DevImage, v: np.ndarray, u: np.ndarray) -> RowScore:
+def score_rows(dev: DevImage, v: AnyArray, u: AnyArray) -> RowScore:
     """Score detections (row ``v``, column ``u`` in ``dev.image``) against the reference (module doc)."""
     ref = dev.reference
     rows = v.astype(np.int64)
@@ -350,8 +352,8 @@ def score_rows(dev: DevImage, v: np.ndarray, u: np.ndarray) -> RowScore:
     return score
 
 
-def smooth_fit_residuals(v: np.ndarray, u: np.ndarray, window: int = 21, max_jump_px: float = 2.0,
-                         outlier_px: float = 1.5, min_rows: int = 21) -> np.ndarray:
+def smooth_fit_residuals(v: AnyArray, u: AnyArray, window: int = 21, max_jump_px: float = 2.0,
+                         outlier_px: float = 1.5, min_rows: int = 21) -> AnyArray:
     """Residuals of ``u`` from a robust smooth fit along the line, per continuous piece (NaN: not fitted).
 
     Pieces break where rows skip more than one row or the column jumps by more than
@@ -380,7 +382,7 @@ def smooth_fit_residuals(v: np.ndarray, u: np.ndarray, window: int = 21, max_jum
     return result
 
 
-def score_images(images: Sequence[DevImage], extract: Callable[[DevImage], Tuple[np.ndarray, np.ndarray]]
+def score_images(images: Sequence[DevImage], extract: Callable[[DevImage], tuple[AnyArray, AnyArray]]
                  ) -> RowScore:
     """Sum of `score_rows` over ``images``; ``extract(dev)`` returns the detections (v, u) of one image."""
     total = RowScore()

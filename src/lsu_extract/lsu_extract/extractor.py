@@ -36,13 +36,25 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
-from typing import Dict, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
 
-from .detectors import ADAPTIVE_WIDTH_PX, BLAIS_RIOUX_ORDER, METHOD_SUPPORT_PX, METHODS, SUBPIXEL_METHODS, THESIS
+from lsu_common.arrays import AnyArray
+
+from .detectors import (
+    ADAPTIVE_WIDTH_PX,
+    BLAIS_RIOUX_ORDER,
+    METHOD_SUPPORT_PX,
+    METHODS,
+    SUBPIXEL_METHODS,
+    THESIS,
+    blais_rioux_crossing,
+    blais_rioux_kernel,
+    half_max_crossings,
+    thesis_detector,
+)
 from .detectors import clamp as _clamp
-from .detectors import blais_rioux_crossing, blais_rioux_kernel, half_max_crossings, thesis_detector
 from .image import ImageFormatError
 from .signal import LaserSignal, contrast_noise
 from .tracking import BLANK, coarse_track, decide, row_candidates
@@ -104,9 +116,9 @@ class ExtractorParams:
         return int(math.ceil(self.max_width_px / 2.0)) + 3
 
 
-def param_problems(values: Dict[str, object]) -> List[str]:
+def param_problems(values: dict[str, object]) -> list[str]:
     """Readable reasons why ``values`` (parameter name -> value) are not valid extractor parameters."""
-    problems: List[str] = []
+    problems: list[str] = []
     method = values.get("method", DEFAULT_METHOD)
     if method not in METHODS:
         problems.append(f"method '{method}' is unknown; must be one of: {', '.join(METHODS)}")
@@ -150,17 +162,17 @@ class LaserLineResult:
     method: str
     image_width: int
     image_height: int
-    u: np.ndarray        # sub-pixel column of the line centre [px], float32
-    v: np.ndarray        # row [px], float32
-    peak: np.ndarray     # laser signal above background at the peak [DN] (thesis: red value)
-    width: np.ndarray    # FWHM of the profile [px]: its equivalent width, or half-maximum crossings (see _fit)
+    u: AnyArray        # sub-pixel column of the line centre [px], float32
+    v: AnyArray        # row [px], float32
+    peak: AnyArray     # laser signal above background at the peak [DN] (thesis: red value)
+    width: AnyArray    # FWHM of the profile [px]: its equivalent width, or half-maximum crossings (see _fit)
     #                      (thesis: laser pixels in the row)
-    quality: np.ndarray  # 0..1: contrast x uniqueness (x 0.8 when saturated)
+    quality: AnyArray  # 0..1: contrast x uniqueness (x 0.8 when saturated)
     rows_searched: int = 0
     rows_ambiguous: int = 0   # rejected: two competing peaks, continuity could not choose
     rows_saturated: int = 0   # detected rows whose peak was a saturated plateau
     rows_full_search: int = 0  # rows searched in full (coarse + fallback)
-    extra: Dict[str, int] = field(default_factory=dict)
+    extra: dict[str, int] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -184,7 +196,7 @@ _TINY = 1e-6  # a Python float: numpy's fast path for scalars, and it keeps floa
 
 
 @lru_cache(maxsize=16)
-def _peak_search_layout(rows: int, n: int, w: int) -> Tuple[np.ndarray, int, np.ndarray, np.ndarray]:
+def _peak_search_layout(rows: int, n: int, w: int) -> tuple[AnyArray, int, AnyArray, AnyArray]:
     """Cached read-only tables for `_peak_search` over a (rows, n) search region (rows = 2 w + 1).
 
     Returns (codes, bits, offset, interior): ``codes[j, i] = j * n + i``, the flat index that
@@ -203,7 +215,7 @@ def _peak_search_layout(rows: int, n: int, w: int) -> Tuple[np.ndarray, int, np.
     return codes, bits, offset, interior
 
 
-def _peak_search(values: np.ndarray, codes: np.ndarray, bits: int) -> np.ndarray:
+def _peak_search(values: AnyArray, codes: AnyArray, bits: int) -> AnyArray:
     """``argmax(values, axis=0) * n + arange(n)`` of integer ``values`` (m, n): the first maximum on ties.
 
     numpy's argmax over axis 0 copies to make the axis contiguous, then loops per column: ~30 us
@@ -217,7 +229,7 @@ def _peak_search(values: np.ndarray, codes: np.ndarray, bits: int) -> np.ndarray
     return keys.min(axis=0) & ((1 << bits) - 1)
 
 
-def _column_profiles(signal: np.ndarray, flat_index: np.ndarray, size: int) -> np.ndarray:
+def _column_profiles(signal: AnyArray, flat_index: AnyArray, size: int) -> AnyArray:
     """``size`` samples down each column ``i`` of a column-major window from ``flat_index[i] = j * n + i``.
 
     Returns (n, size) float32: rows ``j .. j + size - 1`` of column ``i``. A strided view
@@ -231,14 +243,14 @@ def _column_profiles(signal: np.ndarray, flat_index: np.ndarray, size: int) -> n
 
 
 @lru_cache(maxsize=16)
-def _track_starts(height: int, width: int, reach: int) -> np.ndarray:
+def _track_starts(height: int, width: int, reach: int) -> AnyArray:
     """``arange(height) * width - reach`` (cached, read-only): flat window starts of every row, less the centre column."""
     starts = np.arange(height) * width - reach
     starts.setflags(write=False)
     return starts
 
 
-def _profiles(signal: np.ndarray, peak_idx: np.ndarray, half: int) -> np.ndarray:
+def _profiles(signal: AnyArray, peak_idx: AnyArray, half: int) -> AnyArray:
     """The ``2 * half + 1`` signal samples centred on each row's peak: (n, 2 * half + 1) float32, a copy.
 
     Where the window holds them all, one strided gather of short contiguous runs; otherwise
@@ -254,7 +266,7 @@ def _profiles(signal: np.ndarray, peak_idx: np.ndarray, half: int) -> np.ndarray
 
 
 @lru_cache(maxsize=32)
-def _linear_features(method: str, half: int, min_width: float, max_width: float) -> np.ndarray:
+def _linear_features(method: str, half: int, min_width: float, max_width: float) -> AnyArray:
     """(k, 2 * half + 1) matrix of linear features of a profile: ``matrix @ profile.T`` gives all of them.
 
     Rows: 0, 1: the centre sample's height above the mean of the two samples at the left /
@@ -293,7 +305,7 @@ def _linear_features(method: str, half: int, min_width: float, max_width: float)
     return matrix
 
 
-def _shortcut_widths(params: ExtractorParams) -> Tuple[float, float]:
+def _shortcut_widths(params: ExtractorParams) -> tuple[float, float]:
     """The equivalent widths for which `_fit` skips the half-maximum crossings: the accepted range less a margin.
 
     The equivalent width and the crossings agree within ~0.2 px on a Gaussian line up to 8 px;
@@ -304,9 +316,9 @@ def _shortcut_widths(params: ExtractorParams) -> Tuple[float, float]:
     return params.min_width_px + 1.0, params.max_width_px - 4.0
 
 
-def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray], params: ExtractorParams,
-         image_width: int, accept: Optional[np.ndarray] = None, inside: bool = False,
-         shape: Optional[np.ndarray] = None) -> Dict[str, Optional[np.ndarray]]:
+def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params: ExtractorParams,
+         image_width: int, accept: AnyArray | None = None, inside: bool = False,
+         shape: AnyArray | None = None) -> dict[str, AnyArray | None]:
     """Sub-pixel centre, peak, width and contrast quality of each row's profile around its integer peak.
 
     ``profile`` is (n, 2 * half + 1) float32, the signal around image column ``column`` (its
@@ -407,9 +419,9 @@ def _fit(profile: np.ndarray, column: np.ndarray, saturated: Optional[np.ndarray
             "valid": None if all_valid else valid}
 
 
-def _refine(signal: np.ndarray, red: np.ndarray, first: np.ndarray, peak_idx: np.ndarray,
-            params: ExtractorParams, image_width: int, accept: Optional[np.ndarray] = None,
-            on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
+def _refine(signal: AnyArray, red: AnyArray, first: AnyArray, peak_idx: AnyArray,
+            params: ExtractorParams, image_width: int, accept: AnyArray | None = None,
+            on_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of each row's peak within its window: ``signal``/``red`` are (n, L) windows from image column ``first``.
 
     ``peak_idx`` is the integer peak in each window; ``on_red``: rows where red clips are centred on
@@ -429,8 +441,8 @@ def _refine(signal: np.ndarray, red: np.ndarray, first: np.ndarray, peak_idx: np
     return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape)
 
 
-def _refine_columns(sig: LaserSignal, rows: np.ndarray, column: np.ndarray, params: ExtractorParams,
-                    image_width: int, on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
+def _refine_columns(sig: LaserSignal, rows: AnyArray, column: AnyArray, params: ExtractorParams,
+                    image_width: int, on_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of the peak at ``column`` in each of ``rows`` (the fallback rows), every window inside the image.
 
     The window of +-half around the peak is the profile itself: gathered column-major, it is
@@ -449,8 +461,8 @@ def _refine_columns(sig: LaserSignal, rows: np.ndarray, column: np.ndarray, para
     return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True, shape=shape)
 
 
-def _track(sig: LaserSignal, rows: np.ndarray, centre: np.ndarray, params: ExtractorParams,
-           image_width: int, on_red: bool = False) -> Dict[str, Optional[np.ndarray]]:
+def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: ExtractorParams,
+           image_width: int, on_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of the strongest peak within ``window_px`` of ``centre`` in each row (every window inside the image).
 
     The fast path of the tracking stage: the windows (search region +- window_px, plus the
@@ -491,7 +503,7 @@ def _at_contrast(params: ExtractorParams, min_contrast: float) -> ExtractorParam
 
 
 @lru_cache(maxsize=16)
-def _coarse_rows(height: int, step: int) -> np.ndarray:
+def _coarse_rows(height: int, step: int) -> AnyArray:
     """The rows of the coarse pass, every ``step``-th from ``step // 2`` (cached, read-only)."""
     rows = np.arange(min(step // 2, height - 1), height, step)
     rows.setflags(write=False)
@@ -504,15 +516,19 @@ _NO_COLS = np.zeros(0)
 _NO_COLS.setflags(write=False)
 
 
-def _keep(rows: np.ndarray, fit: Dict[str, Optional[np.ndarray]],
-          uniqueness: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
-    """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given."""
+def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
+          uniqueness: AnyArray | None = None) -> dict[str, Any]:
+    """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given.
+
+    Every entry is an array except "saturated", None when no row clipped.
+    """
+    kept: dict[str, Any]
     ok = fit["valid"]
     if ok is None:  # every row valid: nothing to drop
         kept = {name: fit[name] for name in _FIELDS}
         kept["v"] = rows
     else:
-        kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]
+        kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]  # _FIELDS are never None
         kept["v"] = rows[ok]
     saturated = fit["saturated"]
     kept["saturated"] = saturated if saturated is None or ok is None else saturated[ok]
@@ -521,8 +537,8 @@ def _keep(rows: np.ndarray, fit: Dict[str, Optional[np.ndarray]],
     return kept
 
 
-def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = None,
-                       texture: Optional[np.ndarray] = None) -> LaserLineResult:
+def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
+                       texture: AnyArray | None = None) -> LaserLineResult:
     """Find the laser line in a BGR (H, W, 3) or mono (H, W) uint8 frame.
 
     Args:
@@ -561,11 +577,12 @@ def extract_laser_line(image: np.ndarray, params: Optional[ExtractorParams] = No
         threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)
         if threshold < params.min_contrast:
             params = _at_contrast(params, threshold)
-    chunks: List[Dict[str, np.ndarray]] = []
+    chunks: list[dict[str, Any]] = []
     full_searched = 0
-    pending: Optional[np.ndarray] = None  # None = every row
+    pending: AnyArray | None = None  # None = every row
     if params.window_px > 0:
         w = params.window_px
+        assert coarse is not None  # sampled whenever window_px > 0
         cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)

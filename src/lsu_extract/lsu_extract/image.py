@@ -9,8 +9,15 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from lsu_common.images import (SUPPORTED_ENCODINGS, BufferLike, ImageFormatError, UnsupportedEncodingError,
-                               check_encoding, decode_image, encode_image)
+from lsu_common.images import (
+    SUPPORTED_ENCODINGS,
+    BufferLike,
+    ImageFormatError,
+    UnsupportedEncodingError,
+    check_encoding,
+    decode_image,
+    encode_image,
+)
 
 __all__ = ["SUPPORTED_ENCODINGS", "BufferLike", "ImageFormatError", "UnsupportedEncodingError", "check_encoding",
            "decode_image", "encode_image", "ImageCdr", "parse_image_cdr"]
@@ -44,7 +51,7 @@ def parse_image_cdr(raw: BufferLike) -> ImageCdr:
     Raises:
         ImageFormatError: the buffer is not a whole serialized Image (truncated, bad lengths).
     """
-    view = memoryview(raw).cast("B")
+    view = memoryview(raw).cast("B")  # type: ignore[arg-type]
     total = len(view)
     if total < 4 or view[0] != 0 or view[1] not in (0, 1):
         raise ImageFormatError(f"serialized Image of {total} bytes has no CDR encapsulation header; "

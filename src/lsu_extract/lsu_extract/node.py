@@ -19,18 +19,19 @@ import array
 import collections
 import sys
 from dataclasses import fields
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from builtin_interfaces.msg import Time
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from lsu_common import diagnostics, qos, stamps
+from lsu_common.arrays import AnyArray
 from lsu_common.node import main_of
 from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
@@ -46,7 +47,7 @@ EVENTS_QOS = qos.EVENTS
 BACKGROUNDS = ("none", "texture")
 FRAMES_KEPT = 8  # newest frames per camera kept while a TEXTURE event may still name one of them
 
-_DESCRIPTIONS: Dict[str, Tuple[str, Optional[Tuple[float, float]]]] = {
+_DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
     "min_contrast": ("laser signal above the local background needed to accept a row [DN]", (1.0, 255.0)),
     "contrast_sigmas": ("on a frame quieter than that, accept this many of its noise sigmas instead (measured in "
@@ -73,7 +74,7 @@ def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
     for values in (result.u, result.v, result.peak, result.width, result.quality):
         finite &= np.isfinite(values)
 
-    def f32(values: np.ndarray) -> "array.array[float]":
+    def f32(values: AnyArray) -> array.array[float]:
         return array.array("f", np.ascontiguousarray(values[finite], dtype=np.float32).tobytes())
 
     return LaserLine(header=header, image_width=result.image_width, image_height=result.image_height,
@@ -99,14 +100,14 @@ class LaserExtractorNode(Node):
         self.background = str(self.get_parameter("background").value)
         if self.background not in BACKGROUNDS:
             raise ValueError(f"background '{self.background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
-        self._recent: Dict[str, "collections.deque[Tuple[int, np.ndarray]]"] = {
+        self._recent: dict[str, collections.deque[tuple[int, AnyArray]]] = {
             side: collections.deque(maxlen=FRAMES_KEPT) for side in SIDES}
-        self._texture_key: Optional[int] = None  # stamp (ns) of the current scan's laser-off pair
-        self.textures: Dict[str, np.ndarray] = {}
+        self._texture_key: int | None = None  # stamp (ns) of the current scan's laser-off pair
+        self.textures: dict[str, AnyArray] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
-        self._sizes: Dict[str, Tuple[int, int]] = {}
-        self._reported: Dict[str, str] = {}  # side -> last problem reported (one log line per problem)
+        self._sizes: dict[str, tuple[int, int]] = {}
+        self._reported: dict[str, str] = {}  # side -> last problem reported (one log line per problem)
         self.frames = {side: 0 for side in SIDES}
         self.dropped = {side: 0 for side in SIDES}
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -120,12 +121,12 @@ class LaserExtractorNode(Node):
             for side in SIDES]
         self.subscriptions_.append(self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS))
 
-    def _read_params(self, overrides: Dict[str, Any]) -> ExtractorParams:
+    def _read_params(self, overrides: dict[str, Any]) -> ExtractorParams:
         values = {spec.name: overrides.get(spec.name, self.get_parameter(spec.name).value)
                   for spec in fields(ExtractorParams)}
         return ExtractorParams(**values)
 
-    def _on_set_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+    def _on_set_parameters(self, changed: list[Parameter]) -> SetParametersResult:
         names = {spec.name for spec in fields(ExtractorParams)}
         current = {name: self.get_parameter(name).value for name in names}
         current.update({p.name: p.value for p in changed if p.name in names})
@@ -137,7 +138,7 @@ class LaserExtractorNode(Node):
             return SetParametersResult(successful=False, reason="; ".join(problems))
         return SetParametersResult(successful=True)
 
-    def _after_set_parameters(self, changed: List[Parameter]) -> None:
+    def _after_set_parameters(self, changed: list[Parameter]) -> None:
         self.params = self._read_params({})
         self.background = str(self.get_parameter("background").value)
         self.get_logger().info(f"parameters now: method={self.params.method}, "
@@ -149,7 +150,7 @@ class LaserExtractorNode(Node):
         if line is not None:
             self.publishers_[side].publish(line)
 
-    def line_of(self, side: str, raw: Any) -> Optional[LaserLine]:
+    def line_of(self, side: str, raw: Any) -> LaserLine | None:
         """The laser line of one serialized sensor_msgs/Image (any buffer: bytes, memoryview), not published.
 
         None for a frame that cannot be read (reported on /diagnostics, counted as dropped). A

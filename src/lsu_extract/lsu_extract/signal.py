@@ -26,21 +26,21 @@ per-row loop.
 
 from __future__ import annotations
 
-from typing import Optional, Tuple, Union
-
 import cv2
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .detectors import clamp as _clamp
 from .image import ImageFormatError
 
-RowSelection = Union[np.ndarray, slice]
+RowSelection = AnyArray | slice
 
 
 class LaserSignal:
     """Laser signal of one BGR (H, W, 3) or mono (H, W) uint8 frame, evaluated on demand."""
 
-    def __init__(self, image: np.ndarray, texture: Optional[np.ndarray] = None) -> None:
+    def __init__(self, image: AnyArray, texture: AnyArray | None = None) -> None:
         """Wrap ``image`` (and optionally the laser-off ``texture`` frame of the same view).
 
         Raises:
@@ -57,11 +57,11 @@ class LaserSignal:
         self.height, self.width = image.shape[:2]
         self.colour = image.ndim == 3
 
-    def red(self, rows: RowSelection) -> np.ndarray:
+    def red(self, rows: RowSelection) -> AnyArray:
         """The red (or mono) channel of full ``rows``: (n, W) uint8."""
         return self.image[rows, :, 2] if self.colour else self.image[rows]
 
-    def may_hold_laser(self, rows: np.ndarray, min_contrast: float) -> np.ndarray:
+    def may_hold_laser(self, rows: AnyArray, min_contrast: float) -> AnyArray:
         """Which of ``rows`` have any channel of any pixel at ``min_contrast`` or brighter: (n,) bool.
 
         The laser adds to red, so a row where it stands ``min_contrast`` above the background has
@@ -76,14 +76,14 @@ class LaserSignal:
         # numpy: its uint8 max is vectorised; OpenCV's row reduction of uint8 runs ~100x slower
         return pixels.max(axis=1) >= min_contrast
 
-    def rows(self, rows: RowSelection) -> np.ndarray:
+    def rows(self, rows: RowSelection) -> AnyArray:
         """Signal of whole ``rows`` (indices or a slice): (n, W) float32."""
         pixels = self.image[rows]
         if pixels.shape[0] == 0:
             return np.zeros((0, self.width), np.float32)
         return self._signal(pixels, None if self.texture is None else self.texture[rows])[0]
 
-    def rows_clipped(self, rows: RowSelection) -> np.ndarray:
+    def rows_clipped(self, rows: RowSelection) -> AnyArray:
         """Signal of whole ``rows``, clipped at 0: (n, W) uint8.
 
         What the coarse search reads: the laser is a positive peak, so the clipped signal has
@@ -100,7 +100,7 @@ class LaserSignal:
         return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
                             self._other_rise(green, blue, self.texture[rows]))
 
-    def windows(self, rows: np.ndarray, first_cols: np.ndarray, length: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def windows(self, rows: AnyArray, first_cols: AnyArray, length: int) -> tuple[AnyArray, AnyArray, AnyArray]:
         """Signal and red channel of ``length`` columns per row, starting near ``first_cols``.
 
         Windows that would cross the image border are shifted inside it, so every window
@@ -119,7 +119,7 @@ class LaserSignal:
         signal, red = self._signal(pixels, texture)
         return signal, red, first
 
-    def window_columns(self, starts: np.ndarray, length: int) -> Tuple[np.ndarray, np.ndarray]:
+    def window_columns(self, starts: AnyArray, length: int) -> tuple[AnyArray, AnyArray]:
         """Signal and red channel of ``length`` pixels from each of ``starts``, column-major.
 
         ``starts`` are flat pixel indices (``row * width + first column``) of windows that lie
@@ -132,6 +132,7 @@ class LaserSignal:
         """
         pixels = self._sliding(self.image, length)[starts]
         texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
+        other: AnyArray | None
         if self.colour:
             red, other = self._planes(pixels, texture)
         else:
@@ -147,7 +148,7 @@ class LaserSignal:
             signal -= cv2.max(cv2.subtract(planes[:, 1], tex[:, 1]), cv2.subtract(planes[:, 0], tex[:, 0]))
         return signal, red
 
-    def _planes(self, pixels: np.ndarray, texture: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    def _planes(self, pixels: AnyArray, texture: AnyArray | None) -> tuple[AnyArray, AnyArray]:
         """(red, other) of (n, L, 3) colour pixels, each (L, n) uint8; other = max(green, blue) or the texture's red.
 
         One byte transpose de-interleaves: row 3 j + c of the (3 L, n) result is channel c of
@@ -160,12 +161,12 @@ class LaserSignal:
         return planes[:, 2], cv2.transpose(texture.reshape(n, 3 * length)).reshape(length, 3, n)[:, 2]
 
     @staticmethod
-    def _other_rise(green: np.ndarray, blue: np.ndarray, texture: np.ndarray) -> np.ndarray:
+    def _other_rise(green: AnyArray, blue: AnyArray, texture: AnyArray) -> AnyArray:
         """max(green - green_off, blue - blue_off, 0) of (n, L) planes and their (n, L, 3) laser-off pixels, uint8."""
         tex_blue, tex_green, _ = cv2.split(texture)
         return cv2.max(cv2.subtract(green, tex_green), cv2.subtract(blue, tex_blue))
 
-    def _sliding(self, image: np.ndarray, length: int) -> np.ndarray:
+    def _sliding(self, image: AnyArray, length: int) -> AnyArray:
         # A (pixels - length + 1, length[, 3]) view whose entry k is the `length` pixels from flat
         # index k: fancy-indexing it copies one short contiguous run per row, ~20x faster than
         # gathering pixel by pixel. Built with the ndarray constructor, which costs a tenth of
@@ -175,7 +176,7 @@ class LaserSignal:
             return np.ndarray((count, length, 3), np.uint8, image, 0, (3, 3, 1))
         return np.ndarray((count, length), np.uint8, image, 0, (1, 1))
 
-    def _signal(self, pixels: np.ndarray, texture: Optional[np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+    def _signal(self, pixels: AnyArray, texture: AnyArray | None) -> tuple[AnyArray, AnyArray]:
         """(signal float32, red uint8) of (n, L[, 3]) pixels."""
         if not self.colour:
             if texture is not None:
@@ -188,7 +189,7 @@ class LaserSignal:
         return cv2.subtract(rise, self._other_rise(green, blue, texture), dtype=cv2.CV_32F), red
 
 
-def contrast_noise(clipped: np.ndarray, half: int) -> float:
+def contrast_noise(clipped: AnyArray, half: int) -> float:
     """Robust sigma [DN] of the contrast the coarse search thresholds, at every pixel of ``clipped`` rows.
 
     ``clipped`` is (n, W) uint8, the signal clipped at 0 (`LaserSignal.rows_clipped`): what the

@@ -12,11 +12,12 @@ Stand-in for the simulated rig (``lsu_cameras.sim``) until that renderer lands.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Tuple
 
 import cv2
 import numpy as np
 from scipy.special import ndtr
+
+from lsu_common.arrays import AnyArray
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 _SUB_ROWS = (np.arange(4) + 0.5) / 4.0 - 0.5  # vertical sample offsets inside one pixel
@@ -46,19 +47,19 @@ class LineScene:
     seed: int = 0                    # noise (and reflection-free rendering is otherwise deterministic)
     texture_seed: int = 0            # the background texture: keep it for a laser-off frame of the same view
 
-    def with_(self, **changes: object) -> "LineScene":
+    def with_(self, **changes: object) -> LineScene:
         """A copy with some fields changed."""
         return replace(self, **changes)  # type: ignore[arg-type]
 
 
-def line_centre(scene: LineScene, v: np.ndarray) -> np.ndarray:
+def line_centre(scene: LineScene, v: AnyArray) -> AnyArray:
     """Analytic centre column of the line at (possibly fractional) row ``v``."""
     half = scene.height / 2.0
     t = (np.asarray(v, dtype=np.float64) - half) / half
     return scene.u0_px + scene.slope_px_per_row * (v - half) + scene.bow_px * t * t
 
 
-def _profile(centres: np.ndarray, cols: np.ndarray, sigma: float) -> np.ndarray:
+def _profile(centres: AnyArray, cols: AnyArray, sigma: float) -> AnyArray:
     """Gaussian of unit peak integrated over each pixel's width, averaged over the sub-rows.
 
     ``centres`` is (rows, sub_rows); result (rows, cols). Normalised so a pixel centred on the
@@ -70,7 +71,7 @@ def _profile(centres: np.ndarray, cols: np.ndarray, sigma: float) -> np.ndarray:
     return norm * area.mean(axis=1)
 
 
-def _albedo(scene: LineScene, rng: np.random.Generator) -> np.ndarray:
+def _albedo(scene: LineScene, rng: np.random.Generator) -> AnyArray:
     """Reddish background reflectance (H, W, 3) in BGR, values 0..1."""
     base = np.array([0.45, 0.55, 0.85])  # skin-like: red reflects most
     shape = (scene.height, scene.width)
@@ -91,7 +92,7 @@ def _albedo(scene: LineScene, rng: np.random.Generator) -> np.ndarray:
     return np.clip(albedo, 0.0, 1.0)
 
 
-def render_line(scene: LineScene) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_line(scene: LineScene) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Draw one frame of ``scene``.
 
     Returns:

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Tuple
 
 import cv2
 import numpy as np
 
-from .detectors import clamp as _clamp
+from lsu_common.arrays import AnyArray
 
+from .detectors import clamp as _clamp
 
 _CONTINUITY_PASSES = 4
 _SECOND_PEAK_RATIO = 0.25  # a second peak this strong is worth checking against the neighbours
@@ -31,15 +31,15 @@ BLANK = np.float32(-1.0e9)  # below any float signal (masks a peak out), finite 
 class RowCandidates:
     """The two strongest separated peaks of each searched row (all arrays (n,))."""
 
-    rows: np.ndarray     # row index
-    first: np.ndarray    # column of the strongest peak
-    second: np.ndarray   # column of the strongest peak outside +-suppress_px of the first
-    first_contrast: np.ndarray   # its height above the row's background
-    second_contrast: np.ndarray
+    rows: AnyArray     # row index
+    first: AnyArray    # column of the strongest peak
+    second: AnyArray   # column of the strongest peak outside +-suppress_px of the first
+    first_contrast: AnyArray   # its height above the row's background
+    second_contrast: AnyArray
 
 
 @lru_cache(maxsize=32)
-def _suppression_offsets(rows: int, width: int, suppress_px: int) -> np.ndarray:
+def _suppression_offsets(rows: int, width: int, suppress_px: int) -> AnyArray:
     """(rows, 2 s + 1) flat offsets of the columns -s..s in each row of a (rows, width) array (cached)."""
     offsets = np.arange(0, rows * width, width)[:, None] + np.arange(-suppress_px, suppress_px + 1)[None, :]
     offsets.setflags(write=False)
@@ -47,14 +47,14 @@ def _suppression_offsets(rows: int, width: int, suppress_px: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=32)
-def row_starts(rows: int, width: int) -> np.ndarray:
+def row_starts(rows: int, width: int) -> AnyArray:
     """(rows,) flat index of the first element of each row of a (rows, width) array (cached, read-only)."""
     starts = np.arange(0, rows * width, width)
     starts.setflags(write=False)
     return starts
 
 
-def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
+def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
                    min_contrast: float = 0.0, strong_only: bool = False) -> RowCandidates:
     """Top-two peaks of each full row of the laser signal (n, W): float32, or uint8 clipped at 0.
 
@@ -109,8 +109,8 @@ def row_candidates(signal_rows: np.ndarray, rows: np.ndarray, suppress_px: int,
                          first_contrast=first_contrast, second_contrast=second_contrast)
 
 
-def nearest_reference(rows: np.ndarray, ref_rows: np.ndarray, ref_cols: np.ndarray,
-                      max_gap_rows: int) -> np.ndarray:
+def nearest_reference(rows: AnyArray, ref_rows: AnyArray, ref_cols: AnyArray,
+                      max_gap_rows: int) -> AnyArray:
     """Column of the nearest reference row (above or below) within ``max_gap_rows``; NaN if none.
 
     ``ref_rows`` must be sorted ascending. Of two references at the same distance, the one
@@ -133,12 +133,12 @@ def nearest_reference(rows: np.ndarray, ref_rows: np.ndarray, ref_cols: np.ndarr
 class Decision:
     """Which column each candidate row keeps (-1 = none) and why rows were dropped."""
 
-    column: np.ndarray     # (n,) chosen integer column, -1 when the row has no accepted peak
-    ambiguous: np.ndarray  # (n,) bool: two competing peaks that continuity could not separate
+    column: AnyArray     # (n,) chosen integer column, -1 when the row has no accepted peak
+    ambiguous: AnyArray  # (n,) bool: two competing peaks that continuity could not separate
     candidates: RowCandidates
 
     @property
-    def uniqueness(self) -> np.ndarray:
+    def uniqueness(self) -> AnyArray:
         """(n,) 1 - (other peak / chosen peak), 0..1: computed on demand, the coarse pass never reads it."""
         c = self.candidates
         chosen_first = self.column == c.first
@@ -150,7 +150,7 @@ class Decision:
 
 
 def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window_px: int,
-           ref_rows: np.ndarray, ref_cols: np.ndarray, max_gap_rows: int) -> Decision:
+           ref_rows: AnyArray, ref_cols: AnyArray, max_gap_rows: int) -> Decision:
     """Choose between the two strongest peaks of each row, by continuity where possible.
 
     Rows with a single peak above ``min_contrast`` keep it and become references. Rows with
@@ -203,8 +203,8 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
     return Decision(column=column, ambiguous=ambiguous, candidates=c)
 
 
-def interpolate_track(rows: np.ndarray, track_rows: np.ndarray, track_cols: np.ndarray,
-                      max_gap_rows: int) -> np.ndarray:
+def interpolate_track(rows: AnyArray, track_rows: AnyArray, track_cols: AnyArray,
+                      max_gap_rows: int) -> AnyArray:
     """Expected line column at every row of ``rows`` from a sparse track; NaN far from the track.
 
     Linear interpolation between neighbouring track rows, only where the nearest track row
@@ -219,7 +219,7 @@ def interpolate_track(rows: np.ndarray, track_rows: np.ndarray, track_cols: np.n
 
 
 @lru_cache(maxsize=16)
-def coarse_neighbours(height: int, first_row: int, step: int) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def coarse_neighbours(height: int, first_row: int, step: int) -> tuple[AnyArray, AnyArray, AnyArray]:
     """For each image row, the indices of the coarse rows (``first_row + k * step``) within ``step`` rows of it.
 
     Returns (before, nearest, after), each (height,) int64 into the coarse rows: a row between
@@ -237,7 +237,7 @@ def coarse_neighbours(height: int, first_row: int, step: int) -> Tuple[np.ndarra
 
 
 @lru_cache(maxsize=16)
-def _all_rows(height: int) -> Tuple[np.ndarray, np.ndarray]:
+def _all_rows(height: int) -> tuple[AnyArray, AnyArray]:
     """``arange(height)`` as int64 and float64 (cached, read-only; np.interp is faster on floats)."""
     rows = np.arange(height)
     rows_f = rows.astype(np.float64)
@@ -246,7 +246,7 @@ def _all_rows(height: int) -> Tuple[np.ndarray, np.ndarray]:
     return rows, rows_f
 
 
-def coarse_track(height: int, coarse_rows: np.ndarray, column: np.ndarray, step: int) -> Tuple[np.ndarray, np.ndarray]:
+def coarse_track(height: int, coarse_rows: AnyArray, column: AnyArray, step: int) -> tuple[AnyArray, AnyArray]:
     """Rows within ``step`` rows of a coarse row that found the line, and the line column expected in each.
 
     ``coarse_rows`` must be ``coarse_rows[0] + k * step``; ``column`` is the coarse decision

@@ -4,13 +4,19 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from lsu_extract.detectors import (SUBPIXEL_METHODS, blais_rioux_kernel, blais_rioux_zero_crossing, half_max_crossings,
-                                   thesis_detector)
+from lsu_common.arrays import AnyArray
+from lsu_extract.detectors import (
+    SUBPIXEL_METHODS,
+    blais_rioux_kernel,
+    blais_rioux_zero_crossing,
+    half_max_crossings,
+    thesis_detector,
+)
 
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
 
-def integrated_gaussian(offsets: np.ndarray, fwhm: float, half: int = 11) -> np.ndarray:
+def integrated_gaussian(offsets: AnyArray, fwhm: float, half: int = 11) -> AnyArray:
     """Rows of a unit Gaussian integrated over each pixel, centred ``offsets`` px right of column ``half``."""
     sigma = fwhm / FWHM_PER_SIGMA
     x = np.arange(-half, half + 1)[None, :] - offsets[:, None]

@@ -5,9 +5,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from lsu_common.arrays import AnyArray
 from lsu_extract.detectors import METHODS
-from lsu_extract.extractor import (DEFAULT_METHOD, ExtractorConfigError, ExtractorParams, LaserLineResult,
-                                   extract_laser_line)
+from lsu_extract.extractor import (
+    DEFAULT_METHOD,
+    ExtractorConfigError,
+    ExtractorParams,
+    LaserLineResult,
+    extract_laser_line,
+)
 from lsu_extract.image import ImageFormatError
 from lsu_extract.signal import LaserSignal, contrast_noise
 from lsu_extract.synthetic import LineScene, render_line
@@ -15,7 +21,7 @@ from lsu_extract.synthetic import LineScene, render_line
 CLEAN = LineScene(textured=False, read_noise_dn=0.0, shot_gain=0.0)
 
 
-def errors(result: LaserLineResult, truth: np.ndarray) -> np.ndarray:
+def errors(result: LaserLineResult, truth: AnyArray) -> AnyArray:
     return result.u - truth[result.v.astype(int)]
 
 

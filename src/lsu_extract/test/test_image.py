@@ -4,8 +4,13 @@ import numpy as np
 import pytest
 
 from lsu_extract.extractor import extract_laser_line
-from lsu_extract.image import (SUPPORTED_ENCODINGS, ImageFormatError, UnsupportedEncodingError, decode_image,
-                               encode_image)
+from lsu_extract.image import (
+    SUPPORTED_ENCODINGS,
+    ImageFormatError,
+    UnsupportedEncodingError,
+    decode_image,
+    encode_image,
+)
 from lsu_extract.synthetic import LineScene, render_line
 
 BAYER = [e for e in SUPPORTED_ENCODINGS if e.startswith("bayer_")]

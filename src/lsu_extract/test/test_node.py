@@ -1,21 +1,21 @@
 """The laser_extractor node in-process: image in, LaserLine out with the same header; bad input reported."""
 
-from typing import List
 
 import numpy as np
 import pytest
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
+from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import DEFAULT_METHOD
 from lsu_extract.node import EVENTS_QOS, SCAN_DATA_QOS, LaserExtractorNode
 from lsu_extract.synthetic import LineScene, render_line
-from builtin_interfaces.msg import Time
 from lsu_interfaces.msg import LaserLine, ScanEvent
 
 
-def image_msg(bgr: np.ndarray, sec: int, frame: str = "lsu_left_optical", encoding: str = "bgr8") -> Image:
+def image_msg(bgr: AnyArray, sec: int, frame: str = "lsu_left_optical", encoding: str = "bgr8") -> Image:
     msg = Image(height=bgr.shape[0], width=bgr.shape[1], encoding=encoding, step=bgr.shape[1] * 3,
                 data=bgr.tobytes())
     msg.header.stamp.sec = sec
@@ -27,7 +27,7 @@ def image_msg(bgr: np.ndarray, sec: int, frame: str = "lsu_left_optical", encodi
 def test_image_in_laser_line_out_with_the_same_header(ros_node):
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
     assert extractor.get_namespace() == "/lsu"
-    lines: List[LaserLine] = []
+    lines: list[LaserLine] = []
     ros_node.node.create_subscription(LaserLine, "/lsu/stereo/right/laser_line", lines.append, SCAN_DATA_QOS)
     pub = ros_node.node.create_publisher(Image, "/lsu/stereo/right/image_raw", SCAN_DATA_QOS)
     assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and
@@ -47,8 +47,8 @@ def test_image_in_laser_line_out_with_the_same_header(ros_node):
 @pytest.mark.fault('camera: wrong encoding and size change')
 def test_bad_encoding_and_size_change_are_reported_not_fatal(ros_node):
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
-    lines: List[LaserLine] = []
-    diags: List[DiagnosticArray] = []
+    lines: list[LaserLine] = []
+    diags: list[DiagnosticArray] = []
     ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
     ros_node.node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
@@ -86,7 +86,7 @@ def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_name
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
     assert extractor.set_parameters([Parameter("background", value="texture")])[0].successful
     assert not extractor.set_parameters([Parameter("background", value="dark")])[0].successful
-    lines: List[LaserLine] = []
+    lines: list[LaserLine] = []
     ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
     pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
     events = ros_node.node.create_publisher(ScanEvent, "/lsu/scan/events", EVENTS_QOS)

@@ -5,7 +5,6 @@ Truth: hand-drawn stripe masks (weld_laser_stripes_gk), laser-on minus laser-off
 `lsu_extract.devdata`. Skipped, saying where the folder is expected, only when it is absent.
 """
 
-import numpy as np
 import pytest
 
 from lsu_extract import devdata

@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lsu_bags.ply import UNITS
 
 from .face import NOSE_METHODS, FaceParams
 from .gallery import DEFAULT_FALSE_ACCEPT
 from .mesh import MeshParams
-from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from .pipeline import ProcessParams
@@ -36,7 +36,7 @@ __all__ = ["register", "DEFAULT_GALLERY"]
 DEFAULT_GALLERY = "~/.lsu/faces/gallery.db"
 
 
-def _params(args: argparse.Namespace) -> "ProcessParams":
+def _params(args: argparse.Namespace) -> ProcessParams:
     from .pipeline import ProcessParams
 
     sp = SmoothParams()
@@ -122,7 +122,7 @@ def run_face(args: argparse.Namespace) -> int:
     return 0 if ident.accepted else 1
 
 
-def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu mesh` and `lsu face` (``lsu.commands`` entry point)."""
     m = subparsers.add_parser("mesh", help="scan cloud (PLY with u v) -> textured mesh, renders, nose tip",
                               description="Mesh an LSU scan cloud like the face_processor: Delaunay on the left-image "

@@ -39,11 +39,13 @@ parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Any
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["FaceError", "NotAFaceError", "FaceParams", "NoseResult", "FaceFrame", "depth_window", "nose_tip_svd",
            "nose_tip_protrusion", "nose_tip_template", "nose_tip", "radial_vector", "face_frame", "crop_face",
@@ -98,28 +100,28 @@ class FaceParams:
 class NoseResult:
     """A nose tip [m, left optical frame], the outward face normal there and how much the nose stands out."""
 
-    tip: np.ndarray
-    normal: np.ndarray
+    tip: AnyArray
+    normal: AnyArray
     prominence_m: float
     method: str
     confidence: float = 1.0           # 0..1: how face-like the surroundings are (template method)
     symmetry_mm: float = float("nan")   # median mirror residual of the face around the tip
-    frame: Optional["FaceFrame"] = None  # the verified face frame (template method)
+    frame: FaceFrame | None = None  # the verified face frame (template method)
 
 
 @dataclass
 class FaceFrame:
     """Pose-normalising frame of a face: origin at the nose tip, rows = (right, down, out of the face)."""
 
-    origin: np.ndarray
-    axes: np.ndarray          # (3, 3) rows e1, e2, radial; local = (p - origin) @ axes.T
+    origin: AnyArray
+    axes: AnyArray          # (3, 3) rows e1, e2, radial; local = (p - origin) @ axes.T
 
-    def to_local(self, points: np.ndarray) -> np.ndarray:
+    def to_local(self, points: AnyArray) -> AnyArray:
         """Points in the face frame (z = height along the radial vector, <= 0 behind the tip)."""
         return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
 
 
-def _check(points: np.ndarray, params: FaceParams) -> np.ndarray:
+def _check(points: AnyArray, params: FaceParams) -> AnyArray:
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) < params.min_points:
         raise FaceError(f"{len(p)} points are too few for a face (need {params.min_points}); scan closer or "
@@ -129,24 +131,24 @@ def _check(points: np.ndarray, params: FaceParams) -> np.ndarray:
     return p
 
 
-def depth_window(points: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+def depth_window(points: AnyArray, params: FaceParams = FaceParams()) -> AnyArray:
     """Mask of the points within ``depth_window_m`` behind the nearest surface (robust 0.5 % depth)."""
     r = np.linalg.norm(points, axis=1)
     near = np.percentile(r, 0.5)
     return r <= near + params.depth_window_m
 
 
-def _towards_camera(normal: np.ndarray, at: np.ndarray) -> np.ndarray:
+def _towards_camera(normal: AnyArray, at: AnyArray) -> AnyArray:
     return normal if np.dot(normal, -at) > 0 else -normal
 
 
-def _plane_normal(points: np.ndarray) -> np.ndarray:
+def _plane_normal(points: AnyArray) -> AnyArray:
     c = points - points.mean(axis=0)
     _, _, vt = np.linalg.svd(c, full_matrices=False)
     return vt[-1]
 
 
-def nose_tip_svd(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+def nose_tip_svd(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
     """The thesis' nose finder (ch. 11.1.2): farthest point from the SVD facial plane through the centroid."""
     p = _check(points, params)
     p = p[depth_window(p, params)]
@@ -161,7 +163,7 @@ def nose_tip_svd(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseR
     return NoseResult(reduced[i].copy(), n, float(height[i]), "svd")
 
 
-def _voxel_means(points: np.ndarray, voxel: float) -> np.ndarray:
+def _voxel_means(points: AnyArray, voxel: float) -> AnyArray:
     """Mean of the points in each occupied voxel (ordered by voxel key: deterministic)."""
     keys = np.floor(points / voxel).astype(np.int64)
     keys -= keys.min(axis=0)
@@ -173,7 +175,7 @@ def _voxel_means(points: np.ndarray, voxel: float) -> np.ndarray:
     return sums / counts[:, None]
 
 
-def _ring_planes(centres: np.ndarray, samples: np.ndarray, inner: float, outer: float) -> Tuple[np.ndarray, ...]:
+def _ring_planes(centres: AnyArray, samples: AnyArray, inner: float, outer: float) -> tuple[AnyArray, ...]:
     """For every centre: mean, unit normal (least spread) and count of the samples in the ring inner..outer."""
     tree_c, tree_s = cKDTree(centres), cKDTree(samples)
     dist = tree_c.sparse_distance_matrix(tree_s, outer, output_type="coo_matrix")
@@ -192,7 +194,7 @@ def _ring_planes(centres: np.ndarray, samples: np.ndarray, inner: float, outer: 
     return mean, normal, count
 
 
-def _quadric_height(centre: np.ndarray, normal: np.ndarray, ring: np.ndarray) -> float:
+def _quadric_height(centre: AnyArray, normal: AnyArray, ring: AnyArray) -> float:
     """Height of ``centre`` above the quadric h(x, y) fitted to ``ring`` in the frame of ``normal``."""
     e1 = np.cross(normal, [0.0, 1.0, 0.0])
     if np.linalg.norm(e1) < 1e-6:
@@ -206,7 +208,7 @@ def _quadric_height(centre: np.ndarray, normal: np.ndarray, ring: np.ndarray) ->
     return float(-coef[0])   # the candidate sits at x = y = 0, h = 0
 
 
-def nose_tip_protrusion(points: np.ndarray, params: FaceParams = FaceParams(), top: int = 12) -> NoseResult:
+def nose_tip_protrusion(points: AnyArray, params: FaceParams = FaceParams(), top: int = 12) -> NoseResult:
     """The most protruding point of the surface relative to its own surroundings (see the module doc).
 
     Raises:
@@ -253,7 +255,7 @@ def nose_tip_protrusion(points: np.ndarray, params: FaceParams = FaceParams(), t
     return NoseResult(tip, n, float(prominence), "protrusion")
 
 
-def _candidates(p: np.ndarray, samples: np.ndarray, params: FaceParams) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _candidates(p: AnyArray, samples: AnyArray, params: FaceParams) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Nose candidates: (centres, ring normals, quadric protrusion) best first, one per 15 mm."""
     candidates = _voxel_means(p, params.candidate_voxel_m)
     # ring statistics on candidate-sized samples: the ring's plane and quadric need no finer surface
@@ -293,7 +295,7 @@ def _candidates(p: np.ndarray, samples: np.ndarray, params: FaceParams) -> Tuple
     return candidates[idx], normal[idx], np.array([q for _, q in chosen])
 
 
-def _roughness(samples: np.ndarray, tree: cKDTree, normals: np.ndarray) -> float:
+def _roughness(samples: AnyArray, tree: cKDTree, normals: AnyArray) -> float:
     """Median distance of the samples from their neighbours' tangent plane (sensor noise, depth steps) [m]."""
     step = max(1, len(samples) // 2000)
     probe = samples[::step]
@@ -303,7 +305,7 @@ def _roughness(samples: np.ndarray, tree: cKDTree, normals: np.ndarray) -> float
     return float(np.median(np.abs(off)))
 
 
-def _refine_tip(local: np.ndarray, smooth: bool, radius: float = 0.008) -> np.ndarray:
+def _refine_tip(local: AnyArray, smooth: bool, radius: float = 0.008) -> AnyArray:
     """Nose tip in the fitted face frame: the mean of the 5 highest points within ``radius`` of the frame's
     z axis; with ``smooth`` (a noisy sensor: depth steps of millimetres pull the highest points outwards)
     the peak of a quadric z(x, y) fitted to those points by least squares, where it has one there."""
@@ -326,7 +328,7 @@ def _refine_tip(local: np.ndarray, smooth: bool, radius: float = 0.008) -> np.nd
     return np.array([xy[0], xy[1], zp])
 
 
-def _relief(local: np.ndarray, inner: float = 0.025, outer: float = 0.045) -> float:
+def _relief(local: AnyArray, inner: float = 0.025, outer: float = 0.045) -> float:
     """Height of the nose (highest point within 8 mm of the z axis) over the median of the inner..outer ring [m]."""
     r = np.linalg.norm(local[:, :2], axis=1)
     tip, ring = local[r <= 0.008, 2], local[(r >= inner) & (r <= outer), 2]
@@ -335,7 +337,7 @@ def _relief(local: np.ndarray, inner: float = 0.025, outer: float = 0.045) -> fl
     return float(np.max(tip) - np.median(ring))
 
 
-def _symmetry_mm(local: np.ndarray) -> float:
+def _symmetry_mm(local: AnyArray) -> float:
     """Median distance of the mirrored face (x -> -x) to the face, over the mirrored points that overlap it."""
     near = local[np.linalg.norm(local[:, :2], axis=1) < 0.06]
     if len(near) < 30:
@@ -345,7 +347,7 @@ def _symmetry_mm(local: np.ndarray) -> float:
     return float(np.median(d) * 1000.0) if len(d) > 0.3 * len(near) else float("inf")
 
 
-def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
     """Nose tip verified by the whole face: shape candidates, then the generic face registered on each.
 
     Candidates are the points that protrude most above a quadric fitted to their 15-35 mm ring (with
@@ -362,7 +364,7 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
         NotAFaceError: no candidate reaches ``min_confidence`` (a plane, a ball, a hand alone, a back
             of a head, a profile whose face is hidden).
     """
-    from .register import apply, estimate_normals, icp_point_to_plane
+    from .register import estimate_normals, icp_point_to_plane
     from .template import REGIONS, face_template
 
     p = _check(points, params)
@@ -378,7 +380,7 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
     rms_scale = 0.003 + 2.0 * noise_m
     sub = np.arange(0, len(tpl.points), 3)          # coarse stage: a third of the template
 
-    def verify(T0: np.ndarray, idx: np.ndarray, distances: Tuple[float, ...]) -> Tuple[float, object, Dict[str, float]]:
+    def verify(T0: AnyArray, idx: AnyArray, distances: tuple[float, ...]) -> tuple[float, Any, dict[str, float]]:
         reg = icp_point_to_plane(tpl.points[idx], samples, snormals, T0, distances=distances, iterations=6,
                                  tree=tree, trim=0.2)
         out = reg.T[:3, 2]           # the fitted face must look at the scanner (its z axis towards the camera)
@@ -400,7 +402,7 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
         return conf, reg, cover
 
     tpl_relief, tpl_narrow = _relief(tpl.points), _relief(tpl.points, 0.012, 0.02)
-    rough = []
+    rough: list[tuple[float, int, AnyArray, Any]] = []
     for c, n, q in zip(centres, normals, prominence):
         frame = face_frame(c, n)
         T0 = np.eye(4)
@@ -431,7 +433,7 @@ def nose_tip_template(points: np.ndarray, params: FaceParams = FaceParams()) -> 
     return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame)
 
 
-def nose_tip(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResult:
+def nose_tip(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
     """Nose tip with ``params.nose_method``."""
     if params.nose_method == "svd":
         return nose_tip_svd(points, params)
@@ -440,7 +442,7 @@ def nose_tip(points: np.ndarray, params: FaceParams = FaceParams()) -> NoseResul
     return nose_tip_template(points, params)
 
 
-def radial_vector(points: np.ndarray, tip: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+def radial_vector(points: AnyArray, tip: AnyArray, params: FaceParams = FaceParams()) -> AnyArray:
     """Unit normal of the plane fitted to the points within ``radial_radius_m`` of the tip, out of the face."""
     p = np.asarray(points, dtype=np.float64)
     near = p[np.linalg.norm(p - tip, axis=1) <= params.radial_radius_m]
@@ -449,7 +451,8 @@ def radial_vector(points: np.ndarray, tip: np.ndarray, params: FaceParams = Face
     return _towards_camera(_plane_normal(near), tip)
 
 
-def face_frame(tip: np.ndarray, radial: np.ndarray, up_hint: np.ndarray = np.array([0.0, -1.0, 0.0])) -> FaceFrame:
+def face_frame(tip: AnyArray, radial: AnyArray,
+               up_hint: AnyArray | tuple[float, float, float] = (0.0, -1.0, 0.0)) -> FaceFrame:
     """Frame at the tip: z = radial vector, y = 'down' of the face taken from the camera's -``up_hint``."""
     z = np.asarray(radial, dtype=np.float64) / np.linalg.norm(radial)
     down = -np.asarray(up_hint, dtype=np.float64)
@@ -461,7 +464,7 @@ def face_frame(tip: np.ndarray, radial: np.ndarray, up_hint: np.ndarray = np.arr
     return FaceFrame(np.asarray(tip, dtype=np.float64).copy(), np.stack([x, y, z]))
 
 
-def symmetric_frame(points: np.ndarray, frame: FaceFrame, params: FaceParams = FaceParams(),
+def symmetric_frame(points: AnyArray, frame: FaceFrame, params: FaceParams = FaceParams(),
                     rounds: int = 2) -> FaceFrame:
     """Refine ``frame`` so that its x = 0 plane is the face's mirror-symmetry plane.
 
@@ -507,7 +510,7 @@ def symmetric_frame(points: np.ndarray, frame: FaceFrame, params: FaceParams = F
     return _profile_pitch(p[sel], frame, params)
 
 
-def _profile_pitch(points: np.ndarray, frame: FaceFrame, params: FaceParams) -> FaceFrame:
+def _profile_pitch(points: AnyArray, frame: FaceFrame, params: FaceParams) -> FaceFrame:
     """Tilt the radial vector (about the frame's x axis) perpendicular to the face's profile line.
 
     The profile (face points near the symmetry plane, away from the nose) runs from the forehead to the
@@ -531,13 +534,13 @@ def _profile_pitch(points: np.ndarray, frame: FaceFrame, params: FaceParams) -> 
     return FaceFrame(frame.origin, np.stack([frame.axes[0], y, z]))
 
 
-def crop_face(points: np.ndarray, tip: np.ndarray, params: FaceParams = FaceParams()) -> np.ndarray:
+def crop_face(points: AnyArray, tip: AnyArray, params: FaceParams = FaceParams()) -> AnyArray:
     """Mask of the points within ``crop_radius_m`` of the nose tip (the face, without hair, ears and neck)."""
     return np.linalg.norm(np.asarray(points) - tip, axis=1) <= params.crop_radius_m
 
 
-def spherical_embedding(points: np.ndarray, frame: FaceFrame,
-                        radius_m: float = FaceParams().sphere_radius_m) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def spherical_embedding(points: AnyArray, frame: FaceFrame,
+                        radius_m: float = FaceParams().sphere_radius_m) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Map points onto the sphere touching the nose tip (thesis ch. 11.2.2).
 
     Returns (elevation [rad] from the radial vector, azimuth [rad] about it in (-pi, pi], radial
@@ -552,8 +555,8 @@ def spherical_embedding(points: np.ndarray, frame: FaceFrame,
     return elevation, azimuth, rho
 
 
-def parametric_map(elevation: np.ndarray, azimuth: np.ndarray, rho: np.ndarray, radius_m: float,
-                   shape: Tuple[int, int] = (24, 64), max_elevation_rad: float = np.radians(60.0)) -> np.ndarray:
+def parametric_map(elevation: AnyArray, azimuth: AnyArray, rho: AnyArray, radius_m: float,
+                   shape: tuple[int, int] = (24, 64), max_elevation_rad: float = np.radians(60.0)) -> AnyArray:
     """2D map (elevation rows x azimuth columns) of the mean height above the sphere [m]; NaN = no data.
 
     Row 0 is the ring around the nose tip (thesis Figure 56: "the bottom row represents all the points
@@ -572,8 +575,8 @@ def parametric_map(elevation: np.ndarray, azimuth: np.ndarray, rho: np.ndarray, 
     return out.reshape(rows, cols)
 
 
-def embed_face(points: np.ndarray, params: FaceParams = FaceParams(),
-               nose: Optional[NoseResult] = None) -> Tuple[NoseResult, FaceFrame, np.ndarray]:
+def embed_face(points: AnyArray, params: FaceParams = FaceParams(),
+               nose: NoseResult | None = None) -> tuple[NoseResult, FaceFrame, AnyArray]:
     """Nose tip, face frame and the mask of the cropped face points, in one call."""
     p = _check(points, params)
     nose = nose or nose_tip(p, params)

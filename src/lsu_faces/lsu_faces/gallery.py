@@ -21,14 +21,15 @@ chance that a stranger comes that close.
 
 from __future__ import annotations
 
+import builtins
 import datetime as _dt
 import os
 import sqlite3
 import stat
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Iterator, List, Optional
 
 from .signature import ImpostorModel, Signature, SignatureError, compare
 
@@ -94,24 +95,24 @@ class Match:
 class Identification:
     """Ranked matches and the open-set decision."""
 
-    matches: List[Match]
+    matches: list[Match]
     accepted: bool               # the best match's false_accept x people compared <= the stated rate
     false_accept_rate: float     # the stated rate
     threshold_m: float           # distance the best match had to beat
     model: ImpostorModel
 
     @property
-    def best(self) -> Optional[Match]:
+    def best(self) -> Match | None:
         return self.matches[0] if self.matches and self.accepted else None
 
 class Gallery:
     """An SQLite face gallery at ``path`` (created on first write; the folder must exist or is created)."""
 
-    def __init__(self, path: "str | Path", timeout_s: float = 2.0) -> None:
+    def __init__(self, path: str | Path, timeout_s: float = 2.0) -> None:
         self.path = Path(path).expanduser()
         self.timeout_s = float(timeout_s)
-        self._signatures: Dict[int, Signature] = {}
-        self._impostor: Dict[tuple, ImpostorModel] = {}
+        self._signatures: dict[int, Signature] = {}
+        self._impostor: dict[tuple, ImpostorModel] = {}
 
     # ------------------------------------------------------------------ privacy
     def _check_private(self) -> None:
@@ -192,14 +193,14 @@ class Gallery:
         if not name:
             raise GalleryError("the name to enrol is empty; give the person's name")
         blob = signature.to_bytes()
-        date = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         with self._connect(write=True) as conn:
             cur = conn.execute("INSERT INTO faces (name, signature, method, date, mesh_file, points_used) "
                                "VALUES (?, ?, ?, ?, ?, ?)", (name, blob, signature.method, date, str(mesh_file),
                                                             int(signature.points_used)))
-            return int(cur.lastrowid)
+            return int(cur.lastrowid or 0)  # set by every INSERT
 
-    def list(self) -> List[GalleryEntry]:
+    def list(self) -> builtins.list[GalleryEntry]:
         """Every entry, oldest first (empty when the gallery file does not exist yet)."""
         if not self.path.exists():
             return []
@@ -207,7 +208,7 @@ class Gallery:
             rows = conn.execute("SELECT id, name, method, date, mesh_file, points_used FROM faces ORDER BY id").fetchall()
         return [GalleryEntry(int(r[0]), r[1], r[2], r[3], r[4], int(r[5])) for r in rows]
 
-    def remove(self, name: Optional[str] = None, entry_id: Optional[int] = None) -> int:
+    def remove(self, name: str | None = None, entry_id: int | None = None) -> int:
         """Remove every sample of ``name``, or the entry ``entry_id``; returns how many rows went."""
         if (name is None) == (entry_id is None):
             raise GalleryError("remove needs either a name or an entry id")
@@ -217,7 +218,7 @@ class Gallery:
             if name is not None:
                 n = conn.execute("DELETE FROM faces WHERE name = ?", (name,)).rowcount
             else:
-                n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id),)).rowcount
+                n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id or 0),)).rowcount
         if n == 0:
             raise LookupError(f"gallery {self.path} has no entry {'named ' + repr(name) if name else entry_id}")
         self._vacuum()
@@ -239,7 +240,7 @@ class Gallery:
         finally:
             conn.close()
 
-    def _load(self) -> List[tuple]:
+    def _load(self) -> builtins.list[tuple]:
         with self._connect(write=False) as conn:
             rows = conn.execute("SELECT id, name, signature FROM faces ORDER BY id").fetchall()
         present = {int(r[0]) for r in rows}
@@ -257,7 +258,7 @@ class Gallery:
             out.append((int(entry_id), name, sig))
         return out
 
-    def impostor_model(self, method: str = "depthmap", entries: Optional[List[tuple]] = None) -> ImpostorModel:
+    def impostor_model(self, method: str = "depthmap", entries: builtins.list[tuple] | None = None) -> ImpostorModel:
         """Impostor distances of this gallery (every pair of different names, once) fitted as a log-normal."""
         entries = self._load() if entries is None else entries
         entries = [e for e in entries if e[2].method == method]
@@ -285,7 +286,7 @@ class Gallery:
             return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method))
         entries = self._load()
         model = self.impostor_model(probe.method, entries)
-        best: Dict[str, Match] = {}
+        best: dict[str, Match] = {}
         for entry_id, name, ref in entries:
             if ref.method != probe.method:
                 continue

@@ -20,10 +20,11 @@ Neighbour lists come from the unique edges of the kept triangles (thesis ch. 8.2
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional, Tuple
 
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["MeshError", "MeshParams", "FaceMesh", "Neighbours", "triangulate_image_plane", "unique_edges",
            "neighbours", "vertex_normals", "face_normals", "boundary_vertices", "is_closed"]
@@ -54,15 +55,15 @@ class MeshParams:
 class Neighbours:
     """Vertex neighbourhoods in CSR form: the neighbours of vertex i are ``indices[indptr[i]:indptr[i+1]]``."""
 
-    indptr: np.ndarray
-    indices: np.ndarray
+    indptr: AnyArray
+    indices: AnyArray
 
-    def of(self, i: int) -> np.ndarray:
+    def of(self, i: int) -> AnyArray:
         """Neighbour indices of vertex ``i``."""
         return self.indices[self.indptr[i]:self.indptr[i + 1]]
 
     @property
-    def counts(self) -> np.ndarray:
+    def counts(self) -> AnyArray:
         """Number of neighbours per vertex."""
         return np.diff(self.indptr)
 
@@ -71,10 +72,10 @@ class Neighbours:
 class FaceMesh:
     """A triangle mesh (metres, left optical frame) with optional per-vertex colours and image pixels."""
 
-    vertices: np.ndarray                       # (N, 3) float64
-    triangles: np.ndarray                      # (M, 3) int64, oriented with normals towards the camera
-    colors: Optional[np.ndarray] = None        # (N, 3) uint8 R, G, B
-    uv: Optional[np.ndarray] = None            # (N, 2) left image pixel
+    vertices: AnyArray                       # (N, 3) float64
+    triangles: AnyArray                      # (M, 3) int64, oriented with normals towards the camera
+    colors: AnyArray | None = None        # (N, 3) uint8 R, G, B
+    uv: AnyArray | None = None            # (N, 2) left image pixel
     stats: dict = field(default_factory=dict)  # culling counts, median edge
 
     def __post_init__(self) -> None:
@@ -91,13 +92,13 @@ class FaceMesh:
         """Triangle count."""
         return int(len(self.triangles))
 
-    def with_vertices(self, vertices: np.ndarray) -> "FaceMesh":
+    def with_vertices(self, vertices: AnyArray) -> FaceMesh:
         """The same connectivity and colours with new vertex positions (e.g. after smoothing)."""
         return FaceMesh(np.asarray(vertices, dtype=np.float64).copy(), self.triangles.copy(),
                         None if self.colors is None else self.colors.copy(),
                         None if self.uv is None else self.uv.copy(), dict(self.stats))
 
-    def compact(self) -> "FaceMesh":
+    def compact(self) -> FaceMesh:
         """Drop vertices that no triangle uses (indices renumbered)."""
         used = np.zeros(self.n_vertices, bool)
         used[self.triangles.ravel()] = True
@@ -106,7 +107,7 @@ class FaceMesh:
                         None if self.colors is None else self.colors[used],
                         None if self.uv is None else self.uv[used], dict(self.stats))
 
-    def normals(self) -> np.ndarray:
+    def normals(self) -> AnyArray:
         """Unit vertex normals (area-weighted), see `vertex_normals`."""
         return vertex_normals(self.vertices, self.triangles)
 
@@ -115,7 +116,7 @@ class FaceMesh:
         return neighbours(self.triangles, self.n_vertices)
 
 
-def unique_edges(triangles: np.ndarray) -> np.ndarray:
+def unique_edges(triangles: AnyArray) -> AnyArray:
     """Unique undirected edges (E, 2) of a triangle list, each as (low index, high index)."""
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
@@ -123,7 +124,7 @@ def unique_edges(triangles: np.ndarray) -> np.ndarray:
     return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), np.int64)
 
 
-def neighbours(triangles: np.ndarray, n_vertices: int) -> Neighbours:
+def neighbours(triangles: AnyArray, n_vertices: int) -> Neighbours:
     """CSR neighbour lists from the unique edges (thesis ch. 8.2.3: sort the edge list by its first index)."""
     e = unique_edges(triangles)
     both = np.concatenate([e, e[:, ::-1]])
@@ -134,14 +135,14 @@ def neighbours(triangles: np.ndarray, n_vertices: int) -> Neighbours:
     return Neighbours(indptr, both[:, 1].astype(np.int64))
 
 
-def face_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def face_normals(vertices: AnyArray, triangles: AnyArray) -> AnyArray:
     """Unnormalised triangle normals (cross product: length = 2 x area)."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64)
     return np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
 
 
-def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def vertex_normals(vertices: AnyArray, triangles: AnyArray) -> AnyArray:
     """Area-weighted unit vertex normals; a vertex in no triangle gets (0, 0, 0)."""
     fn = face_normals(vertices, triangles)
     out = np.zeros((len(vertices), 3))
@@ -151,20 +152,20 @@ def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.divide(out, norm, out=np.zeros_like(out), where=norm > 0)
 
 
-def _edge_counts(triangles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _edge_counts(triangles: AnyArray) -> tuple[AnyArray, AnyArray]:
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
     e.sort(axis=1)
     return np.unique(e, axis=0, return_counts=True) if len(e) else (np.zeros((0, 2), np.int64), np.zeros(0, int))
 
 
-def is_closed(triangles: np.ndarray) -> bool:
+def is_closed(triangles: AnyArray) -> bool:
     """True when every edge is shared by exactly two triangles (a watertight surface)."""
     _, counts = _edge_counts(triangles)
     return bool(len(counts)) and bool(np.all(counts == 2))
 
 
-def boundary_vertices(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
+def boundary_vertices(triangles: AnyArray, n_vertices: int) -> AnyArray:
     """Boolean mask of vertices on a boundary edge (an edge used by one triangle only)."""
     edges, counts = _edge_counts(triangles)
     mask = np.zeros(n_vertices, bool)
@@ -172,7 +173,7 @@ def boundary_vertices(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
     return mask
 
 
-def triangulate_image_plane(xyz: np.ndarray, uv: np.ndarray, colors: Optional[np.ndarray] = None,
+def triangulate_image_plane(xyz: AnyArray, uv: AnyArray, colors: AnyArray | None = None,
                             params: MeshParams = MeshParams()) -> FaceMesh:
     """Mesh a scan cloud: Delaunay on the left-image pixels ``uv``, cull jumps and long edges, orient to the camera.
 
@@ -230,7 +231,7 @@ def triangulate_image_plane(xyz: np.ndarray, uv: np.ndarray, colors: Optional[np
     return FaceMesh(xyz.copy(), tri, cols, uv.copy(), stats)
 
 
-def mesh_plain_cloud(xyz: np.ndarray, colors: Optional[np.ndarray] = None, viewpoint: Optional[np.ndarray] = None
+def mesh_plain_cloud(xyz: AnyArray, colors: AnyArray | None = None, viewpoint: AnyArray | None = None
                      ) -> FaceMesh:
     """Mesh a cloud without a pixel grid (no u/v) by ball pivoting (open3d, Bernardini et al. 1999).
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import datetime as _dt
 import sys
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -82,7 +82,7 @@ def mesh_to_shape(mesh: FaceMesh) -> Mesh:
     return out
 
 
-def parameter_table() -> Dict[str, Param]:
+def parameter_table() -> dict[str, Param]:
     """The node's parameters: every one is read where it is used, so a set takes effect at the next scan or call."""
     mp, sp, fp, gp = MeshParams(), SmoothParams(), FaceParams(), SignatureParams()
     return {
@@ -121,7 +121,7 @@ class FaceProcessorNode(Node):
         super().__init__("face_processor", **{"namespace": "/lsu", **kwargs})
         declare_parameters(self, parameter_table(), check=self._check_parameters)
 
-        self.latest: Optional[ScanResult] = None
+        self.latest: ScanResult | None = None
         self.scan_id = ""
         self.scan_dir = ""
         self.processed = 0
@@ -138,7 +138,7 @@ class FaceProcessorNode(Node):
         self.create_timer(1.0, self.publish_diagnostics)
 
     # ------------------------------------------------------------------ parameters
-    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+    def _check_parameters(self, params: list[Any]) -> str | None:
         """Choices and open bounds (the closed ranges are in the descriptors, checked by rclpy)."""
         choices = {"smoothing": SMOOTH_METHODS, "nose_method": NOSE_METHODS, "signature_method": SIGNATURE_METHODS}
         for p in params:
@@ -209,7 +209,7 @@ class FaceProcessorNode(Node):
             tip = result.frame.origin if result.frame is not None else result.nose.tip
             self.nose_pub.publish(PointStamped(header=header, point=Point(x=float(tip[0]), y=float(tip[1]),
                                                                           z=float(tip[2]))))
-        files: List[Path] = []
+        files: list[Path] = []
         if result.mesh is not None and bool(self._value("write_files")):
             try:
                 files = write_outputs(result, self._folder(), int(self._value("render_size_px")))
@@ -226,7 +226,7 @@ class FaceProcessorNode(Node):
             what += f", {len(files)} files in {files[0].parent}"
         self.get_logger().info(what)
 
-    def _process_msg(self, msg: PointCloud2) -> Optional[ScanResult]:
+    def _process_msg(self, msg: PointCloud2) -> ScanResult | None:
         from lsu_bags.pointcloud2 import decode, from_msg
 
         cloud = from_msg(msg)

@@ -17,11 +17,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
 
 import numpy as np
 
 from lsu_bags.ply import UNITS, read_ply
+from lsu_common.arrays import AnyArray
 
 from .face import FaceError, FaceFrame, FaceParams, NoseResult, embed_face
 from .mesh import FaceMesh, MeshError, MeshParams, mesh_plain_cloud, triangulate_image_plane
@@ -51,15 +51,15 @@ class ProcessParams:
 class ScanResult:
     """Everything made from one cloud; ``None`` where a stage could not run (see ``messages``)."""
 
-    points: np.ndarray
-    colors: Optional[np.ndarray] = None
-    mesh: Optional[FaceMesh] = None              # smoothed
-    raw_mesh: Optional[FaceMesh] = None          # before smoothing
-    nose: Optional[NoseResult] = None
-    frame: Optional[FaceFrame] = None
-    signature: Optional[Signature] = None
-    shrinkage: Dict[str, float] = field(default_factory=dict)
-    messages: List[str] = field(default_factory=list)
+    points: AnyArray
+    colors: AnyArray | None = None
+    mesh: FaceMesh | None = None              # smoothed
+    raw_mesh: FaceMesh | None = None          # before smoothing
+    nose: NoseResult | None = None
+    frame: FaceFrame | None = None
+    signature: Signature | None = None
+    shrinkage: dict[str, float] = field(default_factory=dict)
+    messages: list[str] = field(default_factory=list)
 
     @property
     def is_face(self) -> bool:
@@ -67,8 +67,8 @@ class ScanResult:
         return self.signature is not None
 
 
-def process_cloud(columns: Dict[str, np.ndarray], params: ProcessParams = ProcessParams(),
-                  faces: Optional[np.ndarray] = None) -> ScanResult:
+def process_cloud(columns: dict[str, AnyArray], params: ProcessParams = ProcessParams(),
+                  faces: AnyArray | None = None) -> ScanResult:
     """Mesh (Delaunay on u, v, or the given ``faces``), smooth, then find the face and its signature."""
     for name in ("x", "y", "z"):
         if name not in columns:
@@ -84,7 +84,7 @@ def process_cloud(columns: Dict[str, np.ndarray], params: ProcessParams = Proces
     if colors is None and all(k in columns for k in ("red", "green", "blue")):
         colors = np.stack([np.asarray(columns[k])[finite] for k in ("red", "green", "blue")], axis=1).astype(np.uint8)
     result = ScanResult(points=xyz, colors=colors)
-    raw: Optional[FaceMesh] = None
+    raw: FaceMesh | None = None
     if faces is not None and len(faces) and np.all(finite):
         raw = FaceMesh(xyz, np.asarray(faces, dtype=np.int64), colors)
     elif "u" in columns and "v" in columns:
@@ -119,7 +119,7 @@ def process_cloud(columns: Dict[str, np.ndarray], params: ProcessParams = Proces
     return result
 
 
-def to_metres(xyz: np.ndarray, units: str = "auto", what: str = "the cloud") -> float:
+def to_metres(xyz: AnyArray, units: str = "auto", what: str = "the cloud") -> float:
     """Factor that takes ``xyz`` in ``units`` to metres; raises `CloudFileError` for an implausible size."""
     if units not in UNITS:
         raise CloudFileError(f"units must be one of {', '.join(UNITS)} (got {units!r})")
@@ -141,7 +141,7 @@ def to_metres(xyz: np.ndarray, units: str = "auto", what: str = "the cloud") -> 
     return factor
 
 
-def load_cloud_file(path: "str | Path", units: str = "auto") -> Dict[str, object]:
+def load_cloud_file(path: str | Path, units: str = "auto") -> dict[str, object]:
     """Columns in metres (and ``faces`` when the file is a mesh) of a PLY cloud/mesh or an NPY array.
 
     NPY: an (N, 3) array of x y z, (N, 5) of x y z u v, or a structured array with fields x y z (and
@@ -179,8 +179,8 @@ def load_cloud_file(path: "str | Path", units: str = "auto") -> Dict[str, object
     return {"columns": vertices, "faces": faces}
 
 
-def write_outputs(result: ScanResult, folder: "str | Path", render_size_px: int = 480,
-                  renders: bool = True) -> List[Path]:
+def write_outputs(result: ScanResult, folder: str | Path, render_size_px: int = 480,
+                  renders: bool = True) -> list[Path]:
     """Write mesh.ply, mesh.obj and the renders of ``result`` into ``folder``; returns the files written."""
     if result.mesh is None:
         return []

@@ -8,11 +8,13 @@ neighbours, a 6 x 6 normal-equation solve), so the same input gives the same bit
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["Registration", "icp_point_to_plane", "rotation_from_vector", "estimate_normals", "apply"]
 
@@ -21,18 +23,18 @@ __all__ = ["Registration", "icp_point_to_plane", "rotation_from_vector", "estima
 class Registration:
     """Result of `icp_point_to_plane`: ``T`` maps source points onto the target."""
 
-    T: np.ndarray             # (4, 4)
+    T: AnyArray             # (4, 4)
     rms_m: float              # RMS point-to-plane residual of the inliers at the last distance
     inlier_fraction: float    # source points with a target point within the last distance
-    inliers: np.ndarray       # (N,) bool mask of the source points
+    inliers: AnyArray       # (N,) bool mask of the source points
 
 
-def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+def apply(T: AnyArray, points: AnyArray) -> AnyArray:
     """Points (N, 3) transformed by the 4 x 4 ``T``."""
     return np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
-def rotation_from_vector(w: np.ndarray) -> np.ndarray:
+def rotation_from_vector(w: AnyArray) -> AnyArray:
     """Rotation matrix of the axis-angle vector ``w`` (Rodrigues)."""
     theta = float(np.linalg.norm(w))
     if theta < 1e-12:
@@ -42,8 +44,8 @@ def rotation_from_vector(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
 
 
-def estimate_normals(points: np.ndarray, k: int = 12, towards: Optional[np.ndarray] = None,
-                     tree: Optional[cKDTree] = None) -> np.ndarray:
+def estimate_normals(points: AnyArray, k: int = 12, towards: AnyArray | None = None,
+                     tree: cKDTree | None = None) -> AnyArray:
     """Unit normals (least-spread direction of the ``k`` nearest neighbours), oriented towards ``towards``
 
     (a viewpoint; default the origin, i.e. the camera of a cloud in its optical frame).
@@ -61,10 +63,10 @@ def estimate_normals(points: np.ndarray, k: int = 12, towards: Optional[np.ndarr
     return n
 
 
-def icp_point_to_plane(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
-                       init: Optional[np.ndarray] = None, distances: Sequence[float] = (0.01, 0.005, 0.0025),
-                       iterations: int = 8, tree: Optional[cKDTree] = None,
-                       weights: Optional[np.ndarray] = None, trim: float = 0.1) -> Registration:
+def icp_point_to_plane(source: AnyArray, target: AnyArray, target_normals: AnyArray,
+                       init: AnyArray | None = None, distances: Sequence[float] = (0.01, 0.005, 0.0025),
+                       iterations: int = 8, tree: cKDTree | None = None,
+                       weights: AnyArray | None = None, trim: float = 0.1) -> Registration:
     """Align ``source`` onto the surface of ``target`` (points with normals).
 
     For each maximum correspondence distance in ``distances`` (coarse to fine), ``iterations``

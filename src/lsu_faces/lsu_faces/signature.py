@@ -25,10 +25,12 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Any
 
 import numpy as np
 from scipy.special import ndtr, ndtri
+
+from lsu_common.arrays import AnyArray
 
 from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
@@ -74,20 +76,20 @@ class Signature:
     """A face signature: ``method``, its array and the parameters that made it."""
 
     method: str
-    data: np.ndarray
+    data: AnyArray
     params: SignatureParams
     points_used: int = 0
 
     def to_bytes(self) -> bytes:
         """Serialise (numpy .npz in memory): what the gallery stores."""
         buf = io.BytesIO()
-        fields = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
+        fields: dict[str, Any] = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
         np.savez_compressed(buf, data=self.data.astype(np.float32), points_used=np.array(self.points_used),
                             version=np.array(SIGNATURE_VERSION), **{f"p_{k}": v for k, v in fields.items()})
         return buf.getvalue()
 
     @classmethod
-    def from_bytes(cls, blob: bytes) -> "Signature":
+    def from_bytes(cls, blob: bytes) -> Signature:
         """Inverse of `to_bytes`; raises `SignatureError` for a blob that is not a signature."""
         try:
             with np.load(io.BytesIO(blob), allow_pickle=False) as z:
@@ -96,7 +98,7 @@ class Signature:
                     raise SignatureError(f"stored signature has version {version}, this software makes version "
                                          f"{SIGNATURE_VERSION}; the two are not comparable: remove the entry and "
                                          f"enrol the person again")
-                kw = {}
+                kw: dict[str, Any] = {}
                 for k, f in SignatureParams.__dataclass_fields__.items():
                     value = z[f"p_{k}"]
                     kw[k] = str(value) if f.type in ("str", str) else value.item()
@@ -108,7 +110,7 @@ class Signature:
             raise SignatureError(f"stored signature cannot be read ({exc.__class__.__name__}: {exc})") from None
 
 
-def _depth_map(local: np.ndarray, params: SignatureParams) -> np.ndarray:
+def _depth_map(local: AnyArray, params: SignatureParams) -> AnyArray:
     g, e = params.grid, params.extent_m
     ij = np.floor((local[:, :2] + e) / (2 * e) * g).astype(np.int64)
     ok = np.all((ij >= 0) & (ij < g), axis=1)
@@ -120,7 +122,7 @@ def _depth_map(local: np.ndarray, params: SignatureParams) -> np.ndarray:
     return out.reshape(g, g)
 
 
-def make_signature(points: np.ndarray, frame: FaceFrame, params: SignatureParams = SignatureParams(),
+def make_signature(points: AnyArray, frame: FaceFrame, params: SignatureParams = SignatureParams(),
                    face: FaceParams = FaceParams()) -> Signature:
     """Signature of the face ``points`` (already cropped) in ``frame``."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -136,7 +138,7 @@ def make_signature(points: np.ndarray, frame: FaceFrame, params: SignatureParams
     return Signature(params.method, data, params, int(len(p)))
 
 
-def _fft_magnitudes(m: np.ndarray, orders: int) -> np.ndarray:
+def _fft_magnitudes(m: AnyArray, orders: int) -> AnyArray:
     """|FFT along azimuth| per elevation row; empty cells take their row's mean, empty rows are NaN."""
     filled = m.copy()
     out = np.full((m.shape[0], orders), np.nan)
@@ -150,7 +152,7 @@ def _fft_magnitudes(m: np.ndarray, orders: int) -> np.ndarray:
     return out
 
 
-def _grid_points(sig: Signature) -> Tuple[np.ndarray, np.ndarray]:
+def _grid_points(sig: Signature) -> tuple[AnyArray, AnyArray]:
     g, e = sig.params.grid, sig.params.extent_m
     centres = (np.arange(g) + 0.5) / g * 2 * e - e
     x, y = np.meshgrid(centres, centres)
@@ -158,7 +160,7 @@ def _grid_points(sig: Signature) -> Tuple[np.ndarray, np.ndarray]:
     return np.stack([x[valid], y[valid], sig.data[valid]], axis=1), valid
 
 
-def _sample(sig: Signature, xy: np.ndarray) -> np.ndarray:
+def _sample(sig: Signature, xy: AnyArray) -> AnyArray:
     """Bilinear height of a depth map at local (x, y); NaN outside or next to a hole."""
     g, e = sig.params.grid, sig.params.extent_m
     f = (xy + e) / (2 * e) * g - 0.5
@@ -173,7 +175,7 @@ def _sample(sig: Signature, xy: np.ndarray) -> np.ndarray:
     return out
 
 
-def _sample_gradient(sig: Signature, xy: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sample_gradient(sig: Signature, xy: AnyArray) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Bilinear height of a depth map at local (x, y) and its x, y slopes; NaN outside or next to a hole."""
     g, e = sig.params.grid, sig.params.extent_m
     cell = 2 * e / g
@@ -191,8 +193,8 @@ def _sample_gradient(sig: Signature, xy: np.ndarray) -> Tuple[np.ndarray, np.nda
     return h, hx, hy
 
 
-def align_to_depthmap(points: np.ndarray, ref: Signature, weights: np.ndarray,
-                      distances: Tuple[float, ...], iterations: int = 8, trim: float = 0.1) -> np.ndarray:
+def align_to_depthmap(points: AnyArray, ref: Signature, weights: AnyArray,
+                      distances: tuple[float, ...], iterations: int = 8, trim: float = 0.1) -> AnyArray:
     """4 x 4 rigid transform taking face-frame ``points`` onto the surface of the depth map ``ref``.
 
     Point-to-plane Gauss-Newton like `lsu_faces.register.icp_point_to_plane`, but the correspondence of
@@ -227,7 +229,7 @@ def align_to_depthmap(points: np.ndarray, ref: Signature, weights: np.ndarray,
     return T
 
 
-def _depthmap_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
+def _depthmap_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
     pp, _ = _grid_points(probe)
     if len(pp) < 20 or np.isfinite(ref.data).sum() < 20:
         return float("inf"), 0.0
@@ -244,14 +246,14 @@ def _depthmap_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
     return float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap
 
 
-def _region_weights(local: np.ndarray) -> np.ndarray:
+def _region_weights(local: AnyArray) -> AnyArray:
     from .template import REGIONS, region_of
 
     table = np.array([REGION_WEIGHTS[r] for r in REGIONS])
     return table[region_of(local)]
 
 
-def _fft_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
+def _fft_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
     both = np.isfinite(probe.data[:, 0]) & np.isfinite(ref.data[:, 0])
     overlap = float(both.mean())
     if overlap < probe.params.min_overlap:
@@ -260,7 +262,7 @@ def _fft_distance(probe: Signature, ref: Signature) -> Tuple[float, float]:
     return float(np.sqrt(np.mean(d ** 2))), overlap
 
 
-def compare(probe: Signature, ref: Signature, model: Optional["ImpostorModel"] = None) -> Tuple[float, float, float]:
+def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None) -> tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
     The score is ``model.score(distance)`` (default model: the prior).
@@ -287,12 +289,12 @@ class ImpostorModel:
     samples: int = 0                 # impostor distances it was fitted to (0: the prior alone)
 
     @classmethod
-    def prior(cls, method: str = "depthmap") -> "ImpostorModel":
+    def prior(cls, method: str = "depthmap") -> ImpostorModel:
         mu, sigma = _PRIOR[method]
         return cls(mu, sigma, 0)
 
     @classmethod
-    def fit(cls, distances: "np.ndarray | list", method: str = "depthmap") -> "ImpostorModel":
+    def fit(cls, distances: AnyArray | list, method: str = "depthmap") -> ImpostorModel:
         """Model from impostor ``distances`` [m], shrunk towards the prior (which dominates small samples)."""
         d = np.asarray([x for x in distances if np.isfinite(x) and x > 0], dtype=np.float64)
         mu0, s0 = _PRIOR[method]

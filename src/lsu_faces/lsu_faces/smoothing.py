@@ -16,10 +16,11 @@ iteration is one sparse product over all vertices.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional
 
 import numpy as np
 from scipy import sparse
+
+from lsu_common.arrays import AnyArray
 
 from .mesh import _edge_counts, boundary_vertices, face_normals, is_closed, neighbours
 
@@ -59,7 +60,7 @@ class SmoothParams:
                                  f"(got {self.taubin_mu}); otherwise the pass shrinks instead of inflating")
 
 
-def umbrella_operator(triangles: np.ndarray, n_vertices: int, boundary_as_curve: bool = False) -> sparse.csr_matrix:
+def umbrella_operator(triangles: AnyArray, n_vertices: int, boundary_as_curve: bool = False) -> sparse.csr_matrix:
     """Sparse matrix W with (W @ X)[i] = centroid of i's neighbours (rows of isolated vertices: X[i] itself).
 
     ``boundary_as_curve``: a vertex on the mesh boundary averages only its boundary neighbours, so
@@ -88,7 +89,7 @@ def umbrella_operator(triangles: np.ndarray, n_vertices: int, boundary_as_curve:
     return W.tocsr()
 
 
-def _steps(vertices: np.ndarray, W: sparse.csr_matrix, factors: list, iterations: int) -> np.ndarray:
+def _steps(vertices: AnyArray, W: sparse.csr_matrix, factors: list, iterations: int) -> AnyArray:
     X = np.asarray(vertices, dtype=np.float64).copy()
     for _ in range(iterations):
         for f in factors:
@@ -96,22 +97,22 @@ def _steps(vertices: np.ndarray, W: sparse.csr_matrix, factors: list, iterations
     return X
 
 
-def laplacian_smooth(vertices: np.ndarray, triangles: np.ndarray, factor: float = THESIS_FACTOR,
-                     iterations: int = THESIS_ITERATIONS) -> np.ndarray:
+def laplacian_smooth(vertices: AnyArray, triangles: AnyArray, factor: float = THESIS_FACTOR,
+                     iterations: int = THESIS_ITERATIONS) -> AnyArray:
     """Thesis smoothing: ``X <- X + factor (centroid(neighbours) - X)``, ``iterations`` times; returns new vertices."""
     SmoothParams(method="laplacian", iterations=iterations, factor=factor)
     return _steps(vertices, umbrella_operator(triangles, len(vertices)), [factor], iterations)
 
 
-def taubin_smooth(vertices: np.ndarray, triangles: np.ndarray, lam: float = 0.5, mu: float = -0.53,
-                  iterations: int = THESIS_ITERATIONS) -> np.ndarray:
+def taubin_smooth(vertices: AnyArray, triangles: AnyArray, lam: float = 0.5, mu: float = -0.53,
+                  iterations: int = THESIS_ITERATIONS) -> AnyArray:
     """Taubin lambda|mu smoothing: ``iterations`` passes of a shrink (lam) then an inflate (mu) step."""
     SmoothParams(method="taubin", iterations=iterations, taubin_lambda=lam, taubin_mu=mu)
     W = umbrella_operator(triangles, len(vertices), boundary_as_curve=True)
     return _steps(vertices, W, [lam, mu], iterations)
 
 
-def smooth(vertices: np.ndarray, triangles: np.ndarray, params: SmoothParams = SmoothParams()) -> np.ndarray:
+def smooth(vertices: AnyArray, triangles: AnyArray, params: SmoothParams = SmoothParams()) -> AnyArray:
     """Smooth with the method and settings of ``params`` (``none`` returns a copy)."""
     if params.method == "none" or params.iterations == 0 or len(triangles) == 0:
         return np.asarray(vertices, dtype=np.float64).copy()
@@ -120,13 +121,13 @@ def smooth(vertices: np.ndarray, triangles: np.ndarray, params: SmoothParams = S
     return taubin_smooth(vertices, triangles, params.taubin_lambda, params.taubin_mu, params.iterations)
 
 
-def surface_area(vertices: np.ndarray, triangles: np.ndarray) -> float:
+def surface_area(vertices: AnyArray, triangles: AnyArray) -> float:
     """Total triangle area [m^2]."""
     return float(0.5 * np.linalg.norm(face_normals(vertices, triangles), axis=1).sum())
 
 
-def enclosed_volume(vertices: np.ndarray, triangles: np.ndarray, axis: Optional[np.ndarray] = None,
-                    back: Optional[float] = None) -> float:
+def enclosed_volume(vertices: AnyArray, triangles: AnyArray, axis: AnyArray | None = None,
+                    back: float | None = None) -> float:
     """Volume [m^3] of a closed mesh, or the relief volume of an open surface.
 
     Closed (every edge in two triangles): the divergence theorem, sum of signed tetrahedra to the
@@ -152,7 +153,7 @@ def enclosed_volume(vertices: np.ndarray, triangles: np.ndarray, axis: Optional[
     return float((projected * (back - height[t].mean(axis=1))).sum())
 
 
-def shrinkage(before: np.ndarray, after: np.ndarray, triangles: np.ndarray) -> Dict[str, float]:
+def shrinkage(before: AnyArray, after: AnyArray, triangles: AnyArray) -> dict[str, float]:
     """Volume and area change of a smoothing step, in percent of the original (negative = shrank).
 
     Also the mean vertex displacement [m] along the original normals (negative = moved inwards).

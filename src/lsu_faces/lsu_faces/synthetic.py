@@ -15,18 +15,20 @@ This is test and benchmark support (it imports the simulated rig); the product n
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
 
 import numpy as np
 import open3d as o3d
 
+from lsu_common.arrays import AnyArray
+
 __all__ = ["ScanSample", "fast_scan", "left_pixel_rays"]
 
-_RAYS: Dict[bytes, np.ndarray] = {}
+_RAYS: dict[bytes, AnyArray] = {}
 
 
-def left_pixel_rays(camera) -> np.ndarray:  # noqa: ANN001 - lsu_cameras.sim.CameraModel
+def left_pixel_rays(camera) -> AnyArray:  # noqa: ANN001 - lsu_cameras.sim.CameraModel
     """Unit rays (H*W, 3) through every pixel centre of ``camera`` (cached per camera model)."""
     key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (camera.K, camera.D, camera.R, camera.t))
     if key not in _RAYS:
@@ -40,19 +42,19 @@ def left_pixel_rays(camera) -> np.ndarray:  # noqa: ANN001 - lsu_cameras.sim.Cam
 class ScanSample:
     """A synthetic scan cloud: the LSU PointCloud2 columns and the exact, noise-free points."""
 
-    columns: Dict[str, np.ndarray]      # x y z rgb u v snap (the /lsu/scan/cloud layout)
-    true_xyz: np.ndarray                # (N, 3) before noise
+    columns: dict[str, AnyArray]      # x y z rgb u v snap (the /lsu/scan/cloud layout)
+    true_xyz: AnyArray                # (N, 3) before noise
 
     def __len__(self) -> int:
         return int(len(self.true_xyz))
 
 
-def _cast(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
+def _cast(scene: o3d.t.geometry.RaycastingScene, origins: AnyArray, dirs: AnyArray) -> dict[str, AnyArray]:
     rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
     return {k: v.numpy() for k, v in scene.cast_rays(o3d.core.Tensor(rays)).items()}
 
 
-def _visible_from(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _visible_from(scene: o3d.t.geometry.RaycastingScene, origins: AnyArray, points: AnyArray) -> AnyArray:
     to = points - origins
     dist = np.linalg.norm(to, axis=1)
     t = _cast(scene, origins, to / dist[:, None])["t_hit"].astype(np.float64)
@@ -60,7 +62,7 @@ def _visible_from(scene: o3d.t.geometry.RaycastingScene, origins: np.ndarray, po
 
 
 def fast_scan(objects: Sequence, geometry, positions_steps: Sequence[float], noise_m: float = 5e-5,  # noqa: ANN001
-              drop_fraction: float = 0.0, seed: int = 0, ambient: Optional[float] = None) -> ScanSample:
+              drop_fraction: float = 0.0, seed: int = 0, ambient: float | None = None) -> ScanSample:
     """Points a stop-snap scan of ``objects`` (``lsu_cameras.sim.SceneObject``) would give.
 
     Args:

@@ -12,10 +12,11 @@ Built once per process (about 1 s) and kept: it is constant data, not a per-scan
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["FaceTemplate", "face_template", "REGIONS"]
 
@@ -26,14 +27,14 @@ REGIONS = ("nose", "eyes", "forehead", "cheeks", "mouth", "chin")
 class FaceTemplate:
     """Points, normals and region labels of the generic face (face frame, metres)."""
 
-    points: np.ndarray
-    normals: np.ndarray
-    region: np.ndarray          # (N,) index into REGIONS
-    landmarks: Dict[str, np.ndarray]
+    points: AnyArray
+    normals: AnyArray
+    region: AnyArray          # (N,) index into REGIONS
+    landmarks: dict[str, AnyArray]
     tree: cKDTree
 
 
-def region_of(local: np.ndarray) -> np.ndarray:
+def region_of(local: AnyArray) -> AnyArray:
     """Region index of face-frame points (x right, y down, from the nose tip) by the face's usual layout."""
     x, y = local[:, 0], local[:, 1]
     ax = np.abs(x)
@@ -46,7 +47,7 @@ def region_of(local: np.ndarray) -> np.ndarray:
     return reg
 
 
-_TEMPLATE: Optional[FaceTemplate] = None
+_TEMPLATE: FaceTemplate | None = None
 
 
 def face_template(radius_m: float = 0.085, voxel_m: float = 0.0035) -> FaceTemplate:

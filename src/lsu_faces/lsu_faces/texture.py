@@ -11,20 +11,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Optional, Sequence
 
 import cv2
 import numpy as np
 import open3d as o3d
+
+from lsu_common.arrays import AnyArray
 
 from .mesh import FaceMesh, vertex_normals
 
 __all__ = ["TextureError", "Lighting", "unpack_rgb", "to_open3d", "write_mesh", "render_view", "render_views",
            "VIEWS"]
 
-VIEWS: Dict[str, float] = {"front": 0.0, "side": 60.0}   # yaw of the virtual camera about the face [deg]
+VIEWS: dict[str, float] = {"front": 0.0, "side": 60.0}   # yaw of the virtual camera about the face [deg]
 
 
 class TextureError(ValueError):
@@ -43,7 +45,7 @@ class Lighting:
     background_bgr: Sequence[int] = (40, 32, 28)
 
 
-def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+def unpack_rgb(packed: AnyArray) -> AnyArray:
     """Packed PCL/RViz float32 ``rgb`` (bits 0x00RRGGBB) -> (N, 3) uint8 R, G, B."""
     bits = np.ascontiguousarray(packed, dtype=np.float32).view(np.uint32)
     return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], axis=1).astype(np.uint8)
@@ -59,7 +61,7 @@ def to_open3d(mesh: FaceMesh) -> o3d.geometry.TriangleMesh:
     return out
 
 
-def write_mesh(mesh: FaceMesh, path: "str | Path") -> Path:
+def write_mesh(mesh: FaceMesh, path: str | Path) -> Path:
     """Write ``mesh`` as binary PLY (``.ply``, vertex colours + normals) or OBJ (``.obj``); returns the path."""
     path = Path(path)
     if mesh.n_triangles == 0:
@@ -75,7 +77,7 @@ def write_mesh(mesh: FaceMesh, path: "str | Path") -> Path:
     return path
 
 
-def _look_at(target: np.ndarray, eye: np.ndarray, up_hint: np.ndarray) -> np.ndarray:
+def _look_at(target: AnyArray, eye: AnyArray, up_hint: AnyArray) -> AnyArray:
     """Rows x, y, z of a camera at ``eye`` looking at ``target`` (y down, as in the optical frame)."""
     z = target - eye
     z = z / np.linalg.norm(z)
@@ -88,7 +90,7 @@ def _look_at(target: np.ndarray, eye: np.ndarray, up_hint: np.ndarray) -> np.nda
 
 
 def render_view(mesh: FaceMesh, yaw_deg: float = 0.0, pitch_deg: float = 0.0, size_px: int = 480,
-                lighting: Lighting = Lighting(), use_colors: bool = True, fov_deg: float = 30.0) -> np.ndarray:
+                lighting: Lighting = Lighting(), use_colors: bool = True, fov_deg: float = 30.0) -> AnyArray:
     """A shaded BGR uint8 image of ``mesh`` seen from a camera orbiting the mesh centre.
 
     ``yaw_deg = pitch_deg = 0`` looks along the scanner's left optical axis; ``yaw_deg`` turns the
@@ -149,12 +151,12 @@ def render_view(mesh: FaceMesh, yaw_deg: float = 0.0, pitch_deg: float = 0.0, si
     return img.reshape(size_px, size_px, 3)
 
 
-def render_views(mesh: FaceMesh, folder: "str | Path", size_px: int = 480, prefix: str = "render",
-                 views: Optional[Dict[str, float]] = None, lighting: Lighting = Lighting()) -> Dict[str, Path]:
+def render_views(mesh: FaceMesh, folder: str | Path, size_px: int = 480, prefix: str = "render",
+                 views: dict[str, float] | None = None, lighting: Lighting = Lighting()) -> dict[str, Path]:
     """Write ``{prefix}_{view}.png`` (textured) and ``{prefix}_{view}_shaded.png`` (grey, lit) for each view."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    out: Dict[str, Path] = {}
+    out: dict[str, Path] = {}
     for name, yaw in (views or VIEWS).items():
         for textured in ((True, False) if mesh.colors is not None else (False,)):
             img = render_view(mesh, yaw_deg=yaw, size_px=size_px, lighting=lighting, use_colors=textured)

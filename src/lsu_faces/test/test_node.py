@@ -22,8 +22,8 @@ def head_scan():
 def _msg(columns, fields=None):
     from std_msgs.msg import Header
 
-    from lsu_reconstruct.node import cloud_to_msg
     from lsu_bags.pointcloud2 import FLOAT32, encode, layout
+    from lsu_reconstruct.node import cloud_to_msg
 
     if fields is None:
         cloud = encode(columns)

@@ -6,8 +6,14 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from lsu_faces.smoothing import (SmoothingError, SmoothParams, enclosed_volume, laplacian_smooth, shrinkage,
-                                 taubin_smooth)
+from lsu_faces.smoothing import (
+    SmoothingError,
+    SmoothParams,
+    enclosed_volume,
+    laplacian_smooth,
+    shrinkage,
+    taubin_smooth,
+)
 
 RADIUS = 0.05
 

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
 
 from lsu_bags.bags import BagError, BagTypes, bag_topics, deserialize, read_messages
 from lsu_bags.ply import write_cloud_ply
 from lsu_common import stamps
+from lsu_common.arrays import AnyArray
 from lsu_common.images import ImageFormatError, msg_to_bgr
 
 from .matching import LineArrays, MatchParams
@@ -43,20 +44,20 @@ def _line(msg: Any) -> LineArrays:
                       image_width=int(msg.image_width), image_height=int(msg.image_height))
 
 
-def _image(msg: Any) -> np.ndarray:
+def _image(msg: Any) -> AnyArray:
     try:
         return msg_to_bgr(msg)
     except ImageFormatError as exc:
         raise BagError(f"texture image: {exc}") from None
 
 
-def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineArrays]], Optional[np.ndarray], Dict[str, int]]:
+def read_bag(path: str | Path) -> tuple[list[tuple[int, int, LineArrays, LineArrays]], AnyArray | None, dict[str, int]]:
     """Stereo laser-line pairs of a bag: ``[(snap, stamp_ns, left, right)]``, the texture image (or None), counts."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"bag {path} not found")
     topics = bag_topics(path)
-    wanted: Dict[str, str] = {}
+    wanted: dict[str, str] = {}
     for topic, (msgtype, _qos) in topics.items():
         if topic.endswith("stereo/left/laser_line") and msgtype == LINE_TYPE:
             wanted[topic] = "left"
@@ -69,9 +70,9 @@ def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineA
         raise BagError(f"bag {path} has no stereo/{{left,right}}/laser_line topics of type {LINE_TYPE}; "
                        f"it has: {have}")
     types = BagTypes()
-    lines: Dict[str, Dict[int, LineArrays]] = {"left": {}, "right": {}}
-    snaps: Dict[int, int] = {}
-    texture_keys: List[int] = []
+    lines: dict[str, dict[int, LineArrays]] = {"left": {}, "right": {}}
+    snaps: dict[int, int] = {}
+    texture_keys: list[int] = []
     try:
         for message in read_messages(path, sorted(wanted)):
             msg = deserialize(message, types)
@@ -106,7 +107,7 @@ def read_bag(path: "str | Path") -> Tuple[List[Tuple[int, int, LineArrays, LineA
     return pairs, texture, counts
 
 
-def read_pairs(folder: "str | Path") -> List[Tuple[int, int, LineArrays, LineArrays]]:
+def read_pairs(folder: str | Path) -> list[tuple[int, int, LineArrays, LineArrays]]:
     """Laser lines of ``left_*.png`` / ``right_*.png`` image pairs (same suffix), found by lsu_extract's detector."""
     try:
         from lsu_extract.extractor import extract_laser_line
@@ -159,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(subparsers: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu reconstruct` (``lsu.commands`` entry point)."""
     defaults = MatchParams()
     p = subparsers.add_parser("reconstruct", help="laser lines of a recorded scan -> point cloud (PLY)",

@@ -18,11 +18,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .laser_sheet import LaserSheet, LaserSheetError, fit_laser_sheet, write_laser_yaml
 
@@ -39,9 +42,9 @@ class ScanPoints:
     """One scan's triangulated points (left optical frame, metres) and each point's carriage position."""
 
     name: str
-    xyz: np.ndarray
-    position_steps: np.ndarray
-    calibration: Optional[str]  # scan.json's calibration id; None when unknown (a bare bag, no calibration_dir)
+    xyz: AnyArray
+    position_steps: AnyArray
+    calibration: str | None  # scan.json's calibration id; None when unknown (a bare bag, no calibration_dir)
 
 
 @dataclass(frozen=True)
@@ -56,7 +59,7 @@ class ScanResidual:
     flatness_rms_mm: float
 
 
-def _read_cloud_ply(path: Path) -> Dict[str, np.ndarray]:
+def _read_cloud_ply(path: Path) -> dict[str, AnyArray]:
     """Columns x y z and snap of a scan's cloud.ply (lsu_bags.ply.write_cloud_ply)."""
     from lsu_bags.ply import PlyError, read_ply
 
@@ -70,14 +73,14 @@ def _read_cloud_ply(path: Path) -> Dict[str, np.ndarray]:
     return {name: vertices[name] for name in ("x", "y", "z", "snap")}
 
 
-def _bag_positions(bag: Path) -> Dict[int, int]:
+def _bag_positions(bag: Path) -> dict[int, int]:
     """Snap index -> carriage position from a bag's SNAP scan events."""
     from lsu_bags.bags import BagTypes, bag_topics, deserialize, read_messages
 
     from .cli import EVENT_TYPE
 
     topics = [t for t, (msgtype, _qos) in bag_topics(bag).items() if t.endswith("scan/events") and msgtype == EVENT_TYPE]
-    out: Dict[int, int] = {}
+    out: dict[int, int] = {}
     if not topics:
         return out
     types = BagTypes()
@@ -88,12 +91,12 @@ def _bag_positions(bag: Path) -> Dict[int, int]:
     return out
 
 
-def load_scan(path: "str | Path", calib_dir: "str | Path") -> ScanPoints:
+def load_scan(path: str | Path, calib_dir: str | Path) -> ScanPoints:
     """Points and positions of one scan folder (cloud.ply + scan.json, or its bag) or bag."""
     path = Path(path)
     if not path.exists():
         raise LaserSheetError(f"{path}: no such scan folder or bag")
-    record: Dict[str, Any] = {}
+    record: dict[str, Any] = {}
     folder = path if (path / "scan.json").is_file() else path.parent
     if (folder / "scan.json").is_file():
         try:
@@ -136,7 +139,7 @@ def load_scan(path: "str | Path", calib_dir: "str | Path") -> ScanPoints:
     return ScanPoints(path.name if path.name not in ("", ".") else str(path), xyz, pos, calibration)
 
 
-def _flatness_rms_mm(xyz: np.ndarray) -> float:
+def _flatness_rms_mm(xyz: AnyArray) -> float:
     """RMS distance of the points to their own least-squares plane [mm], after trimming 1 % strays."""
     if len(xyz) < 3:
         return float("nan")
@@ -147,7 +150,7 @@ def _flatness_rms_mm(xyz: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d ** 2)) * 1000.0)
 
 
-def calibrate_laser(scans: Sequence["str | Path"], calib_dir: "str | Path") -> Tuple[LaserSheet, List[ScanResidual]]:
+def calibrate_laser(scans: Sequence[str | Path], calib_dir: str | Path) -> tuple[LaserSheet, list[ScanResidual]]:
     """Fit the sheet to the scans of flat targets; LaserSheetError says which scan is unusable and why."""
     from lsu_cameras.calib_io import calibration_checksum
 
@@ -213,7 +216,7 @@ SIM_BOARDS = ((0.26, 10.0), (0.30, 0.0), (0.34, -15.0))   # (distance [m], yaw a
 SIM_POSITIONS = tuple(range(150, 331, 20))
 
 
-def _write_line_bag(path: Path, lines: Sequence[Tuple[Any, Any]], positions: Sequence[int]) -> Path:
+def _write_line_bag(path: Path, lines: Sequence[tuple[Any, Any]], positions: Sequence[int]) -> Path:
     """A bag as a recording scan holds it, for what this command reads: laser lines and SNAP events."""
     from lsu_bags.bags import BagTypes, BagWriter
 
@@ -248,19 +251,18 @@ def _write_line_bag(path: Path, lines: Sequence[Tuple[Any, Any]], positions: Seq
     return path
 
 
-def simulate_board_scans(out: "str | Path", calib_dir: "str | Path", boards: Sequence[Tuple[float, float]] = SIM_BOARDS,
-                         positions: Sequence[int] = SIM_POSITIONS, seed: int = 0, bags: bool = False) -> List[Path]:
+def simulate_board_scans(out: str | Path, calib_dir: str | Path, boards: Sequence[tuple[float, float]] = SIM_BOARDS,
+                         positions: Sequence[int] = SIM_POSITIONS, seed: int = 0, bags: bool = False) -> list[Path]:
     """Scan folders (cloud.ply + scan.json) of flat boards seen by the simulated rig: rendered frames, the
     extractor's lines and this package's matcher, as the live graph makes them (no carriage vibration).
 
     ``calib_dir`` is the calibration the matcher uses and the scans name (e.g. config/calibration/sim).
     With ``bags`` each scan is a bare bag of the laser lines and SNAP events instead (no scan.json).
     """
+    from lsu_bags.ply import write_cloud_ply
     from lsu_cameras.calib_io import calibration_checksum
     from lsu_cameras.sim import SimulatedRig, load_rig, make_plane
     from lsu_extract.extractor import extract_laser_line
-
-    from lsu_bags.ply import write_cloud_ply
 
     from .matching import LineArrays
     from .pipeline import merge_snaps, reconstruct_snap
@@ -325,7 +327,7 @@ def register_laser(subparsers: Any) -> None:
     calibrate.set_defaults(func=run)
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """``python -m lsu_reconstruct.laser_cli sim-boards OUT [--calib DIR]``: the simulated board scans."""
     parser = argparse.ArgumentParser(prog="python -m lsu_reconstruct.laser_cli",
                                      description="Write scan folders of flat boards seen by the simulated rig, for "

@@ -23,13 +23,11 @@ from __future__ import annotations
 import datetime as _dt
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Tuple
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+from lsu_common.arrays import FloatArray
 
 # an acceptable sheet: its second-best direction must fit at least this much worse than the best
 MIN_CONDITION = 25.0
@@ -43,15 +41,15 @@ class LaserSheetError(ValueError):
 class LaserSheet:
     """The fitted sheet and how well it fits."""
 
-    normal: Tuple[float, float, float]  # unit normal, left optical frame
+    normal: tuple[float, float, float]  # unit normal, left optical frame
     c0_m: float                          # plane offset at position 0 [m]
     m_per_step: float                    # offset change per carriage step [m]
     residual_mm: float                   # RMS point-to-sheet distance of the kept points [mm]
     points: int                          # points kept by the fit
     rejected: int                        # points trimmed as outliers
-    positions: Tuple[int, int]           # carriage range the points came from [steps]
+    positions: tuple[int, int]           # carriage range the points came from [steps]
 
-    def plane(self, position_steps: float) -> Tuple[FloatArray, float]:
+    def plane(self, position_steps: float) -> tuple[FloatArray, float]:
         """(n, c) with the sheet's centre plane ``n . X = c`` at ``position_steps``."""
         return np.asarray(self.normal, float), float(self.c0_m + self.m_per_step * position_steps)
 
@@ -72,7 +70,7 @@ class LaserSheet:
         return o + t[:, None] * d
 
 
-def _solve(points: FloatArray, positions: FloatArray) -> Tuple[FloatArray, float, float, FloatArray]:
+def _solve(points: FloatArray, positions: FloatArray) -> tuple[FloatArray, float, float, FloatArray]:
     """Least-squares (n, c0, k) and the eigenvalues of the reduced problem (ascending)."""
     design = np.column_stack([np.ones_like(positions), positions])
     # project the point coordinates off span{1, p}: what c0 + k p cannot explain
@@ -127,14 +125,14 @@ def fit_laser_sheet(points: FloatArray, positions: FloatArray, trim_sigmas: floa
                       positions=(int(p.min()), int(p.max())))
 
 
-def write_laser_yaml(sheet: LaserSheet, path: "str | Path") -> Path:
+def write_laser_yaml(sheet: LaserSheet, path: str | Path) -> Path:
     """``laser.yaml`` beside left/right/stereo.yaml (same folder, readable by every user: 0644)."""
     path = Path(path)
     data = {"model": "translating_plane", "frame_id": "lsu_left_optical",
             "normal": [round(v, 9) for v in sheet.normal], "c0_m": round(sheet.c0_m, 9),
             "m_per_step": round(sheet.m_per_step, 12), "residual_mm": round(sheet.residual_mm, 4),
             "points": sheet.points, "rejected": sheet.rejected, "positions": list(sheet.positions),
-            "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
+            "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
     text = ("# Laser light sheet: n . X = c0_m + m_per_step * position_steps (left optical frame, metres).\n"
             + yaml.safe_dump(data, sort_keys=False))
     path.write_text(text)
@@ -142,7 +140,7 @@ def write_laser_yaml(sheet: LaserSheet, path: "str | Path") -> Path:
     return path
 
 
-def read_laser_yaml(path: "str | Path") -> LaserSheet:
+def read_laser_yaml(path: str | Path) -> LaserSheet:
     """The sheet written by `write_laser_yaml`; LaserSheetError naming the file when it is not one."""
     path = Path(path)
     try:
@@ -150,7 +148,7 @@ def read_laser_yaml(path: "str | Path") -> LaserSheet:
         normal = tuple(float(v) for v in data["normal"])
         if len(normal) != 3 or abs(np.linalg.norm(normal) - 1.0) > 1e-6:
             raise ValueError("normal must be a unit vector of 3 numbers")
-        return LaserSheet(normal=normal, c0_m=float(data["c0_m"]), m_per_step=float(data["m_per_step"]),  # type: ignore[arg-type]
+        return LaserSheet(normal=normal, c0_m=float(data["c0_m"]), m_per_step=float(data["m_per_step"]),
                           residual_mm=float(data.get("residual_mm", float("nan"))), points=int(data.get("points", 0)),
                           rejected=int(data.get("rejected", 0)),
                           positions=tuple(int(v) for v in data.get("positions", (0, 0))))  # type: ignore[arg-type]

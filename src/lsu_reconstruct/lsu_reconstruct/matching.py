@@ -27,9 +27,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Optional
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 from .stereo import StereoModel
 
@@ -45,11 +46,11 @@ class LaserLineError(ValueError):
 class LineArrays:
     """A LaserLine as numpy arrays (one entry per detected row); u, v raw distorted pixels."""
 
-    u: np.ndarray
-    v: np.ndarray
-    peak: Optional[np.ndarray] = None
-    width: Optional[np.ndarray] = None
-    quality: Optional[np.ndarray] = None
+    u: AnyArray
+    v: AnyArray
+    peak: AnyArray | None = None
+    width: AnyArray | None = None
+    quality: AnyArray | None = None
     image_width: int = 0
     image_height: int = 0
 
@@ -63,16 +64,15 @@ class LineArrays:
             value = getattr(self, name)
             if value is not None:
                 arr = np.asarray(value, dtype=np.float64).reshape(-1)
-                if arr.size == 0:
-                    arr = None  # an extractor may leave optional arrays empty
-                elif arr.size != n:
+                if arr.size not in (0, n):
                     raise LaserLineError(f"laser line '{name}' has {arr.size} entries for {n} rows")
-                setattr(self, name, arr)
+                # an extractor may leave optional arrays empty
+                setattr(self, name, arr if arr.size else None)
 
     def __len__(self) -> int:
         return int(self.u.size)
 
-    def valid(self, min_quality: float = 0.0) -> np.ndarray:
+    def valid(self, min_quality: float = 0.0) -> AnyArray:
         """Rows with finite u, v (NaN from an extractor must never reach a cloud) and enough quality."""
         ok = np.isfinite(self.u) & np.isfinite(self.v)
         if self.quality is not None and min_quality > 0.0:
@@ -99,10 +99,10 @@ class MatchParams:
 class Matches:
     """Matched pairs of one snap: indices into the input left line, undistorted pixels of both sides."""
 
-    left_index: np.ndarray            # (K,) row indices into the left LineArrays
-    x1: np.ndarray                    # (K, 2) undistorted left pixels
-    x2: np.ndarray                    # (K, 2) undistorted right pixels (on the epipolar line)
-    depth_m: np.ndarray               # (K,) depth along the left optical axis from the candidate test
+    left_index: AnyArray            # (K,) row indices into the left LineArrays
+    x1: AnyArray                    # (K, 2) undistorted left pixels
+    x2: AnyArray                    # (K, 2) undistorted right pixels (on the epipolar line)
+    depth_m: AnyArray               # (K,) depth along the left optical axis from the candidate test
     stats: dict = field(default_factory=dict)
 
 
@@ -129,7 +129,7 @@ def prepare(params: MatchParams) -> None:
         _savgol_matrices(window + 1 if window % 2 == 0 else window)
 
 
-def smooth_line(u: np.ndarray, v: np.ndarray, window: int, linked: Optional[np.ndarray] = None) -> np.ndarray:
+def smooth_line(u: AnyArray, v: AnyArray, window: int, linked: AnyArray | None = None) -> AnyArray:
     """Local quadratic (Savitzky-Golay) fit of u as a function of v along each run of consecutive rows.
 
     The laser trace on a smooth surface is a smooth curve; a quadratic fit over ``window`` rows
@@ -161,13 +161,13 @@ def smooth_line(u: np.ndarray, v: np.ndarray, window: int, linked: Optional[np.n
     return out
 
 
-def ray_depths(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def ray_depths(model: StereoModel, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Depth (z in the left frame) of the midpoint triangulation of undistorted pixel pairs (N, 2)."""
     r1, _r2, lam, _mu = model.closest_approach(x1, x2)
     return lam * r1[:, 2]
 
 
-def _links(u: np.ndarray, v: np.ndarray, params: MatchParams) -> tuple:
+def _links(u: AnyArray, v: AnyArray, params: MatchParams) -> tuple:
     """Which consecutive samples (sorted by row) belong to one continuous piece of laser line.
 
     Two samples are linked when they lie in neighbouring rows (0 < dv <= max_gap_rows) and the
@@ -233,7 +233,7 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     return Matches(lidx[ii[sel]], x1[ii[sel]], x2c[sel], depth[sel], stats)
 
 
-def _crossings(lines: np.ndarray, p: np.ndarray, joined: np.ndarray) -> tuple:
+def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
     """All (left i, segment j) pairs where epipolar line i crosses polyline segment j, with end distances.
 
     Only a band of segments can cross a line: over the polyline's x extent a (near-horizontal)
@@ -274,8 +274,8 @@ def _crossings(lines: np.ndarray, p: np.ndarray, joined: np.ndarray) -> tuple:
     return ii, jj, dist[ii, jj], dist[ii, jj + 1]
 
 
-def _resolve_by_order(ii: np.ndarray, pos: np.ndarray, unique: np.ndarray, count: np.ndarray, vl: np.ndarray,
-                      params: MatchParams, stats: dict) -> np.ndarray:
+def _resolve_by_order(ii: AnyArray, pos: AnyArray, unique: AnyArray, count: AnyArray, vl: AnyArray,
+                      params: MatchParams, stats: dict) -> AnyArray:
     """Pick, for left points with several crossings, the one the ordering constraint allows (or none)."""
     chosen = np.zeros(ii.size, dtype=bool)
     amb = ~unique

@@ -18,8 +18,9 @@ from __future__ import annotations
 import struct
 import sys
 from collections import OrderedDict
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Iterable, List, Optional
+from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -32,6 +33,7 @@ from std_msgs.msg import Header
 from lsu_bags.pointcloud2 import Cloud, decode, encode, from_msg
 from lsu_cameras.polled import PolledGroup, take_all
 from lsu_common import diagnostics, qos, stamps
+from lsu_common.arrays import AnyArray
 from lsu_common.images import msg_to_bgr
 from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
@@ -67,14 +69,14 @@ def cloud_to_msg(cloud: Cloud, header: Header) -> PointCloud2:
 
 def line_from_msg(msg: LaserLine) -> LineArrays:
     """lsu_interfaces/LaserLine -> :class:`LineArrays`."""
-    def arr(values: Any) -> np.ndarray:
+    def arr(values: Any) -> AnyArray:
         return np.frombuffer(values, dtype=np.float32).astype(np.float64) if len(values) else np.zeros(0)
 
     return LineArrays(u=arr(msg.u), v=arr(msg.v), peak=arr(msg.peak), width=arr(msg.width),
                       quality=arr(msg.quality), image_width=msg.image_width, image_height=msg.image_height)
 
 
-def image_to_array(msg: Image) -> np.ndarray:
+def image_to_array(msg: Image) -> AnyArray:
     """A sensor_msgs/Image (any supported encoding) as an HxWx3 BGR uint8 array (the scan's texture)."""
     return msg_to_bgr(msg)
 
@@ -93,7 +95,7 @@ def _cdr_stamp_key(raw: bytes) -> int:
     return sec * stamps.NS_PER_S + nanosec
 
 
-def parameter_table() -> Dict[str, Param]:
+def parameter_table() -> dict[str, Param]:
     """The matcher's parameters; the calibration's source and folder are read at start-up (read-only)."""
     p = MatchParams()
     return {
@@ -125,11 +127,11 @@ def parameter_table() -> Dict[str, Param]:
 class _Scan:
     scan_id: str
     expected: int
-    snaps: Dict[int, SnapPoints] = field(default_factory=dict)
-    texture_key: Optional[int] = None
-    texture: Optional[np.ndarray] = None
+    snaps: dict[int, SnapPoints] = field(default_factory=dict)
+    texture_key: int | None = None
+    texture: AnyArray | None = None
     frames_after_texture: int = 0        # left frames seen stamped after the texture's, while it is missing
-    end_type: Optional[int] = None       # FINISHED or ABORTED once known
+    end_type: int | None = None       # FINISHED or ABORTED once known
     end_reason: str = ""
     end_time_s: float = 0.0
     published: bool = False
@@ -143,22 +145,22 @@ class StereoMatcherNode(Node):
         declare_parameters(self, parameter_table(), check=self._check_parameters,
                            apply=lambda _: self._use_params(self._match_params()), apply_now=False)
 
-        self.model: Optional[StereoModel] = None
+        self.model: StereoModel | None = None
         self.calibration_error = ""
         self._use_params(self._match_params())
-        self.left: "OrderedDict[int, LaserLine]" = OrderedDict()
-        self.right: "OrderedDict[int, LaserLine]" = OrderedDict()
+        self.left: OrderedDict[int, LaserLine] = OrderedDict()
+        self.right: OrderedDict[int, LaserLine] = OrderedDict()
         self.unmatched = {"left": 0, "right": 0}
         self.pairs = 0
         self.points_last = 0
         self.errors = 0
         self.last_error = ""
         self.free_snap = 0
-        self.scan: Optional[_Scan] = None
-        self.snap_of_stamp: Dict[int, int] = {}
-        self.waiting: "OrderedDict[int, SnapPoints]" = OrderedDict()  # pairs whose SNAP event is not in yet
-        self._camera_info: Dict[str, CameraInfo] = {}
-        self._extrinsics: Optional[StereoExtrinsics] = None
+        self.scan: _Scan | None = None
+        self.snap_of_stamp: dict[int, int] = {}
+        self.waiting: OrderedDict[int, SnapPoints] = OrderedDict()  # pairs whose SNAP event is not in yet
+        self._camera_info: dict[str, CameraInfo] = {}
+        self._extrinsics: StereoExtrinsics | None = None
 
         self.points_pub = self.create_publisher(PointCloud2, "points", 10)
         self.cloud_pub = self.create_publisher(PointCloud2, "scan/cloud", LATCHED)
@@ -207,7 +209,7 @@ class StereoMatcherNode(Node):
         prepare(params)  # caches filled now, not on the first snap
         self.params = params
 
-    def _check_parameters(self, params: List[Any]) -> Optional[str]:
+    def _check_parameters(self, params: list[Any]) -> str | None:
         """Choices and odd window sizes (the ranges are in the descriptors, checked by rclpy)."""
         for param in params:
             if param.name == "triangulation" and param.value not in METHODS:
@@ -432,7 +434,7 @@ class StereoMatcherNode(Node):
             hardware_id="lsu_stereo"))
 
 
-def decode_msg(msg: PointCloud2, names: Optional[List[str]] = None) -> Dict[str, np.ndarray]:
+def decode_msg(msg: PointCloud2, names: list[str] | None = None) -> dict[str, AnyArray]:
     """Columns of a sensor_msgs/PointCloud2 (any layout) as numpy arrays."""
     return decode(from_msg(msg), names)
 

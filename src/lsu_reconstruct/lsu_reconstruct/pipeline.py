@@ -9,11 +9,11 @@ pixels of the points.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional
 
 import numpy as np
 
 from lsu_bags.pointcloud2 import pack_rgb
+from lsu_common.arrays import AnyArray
 
 from .matching import LineArrays, MatchParams, match_line, match_thesis
 from .stereo import StereoModel
@@ -26,17 +26,17 @@ __all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps"]
 class SnapPoints:
     """Points of one snap: xyz [m, left optical frame], left raw pixel (u, v), snap index, packed rgb."""
 
-    xyz: np.ndarray                        # (N, 3) float64
-    u: np.ndarray                          # (N,) raw left pixel column
-    v: np.ndarray                          # (N,) raw left pixel row
-    snap: np.ndarray                       # (N,) uint32
-    rgb: Optional[np.ndarray] = None       # (N,) float32 packed 0x00RRGGBB, None = not coloured
-    stats: Dict[str, int] = field(default_factory=dict)
+    xyz: AnyArray                        # (N, 3) float64
+    u: AnyArray                          # (N,) raw left pixel column
+    v: AnyArray                          # (N,) raw left pixel row
+    snap: AnyArray                       # (N,) uint32
+    rgb: AnyArray | None = None       # (N,) float32 packed 0x00RRGGBB, None = not coloured
+    stats: dict[str, int] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(len(self.xyz))
 
-    def fields(self) -> Dict[str, np.ndarray]:
+    def fields(self) -> dict[str, AnyArray]:
         """Columns for the PointCloud2 codec (x y z rgb u v snap)."""
         rgb = self.rgb if self.rgb is not None else pack_rgb(np.full((len(self), 3), 255, dtype=np.uint8))
         return {"x": self.xyz[:, 0], "y": self.xyz[:, 1], "z": self.xyz[:, 2], "rgb": rgb, "u": self.u,
@@ -70,7 +70,7 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
                       snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
 
 
-def colour_at(image_bgr: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+def colour_at(image_bgr: AnyArray, u: AnyArray, v: AnyArray) -> AnyArray:
     """Packed rgb (float32, 0x00RRGGBB) of a bgr8 (or mono8) image at raw pixels (nearest pixel, clamped)."""
     img = np.asarray(image_bgr)
     if img.ndim == 2:
@@ -84,7 +84,7 @@ def colour_at(image_bgr: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray
     return pack_rgb(bgr[:, ::-1].astype(np.uint8))
 
 
-def merge_snaps(snaps: List[SnapPoints]) -> SnapPoints:
+def merge_snaps(snaps: list[SnapPoints]) -> SnapPoints:
     """Concatenate snaps (in the given order) into one scan cloud."""
     if not snaps:
         return SnapPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint32),

@@ -38,10 +38,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Dict
 
 import numpy as np
 from scipy.special import j1
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["SpeckleLimit", "speckle_limit", "grain_diameter_m", "image_aperture", "correlation_area_m2",
            "row_correlation_integral_m"]
@@ -60,7 +61,7 @@ class SpeckleLimit:
     pixel_contrast: float     # contrast left after averaging over one pixel (std / mean of a pixel's value)
     line_sigma_px: float      # the line's intensity sigma at the sensor, pixels
 
-    def as_dict(self) -> Dict[str, float]:
+    def as_dict(self) -> dict[str, float]:
         """Plain dict (JSON)."""
         return asdict(self)
 
@@ -80,7 +81,7 @@ def correlation_area_m2(wavelength_m: float, na: float) -> float:
     return wavelength_m ** 2 / (math.pi * na * na)
 
 
-def _airy2(r: np.ndarray, k: float) -> np.ndarray:
+def _airy2(r: AnyArray, k: float) -> AnyArray:
     v = k * r
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(v > 1e-9, (2.0 * j1(v) / np.where(v > 1e-9, v, 1.0)) ** 2, 1.0)

@@ -23,15 +23,26 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Optional, Tuple
+from typing import Any
 
 import cv2
 import numpy as np
 
 # The calibration files have one reader, in lsu_cameras; its errors are this module's errors.
-from lsu_cameras.calib_io import (CalibrationError, CalibrationFileError, CalibrationInconsistentError,
-                                  CalibrationParseError, CalibrationSizeError, CalibrationSwappedError,
-                                  check_camera_matrix, check_epipolar, check_extrinsics, read_calibration_dir, skew)
+from lsu_cameras.calib_io import (
+    CalibrationError,
+    CalibrationFileError,
+    CalibrationInconsistentError,
+    CalibrationParseError,
+    CalibrationSizeError,
+    CalibrationSwappedError,
+    check_camera_matrix,
+    check_epipolar,
+    check_extrinsics,
+    read_calibration_dir,
+    skew,
+)
+from lsu_common.arrays import AnyArray
 
 __all__ = [
     "CalibrationError", "CalibrationFileError", "CalibrationParseError", "CalibrationSizeError",
@@ -43,7 +54,7 @@ __all__ = [
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
 
 
-def fundamental_from(K1: np.ndarray, K2: np.ndarray, R: np.ndarray, T: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def fundamental_from(K1: AnyArray, K2: AnyArray, R: AnyArray, T: AnyArray) -> tuple[AnyArray, AnyArray]:
     """Essential ``E = [T]x R`` and fundamental ``F = K2^-T E K1^-1`` (F scaled to unit Frobenius norm)."""
     return check_epipolar(K1, K2, R, T, None, None, "")
 
@@ -55,15 +66,15 @@ class StereoModel:
     Build it with :meth:`from_folder` or :meth:`from_arrays`; both validate and derive E and F.
     """
 
-    K1: np.ndarray
-    D1: np.ndarray
-    K2: np.ndarray
-    D2: np.ndarray
-    R: np.ndarray
-    T: np.ndarray
-    image_size: Tuple[int, int]  # (width, height) [px], equal for both cameras
-    E: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
-    F: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    K1: AnyArray
+    D1: AnyArray
+    K2: AnyArray
+    D2: AnyArray
+    R: AnyArray
+    T: AnyArray
+    image_size: tuple[int, int]  # (width, height) [px], equal for both cameras
+    E: AnyArray = field(default_factory=lambda: np.zeros((3, 3)))
+    F: AnyArray = field(default_factory=lambda: np.zeros((3, 3)))
     left_frame_id: str = "lsu_left_optical"
     right_frame_id: str = "lsu_right_optical"
     rms_px: float = 0.0
@@ -73,15 +84,15 @@ class StereoModel:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_arrays(cls, K1: Any, D1: Any, K2: Any, D2: Any, R: Any, T: Any,
-                    image_size: Tuple[int, int], E: Optional[Any] = None, F: Optional[Any] = None,
-                    right_image_size: Optional[Tuple[int, int]] = None, source: str = "arrays",
-                    **meta: Any) -> "StereoModel":
+                    image_size: tuple[int, int], E: Any | None = None, F: Any | None = None,
+                    right_image_size: tuple[int, int] | None = None, source: str = "arrays",
+                    **meta: Any) -> StereoModel:
         """Validate arrays (CameraInfo-like: K row-major 3x3, D plumb_bob, R 3x3, T [m]) into a model.
 
         E and F are derived from R, T and the intrinsics; when given, they must agree with them
         (up to scale and sign), else :class:`CalibrationInconsistentError` names the mismatch.
         """
-        def arr(name: str, value: Any, shape: Optional[Tuple[int, ...]] = None) -> np.ndarray:
+        def arr(name: str, value: Any, shape: tuple[int, ...] | None = None) -> AnyArray:
             try:
                 a = np.asarray(value, dtype=float)
             except (TypeError, ValueError):
@@ -115,7 +126,7 @@ class StereoModel:
         return cls(K1=K1a, D1=D1a, K2=K2a, D2=D2a, R=Ra, T=Ta, image_size=(w, h), E=Ed, F=Fd, source=source, **meta)
 
     @classmethod
-    def from_folder(cls, folder: "str | Path") -> "StereoModel":
+    def from_folder(cls, folder: str | Path) -> StereoModel:
         """Load ``left.yaml``, ``right.yaml`` and ``stereo.yaml`` (CONTRIBUTING.md format) from ``folder``."""
         cal = read_calibration_dir(folder)
         s = cal.stereo
@@ -134,22 +145,22 @@ class StereoModel:
     # The per-snap paths (undistortion, rays) use these for every line: computed once per model
     # (the model is frozen; its arrays are not changed after construction).
     @cached_property
-    def right_centre(self) -> np.ndarray:
+    def right_centre(self) -> AnyArray:
         """Right optical centre in the left frame, ``-R^T T`` [m]."""
         return -self.R.T @ self.T
 
     @cached_property
-    def K1_inv(self) -> np.ndarray:
+    def K1_inv(self) -> AnyArray:
         """Inverse of the left camera matrix."""
         return np.linalg.inv(self.K1)
 
     @cached_property
-    def K2_inv(self) -> np.ndarray:
+    def K2_inv(self) -> AnyArray:
         """Inverse of the right camera matrix."""
         return np.linalg.inv(self.K2)
 
-    def closest_approach(self, x1: np.ndarray, x2: np.ndarray
-                         ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def closest_approach(self, x1: AnyArray, x2: AnyArray
+                         ) -> tuple[AnyArray, AnyArray, AnyArray, AnyArray]:
         """Where the rays of undistorted pixel pairs (N, 2) pass closest: ``(r1, r2, lam, mu)``.
 
         ``r1``, ``r2``: ray directions in the left frame (z = 1 in each camera); the closest points
@@ -170,12 +181,12 @@ class StereoModel:
         return r1, r2, lam, mu
 
     @property
-    def P1(self) -> np.ndarray:
+    def P1(self) -> AnyArray:
         """Left projection matrix ``K1 [I | 0]`` for undistorted pixels."""
         return self.K1 @ np.hstack([np.eye(3), np.zeros((3, 1))])
 
     @property
-    def P2(self) -> np.ndarray:
+    def P2(self) -> AnyArray:
         """Right projection matrix ``K2 [R | T]`` for undistorted pixels."""
         return self.K2 @ np.hstack([self.R, self.T.reshape(3, 1)])
 
@@ -187,7 +198,7 @@ class StereoModel:
                 f"{self.image_size[0]}x{self.image_size[1]}; recalibrate at this resolution or set the cameras back")
 
     @staticmethod
-    def _undistort(u: np.ndarray, v: np.ndarray, K: np.ndarray, Kinv: np.ndarray, D: np.ndarray) -> np.ndarray:
+    def _undistort(u: AnyArray, v: AnyArray, K: AnyArray, Kinv: AnyArray, D: AnyArray) -> AnyArray:
         # Normalise with the full K^-1 ourselves (OpenCV's undistortPoints ignores skew K[0,1]),
         # let OpenCV invert the distortion in normalised coordinates, and map back with K.
         pts = np.stack([np.asarray(u, dtype=np.float64).reshape(-1), np.asarray(v, dtype=np.float64).reshape(-1)], 1)
@@ -200,21 +211,21 @@ class StereoModel:
             xu = xd
         return xu @ K[:2, :2].T + K[:2, 2]
 
-    def undistort_left(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def undistort_left(self, u: AnyArray, v: AnyArray) -> AnyArray:
         """Raw left pixels -> undistorted left pixels, (N, 2)."""
         return self._undistort(u, v, self.K1, self.K1_inv, self.D1)
 
-    def undistort_right(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def undistort_right(self, u: AnyArray, v: AnyArray) -> AnyArray:
         """Raw right pixels -> undistorted right pixels, (N, 2)."""
         return self._undistort(u, v, self.K2, self.K2_inv, self.D2)
 
-    def distort_right(self, pts: np.ndarray) -> np.ndarray:
+    def distort_right(self, pts: AnyArray) -> AnyArray:
         """Undistorted right pixels (N, 2) -> raw right pixels (N, 2), via ``cv2.projectPoints``."""
         rays = np.hstack([(pts - self.K2[:2, 2]) @ np.linalg.inv(self.K2[:2, :2]).T, np.ones((len(pts), 1))])
         return self._project(rays, np.eye(3), np.zeros(3), self.K2, self.D2)
 
     @staticmethod
-    def _project(X: np.ndarray, R: np.ndarray, T: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    def _project(X: AnyArray, R: AnyArray, T: AnyArray, K: AnyArray, D: AnyArray) -> AnyArray:
         if len(X) == 0:
             return np.zeros((0, 2))
         Kz = K.copy()
@@ -227,15 +238,15 @@ class StereoModel:
             out[:, 0] += K[0, 1] * (out[:, 1] - K[1, 2]) / K[1, 1]
         return out
 
-    def project_left(self, X: np.ndarray) -> np.ndarray:
+    def project_left(self, X: AnyArray) -> AnyArray:
         """3D points in the left frame [m] (N, 3) -> raw (distorted) left pixels (N, 2)."""
         return self._project(X, np.eye(3), np.zeros(3), self.K1, self.D1)
 
-    def project_right(self, X: np.ndarray) -> np.ndarray:
+    def project_right(self, X: AnyArray) -> AnyArray:
         """3D points in the left frame [m] (N, 3) -> raw (distorted) right pixels (N, 2)."""
         return self._project(X, self.R, self.T, self.K2, self.D2)
 
-    def epipolar_lines(self, x1: np.ndarray) -> np.ndarray:
+    def epipolar_lines(self, x1: AnyArray) -> AnyArray:
         """Right epipolar lines ``l2 = F x1`` of undistorted left pixels (N, 2), as (N, 3) with a^2 + b^2 = 1.
 
         With that normalisation ``l2 . (x, y, 1)`` is the signed distance in right pixels.

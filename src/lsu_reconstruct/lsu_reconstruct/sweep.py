@@ -27,7 +27,6 @@ near that camera's optical centre) are dropped: their depth error grows as 1 / t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Tuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,7 +67,7 @@ class CarriageTrack:
 
     stamps_s: FloatArray
     positions_steps: FloatArray
-    moving: Optional[NDArray[np.bool_]] = None
+    moving: NDArray[np.bool_] | None = None
     max_extrapolate_s: float = 0.1
 
     def __post_init__(self) -> None:
@@ -93,7 +92,7 @@ class CarriageTrack:
         if self.stamps_s.size < 2:
             raise SweepError("carriage track has fewer than 2 distinct stamps")
 
-    def position_at(self, t_s: "float | FloatArray") -> FloatArray:
+    def position_at(self, t_s: float | FloatArray) -> FloatArray:
         """Carriage position [steps] at times ``t_s`` (NaN where unknown: see the class doc)."""
         t = np.asarray(t_s, dtype=np.float64)
         ts, ps = self.stamps_s, self.positions_steps
@@ -148,7 +147,7 @@ class SweepFrame:
         return float(max(0.0, 1.0 - abs(self.right_start_s - self.left_start_s) / self.exposure_s))
 
 
-def _rays(model: StereoModel, side: str, u: FloatArray, v: FloatArray) -> Tuple[FloatArray, FloatArray]:
+def _rays(model: StereoModel, side: str, u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray]:
     """(origin, unit directions) in the left frame of raw pixels of one camera."""
     if side == "left":
         x = model.undistort_left(u, v)
@@ -162,7 +161,7 @@ def _rays(model: StereoModel, side: str, u: FloatArray, v: FloatArray) -> Tuple[
 
 
 def sheet_points(model: StereoModel, sheet: LaserSheet, side: str, line: LineArrays, position_steps: float,
-                 params: SweepParams = SweepParams()) -> Tuple[FloatArray, FloatArray, FloatArray]:
+                 params: SweepParams = SweepParams()) -> tuple[FloatArray, FloatArray, FloatArray]:
     """One camera's line on the sheet at ``position_steps``: (xyz (N,3), u, v raw pixels of that camera).
 
     The line is smoothed along its rows as the stereo matcher does (same window); points behind the
@@ -206,8 +205,8 @@ class SweepFramePoints:
 
     points: SnapPoints
     source: NDArray[np.uint8]          # per point: 0 stereo (checked against the sheet), 1 left sheet, 2 right sheet
-    positions_steps: Tuple[float, float]  # carriage at each camera's mid-exposure
-    stats: Dict[str, int] = field(default_factory=dict)
+    positions_steps: tuple[float, float]  # carriage at each camera's mid-exposure
+    stats: dict[str, int] = field(default_factory=dict)
 
 
 SOURCE_STEREO, SOURCE_LEFT_SHEET, SOURCE_RIGHT_SHEET = 0, 1, 2

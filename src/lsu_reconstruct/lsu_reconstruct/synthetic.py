@@ -13,24 +13,26 @@ toed in ~17 deg, subject ~300 mm away, a vertical line laser moved along x by th
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple, Union
 
 import cv2
 import numpy as np
 import yaml
 
+from lsu_common.arrays import AnyArray
+
 __all__ = ["Rig", "Plane", "Sphere", "Laser", "LineSamples", "default_rig", "laser_samples", "fit_plane",
            "fit_sphere"]
 
 
-def _rot_y(deg: float) -> np.ndarray:
+def _rot_y(deg: float) -> AnyArray:
     a = np.radians(deg)
     return np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
 
 
-def _rot_z(deg: float) -> np.ndarray:
+def _rot_z(deg: float) -> AnyArray:
     a = np.radians(deg)
     return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
@@ -39,21 +41,21 @@ def _rot_z(deg: float) -> np.ndarray:
 class Rig:
     """Two plumb_bob cameras; ``X_right = R X_left + T`` (left optical frame = world) [m]."""
 
-    K1: np.ndarray
-    D1: np.ndarray
-    K2: np.ndarray
-    D2: np.ndarray
-    R: np.ndarray
-    T: np.ndarray
+    K1: AnyArray
+    D1: AnyArray
+    K2: AnyArray
+    D2: AnyArray
+    R: AnyArray
+    T: AnyArray
     width: int = 640
     height: int = 480
 
     @property
-    def right_centre(self) -> np.ndarray:
+    def right_centre(self) -> AnyArray:
         """Right camera centre in the left frame [m]."""
         return -self.R.T @ self.T
 
-    def project(self, X: np.ndarray, camera: str) -> np.ndarray:
+    def project(self, X: AnyArray, camera: str) -> AnyArray:
         """World points (N, 3) -> raw distorted pixels (N, 2) of ``camera`` ('left' or 'right')."""
         if camera == "left":
             R, T, K, D = np.eye(3), np.zeros(3), self.K1, self.D1
@@ -65,8 +67,8 @@ class Rig:
         px, _ = cv2.projectPoints(np.asarray(X, dtype=np.float64).reshape(-1, 1, 3), rvec, T.reshape(3, 1), K, D)
         return px.reshape(-1, 2)
 
-    def write_calibration(self, folder: Union[str, Path], swap: bool = False,
-                          right_size: Optional[Tuple[int, int]] = None) -> Path:
+    def write_calibration(self, folder: str | Path, swap: bool = False,
+                          right_size: tuple[int, int] | None = None) -> Path:
         """Write left.yaml / right.yaml / stereo.yaml (CONTRIBUTING.md format) into ``folder``.
 
         ``swap=True`` writes what a user gets with the cameras exchanged: each file describes
@@ -78,7 +80,7 @@ class Rig:
         if swap:
             K1, D1, K2, D2, R, T = K2, D2, K1, D1, R.T, -R.T @ T
 
-        def mat(a: np.ndarray) -> dict:
+        def mat(a: AnyArray) -> dict:
             a = np.atleast_2d(np.asarray(a, dtype=float))
             return {"rows": int(a.shape[0]), "cols": int(a.shape[1]), "data": [float(x) for x in a.reshape(-1)]}
 
@@ -117,30 +119,30 @@ def default_rig() -> Rig:
 class Plane:
     """Surface ``normal . X = offset`` (normal made unit) [m]."""
 
-    normal: np.ndarray
+    normal: AnyArray
     offset: float
 
     def __post_init__(self) -> None:
         n = np.asarray(self.normal, dtype=float)
-        scale = np.linalg.norm(n)
+        scale = float(np.linalg.norm(n))
         self.normal = n / scale
         self.offset = float(self.offset) / scale
 
     @classmethod
-    def facing(cls, depth_m: float, tilt: Sequence[float] = (0.08, -0.05)) -> "Plane":
+    def facing(cls, depth_m: float, tilt: Sequence[float] = (0.08, -0.05)) -> Plane:
         """A plane through (0, 0, depth_m), slightly tilted so no axis is special."""
         n = np.array([tilt[0], tilt[1], 1.0])
         n = n / np.linalg.norm(n)
         return cls(n, float(n @ np.array([0.0, 0.0, depth_m])))
 
-    def hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    def hit(self, origins: AnyArray, dirs: AnyArray) -> AnyArray:
         """Ray parameter of the hit (inf when none ahead)."""
         denom = dirs @ self.normal
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (self.offset - origins @ self.normal) / denom
         return np.where((np.abs(denom) > 1e-12) & (t > 1e-9), t, np.inf)
 
-    def normal_at(self, X: np.ndarray) -> np.ndarray:
+    def normal_at(self, X: AnyArray) -> AnyArray:
         """Surface normal at points X (sign arbitrary: visibility tests use |.|)."""
         return np.broadcast_to(self.normal, X.shape)
 
@@ -149,10 +151,10 @@ class Plane:
 class Sphere:
     """Sphere of ``radius`` around ``centre`` [m]."""
 
-    centre: np.ndarray
+    centre: AnyArray
     radius: float
 
-    def hit(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    def hit(self, origins: AnyArray, dirs: AnyArray) -> AnyArray:
         """Ray parameter of the first hit from outside (inf when none ahead)."""
         oc = origins - np.asarray(self.centre, dtype=float)
         a = np.einsum("ij,ij->i", dirs, dirs)
@@ -163,46 +165,46 @@ class Sphere:
         t = (-b - root) / a
         return np.where((disc >= 0) & (t > 1e-9), t, np.inf)
 
-    def normal_at(self, X: np.ndarray) -> np.ndarray:
+    def normal_at(self, X: AnyArray) -> AnyArray:
         """Outward normals at points X."""
         n = X - np.asarray(self.centre, dtype=float)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-Surface = Union[Plane, Sphere]
+Surface = Plane | Sphere
 
 
 @dataclass
 class Laser:
     """A fan laser at ``origin`` whose plane contains the image-vertical (y) axis, yawed by ``yaw_deg``."""
 
-    origin: np.ndarray = field(default_factory=lambda: np.array([0.06, -0.01, -0.02]))
+    origin: AnyArray = field(default_factory=lambda: np.array([0.06, -0.01, -0.02]))
     yaw_deg: float = 8.0
 
     @classmethod
-    def at(cls, x_m: float, yaw_deg: float = 8.0) -> "Laser":
+    def at(cls, x_m: float, yaw_deg: float = 8.0) -> Laser:
         """The laser with the carriage at ``x_m`` along the left camera's x axis."""
         return cls(np.array([x_m, -0.01, -0.02]), yaw_deg)
 
-    def rays(self, n: int, half_angle_deg: float = 40.0) -> Tuple[np.ndarray, np.ndarray]:
+    def rays(self, n: int, half_angle_deg: float = 40.0) -> tuple[AnyArray, AnyArray]:
         """Unit ray directions of the fan (n, 3) and their elevation angles [rad]."""
         phi = np.linspace(-np.radians(half_angle_deg), np.radians(half_angle_deg), n)
         fwd = _rot_y(self.yaw_deg) @ np.array([0.0, 0.0, 1.0])
         return np.cos(phi)[:, None] * fwd + np.sin(phi)[:, None] * np.array([0.0, 1.0, 0.0]), phi
 
-    def ray(self, phi: np.ndarray) -> np.ndarray:
+    def ray(self, phi: AnyArray) -> AnyArray:
         """Ray directions at elevation angles ``phi`` [rad]."""
         fwd = _rot_y(self.yaw_deg) @ np.array([0.0, 0.0, 1.0])
         return np.cos(phi)[:, None] * fwd + np.sin(phi)[:, None] * np.array([0.0, 1.0, 0.0])
 
 
-def _first_hit(scene: Sequence[Surface], origins: np.ndarray, dirs: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _first_hit(scene: Sequence[Surface], origins: AnyArray, dirs: AnyArray) -> tuple[AnyArray, AnyArray]:
     ts = np.stack([s.hit(origins, dirs) for s in scene], axis=0)
     which = np.argmin(ts, axis=0)
     return ts[which, np.arange(len(dirs))], which
 
 
-def _lit_points(scene: Sequence[Surface], laser: Laser, phi: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _lit_points(scene: Sequence[Surface], laser: Laser, phi: AnyArray) -> tuple[AnyArray, AnyArray, AnyArray]:
     dirs = laser.ray(phi)
     origins = np.broadcast_to(laser.origin, dirs.shape)
     t, which = _first_hit(scene, origins, dirs)
@@ -210,7 +212,7 @@ def _lit_points(scene: Sequence[Surface], laser: Laser, phi: np.ndarray) -> Tupl
     return X, np.isfinite(t), which
 
 
-def _visible(scene: Sequence[Surface], X: np.ndarray, which: np.ndarray, centre: np.ndarray) -> np.ndarray:
+def _visible(scene: Sequence[Surface], X: AnyArray, which: AnyArray, centre: AnyArray) -> AnyArray:
     # Visible when the first surface hit from the camera centre towards X is X itself.
     d = X - centre
     dist = np.linalg.norm(d, axis=1)
@@ -222,22 +224,22 @@ def _visible(scene: Sequence[Surface], X: np.ndarray, which: np.ndarray, centre:
 class LineSamples:
     """One camera's laser line: one sample per integer image row, with its true 3D point."""
 
-    u: np.ndarray
-    v: np.ndarray
-    X: np.ndarray  # (N, 3) true points [m]
+    u: AnyArray
+    v: AnyArray
+    X: AnyArray  # (N, 3) true points [m]
 
     def __len__(self) -> int:
         return int(len(self.u))
 
-    def noisy(self, sigma_px: float, rng: np.random.Generator) -> "LineSamples":
+    def noisy(self, sigma_px: float, rng: np.random.Generator) -> LineSamples:
         """The same line with Gaussian noise of ``sigma_px`` on u (what a sub-pixel extractor leaves)."""
         return LineSamples(self.u + rng.normal(0.0, sigma_px, self.u.shape), self.v.copy(), self.X)
 
-    def pixel_quantised(self) -> "LineSamples":
+    def pixel_quantised(self) -> LineSamples:
         """u rounded to the pixel centre (the thesis' brute-force maximum search)."""
         return LineSamples(np.round(self.u), self.v.copy(), self.X)
 
-    def without_rows(self, lo: float, hi: float) -> "LineSamples":
+    def without_rows(self, lo: float, hi: float) -> LineSamples:
         """Drop rows lo <= v < hi (something hides the laser from this camera there)."""
         keep = (self.v < lo) | (self.v >= hi)
         return LineSamples(self.u[keep], self.v[keep], self.X[keep])
@@ -257,8 +259,8 @@ def laser_samples(rig: Rig, scene: Sequence[Surface], laser: Laser, camera: str,
     # Integer rows crossed between consecutive visible samples of the same surface.
     seg = ok[:-1] & ok[1:] & (which[:-1] == which[1:])
     lo, hi = np.minimum(v[:-1], v[1:]), np.maximum(v[:-1], v[1:])
-    rows_out: List[float] = []
-    phis: List[float] = []
+    rows_out: list[float] = []
+    phis: list[float] = []
     seen = set()
     for i in np.nonzero(seg & (np.floor(hi) >= np.ceil(lo)))[0]:
         for r in range(int(np.ceil(lo[i])), int(np.floor(hi[i])) + 1):
@@ -285,7 +287,7 @@ def laser_samples(rig: Rig, scene: Sequence[Surface], laser: Laser, camera: str,
     return LineSamples(pf[order, 0], rows[order], Xf[order])
 
 
-def fit_plane(X: np.ndarray) -> Tuple[np.ndarray, float]:
+def fit_plane(X: AnyArray) -> tuple[AnyArray, float]:
     """Least-squares plane (unit normal, offset) through points (N, 3)."""
     c = X.mean(axis=0)
     _, _, vt = np.linalg.svd(X - c, full_matrices=False)
@@ -293,7 +295,7 @@ def fit_plane(X: np.ndarray) -> Tuple[np.ndarray, float]:
     return n, float(n @ c)
 
 
-def fit_sphere(X: np.ndarray) -> Tuple[np.ndarray, float]:
+def fit_sphere(X: AnyArray) -> tuple[AnyArray, float]:
     """Least-squares sphere (centre, radius): algebraic fit refined by Gauss-Newton on the distances."""
     A = np.hstack([2 * X, np.ones((len(X), 1))])
     b = np.einsum("ij,ij->i", X, X)

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from lsu_common.arrays import AnyArray
+
 from .stereo import StereoModel
 
 __all__ = ["METHODS", "TriangulationError", "triangulate", "triangulate_midpoint", "triangulate_dlt",
@@ -34,7 +36,7 @@ class TriangulationError(ValueError):
     """Bad arguments for triangulation (unknown method, shapes that do not match)."""
 
 
-def _check(x1: np.ndarray, x2: np.ndarray) -> tuple:
+def _check(x1: AnyArray, x2: AnyArray) -> tuple:
     x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
     x2 = np.asarray(x2, dtype=np.float64).reshape(-1, 2)
     if len(x1) != len(x2):
@@ -42,14 +44,14 @@ def _check(x1: np.ndarray, x2: np.ndarray) -> tuple:
     return x1, x2
 
 
-def triangulate_midpoint(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def triangulate_midpoint(model: StereoModel, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Midpoint of the shortest segment between the two rays, (N, 3) [m]."""
     x1, x2 = _check(x1, x2)
     r1, r2, lam, mu = model.closest_approach(x1, x2)
     return 0.5 * (lam[:, None] * r1 + (model.right_centre + mu[:, None] * r2))
 
 
-def triangulate_dlt(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def triangulate_dlt(model: StereoModel, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Linear (DLT) triangulation with ``cv2.triangulatePoints``, (N, 3) [m]."""
     x1, x2 = _check(x1, x2)
     if len(x1) == 0:
@@ -59,7 +61,7 @@ def triangulate_dlt(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.nd
         return (h[:3] / h[3]).T
 
 
-def triangulate_optimal(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def triangulate_optimal(model: StereoModel, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Hartley-Sturm optimal triangulation: ``cv2.correctMatches`` then DLT, (N, 3) [m]."""
     x1, x2 = _check(x1, x2)
     if len(x1) == 0:
@@ -68,7 +70,7 @@ def triangulate_optimal(model: StereoModel, x1: np.ndarray, x2: np.ndarray) -> n
     return triangulate_dlt(model, c1.reshape(-1, 2), c2.reshape(-1, 2))
 
 
-def triangulate(model: StereoModel, x1: np.ndarray, x2: np.ndarray, method: str = "midpoint") -> np.ndarray:
+def triangulate(model: StereoModel, x1: AnyArray, x2: AnyArray, method: str = "midpoint") -> AnyArray:
     """Triangulate undistorted pixel pairs with ``method`` (one of :data:`METHODS`)."""
     if method == "midpoint":
         return triangulate_midpoint(model, x1, x2)
@@ -79,7 +81,7 @@ def triangulate(model: StereoModel, x1: np.ndarray, x2: np.ndarray, method: str 
     raise TriangulationError(f"unknown triangulation method '{method}'; use one of {', '.join(METHODS)}")
 
 
-def reprojection_error_px(model: StereoModel, X: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def reprojection_error_px(model: StereoModel, X: AnyArray, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Larger of the left and right reprojection errors [undistorted px] of points X (N, 3)."""
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
     h1 = X @ model.K1.T
@@ -99,7 +101,7 @@ class Acceptance:
     reprojection: int
 
 
-def accept_points(model: StereoModel, X: np.ndarray, x1: np.ndarray, x2: np.ndarray, depth_min_m: float,
+def accept_points(model: StereoModel, X: AnyArray, x1: AnyArray, x2: AnyArray, depth_min_m: float,
                   depth_max_m: float, max_reproj_px: float) -> tuple:
     """Mask of points that are finite, in front of both cameras within the depth range, and reproject well.
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -100,8 +99,8 @@ def test_too_few_positions_and_a_bent_board_are_refused(board_scans, tmp_path):
     # a "board" that is two boards 20 mm apart: not flat
     bent = tmp_path / "bent"
     bent.mkdir()
-    from lsu_reconstruct.laser_cli import _read_cloud_ply
     from lsu_bags.ply import write_cloud_ply
+    from lsu_reconstruct.laser_cli import _read_cloud_ply
     from lsu_reconstruct.pipeline import SnapPoints
 
     near, far = _read_cloud_ply(scans[0] / "cloud.ply"), _read_cloud_ply(scans[2] / "cloud.ply")

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsu_cameras.sim import build_scene, load_rig, SimulatedRig, write_true_calibration
+from lsu_cameras.sim import SimulatedRig, build_scene, load_rig, write_true_calibration
+from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import extract_laser_line
 from lsu_reconstruct.laser_sheet import LaserSheetError, fit_laser_sheet, read_laser_yaml, write_laser_yaml
 from lsu_reconstruct.matching import LineArrays
@@ -17,7 +18,7 @@ from lsu_reconstruct.stereo import StereoModel
 POSITIONS = np.arange(150, 331, 15)
 
 
-def sheet_line_on_plane(geometry, position: float, plane_n: np.ndarray, plane_d: float, heights_m: np.ndarray):
+def sheet_line_on_plane(geometry, position: float, plane_n: AnyArray, plane_d: float, heights_m: AnyArray):
     """Exact points where the rig's true sheet at ``position`` crosses the plane ``plane_n . X = plane_d``."""
     n, c = geometry.laser_plane(position)
     direction = np.cross(n, plane_n)

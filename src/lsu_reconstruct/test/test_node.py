@@ -10,10 +10,10 @@ from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
+from lsu_bags.pointcloud2 import unpack_rgb  # noqa: E402
 from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics  # noqa: E402
 from lsu_reconstruct import synthetic as S  # noqa: E402
 from lsu_reconstruct.node import LATCHED, StereoMatcherNode, decode_msg  # noqa: E402
-from lsu_bags.pointcloud2 import unpack_rgb  # noqa: E402
 
 PLANE = S.Plane.facing(0.30)
 

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
+from lsu_bags.pointcloud2 import unpack_rgb
 from lsu_reconstruct import synthetic as S
 from lsu_reconstruct.matching import LaserLineError, LineArrays, MatchParams, match_line, smooth_line
 from lsu_reconstruct.pipeline import colour_at, merge_snaps, reconstruct_snap
-from lsu_bags.pointcloud2 import unpack_rgb
 from lsu_reconstruct.stereo import CalibrationSizeError, StereoModel
 from lsu_reconstruct.triangulate import TriangulationError, accept_points, triangulate
 

@@ -8,8 +8,14 @@ import pytest
 
 from lsu_cameras.sim import CarriageState, SimulatedRig, load_rig, make_plane
 from lsu_cameras.sim.scenes import uniform_albedo
-from lsu_reconstruct.speckle import (correlation_area_m2, grain_diameter_m, image_aperture, row_correlation_integral_m,
-                                     speckle_limit)
+from lsu_common.arrays import AnyArray
+from lsu_reconstruct.speckle import (
+    correlation_area_m2,
+    grain_diameter_m,
+    image_aperture,
+    row_correlation_integral_m,
+    speckle_limit,
+)
 
 LAMBDA = 671e-9
 
@@ -36,7 +42,7 @@ def test_closed_forms_match_the_literature_numbers():
         speckle_limit(671, 0.0, 812.4, 7.5e-6, 0.1226, 0.30, 0.0004)
 
 
-def _row_centroids(on: np.ndarray, off: np.ndarray, pixels: np.ndarray, half: int = 7) -> np.ndarray:
+def _row_centroids(on: AnyArray, off: AnyArray, pixels: AnyArray, half: int = 7) -> AnyArray:
     """Centre of mass of (laser on - laser off) red over a window around each true pixel (a plain estimator)."""
     diff = on[:, :, 2].astype(float) - off[:, :, 2].astype(float)
     out = []

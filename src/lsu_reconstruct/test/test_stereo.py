@@ -5,8 +5,14 @@ import pytest
 import yaml
 
 from lsu_reconstruct import synthetic as S
-from lsu_reconstruct.stereo import (CalibrationFileError, CalibrationInconsistentError, CalibrationParseError,
-                                    CalibrationSizeError, CalibrationSwappedError, StereoModel)
+from lsu_reconstruct.stereo import (
+    CalibrationFileError,
+    CalibrationInconsistentError,
+    CalibrationParseError,
+    CalibrationSizeError,
+    CalibrationSwappedError,
+    StereoModel,
+)
 
 
 @pytest.fixture

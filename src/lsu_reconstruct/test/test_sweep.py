@@ -8,12 +8,22 @@ import numpy as np
 import pytest
 
 from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig, write_true_calibration
+from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import extract_laser_line
 from lsu_reconstruct.laser_sheet import LaserSheet
 from lsu_reconstruct.matching import LineArrays
 from lsu_reconstruct.stereo import StereoModel
-from lsu_reconstruct.sweep import (SOURCE_LEFT_SHEET, SOURCE_RIGHT_SHEET, SOURCE_STEREO, CarriageTrack, SweepError,
-                                   SweepFrame, SweepParams, exposure_mid_s, reconstruct_sweep_frame)
+from lsu_reconstruct.sweep import (
+    SOURCE_LEFT_SHEET,
+    SOURCE_RIGHT_SHEET,
+    SOURCE_STEREO,
+    CarriageTrack,
+    SweepError,
+    SweepFrame,
+    SweepParams,
+    exposure_mid_s,
+    reconstruct_sweep_frame,
+)
 
 RATE = 60.0  # steps/s: a whole-track sweep at 30 fps gives 235 frames
 
@@ -33,12 +43,12 @@ def driver_track(duration_s: float, rate_hz: float = 20.0, start: float = 0.0) -
     return CarriageTrack(stamps, np.rint(start + RATE * stamps))
 
 
-def lines(image: np.ndarray) -> LineArrays:
+def lines(image: AnyArray) -> LineArrays:
     res = extract_laser_line(image)
     return LineArrays(res.u, res.v, res.peak, res.width, res.quality, image.shape[1], image.shape[0])
 
 
-def surface_distance_mm(objects, xyz: np.ndarray) -> np.ndarray:
+def surface_distance_mm(objects, xyz: AnyArray) -> AnyArray:
     """Distance to the rendered meshes themselves (open3d): the renderer's geometry, not the code under test."""
     import open3d as o3d
 
@@ -90,7 +100,7 @@ def test_moving_line_is_the_sheet_at_mid_exposure(rig_model):
     rows = np.intersect1d(np.intersect1d(lm.v, lmid.v), lstart.v)
     assert len(rows) > 300
 
-    def at(line: LineArrays) -> np.ndarray:
+    def at(line: LineArrays) -> AnyArray:
         return line.u[np.searchsorted(line.v, rows)]
 
     off_mid = np.median(np.abs(at(lm) - at(lmid)))

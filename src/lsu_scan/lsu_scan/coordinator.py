@@ -16,22 +16,22 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
-import sys
-from collections import OrderedDict
 import threading
 import time
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.parameter import Parameter
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
@@ -45,9 +45,17 @@ from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
 
 from .laser_guard import LaserGuard, ack_due_at
+from .scan_plan import (
+    ScanGoalError,
+    ScanPlan,
+    ScanRecord,
+    SnapRecord,
+    calibration_checksum,
+    mechanical_lower_bound_s,
+    new_scan_id,
+    plan_positions,
+)
 from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
-from .scan_plan import (ScanGoalError, ScanPlan, ScanRecord, SnapRecord, calibration_checksum,
-                        mechanical_lower_bound_s, new_scan_id, plan_positions)
 from .sweep_plan import SweepPlan, plan_sweep, scan_mode
 
 EVENTS_QOS = qos.EVENTS
@@ -70,7 +78,7 @@ _key = stamps.to_ns  # an image stamp as the key of its acknowledgement
 
 # name -> (default, description, (low, high) or None). Every one is read when it is used, so a
 # `param set` takes effect at the next call, deadline or scan; values outside the range are refused.
-PARAMETERS: Dict[str, Tuple[Any, str, Optional[Tuple[float, float]]]] = {
+PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "output_dir": ("", "parent folder of scans/<id>/; empty = scans/ in the directory the node was started from (applies from the next scan)", None),
     "capture_timeout_s": (1.0, "a stereo/capture call longer than this aborts (+ 0.3 s for the reply; below the "
                                "laser watchdog) [s]", (0.05, 30.0)),
@@ -102,11 +110,11 @@ class ScanRun:
     record: ScanRecord
     start_state: ScannerState                         # the driver's state when the goal came
     started: float                                    # monotonic
-    captured: List[SnapRecord] = field(default_factory=list)
+    captured: list[SnapRecord] = field(default_factory=list)
     points_total: int = 0
     abort_reason: str = ""
     canceled: bool = False
-    sweep: Optional[SweepPlan] = None                 # a sweep scan's plan; None: stop-snap
+    sweep: SweepPlan | None = None                 # a sweep scan's plan; None: stop-snap
 
 
 class ScanCoordinatorNode(Node):
@@ -117,7 +125,7 @@ class ScanCoordinatorNode(Node):
         # the laser guard's books (scan thread only); the off call it sent without waiting for the reply
         self.guard = LaserGuard(pause_s=float(PARAMETERS["laser_pause_s"][0]))
         self._off_future: Any = None
-        self._guarded_ack: Optional[int] = None  # the image stamp whose points the "ack" deadline waits for
+        self._guarded_ack: int | None = None  # the image stamp whose points the "ack" deadline waits for
         self._capture_asked = 0.0  # monotonic time the last capture was asked for
         declare_parameters(self, PARAMETERS, check=self._check_parameters, apply=self._apply_parameters)
         group = ReentrantCallbackGroup()
@@ -134,12 +142,12 @@ class ScanCoordinatorNode(Node):
         self.move = self._io.create_client(MoveTo, "carriage/move_to")
         self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
-        self._state: Optional[ScannerState] = None
-        self._acks: Dict[int, tuple] = {}  # image stamp -> (points, monotonic arrival time)
+        self._state: ScannerState | None = None
+        self._acks: dict[int, tuple] = {}  # image stamp -> (points, monotonic arrival time)
         # adaptive settle: the laser_extractor's left lines by image stamp, subscribed at the first adaptive scan
-        self._left_lines: "OrderedDict[int, LaserLine]" = OrderedDict()
+        self._left_lines: OrderedDict[int, LaserLine] = OrderedDict()
         self._left_line_sub: Any = None
-        self._cloud: Optional[PointCloud2] = None
+        self._cloud: PointCloud2 | None = None
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
@@ -163,7 +171,7 @@ class ScanCoordinatorNode(Node):
 
     # ------------------------------------------------------------------------------ inputs
     @property
-    def state(self) -> Optional[ScannerState]:
+    def state(self) -> ScannerState | None:
         """The newest gp32_driver state received (None before the first)."""
         latest = take_latest(self._state_sub)
         if latest is not None:
@@ -192,7 +200,7 @@ class ScanCoordinatorNode(Node):
         return GoalResponse.ACCEPT
 
     # ------------------------------------------------------------------------------ parameters
-    def _check_parameters(self, changed: List[Parameter]) -> SetParametersResult:
+    def _check_parameters(self, changed: list[Parameter]) -> SetParametersResult:
         """Refuse values the scan could not use, with a sentence saying why (ranges are checked by rclpy)."""
         for param in changed:
             if param.name == "settle" and param.value not in SETTLE_MODES:
@@ -205,7 +213,7 @@ class ScanCoordinatorNode(Node):
                                                reason=f"{param.name} {path} exists and is not a folder")
         return SetParametersResult(successful=True)
 
-    def _apply_parameters(self, changed: List[Parameter]) -> None:
+    def _apply_parameters(self, changed: list[Parameter]) -> None:
         """Every accepted value takes effect now: the scan reads these attributes at each use."""
         for param in changed:
             if param.name not in PARAMETERS:
@@ -227,7 +235,7 @@ class ScanCoordinatorNode(Node):
         return self._stopping or not self.context.ok()
 
     def _call(self, client: Any, request: Any, timeout_s: float, what: str, stop_early: bool = True,
-              due_s: Optional[float] = None) -> Any:
+              due_s: float | None = None) -> Any:
         """One service call from the scan thread, spinning the private node until the reply is in.
 
         With ``stop_early`` a shutdown ends the wait at once (the answering node is going down too,
@@ -378,7 +386,7 @@ class ScanCoordinatorNode(Node):
         if self.shutting_down:
             raise ScanAborted("scan_coordinator is shutting down")
 
-    def _since_stop_s(self, stamp: Any) -> Optional[float]:
+    def _since_stop_s(self, stamp: Any) -> float | None:
         """Seconds since the driver saw the carriage stop (``MoveTo.Response.stopped_stamp``), or None.
 
         The vibration the settle waits out decays from the stop, not from when the move's reply
@@ -513,12 +521,12 @@ class ScanCoordinatorNode(Node):
             response = self._capture(lit=False)
             self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         self._set_laser(True)
-        snap_times: List[float] = []
+        snap_times: list[float] = []
         if self.settle == "adaptive":
             self._follow_left_lines()
         # the last snap, until the matcher acknowledges it: its processing overlaps the next move and
         # settle, so the ack is awaited only before the next capture (at most one snap in flight there)
-        pending: Optional[Dict[str, Any]] = None
+        pending: dict[str, Any] | None = None
         rate = max(1.0, float(state.step_rate_steps_per_s))
         here = int(state.position_steps)
         for index, position in enumerate(plan.positions):
@@ -533,7 +541,7 @@ class ScanCoordinatorNode(Node):
             here = int(moved.position_steps)
             t_moved = time.monotonic()
             since_stop = self._since_stop_s(moved.stopped_stamp)
-            trace: Optional[SettleTrace] = None
+            trace: SettleTrace | None = None
             if self.settle == "adaptive":
                 response, trace, t_slept, t_settled = self._adaptive_capture(goal_handle, run, pending, t_moved,
                                                                              plan.settle_s - (since_stop or 0.0))
@@ -581,8 +589,8 @@ class ScanCoordinatorNode(Node):
                 LaserLine, "stereo/left/laser_line", keep,
                 QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
 
-    def _adaptive_capture(self, goal_handle: Any, run: ScanRun, pending: Optional[Dict[str, Any]], t_moved: float,
-                          settle_left_s: float) -> Tuple[Any, SettleTrace, float, float]:
+    def _adaptive_capture(self, goal_handle: Any, run: ScanRun, pending: dict[str, Any] | None, t_moved: float,
+                          settle_left_s: float) -> tuple[Any, SettleTrace, float, float]:
         """The snap's capture by the adaptive settle (lsu_scan.settle); also awaits the previous snap's ack.
 
         Returns (capture response, trace, end of the settle's probe, when the ack was in) for the SnapRecord.
@@ -614,7 +622,7 @@ class ScanCoordinatorNode(Node):
                 pending = None
                 marks["acked"] = time.monotonic()
 
-        def capture() -> Tuple[Any, Any]:
+        def capture() -> tuple[Any, Any]:
             response = self._capture()
             return response, line_of(response)
 
@@ -657,8 +665,8 @@ class ScanCoordinatorNode(Node):
         # a driver that does not report the end of the motion must not keep the laser on
         self.guard.due("sweep", t0 + sweep.duration_s + 1.0, f"sweep to {sweep.end}: no answer from "
                                                             f"{self.move.srv_name}")
-        pending: List[Dict[str, Any]] = []
-        frame_times: List[float] = []
+        pending: list[dict[str, Any]] = []
+        frame_times: list[float] = []
         slot = 0
         try:
             while slot < sweep.frames_expected:
@@ -686,7 +694,7 @@ class ScanCoordinatorNode(Node):
                 key = _key(response.stamp)
                 self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=position,
                             image_stamp=response.stamp, expected_snaps=sweep.frames_expected)
-                snap = SnapRecord(index=index, position_steps=position, stamp=f"{key[0]}.{key[1]:09d}",
+                snap = SnapRecord(index=index, position_steps=position, stamp=stamps.to_text(key),
                                   skew_s=float(response.skew_s), move_s=0.0, settle_s=0.0, stop_to_reply_s=None,
                                   ack_wait_s=0.0, capture_s=round(t_captured - t_asked, 4))
                 run.captured.append(snap)
@@ -764,7 +772,7 @@ class ScanCoordinatorNode(Node):
             goal_handle.succeed()
         return result
 
-    def _await_ack(self, pending: Dict[str, Any]) -> int:
+    def _await_ack(self, pending: dict[str, Any]) -> int:
         """Wait until stereo_matcher published the snap's points; returns their count.
 
         ``ack_timeout_s`` after the capture without them the scan aborts; the laser guard has switched
@@ -786,7 +794,7 @@ class ScanCoordinatorNode(Node):
         return snap.points
 
     def _feedback(self, goal_handle: Any, stage: str, index: int, total: int, position: int, points: int,
-                  snap_times: List[float]) -> None:
+                  snap_times: list[float]) -> None:
         fb = Scan.Feedback(stage=stage, snap_index=index, snaps_total=total, position_steps=int(position),
                            points_so_far=int(points))
         if snap_times:

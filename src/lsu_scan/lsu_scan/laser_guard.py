@@ -11,7 +11,6 @@ decisions are unit-tested without ROS or time.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
 
 
 @dataclass(frozen=True)
@@ -21,7 +20,7 @@ class Pause:
     at: float   # wall time of the off request [s since the epoch]
     why: str    # which answer was late, in words
 
-    def as_json(self) -> Dict[str, object]:
+    def as_json(self) -> dict[str, object]:
         return {"at": round(self.at, 3), "why": self.why}
 
 
@@ -36,8 +35,8 @@ class LaserGuard:
     pause_s: float
     lit: bool = False
     off_pending: bool = False
-    pauses: List[Pause] = field(default_factory=list)
-    _deadlines: Dict[str, Tuple[float, str]] = field(default_factory=dict)
+    pauses: list[Pause] = field(default_factory=list)
+    _deadlines: dict[str, tuple[float, str]] = field(default_factory=dict)
 
     def start_scan(self) -> None:
         """A new scan: no deadlines, no pauses, no outstanding off (a left-over one would disarm the guard)."""
@@ -61,7 +60,7 @@ class LaserGuard:
         self._deadlines.clear()
         self.off_pending = False
 
-    def overdue(self, now: float) -> Optional[str]:
+    def overdue(self, now: float) -> str | None:
         """The warning of the earliest deadline passed at ``now``, if the laser must go off now, else None."""
         if not self.lit or self.off_pending or not self._deadlines:
             return None

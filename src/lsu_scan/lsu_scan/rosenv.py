@@ -9,9 +9,10 @@ from __future__ import annotations
 import fcntl
 import os
 import pwd
+from collections.abc import MutableMapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, MutableMapping, Optional
+from typing import IO
 
 from lsu_config import config_dir
 
@@ -36,7 +37,7 @@ class EnvReport:
     domain_set_by_lsu: bool
 
 
-def apply_defaults(env: Optional[MutableMapping[str, str]] = None) -> EnvReport:
+def apply_defaults(env: MutableMapping[str, str] | None = None) -> EnvReport:
     """Make DDS localhost-only and pick a domain, unless the user explicitly chose them.
 
     Modifies ``env`` (default: ``os.environ``) in place so child processes inherit it.
@@ -108,7 +109,7 @@ class DomainClaim:
 
     def __init__(self, domain_id: int, handle: IO[str]) -> None:
         self.domain_id = domain_id
-        self._handle: Optional[IO[str]] = handle
+        self._handle: IO[str] | None = handle
 
     def release(self) -> None:
         """Give the domain back."""
@@ -117,7 +118,7 @@ class DomainClaim:
             self._handle = None
 
 
-def claim_domain(start_hint: Optional[int] = None) -> DomainClaim:
+def claim_domain(start_hint: int | None = None) -> DomainClaim:
     """Claim a free domain id from `CLAIMABLE_DOMAINS`.
 
     The search starts at a pid-dependent offset so concurrent claimers rarely race for the
@@ -142,7 +143,7 @@ def claim_domain(start_hint: Optional[int] = None) -> DomainClaim:
     )
 
 
-def isolate(env: Optional[MutableMapping[str, str]] = None) -> DomainClaim:
+def isolate(env: MutableMapping[str, str] | None = None) -> DomainClaim:
     """Localhost-only DDS plus a freshly claimed domain (tests, demos)."""
     env = os.environ if env is None else env
     claim = claim_domain()

@@ -7,7 +7,6 @@ import json
 import platform
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
 
 from lsu_cameras.calib_io import calibration_checksum as checksum
 
@@ -20,7 +19,7 @@ class ScanGoalError(ValueError):
 class ScanPlan:
     """Validated goal: the carriage positions and the timing parameters."""
 
-    positions: List[int]
+    positions: list[int]
     settle_s: float
     texture: bool
 
@@ -59,18 +58,18 @@ def mechanical_lower_bound_s(plan: ScanPlan, start_position: int, rate_steps_per
     return moves / rate_steps_per_s + snaps * (plan.settle_s + exposure_s) + (exposure_s if plan.texture else 0.0)
 
 
-def new_scan_id(now: Optional[_dt.datetime] = None, counter: int = 1) -> str:
+def new_scan_id(now: _dt.datetime | None = None, counter: int = 1) -> str:
     """``20261123-074501-0001``: sortable, unique per node run."""
     now = now or _dt.datetime.now()
     return f"{now:%Y%m%d-%H%M%S}-{counter:04d}"
 
 
-def calibration_checksum(directory: Optional[Path]) -> str:
+def calibration_checksum(directory: Path | None) -> str:
     """The calibration's id (`lsu_cameras.calib_io.calibration_checksum`), or 'none'."""
     return (checksum(directory) if directory is not None else "") or "none"
 
 
-def software_versions() -> Dict[str, str]:
+def software_versions() -> dict[str, str]:
     """Versions recorded in scan.json."""
     import importlib.metadata as md
 
@@ -90,23 +89,23 @@ class ScanRecord:
 
     scan_id: str
     started: str
-    goal: Dict[str, object]
-    parameters: Dict[str, object]
+    goal: dict[str, object]
+    parameters: dict[str, object]
     calibration: str
-    versions: Dict[str, str] = field(default_factory=software_versions)
+    versions: dict[str, str] = field(default_factory=software_versions)
     snaps_expected: int = 0
     snaps_captured: int = 0
     snaps_acknowledged: int = 0
     points: int = 0
     partial: bool = False
     status: str = ""
-    timings_s: Dict[str, float] = field(default_factory=dict)
-    snaps: List[Dict[str, object]] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+    snaps: list[dict[str, object]] = field(default_factory=list)
     # each time the laser guard switched the laser off mid-scan: wall time and why (a late answer)
-    laser_pauses: List[Dict[str, object]] = field(default_factory=list)
-    files: List[str] = field(default_factory=list)
+    laser_pauses: list[dict[str, object]] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
     # a sweep scan: its rate, frame rate and the frames expected, captured and dropped (empty: stop-snap)
-    sweep: Dict[str, object] = field(default_factory=dict)
+    sweep: dict[str, object] = field(default_factory=dict)
 
     def write(self, folder: Path) -> Path:
         """Write ``folder/scan.json`` atomically (a partial scan is always described on disk)."""
@@ -133,19 +132,19 @@ class SnapRecord:
     skew_s: float                   # left/right capture skew the camera node measured
     move_s: float
     settle_s: float
-    stop_to_reply_s: Optional[float]  # driver's stop to the move's reply; None when the driver gave no stamp
+    stop_to_reply_s: float | None  # driver's stop to the move's reply; None when the driver gave no stamp
     ack_wait_s: float               # waiting for the previous snap's points before this capture
     capture_s: float
-    points: Optional[int] = None
-    ack_s: Optional[float] = None   # capture to the arrival of its points
-    snap_s: Optional[float] = None  # start of the snap to the arrival of its points
-    settle: Optional[Dict[str, object]] = None  # adaptive settle only: captures, reason, line shifts (settle.py)
+    points: int | None = None
+    ack_s: float | None = None   # capture to the arrival of its points
+    snap_s: float | None = None  # start of the snap to the arrival of its points
+    settle: dict[str, object] | None = None  # adaptive settle only: captures, reason, line shifts (settle.py)
 
     @property
     def acknowledged(self) -> bool:
         return self.points is not None
 
-    def as_json(self) -> Dict[str, object]:
+    def as_json(self) -> dict[str, object]:
         """The scan.json entry: the acknowledgement fields only once they are known."""
         out = asdict(self)
         for name in ("points", "ack_s", "snap_s", "settle"):

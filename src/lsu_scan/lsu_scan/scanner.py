@@ -19,8 +19,9 @@ import atexit
 import enum
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, List, Optional
+from typing import Any
 
 from . import rosenv
 
@@ -50,11 +51,11 @@ class ScanResult:
     points: int
     seconds: float
     output_dir: str
-    files: List[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
     status: str = ""
 
     @classmethod
-    def from_action(cls, goal_status: int, result: Any) -> "ScanResult":
+    def from_action(cls, goal_status: int, result: Any) -> ScanResult:
         """From the action's goal status (action_msgs/GoalStatus) and its ``Scan.Result``."""
         from action_msgs.msg import GoalStatus
 
@@ -80,7 +81,6 @@ class LsuScanner:
         from std_srvs.srv import SetBool, Trigger
 
         from lsu_common.node import GraphClient
-
         from lsu_interfaces.action import Scan
         from lsu_interfaces.msg import ScannerState
         from lsu_interfaces.srv import MoveTo
@@ -93,11 +93,11 @@ class LsuScanner:
         self._laser = self.node.create_client(SetBool, "laser/set")
         self._move = self.node.create_client(MoveTo, "carriage/move_to")
         self._action = ActionClient(self.node, Scan, "scan")
-        self._latest_state: Optional[Any] = None
+        self._latest_state: Any | None = None
         self.node.create_subscription(ScannerState, "driver/state", self._on_state, 10)
-        self._goal_handle: Optional[Any] = None
-        self._result_future: Optional[Any] = None
-        self._feedback: Optional[Any] = None
+        self._goal_handle: Any | None = None
+        self._result_future: Any | None = None
+        self._feedback: Any | None = None
         self._closed = False
         # A script that never calls close() must still end cleanly: at interpreter exit the spin
         # thread would be inside rclpy's C++ wait set while the context is destroyed (abort, exit 134).
@@ -114,7 +114,7 @@ class LsuScanner:
         atexit.unregister(self.close)
         self._graph.close()
 
-    def __enter__(self) -> "LsuScanner":
+    def __enter__(self) -> LsuScanner:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -211,7 +211,7 @@ class LsuScanner:
         """True when the running scan has a result."""
         return self._result_future is None or self._result_future.done()
 
-    def get_feedback(self) -> Optional[Any]:
+    def get_feedback(self) -> Any | None:
         """The latest ``Scan.Feedback`` (or None)."""
         return self._feedback
 
@@ -228,7 +228,7 @@ class LsuScanner:
         response = self._wait_future(self._result_future, timeout_s, "scan result")
         return ScanResult.from_action(response.status, response.result)
 
-    def scan(self, feedback: Optional[Callable[[Any], None]] = None, **goal: Any) -> ScanResult:
+    def scan(self, feedback: Callable[[Any], None] | None = None, **goal: Any) -> ScanResult:
         """Run a scan to the end (keyword arguments of `start_scan`); returns its `ScanResult`."""
         self.start_scan(**goal)
         while not self.is_task_complete():
@@ -279,7 +279,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
     return 0 if result.success else 1
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `lsu scan`."""
     p = sub.add_parser("scan", help="run a scan on the running graph, stop-snap or sweep (Ctrl-C cancels, laser off)")
     p.add_argument("--mode", choices=("stopsnap", "sweep"), default="stopsnap",

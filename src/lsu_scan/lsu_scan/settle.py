@@ -31,10 +31,13 @@ lines in the coordinator and on rendered frames (`line_profile`, the extractor's
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable, List, Optional, Tuple
+from typing import Any
 
 import numpy as np
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["SETTLE_MODES", "DEFAULT_TOLERANCE_PX", "MIN_ROWS", "SettleTrace", "line_profile", "profile_from_line",
            "line_shift_px", "settle_from_images"]
@@ -47,7 +50,7 @@ DEFAULT_TOLERANCE_PX = 0.15
 MIN_ROWS = 20   # rows with a line in both frames needed to compare them
 
 
-def line_profile(image: np.ndarray) -> np.ndarray:
+def line_profile(image: AnyArray) -> AnyArray:
     """The laser line's sub-pixel column in each image row (NaN where the extractor found none)."""
     from lsu_extract.extractor import extract_laser_line
 
@@ -59,7 +62,7 @@ def line_profile(image: np.ndarray) -> np.ndarray:
     return profile
 
 
-def profile_from_line(u: np.ndarray, v: np.ndarray, height: int) -> np.ndarray:
+def profile_from_line(u: AnyArray, v: AnyArray, height: int) -> AnyArray:
     """The same per-row profile from a LaserLine's samples (the laser_extractor's output for a published image)."""
     profile = np.full(int(height), np.nan)
     rows = np.rint(np.asarray(v, dtype=np.float64)).astype(np.int64)
@@ -68,7 +71,7 @@ def profile_from_line(u: np.ndarray, v: np.ndarray, height: int) -> np.ndarray:
     return profile
 
 
-def line_shift_px(before: np.ndarray, after: np.ndarray, min_rows: int = MIN_ROWS) -> float:
+def line_shift_px(before: AnyArray, after: AnyArray, min_rows: int = MIN_ROWS) -> float:
     """Median column shift of the line from ``before`` to ``after`` over the rows both show; NaN if too few."""
     both = np.isfinite(before) & np.isfinite(after)
     if int(both.sum()) < min_rows:
@@ -80,7 +83,7 @@ def line_shift_px(before: np.ndarray, after: np.ndarray, min_rows: int = MIN_ROW
 class SettleTrace:
     """What the adaptive settle saw: the line's shift before each capture and why it stopped."""
 
-    shifts_px: List[float] = field(default_factory=list)   # one per published capture, vs the frame before it
+    shifts_px: list[float] = field(default_factory=list)   # one per published capture, vs the frame before it
     captures: int = 0                                      # published captures (the last one is the snap)
     reason: str = ""                                       # "still", "fixed settle passed", "limit"
 
@@ -89,10 +92,10 @@ class SettleTrace:
                 "shifts_px": [None if not np.isfinite(s) else round(s, 3) for s in self.shifts_px]}
 
 
-def settle_from_images(probe: Callable[[], np.ndarray], capture: Callable[[], Tuple[Any, np.ndarray]],
+def settle_from_images(probe: Callable[[], AnyArray], capture: Callable[[], tuple[Any, AnyArray]],
                        fixed_passed: Callable[[], bool], tolerance_px: float = DEFAULT_TOLERANCE_PX,
-                       max_captures: int = 8, profile: Callable[[np.ndarray], np.ndarray] = line_profile,
-                       before_capture: Optional[Callable[[], None]] = None) -> Tuple[Any, SettleTrace]:
+                       max_captures: int = 8, profile: Callable[[AnyArray], AnyArray] = line_profile,
+                       before_capture: Callable[[], None] | None = None) -> tuple[Any, SettleTrace]:
     """Run the adaptive settle; returns (the snap's capture, what was seen).
 
     ``probe()`` -> the first frame after the stop (not the snap); ``capture()`` -> (its response, its
@@ -107,9 +110,9 @@ def settle_from_images(probe: Callable[[], np.ndarray], capture: Callable[[], Tu
     if fixed_passed():  # the stop is already long enough ago (a late reply, a loaded host): no probe
         if before_capture is not None:
             before_capture()
-        response, _image = capture()
+        first, _image = capture()
         trace.captures, trace.reason = 1, "fixed settle passed"
-        return response, trace
+        return first, trace
     previous = profile(probe())
     response: Any = None
     for _ in range(max(1, int(max_captures))):

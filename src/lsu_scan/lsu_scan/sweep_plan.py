@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict
 
 from .scan_plan import ScanGoalError
 
@@ -52,7 +51,7 @@ class SweepPlan:
         """Slots without a frame."""
         return max(0, self.frames_expected - int(captured))
 
-    def record(self, captured: int) -> Dict[str, object]:
+    def record(self, captured: int) -> dict[str, object]:
         """The scan.json ``sweep`` entry."""
         dropped = self.frames_dropped(captured)
         return {"start_steps": self.start, "end_steps": self.end, "rate_steps_s": self.rate_steps_s,

@@ -16,7 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any, Dict, List
+from typing import Any
 
 import pytest
 import rclpy
@@ -26,11 +26,11 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import SetBool
 
-from lsu_scan.coordinator import ScanCoordinatorNode
-from lsu_testing.plugin import FakeGoalHandle
 from lsu_common import stamps
 from lsu_interfaces.msg import ScannerState
 from lsu_interfaces.srv import CaptureStereo, MoveTo
+from lsu_scan.coordinator import ScanCoordinatorNode
+from lsu_testing.plugin import FakeGoalHandle
 
 NS = "/lsu_guard_test"
 PAUSE_S = 0.3
@@ -46,8 +46,8 @@ class Rig:
     def __init__(self, context: Any, late_s: float, late_call: str, exposed: str, acks: bool) -> None:
         self.node = rclpy.create_node("guard_rig", namespace=NS, context=context)
         group = ReentrantCallbackGroup()
-        self.laser: List[tuple] = []       # (monotonic arrival, on)
-        self.captures: List[Dict[str, float]] = []
+        self.laser: list[tuple] = []       # (monotonic arrival, on)
+        self.captures: list[dict[str, float]] = []
         self.moves = 0
         self.late_s, self.late_call, self.exposed, self.acks = late_s, late_call, exposed, acks
         self.late_done = False
@@ -136,7 +136,7 @@ def run_scan(context: Any, tmp_path: Any, rig: Rig, **params: Any) -> SimpleName
 
 @pytest.fixture
 def rig_factory(ros_context):
-    rigs: List[Rig] = []
+    rigs: list[Rig] = []
 
     def make(**kw: Any) -> Rig:
         rigs.append(Rig(ros_context, **kw))

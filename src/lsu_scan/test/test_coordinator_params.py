@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import threading
-from typing import Any, List
+from typing import Any
 
 import pytest
 from rclpy.action import GoalResponse
 from rclpy.parameter import Parameter
 
+from lsu_interfaces.action import Scan
 from lsu_scan.coordinator import PARAMETERS, ScanCoordinatorNode
 from lsu_testing.plugin import FakeGoalHandle
-from lsu_interfaces.action import Scan
 
 
 @pytest.fixture
@@ -77,7 +77,7 @@ def test_every_parameter_is_described_with_its_range(coordinator):
 def test_of_two_goals_sent_at_the_same_moment_exactly_one_is_accepted(coordinator):
     for _round in range(50):
         barrier = threading.Barrier(2)
-        answers: List[Any] = []
+        answers: list[Any] = []
 
         def send() -> None:
             barrier.wait()

@@ -21,15 +21,16 @@ import json
 import os
 import subprocess
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Dict, Iterator, List, Optional, Tuple
+from typing import Any
 
 import pytest
 
 from lsu_scan import rosenv
 from lsu_tools.processes import LSU, LaunchedProcess, ProcessWaitError  # noqa: F401  (re-exported for tests)
 
-_claim: Optional[rosenv.DomainClaim] = None
+_claim: rosenv.DomainClaim | None = None
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -44,14 +45,14 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 
 
-_FAULTS: Dict[str, Dict[str, Any]] = {}  # test id -> its fault record
+_FAULTS: dict[str, dict[str, Any]] = {}  # test id -> its fault record
 
 
 class FaultReport:
     """What one fault test saw; filled by the test, judged by its outcome."""
 
     def __init__(self, fault: str, test_id: str) -> None:
-        self.record: Dict[str, Any] = {"fault": fault, "test": test_id, "error_shown": "", "laser_on_after_s": None,
+        self.record: dict[str, Any] = {"fault": fault, "test": test_id, "error_shown": "", "laser_on_after_s": None,
                                        "laser_goal_s": None, "snaps_captured": None, "snaps_lost": 0,
                                        "data_kept": ""}
 
@@ -90,7 +91,7 @@ def pytest_runtest_makereport(item: pytest.Item, call: Any) -> Any:
     return report
 
 
-def fault_summary(records: List[Dict[str, Any]]) -> Dict[str, Any]:
+def fault_summary(records: list[dict[str, Any]]) -> dict[str, Any]:
     """Totals of the fault records: injected, survived, longest laser-on time after a fault, snaps lost."""
     laser = [r["laser_on_after_s"] for r in records if r.get("laser_on_after_s") is not None]
     over = [r["fault"] for r in records if r.get("laser_goal_s") is not None
@@ -166,7 +167,7 @@ class NodeHarness:
         self.node = rclpy.create_node(f"test_helper_{os.getpid()}", context=context)
         self.executor = MultiThreadedExecutor(context=context)
         self.executor.add_node(self.node)
-        self._nodes: List[Any] = [self.node]
+        self._nodes: list[Any] = [self.node]
 
     def add(self, node: Any) -> Any:
         """Spin ``node`` with the helper; it is destroyed at teardown."""
@@ -198,7 +199,7 @@ class NodeHarness:
         finally:
             self.node.destroy_client(client)
 
-    def check_parameters(self, node: Any, settable: Dict[str, Tuple[Any, Callable[[], bool]]]) -> None:
+    def check_parameters(self, node: Any, settable: dict[str, tuple[Any, Callable[[], bool]]]) -> None:
         """Every parameter of ``node`` means what it says, set through its parameter service.
 
         ``settable``: name -> (a new valid value, a check that the node now uses it). Every
@@ -241,9 +242,9 @@ def ros_node(ros_context: Any) -> Iterator[NodeHarness]:
 @pytest.fixture
 def launch() -> Iterator[Callable[..., LaunchedProcess]]:
     """Factory: ``launch("launch", "file.yaml", "a:=1")`` starts `lsu launch ...`; torn down always."""
-    started: List[LaunchedProcess] = []
+    started: list[LaunchedProcess] = []
 
-    def start(*args: str, cwd: Optional[str] = None) -> LaunchedProcess:
+    def start(*args: str, cwd: str | None = None) -> LaunchedProcess:
         proc = LaunchedProcess(list(args), cwd=cwd)
         started.append(proc)
         return proc
@@ -263,7 +264,7 @@ def launch() -> Iterator[Callable[..., LaunchedProcess]]:
 def lsu_cli() -> Callable[..., subprocess.CompletedProcess]:
     """Run ``lsu ARGS...`` to completion: ``lsu_cli("topic", "list", timeout=30)``."""
 
-    def run(*args: str, timeout: float = 60.0, env: Optional[dict] = None) -> subprocess.CompletedProcess:
+    def run(*args: str, timeout: float = 60.0, env: dict | None = None) -> subprocess.CompletedProcess:
         return subprocess.run([LSU, *args], capture_output=True, text=True, timeout=timeout,
                               env=None if env is None else {**os.environ, **env})
 

@@ -9,8 +9,8 @@ trying `lsu accuracy --bag` without a rig; a live recording (`lsu scan --record`
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import List, Optional, Sequence
 
 import numpy as np
 
@@ -28,7 +28,7 @@ _STARTED, _TEXTURE, _SNAP, _FINISHED = 0, 1, 2, 3
 def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequence[int], seed: int,
                        scan_id: str = "sim-scan", geometry=None, texture: bool = True, start_ns: int = 1_800_000_000 * 10**9,
                        period_ns: int = 100_000_000, storage: str = "mcap", compress: bool = True,
-                       types: Optional[BagTypes] = None) -> Path:
+                       types: BagTypes | None = None) -> Path:
     """Render a stop-snap scan of ``objects`` (sim scene objects) and write it as a rosbag2 folder.
 
     ``positions``: carriage positions [steps] of the laser snaps (settled, laser on); with ``texture``
@@ -85,13 +85,12 @@ def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequen
 
 
 def write_board_scan_bags(root: Path | str, poses: Sequence, square_m: float = 0.02, step: int = 10, seed: int = 100,
-                          geometry=None) -> List[Path]:
+                          geometry=None) -> list[Path]:
     """One board scan per `lsu_accuracy.accuracy.Pose` (carriage 0..track end every ``step``) as
     ``root/pose<i>/bag``, like `lsu scan --record` leaves them; input for `lsu accuracy --bag`
     (``--square`` = ``square_m`` in mm). Returns the bag folders."""
-    from lsu_cameras.sim import load_rig
-
     from lsu_accuracy.accuracy import board_pose_object
+    from lsu_cameras.sim import load_rig
 
     geometry = geometry or load_rig()
     bags = []

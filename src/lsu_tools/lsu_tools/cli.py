@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 from lsu_config import config_dir
 from lsu_scan import rosenv
@@ -73,7 +72,7 @@ def _selection_options(p: argparse.ArgumentParser) -> None:
                    help="leave these groups or nodes out")
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `launch` and `run` (``lsu.commands`` entry point)."""
     p = sub.add_parser("launch", help="start the nodes of a YAML launch file, one process each",
                        description="Start every node of a ROS 2 YAML launch file as its own process. "
@@ -119,16 +118,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Console script `lsu`."""
     report = rosenv.apply_defaults()
     parser = build_parser()
     args = parser.parse_args(argv)
     args.env_report = report  # what lsu set by default, for `lsu doctor`
-    from .graph import GraphError
-    from .launch_file import LaunchError
     from lsu_bags.rosmsg import InterfaceError
     from lsu_scan.scanner import ScannerError
+
+    from .graph import GraphError
+    from .launch_file import LaunchError
 
     try:
         return int(args.func(args) or 0)

@@ -16,18 +16,17 @@ import json
 import tempfile
 import time
 from pathlib import Path
-from typing import Dict, List
 
 from lsu_scan import rosenv
 
 
-def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
+def accuracy_against_scene(cloud_ply: Path, scene: str) -> dict[str, float]:
     """Point-to-surface distances [mm] between a cloud and the simulated scene's meshes."""
     import numpy as np
     import open3d as o3d
-    from lsu_cameras.sim import build_scene, load_rig
 
     from lsu_accuracy.accuracy import surface_distances_m
+    from lsu_cameras.sim import build_scene, load_rig
 
     cloud = o3d.io.read_point_cloud(str(cloud_ply))
     points = np.asarray(cloud.points, dtype=np.float32)
@@ -41,6 +40,7 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> Dict[str, float]:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from lsu_scan.scanner import LsuScanner, ScannerError
+
     from .processes import LaunchedProcess
 
     claim = rosenv.isolate()
@@ -114,7 +114,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                   f"{acc['within_0.1mm_pct']:.1f} % of points within 0.1 mm")
             record.setdefault("demo", {})["accuracy_vs_truth"] = acc
             (folder / "scan.json").write_text(json.dumps(record, indent=2) + "\n")
-    files: List[str] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
+    files: list[str] = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())
     print(f"[demo] files in {folder}:")
     for name in files:
         print(f"[demo]   {name}")
@@ -122,7 +122,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0 if result.success and code == 0 else 1
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `demo` to the `lsu` parser."""
     p = sub.add_parser("demo", help="start the sim graph, run a full scan, report accuracy and files (make demo)")
     p.add_argument("--scene", default="head:7", help="sim scene (default head:7, a synthetic head)")

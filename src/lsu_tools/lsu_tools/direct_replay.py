@@ -19,14 +19,16 @@ import collections
 import itertools
 import queue
 import sys
-import threading
 import tempfile
+import threading
 import time
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Deque, Dict, Iterator, List, Optional, Sequence, TextIO
+from typing import Any, TextIO
 
 from lsu_bags.bags import bag_topics, read_messages
+from lsu_common import stamps
 
 __all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
 
@@ -60,18 +62,18 @@ class ReplayStats:
                 f"{self.lines_unpaired} lines unpaired")
 
 
-def _side(topic: str, suffix: str) -> Optional[str]:
+def _side(topic: str, suffix: str) -> str | None:
     for side in SIDES:
         if topic.endswith(f"stereo/{side}/{suffix}"):
             return side
     return None
 
 
-def _prefetched(messages: Iterator[Any], cpu: Dict[str, float], depth: int = PREFETCH) -> Iterator[Any]:
+def _prefetched(messages: Iterator[Any], cpu: dict[str, float], depth: int = PREFETCH) -> Iterator[Any]:
     """``messages`` read ahead by a thread: the bag's decompression (zstd chunks, which releases the GIL)
     runs on the other core while this one extracts and matches. Exceptions come out where they occurred;
     ``cpu["read_s"]`` is the reading thread's CPU time so far."""
-    box: "queue.Queue[Any]" = queue.Queue(maxsize=depth)
+    box: queue.Queue[Any] = queue.Queue(maxsize=depth)
     done = object()
     stop = threading.Event()
 
@@ -131,10 +133,10 @@ class DirectReplay:
             self.extractor.destroy_subscription(sub)
         for sub in list(self.matcher.input_subscriptions):
             self.matcher.destroy_subscription(sub)
-        self._left_images: Deque[Any] = collections.deque(maxlen=IMAGES_KEPT)
+        self._left_images: collections.deque[Any] = collections.deque(maxlen=IMAGES_KEPT)
         self.matcher.take_left_images = self._take_left_images
 
-    def _take_left_images(self) -> List[Any]:
+    def _take_left_images(self) -> list[Any]:
         taken = list(self._left_images)
         self._left_images.clear()
         return taken
@@ -146,15 +148,14 @@ class DirectReplay:
             lsu_bags.bags.BagError: the bag is missing, corrupt, or holds neither images nor laser lines.
         """
         from rclpy.serialization import deserialize_message
-
-        from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
         from sensor_msgs.msg import CameraInfo
 
         from lsu_bags.bags import BagError
+        from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
 
         topics = bag_topics(bag)
-        images = {t: _side(t, "image_raw") for t in topics if _side(t, "image_raw")}
-        lines = {t: _side(t, "laser_line") for t in topics if _side(t, "laser_line")}
+        images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
+        lines = {t: side for t in topics if (side := _side(t, "laser_line")) is not None}
         if images:
             lines = {}  # the lines are made again from the images, as the live graph would
         elif not lines:
@@ -168,8 +169,8 @@ class DirectReplay:
         publishers = extractor.publishers_
         stats = ReplayStats()
         pairs_before = matcher.pairs
-        lines_of: Dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
-        reading: Dict[str, float] = {"read_s": 0.0}
+        lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
+        reading: dict[str, float] = {"read_s": 0.0}
         messages = _prefetched(read_messages(bag, [*images, *lines, *events, *calibration]), reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
@@ -184,25 +185,25 @@ class DirectReplay:
                 if line is not None:
                     if publishers[side].get_subscription_count():
                         publishers[side].publish(line)
-                    lines_of[line.header.stamp.sec * 1_000_000_000 + line.header.stamp.nanosec] += 1
+                    lines_of[stamps.to_ns(line.header.stamp)] += 1
                     matcher.on_line(side, line)
             elif m.topic in lines:
                 line = deserialize_message(m.data, LaserLine)
-                lines_of[line.header.stamp.sec * 1_000_000_000 + line.header.stamp.nanosec] += 1
+                lines_of[stamps.to_ns(line.header.stamp)] += 1
                 matcher.on_line(lines[m.topic], line)
             elif m.topic in events:
                 event = deserialize_message(m.data, ScanEvent)
                 stats.events += 1
                 if event.type == ScanEvent.SNAP:
                     stats.snap_events += 1
-                    key = event.image_stamp.sec * 1_000_000_000 + event.image_stamp.nanosec
+                    key = stamps.to_ns(event.image_stamp)
                     stats.snaps += lines_of[key] >= 2
                 extractor.on_event(event)
                 matcher.on_event(event)
             elif m.topic.endswith("extrinsics"):
                 matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
-            else:
-                matcher.on_info(_side(m.topic, "camera_info"), deserialize_message(m.data, CameraInfo))
+            elif (side := _side(m.topic, "camera_info")) is not None:
+                matcher.on_info(side, deserialize_message(m.data, CameraInfo))
             if time.monotonic() >= next_spin:
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
@@ -232,12 +233,13 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exi
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
     from lsu_bags.bags import BagError
+
     from .runner import build_nodes
 
     if not Path(bag).exists():
         raise FileNotFoundError(f"bag '{bag}' not found: give a bag folder (or its .mcap/.db3 file)")
     rclpy.init()
-    nodes: List[Any] = []
+    nodes: list[Any] = []
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
             nodes = build_nodes(description, Path(tmp), out=out)

@@ -10,16 +10,16 @@ import argparse
 import glob
 import importlib
 import importlib.metadata as metadata
-import os
 import ipaddress
+import os
 import platform
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, List, Mapping, Optional
 
 from lsu_scan.rosenv import DISCOVERY_VAR, DOMAIN_VAR, LOCALHOST, EnvReport
 
@@ -80,7 +80,7 @@ def _rclpy() -> Check:
     return Check("OK", "rmw", f"{rmw} (RMW_IMPLEMENTATION={os.environ.get('RMW_IMPLEMENTATION', 'unset')})")
 
 
-def _libraries() -> List[Check]:
+def _libraries() -> list[Check]:
     out = []
     for label, module in LIBRARIES:
         try:
@@ -93,7 +93,7 @@ def _libraries() -> List[Check]:
     return out
 
 
-def _env(report: Optional[EnvReport]) -> List[Check]:
+def _env(report: EnvReport | None) -> list[Check]:
     rng = os.environ.get(DISCOVERY_VAR, "")
     domain = os.environ.get(DOMAIN_VAR, "")
     by = " (set by lsu: it was unset)" if report and report.discovery_set_by_lsu else " (from your environment)"
@@ -117,7 +117,7 @@ _IFF_UP, _IFF_MULTICAST = 0x1, 0x1000
 _PROBE_PORT = 7400
 
 
-def local_addresses() -> Dict[str, str]:
+def local_addresses() -> dict[str, str]:
     """IPv4 address -> interface name of this machine (``ip -o -4 addr``)."""
     try:
         out = subprocess.run(["ip", "-o", "-4", "addr", "show"], capture_output=True, text=True, timeout=5).stdout
@@ -138,7 +138,7 @@ def _interface_flags(name: str) -> int:
         return 0
 
 
-def route_to(address: str) -> Optional[str]:
+def route_to(address: str) -> str | None:
     """The local IPv4 address the kernel would send from to reach ``address`` (nothing is sent)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         try:
@@ -148,7 +148,7 @@ def route_to(address: str) -> Optional[str]:
             return None
 
 
-def multi_host_checks(env: Mapping[str, str], report: Optional[EnvReport] = None) -> List[Check]:
+def multi_host_checks(env: Mapping[str, str], report: EnvReport | None = None) -> list[Check]:
     """Settings a graph spread over two PCs needs (README "Rig PC and processing PC").
 
     On LOCALHOST without peers this is a single line; otherwise: the domain id chosen explicitly
@@ -160,7 +160,7 @@ def multi_host_checks(env: Mapping[str, str], report: Optional[EnvReport] = None
     if rng == LOCALHOST and not peers:
         return [Check("OK", "multi-host", "off: DDS stays on this machine (LOCALHOST, no ROS_STATIC_PEERS); "
                       "README 'Rig PC and processing PC' says what to set for two PCs")]
-    checks: List[Check] = []
+    checks: list[Check] = []
     if rng == "OFF":
         checks.append(Check("FAIL", "multi-host discovery", f"{DISCOVERY_VAR}=OFF finds no node, not even the "
                             "static peers; use SUBNET"))
@@ -184,7 +184,7 @@ def multi_host_checks(env: Mapping[str, str], report: Optional[EnvReport] = None
     addresses = local_addresses()
     for peer in peers:
         try:
-            target = socket.getaddrinfo(peer, None, socket.AF_INET)[0][4][0]
+            target = str(socket.getaddrinfo(peer, None, socket.AF_INET)[0][4][0])
         except (socket.gaierror, IndexError):
             checks.append(Check("FAIL", "multi-host peer", f"{peer} does not resolve to an IPv4 address; write "
                                 f"the other PC's address in {PEERS_VAR}"))
@@ -218,7 +218,7 @@ def multi_host_checks(env: Mapping[str, str], report: Optional[EnvReport] = None
     return checks
 
 
-def _devices() -> List[Check]:
+def _devices() -> list[Check]:
     ports = sorted(glob.glob("/dev/ttyUSB*") + glob.glob("/dev/ttyACM*"))
     videos = sorted(glob.glob("/dev/video*"))
     return [
@@ -260,7 +260,7 @@ def _graph_selftest(timeout_s: float) -> Check:
     return Check("OK", "graph", f"topic + service round trip in one process ({listener.received} messages)")
 
 
-def run_checks(report: Optional[EnvReport], graph: bool) -> List[Check]:
+def run_checks(report: EnvReport | None, graph: bool) -> list[Check]:
     """All checks, in the order they are printed."""
     checks = [Check("OK", "python", f"{platform.python_version()} at {sys.executable}")]
     checks += _env(report)
@@ -287,7 +287,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `doctor` to the `lsu` parser (``lsu.commands`` entry point)."""
     p = sub.add_parser("doctor", help="check the installation, ROS environment and devices")
     p.add_argument("--graph", action="store_true", help="also run a talker/listener exchange through DDS")

@@ -12,7 +12,8 @@ import re
 import statistics
 import sys
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import yaml
 
@@ -51,7 +52,7 @@ class GraphClient:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
 
-    def __enter__(self) -> "GraphClient":
+    def __enter__(self) -> GraphClient:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -74,7 +75,7 @@ class GraphClient:
             self.executor.spin_once(timeout_sec=0.05)
         return True
 
-    def graph_snapshot(self) -> Tuple[Any, ...]:
+    def graph_snapshot(self) -> tuple[Any, ...]:
         """Every node, topic, service and endpoint count this node sees now (hashable)."""
         n = self.node
         topics = tuple(sorted((name, tuple(types)) for name, types in n.get_topic_names_and_types()))
@@ -107,9 +108,9 @@ class GraphClient:
                 seen, last_change = current, time.monotonic()
         return time.monotonic() - start
 
-    def wait_for_type(self, name: str, lister: Callable[[], List[Tuple[str, List[str]]]],
+    def wait_for_type(self, name: str, lister: Callable[[], list[tuple[str, list[str]]]],
                       timeout_s: float, what: str) -> str:
-        found: Dict[str, List[str]] = {}
+        found: dict[str, list[str]] = {}
 
         def seen() -> bool:
             found.update(dict(lister()))
@@ -245,7 +246,7 @@ def cmd_topic_hz(args: argparse.Namespace) -> int:
     topic = _abs(args.topic)
     with GraphClient() as g:
         type_name = g.wait_for_type(topic, g.node.get_topic_names_and_types, args.timeout, "topic")
-        stamps: List[float] = []
+        stamps: list[float] = []
         g.node.create_subscription(get_interface(type_name, "msg"), topic,
                                    lambda _m: stamps.append(time.monotonic()), _subscription_qos(g, topic))
         end = time.monotonic() + args.duration if args.duration else math.inf
@@ -347,10 +348,11 @@ def _value_to_python(value: Any) -> Any:
     from rclpy.parameter import parameter_value_to_python
 
     result = parameter_value_to_python(value)
-    return list(result) if isinstance(result, (tuple, array_types())) else result
+    # array.array and ndarray are iterable; mypy cannot tell from the tuple built at run time
+    return list(result) if isinstance(result, (tuple, array_types())) else result  # type: ignore[call-overload]
 
 
-def array_types() -> Tuple[type, ...]:
+def array_types() -> tuple[type, ...]:
     import array
 
     import numpy as np
@@ -358,7 +360,7 @@ def array_types() -> Tuple[type, ...]:
     return (array.array, np.ndarray)
 
 
-def _get(g: GraphClient, node: str, names: List[str], timeout_s: float) -> Dict[str, Any]:
+def _get(g: GraphClient, node: str, names: list[str], timeout_s: float) -> dict[str, Any]:
     from rcl_interfaces.msg import ParameterType
     from rcl_interfaces.srv import GetParameters
 
@@ -366,7 +368,7 @@ def _get(g: GraphClient, node: str, names: List[str], timeout_s: float) -> Dict[
     values = list(result.values)
     if len(values) != len(names):  # rclpy answers an unknown name with an empty list
         values = [None] * len(names)
-    out: Dict[str, Any] = {}
+    out: dict[str, Any] = {}
     for name, value in zip(names, values):
         if value is None or value.type == ParameterType.PARAMETER_NOT_SET:
             raise GraphError(f"node '{_abs(node)}' has no parameter '{name}' (`lsu param list {node}`)")
@@ -374,7 +376,7 @@ def _get(g: GraphClient, node: str, names: List[str], timeout_s: float) -> Dict[
     return out
 
 
-def _list(g: GraphClient, node: str, timeout_s: float) -> List[str]:
+def _list(g: GraphClient, node: str, timeout_s: float) -> list[str]:
     from rcl_interfaces.srv import ListParameters
 
     return sorted(_param_call(g, node, "list_parameters", ListParameters.Request(), timeout_s).result.names)
@@ -423,7 +425,7 @@ def cmd_param_dump(args: argparse.Namespace) -> int:
         values = _get(g, node, names, args.timeout) if names else {}
         described = _param_call(g, node, "describe_parameters", DescribeParameters.Request(names=names),
                                 args.timeout).descriptors
-    params: Dict[str, Any] = {}
+    params: dict[str, Any] = {}
     for name in names:
         cursor = params
         *parents, leaf = name.split(".")
@@ -449,7 +451,7 @@ def cmd_param_dump(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- registration
-def register(sub: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `node`, `topic`, `service` and `param` to the `lsu` parser."""
     def wait_opt(p: argparse.ArgumentParser, default: float = DISCOVERY_MAX_S) -> None:
         p.add_argument("--wait", type=float, default=default, metavar="S",

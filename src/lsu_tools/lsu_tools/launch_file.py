@@ -38,9 +38,10 @@ import json
 import os
 import re
 import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+from typing import Any
 from urllib.parse import urlparse
 from urllib.request import url2pathname
 
@@ -55,7 +56,7 @@ _FALSE = {"false", "0", "no", "off", ""}
 class LaunchError(Exception):
     """A launch file cannot be used; ``str()`` is one line: ``FILE:LINE: KEY: what is wrong``."""
 
-    def __init__(self, file: Path | str, line: Optional[int], key: str, message: str) -> None:
+    def __init__(self, file: Path | str, line: int | None, key: str, message: str) -> None:
         self.file = str(file)
         self.line = line
         self.key = key
@@ -70,16 +71,16 @@ class NodeSpec:
 
     package: str
     executable: str
-    name: Optional[str] = None
-    namespace: Optional[str] = None
-    params: Dict[str, Any] = field(default_factory=dict)
-    param_files: List[Path] = field(default_factory=list)
-    remaps: List[Tuple[str, str]] = field(default_factory=list)
+    name: str | None = None
+    namespace: str | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    param_files: list[Path] = field(default_factory=list)
+    remaps: list[tuple[str, str]] = field(default_factory=list)
     respawn: bool = False
     respawn_delay_s: float = 0.0
     required: bool = False
-    args: List[str] = field(default_factory=list)
-    env: Dict[str, str] = field(default_factory=dict)
+    args: list[str] = field(default_factory=list)
+    env: dict[str, str] = field(default_factory=dict)
     source: str = ""
 
     @property
@@ -87,7 +88,7 @@ class NodeSpec:
         """Name used to prefix log lines: the node name, else the executable."""
         return self.name or self.executable
 
-    def ros_args(self, inline_params_file: Optional[Path] = None) -> List[str]:
+    def ros_args(self, inline_params_file: Path | None = None) -> list[str]:
         """The ``--ros-args ...`` list that gives this node its name, namespace, params and remaps."""
         out = ["--ros-args"]
         if self.name:
@@ -112,8 +113,8 @@ class LaunchDescription:
     """What a launch file asks for: the resolved arguments and the nodes to start."""
 
     file: Path
-    arguments: Dict[str, str]
-    nodes: List[NodeSpec]
+    arguments: dict[str, str]
+    nodes: list[NodeSpec]
 
 
 ExecResolver = Callable[[str, str], object]
@@ -151,28 +152,28 @@ def _find_pkg_share(package: str) -> Path:
 class _Reader:
     """Walks the composed YAML node tree so every error keeps its line number."""
 
-    def __init__(self, path: Path, arguments: Dict[str, str], resolve_exec: Optional[ExecResolver],
+    def __init__(self, path: Path, arguments: dict[str, str], resolve_exec: ExecResolver | None,
                  depth: int = 0) -> None:
         self.path = path
         self.dir = path.parent.resolve()  # $(dirname) must not be re-joined to a relative base
         self.given = dict(arguments)
-        self.arguments: Dict[str, str] = {}
+        self.arguments: dict[str, str] = {}
         self.resolve_exec = resolve_exec
         self.depth = depth
         self._loader = yaml.SafeLoader("")
 
     # -- helpers -----------------------------------------------------------------------------
-    def error(self, node: Optional[Node], key: str, message: str) -> LaunchError:
+    def error(self, node: Node | None, key: str, message: str) -> LaunchError:
         line = node.start_mark.line + 1 if node is not None else None
         return LaunchError(self.path, line, key, message)
 
     def value(self, node: Node) -> Any:
         return self._loader.construct_object(node, deep=True)
 
-    def mapping(self, node: Node, key: str, allowed: Tuple[str, ...]) -> Dict[str, Tuple[Node, Node]]:
+    def mapping(self, node: Node, key: str, allowed: tuple[str, ...]) -> dict[str, tuple[Node, Node]]:
         if not isinstance(node, MappingNode):
             raise self.error(node, key, f"expected a mapping with keys {', '.join(allowed)}")
-        out: Dict[str, Tuple[Node, Node]] = {}
+        out: dict[str, tuple[Node, Node]] = {}
         for k_node, v_node in node.value:
             k = str(self.value(k_node))
             if k not in allowed:
@@ -180,13 +181,13 @@ class _Reader:
             out[k] = (k_node, v_node)
         return out
 
-    def sequence(self, node: Node, key: str) -> List[Node]:
+    def sequence(self, node: Node, key: str) -> list[Node]:
         if not isinstance(node, SequenceNode):
             raise self.error(node, key, "expected a list (items starting with '- ')")
         return list(node.value)
 
     def subst(self, node: Node, key: str, text: str) -> str:
-        def one(match: "re.Match[str]") -> str:
+        def one(match: re.Match[str]) -> str:
             parts = match.group(1).split()
             if not parts:
                 raise self.error(node, key, "empty substitution '$()'")
@@ -259,7 +260,7 @@ class _Reader:
         return raw
 
     # -- entities ----------------------------------------------------------------------------
-    def enabled(self, fields: Dict[str, Tuple[Node, Node]], key: str) -> bool:
+    def enabled(self, fields: dict[str, tuple[Node, Node]], key: str) -> bool:
         if "if" in fields and not self.flag(fields["if"][1], f"{key}.if"):
             return False
         if "unless" in fields and self.flag(fields["unless"][1], f"{key}.unless"):
@@ -272,7 +273,7 @@ class _Reader:
             raise LaunchError(self.path, 1, "launch", "the file must start with 'launch:' followed by a list "
                               f"(and hold nothing else; found: {', '.join(keys) or 'no mapping'})")
         top = self.mapping(root, "launch", ("launch",))
-        nodes: List[NodeSpec] = []
+        nodes: list[NodeSpec] = []
         for item in self.sequence(top["launch"][1], "launch"):
             if not isinstance(item, MappingNode) or len(item.value) != 1:
                 raise self.error(item, "launch", "each item must be exactly one of: arg, node, include")
@@ -307,7 +308,7 @@ class _Reader:
         else:
             raise self.error(body, f"arg {name}", f"required launch argument has no default: pass {name}:=VALUE")
 
-    def read_node(self, body: Node) -> Optional[NodeSpec]:
+    def read_node(self, body: Node) -> NodeSpec | None:
         allowed = ("pkg", "exec", "name", "namespace", "ns", "param", "remap", "respawn", "respawn_delay",
                    "required", "on_exit", "output", "args", "env", "if", "unless")
         fields = self.mapping(body, "node", allowed)
@@ -388,7 +389,7 @@ class _Reader:
             raise self.error(fields["value"][1], f"{key}.param {name}", "nested values: use a parameter file")
         spec.params[name] = value
 
-    def read_include(self, body: Node) -> List[NodeSpec]:
+    def read_include(self, body: Node) -> list[NodeSpec]:
         fields = self.mapping(body, "include", ("file", "arg", "if", "unless"))
         if not self.enabled(fields, "include"):
             return []
@@ -409,8 +410,8 @@ class _Reader:
         return load_launch(path, passed, self.resolve_exec, depth=self.depth + 1).nodes
 
 
-def load_launch(path: Path | str, arguments: Optional[Mapping[str, str]] = None,
-                resolve_exec: Optional[ExecResolver] = None, depth: int = 0) -> LaunchDescription:
+def load_launch(path: Path | str, arguments: Mapping[str, str] | None = None,
+                resolve_exec: ExecResolver | None = None, depth: int = 0) -> LaunchDescription:
     """Read a YAML launch file.
 
     Args:
@@ -440,9 +441,9 @@ def load_launch(path: Path | str, arguments: Optional[Mapping[str, str]] = None,
     return _Reader(path, dict(arguments or {}), resolve_exec, depth).read(root)
 
 
-def parse_cli_arguments(items: List[str]) -> Dict[str, str]:
+def parse_cli_arguments(items: list[str]) -> dict[str, str]:
     """``["a:=1", "b:=x"]`` -> ``{"a": "1", "b": "x"}``; raises ValueError for another form."""
-    out: Dict[str, str] = {}
+    out: dict[str, str] = {}
     for item in items:
         if ":=" not in item:
             raise ValueError(f"launch arguments are written name:=value, got '{item}'")
@@ -451,7 +452,7 @@ def parse_cli_arguments(items: List[str]) -> Dict[str, str]:
     return out
 
 
-def load_groups(path: Path | str) -> Dict[str, List[str]]:
+def load_groups(path: Path | str) -> dict[str, list[str]]:
     """``group -> node names`` from a groups file (a YAML mapping of lists); LaunchError when malformed."""
     path = Path(path)
     if not path.is_file():
@@ -467,8 +468,8 @@ def load_groups(path: Path | str) -> Dict[str, List[str]]:
     return {str(k): list(v) for k, v in data.items()}
 
 
-def select_nodes(description: LaunchDescription, groups: List[str], exclude: List[str],
-                 known_groups: Mapping[str, List[str]]) -> LaunchDescription:
+def select_nodes(description: LaunchDescription, groups: list[str], exclude: list[str],
+                 known_groups: Mapping[str, list[str]]) -> LaunchDescription:
     """The nodes of ``groups`` (group or node names; empty: all) less those named in ``exclude``.
 
     Raises:
@@ -476,7 +477,7 @@ def select_nodes(description: LaunchDescription, groups: List[str], exclude: Lis
     """
     labels = [n.label for n in description.nodes]
 
-    def expand(names: List[str], what: str) -> set:
+    def expand(names: list[str], what: str) -> set:
         out: set = set()
         for name in names:
             if name in labels:

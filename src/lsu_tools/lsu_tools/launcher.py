@@ -18,7 +18,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, List, Optional, TextIO
+from typing import IO, TextIO
 
 from .launch_file import LaunchDescription, NodeSpec
 from .nodes_index import resolve_executable
@@ -35,14 +35,14 @@ def _die_with_parent() -> None:
 @dataclass
 class _Child:
     spec: NodeSpec
-    command: List[str]
-    process: Optional[subprocess.Popen] = None
-    reader: Optional[threading.Thread] = None
-    restart_at: Optional[float] = None
+    command: list[str]
+    process: subprocess.Popen | None = None
+    reader: threading.Thread | None = None
+    restart_at: float | None = None
     starts: int = 0
-    exit_code: Optional[int] = None
+    exit_code: int | None = None
     stopping: bool = False
-    log: List[str] = field(default_factory=list)
+    log: list[str] = field(default_factory=list)
 
 
 class Launcher:
@@ -59,7 +59,7 @@ class Launcher:
         self._shutdown = threading.Event()
         self._reason = ""
         self._failed = False
-        self.children: List[_Child] = []
+        self.children: list[_Child] = []
         for index, spec in enumerate(description.nodes):
             exe = resolve_executable(spec.package, spec.executable)
             inline = None
@@ -115,7 +115,7 @@ class Launcher:
                 except ProcessLookupError:
                     pass
 
-    def _alive(self) -> List[_Child]:
+    def _alive(self) -> list[_Child]:
         return [c for c in self.children if c.process is not None and c.process.poll() is None]
 
     def _stop_all(self) -> None:
@@ -136,7 +136,7 @@ class Launcher:
                 child.reader.join(timeout=1.0)
         left = self._alive()
         if left:
-            self.say(f"could not stop: {', '.join(f'{c.spec.label} pid {c.process.pid}' for c in left)}")
+            self.say(f"could not stop: {', '.join(f'{c.spec.label} pid {c.process.pid}' for c in left if c.process)}")
         else:
             self.say("all nodes stopped")
 

@@ -11,27 +11,26 @@ import importlib.metadata as metadata
 import shutil
 import sys
 from pathlib import Path
-from typing import Dict, List, Optional
 
 NODE_GROUP = "lsu.nodes"
 COMMAND_GROUP = "lsu.commands"
 
 
-def _distribution(package: str) -> Optional[metadata.Distribution]:
+def _distribution(package: str) -> metadata.Distribution | None:
     try:
         return metadata.distribution(package)
     except metadata.PackageNotFoundError:
         return None
 
 
-def _entry_points(package: str, group: str) -> Dict[str, metadata.EntryPoint]:
+def _entry_points(package: str, group: str) -> dict[str, metadata.EntryPoint]:
     dist = _distribution(package)
     if dist is None:
         return {}
     return {ep.name: ep for ep in dist.entry_points if ep.group == group}
 
 
-def known_packages() -> List[str]:
+def known_packages() -> list[str]:
     """Installed distributions that provide nodes or executables, named like ROS packages."""
     names = set()
     for dist in metadata.distributions():
@@ -42,7 +41,7 @@ def known_packages() -> List[str]:
     return sorted(names)
 
 
-def executables(package: str) -> List[str]:
+def executables(package: str) -> list[str]:
     """Executable names of ``package`` (empty when the package is not installed)."""
     return sorted(_entry_points(package, "console_scripts"))
 
@@ -90,6 +89,6 @@ def node_class(package: str, executable: str) -> type:
     return eps[executable].load()
 
 
-def command_plugins() -> List[metadata.EntryPoint]:
+def command_plugins() -> list[metadata.EntryPoint]:
     """`lsu` subcommands contributed by other packages (group ``lsu.commands``)."""
     return sorted(metadata.entry_points(group=COMMAND_GROUP), key=lambda ep: ep.name)

@@ -13,8 +13,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Dict, List, Mapping, Optional, Sequence
 
 LSU = str(Path(sys.executable).parent / "lsu")
 
@@ -38,12 +38,12 @@ class ProcessWaitError(AssertionError):
 class LaunchedProcess:
     """A running `lsu ...` subprocess whose output is collected in the background."""
 
-    def __init__(self, args: List[str], cwd: Optional[str] = None, prefix: Sequence[str] = (),
-                 env: Optional[Mapping[str, str]] = None) -> None:
+    def __init__(self, args: list[str], cwd: str | None = None, prefix: Sequence[str] = (),
+                 env: Mapping[str, str] | None = None) -> None:
         """``prefix``: a command that execs `lsu` (``ip netns exec NS``), so the pid stays `lsu`'s;
         ``env``: the whole environment (default: this process's)."""
         self.args = args
-        self.lines: List[str] = []
+        self.lines: list[str] = []
         self._lock = threading.Lock()
         self.process = subprocess.Popen([*prefix, LSU, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                         stdin=subprocess.DEVNULL, text=True, cwd=cwd, start_new_session=True,
@@ -62,11 +62,11 @@ class LaunchedProcess:
         with self._lock:
             return "\n".join(self.lines)
 
-    def started_pids(self) -> Dict[str, int]:
+    def started_pids(self) -> dict[str, int]:
         """Node label -> pid from `lsu launch`'s "started X (...) pid N" lines (a respawn: the latest pid)."""
         return {m.group(1): int(m.group(2)) for m in re.finditer(r"started (\S+) \(.*\) pid (\d+)", self.output)}
 
-    def wait_for_line(self, pattern: str, timeout_s: float = 20.0) -> "re.Match[str]":
+    def wait_for_line(self, pattern: str, timeout_s: float = 20.0) -> re.Match[str]:
         """Wait for an output line matching ``pattern``; raises ProcessWaitError with the output so far."""
         regex = re.compile(pattern)
         end = time.monotonic() + timeout_s

@@ -10,20 +10,20 @@ from __future__ import annotations
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, List, Optional, TextIO
+from typing import Any, TextIO
 
 from .launch_file import LaunchDescription
 from .nodes_index import node_class
 
 
-def build_nodes(description: LaunchDescription, param_dir: Path, context: Optional[Any] = None,
-                out: TextIO = sys.stdout) -> List[Any]:
+def build_nodes(description: LaunchDescription, param_dir: Path, context: Any | None = None,
+                out: TextIO = sys.stdout) -> list[Any]:
     """Instantiate every node of ``description`` in this process (rclpy must be initialised).
 
     Raises:
         LookupError: a node has no in-process entry point.
     """
-    nodes: List[Any] = []
+    nodes: list[Any] = []
     try:
         for index, spec in enumerate(description.nodes):
             cls = node_class(spec.package, spec.executable)
@@ -57,7 +57,7 @@ def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, exe
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 
     rclpy.init()
-    nodes: List[Any] = []
+    nodes: list[Any] = []
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
             nodes = build_nodes(description, Path(tmp), out=out)

@@ -11,7 +11,7 @@ lsu_interfaces message crosses the graph through a topic and a service in both d
 from __future__ import annotations
 
 import sys
-from typing import Any, List, Optional
+from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
@@ -71,7 +71,7 @@ class SelftestListener(Node):
         self.echo = self.create_publisher(ScannerState, "selftest/echo", 10)
         self.sub = self.create_subscription(ScannerState, "selftest/state", self.on_state, 10)
         self.step = self.create_client(Step, "selftest/step")
-        self._pending: Optional[Any] = None
+        self._pending: Any | None = None
 
     def on_state(self, msg: ScannerState) -> None:
         self.received += 1
@@ -84,15 +84,15 @@ class SelftestListener(Node):
                 self._pending = self.step.call_async(request)
 
 
-def _main(node_class: type, args: Optional[List[str]]) -> int:
+def _main(node_class: type, args: list[str] | None) -> int:
     return run_node(node_class, args)
 
 
-def talker_main(args: Optional[List[str]] = None) -> int:
+def talker_main(args: list[str] | None = None) -> int:
     """Console script ``selftest_talker``."""
     return _main(SelftestTalker, sys.argv if args is None else args)
 
 
-def listener_main(args: Optional[List[str]] = None) -> int:
+def listener_main(args: list[str] | None = None) -> int:
     """Console script ``selftest_listener``."""
     return _main(SelftestListener, sys.argv if args is None else args)

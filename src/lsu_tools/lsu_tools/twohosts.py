@@ -16,8 +16,8 @@ import os
 import re
 import shutil
 import subprocess
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Dict, List, Mapping, Optional, Sequence
 
 from lsu_scan.rosenv import DISCOVERY_VAR
 
@@ -39,7 +39,7 @@ def _ip(*args: str) -> None:
         raise NamespaceError(f"`ip {' '.join(args)}` failed: {done.stderr.strip() or done.returncode}")
 
 
-def why_unavailable() -> Optional[str]:
+def why_unavailable() -> str | None:
     """None when network namespaces can be made here, else the reason (for a skip message)."""
     if shutil.which("ip") is None:
         return "iproute2 (`ip`) is not installed"
@@ -60,14 +60,14 @@ def why_unavailable() -> Optional[str]:
 class TwoHosts:
     """The rig and processing namespaces, their veth pair and addresses; a context manager."""
 
-    def __init__(self, tag: Optional[str] = None) -> None:
+    def __init__(self, tag: str | None = None) -> None:
         tag = tag or str(os.getpid() % 1_000_000)
         self.namespaces = {"rig": f"lsu-rig-{tag}", "processing": f"lsu-proc-{tag}"}
         self.interfaces = {"rig": f"lsur{tag}"[:15], "processing": f"lsup{tag}"[:15]}
         self.addresses = dict(ADDRESSES)
-        self._made: List[str] = []
+        self._made: list[str] = []
 
-    def create(self) -> "TwoHosts":
+    def create(self) -> TwoHosts:
         """Make both namespaces, the veth pair between them, addresses, and bring the links up."""
         try:
             for host in HOSTS:
@@ -96,7 +96,7 @@ class TwoHosts:
             except NamespaceError:
                 pass
 
-    def __enter__(self) -> "TwoHosts":
+    def __enter__(self) -> TwoHosts:
         return self.create()
 
     def __exit__(self, *exc: object) -> None:
@@ -105,11 +105,11 @@ class TwoHosts:
     def other(self, host: str) -> str:
         return HOSTS[1 - HOSTS.index(host)]
 
-    def prefix(self, host: str) -> List[str]:
+    def prefix(self, host: str) -> list[str]:
         """Command prefix that runs a program on ``host`` (it execs it: the pid is the program's)."""
         return ["ip", "netns", "exec", self.namespaces[host]]
 
-    def env(self, host: str, base: Optional[Mapping[str, str]] = None) -> Dict[str, str]:
+    def env(self, host: str, base: Mapping[str, str] | None = None) -> dict[str, str]:
         """The environment of an LSU process on ``host``: what README "Rig PC and processing PC" says to set."""
         env = dict(os.environ if base is None else base)
         env[DISCOVERY_VAR] = "SUBNET"
@@ -119,7 +119,7 @@ class TwoHosts:
         return env
 
 
-def split_scan(out: Path, hosts: Optional[TwoHosts], groups: Sequence[str] = ("rig", "processing"),
+def split_scan(out: Path, hosts: TwoHosts | None, groups: Sequence[str] = ("rig", "processing"),
                scan_args: Sequence[str] = (), launch_args: Sequence[str] = (), record: bool = True,
                timeout_s: float = 600.0) -> Path:
     """Run the sim graph as two `lsu launch sim --group G` processes and one `lsu scan`; returns the scan folder.
@@ -133,10 +133,10 @@ def split_scan(out: Path, hosts: Optional[TwoHosts], groups: Sequence[str] = ("r
     out.mkdir(parents=True, exist_ok=True)
     common = ["launch", "sim", f"port:={out}/gp32", f"output_dir:={out}/scans", *launch_args]
 
-    def where(host: str) -> Dict[str, object]:
+    def where(host: str) -> dict[str, object]:
         return {"prefix": hosts.prefix(host), "env": hosts.env(host)} if hosts else {}
 
-    started: List[LaunchedProcess] = []
+    started: list[LaunchedProcess] = []
     try:
         rig = LaunchedProcess([*common, "--group", groups[0]], **where("rig"))  # type: ignore[arg-type]
         started.append(rig)

@@ -1,7 +1,7 @@
 """`lsu doctor`'s multi-host checks on settings given as data (no traffic: routes are asked of the kernel)."""
 
-from lsu_tools.doctor import multi_host_checks
 from lsu_scan.rosenv import EnvReport
+from lsu_tools.doctor import multi_host_checks
 
 
 def by_name(checks):

@@ -12,8 +12,8 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence
 
 from lsu_bags.bags import BagTypes
 
@@ -34,7 +34,7 @@ class TopicOffer:
     kind: str  # "latched" | "image" | "stream"
 
 
-def ros2msg_schema(msgtype: str, types: BagTypes, topic: Optional[str] = None) -> str:
+def ros2msg_schema(msgtype: str, types: BagTypes, topic: str | None = None) -> str:
     """The ``ros2msg`` text of ``msgtype`` with every type it uses (rosbag2's mcap format).
 
     Raises:
@@ -66,7 +66,7 @@ class RateLimiter:
 
     def __init__(self, max_hz: float) -> None:
         self._lock = threading.Lock()
-        self._last: Dict[str, float] = {}
+        self._last: dict[str, float] = {}
         self.max_hz = max_hz
 
     @property

@@ -28,7 +28,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     return run_node(make, [], on_started=started)
 
 
-def register(sub: "argparse._SubParsersAction[Any]") -> None:
+def register(sub: argparse._SubParsersAction[Any]) -> None:
     """Add `view` to the `lsu` parser."""
     p = sub.add_parser("view", help="live view: a Foxglove WebSocket server offering the graph's topics",
                        description="Start the foxglove_bridge node: every topic of the graph (images, laser lines, "

@@ -21,7 +21,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
-from typing import Any, Dict, List, Optional, Set
+from typing import Any
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -42,7 +42,7 @@ STREAM_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=Re
 
 
 # The server is started once with these (read-only); image_max_hz takes effect when set.
-PARAMETERS: Dict[str, Param] = {
+PARAMETERS: dict[str, Param] = {
     "host": Param("127.0.0.1", "address the WebSocket server listens on; 127.0.0.1 = this machine only, 0.0.0.0 = "
                   "every interface (anyone who reaches this PC sees the scan)", read_only=True),
     "port": Param(8765, "WebSocket port (0: any free port, printed at start)", (0, 65535), read_only=True),
@@ -58,7 +58,7 @@ class _Listener:
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
-        self.subscribers: Dict[int, Set[int]] = {}  # channel id -> client ids
+        self.subscribers: dict[int, set[int]] = {}  # channel id -> client ids
         self.changed = threading.Event()
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
@@ -71,7 +71,7 @@ class _Listener:
             self.subscribers.get(channel.id, set()).discard(client.id)
         self.changed.set()
 
-    def watched(self) -> Set[int]:
+    def watched(self) -> set[int]:
         with self.lock:
             return {cid for cid, clients in self.subscribers.items() if clients}
 
@@ -88,11 +88,11 @@ class FoxgloveBridgeNode(Node):
         self._image_limiter = RateLimiter(5.0)
         declare_parameters(self, PARAMETERS, apply=self._apply_parameters)
         self._bag_types = BagTypes()
-        self._fx_offers: Dict[str, TopicOffer] = {}
-        self._fx_channels: Dict[str, Any] = {}  # topic -> foxglove Channel
-        self._fx_topic_of: Dict[int, str] = {}  # channel id -> topic
-        self._ros_subs: Dict[str, Any] = {}  # topic -> rclpy subscription (only while watched)
-        self._skipped_topics: Set[str] = set()
+        self._fx_offers: dict[str, TopicOffer] = {}
+        self._fx_channels: dict[str, Any] = {}  # topic -> foxglove Channel
+        self._fx_topic_of: dict[int, str] = {}  # channel id -> topic
+        self._ros_subs: dict[str, Any] = {}  # topic -> rclpy subscription (only while watched)
+        self._skipped_topics: set[str] = set()
         self._fx_listener = _Listener()
         self._fx_context = Context()
         host = str(self.get_parameter("host").value)
@@ -115,14 +115,14 @@ class FoxgloveBridgeNode(Node):
         self.poll_graph()
 
     # -- parameters ------------------------------------------------------------------------------
-    def _apply_parameters(self, params: List[Any]) -> None:
+    def _apply_parameters(self, params: list[Any]) -> None:
         for p in params:
             if p.name == "image_max_hz":
                 self._image_limiter.max_hz = float(p.value)  # the descriptor's range already refused < 0
 
     # -- graph -> channels -----------------------------------------------------------------------
     @property
-    def offers(self) -> Dict[str, TopicOffer]:
+    def offers(self) -> dict[str, TopicOffer]:
         """Topic -> what is advertised for it."""
         return dict(self._fx_offers)
 
@@ -184,7 +184,7 @@ class FoxgloveBridgeNode(Node):
         limiter = self._image_limiter if offer.kind == "image" else None
         topic = offer.topic
 
-        def on_message(data: bytes, info: Dict[str, Any]) -> None:
+        def on_message(data: bytes, info: dict[str, Any]) -> None:
             if limiter is not None and not limiter.allow(topic, time.monotonic()):
                 return
             channel.log(data, log_time=int(info.get("received_timestamp") or 0) or time.time_ns())
@@ -192,12 +192,12 @@ class FoxgloveBridgeNode(Node):
         return on_message
 
     @property
-    def watched_topics(self) -> List[str]:
+    def watched_topics(self) -> list[str]:
         """Topics the bridge is subscribed to right now (a client watches them)."""
         return sorted(self._ros_subs)
 
     def destroy_node(self) -> None:
-        server: Optional[Any] = getattr(self, "server", None)
+        server: Any | None = getattr(self, "server", None)
         if server is not None:
             server.stop()
         super().destroy_node()

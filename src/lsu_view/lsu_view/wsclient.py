@@ -22,8 +22,9 @@ import queue
 import struct
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Optional, Tuple
+from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
@@ -55,15 +56,15 @@ class FoxgloveClient:
 
     def __init__(self, url: str, open_timeout_s: float = 10.0, max_queue: int = 10000) -> None:
         self.url = url
-        self.server_info: Dict[str, object] = {}
-        self.channels: Dict[int, AdvertisedChannel] = {}
+        self.server_info: dict[str, object] = {}
+        self.channels: dict[int, AdvertisedChannel] = {}
         self.bytes_received = 0
         self.messages_received = 0
-        self._subscriptions: Dict[int, int] = {}  # subscription id -> channel id
+        self._subscriptions: dict[int, int] = {}  # subscription id -> channel id
         self._next_sub = 1
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
-        self._queue: "queue.Queue[Tuple[str, int, bytes]]" = queue.Queue(maxsize=max_queue)
+        self._queue: queue.Queue[tuple[str, int, bytes]] = queue.Queue(maxsize=max_queue)
         self._connector = connect(url, subprotocols=list(SUBPROTOCOLS), open_timeout=open_timeout_s, max_size=None)
         self._ws: ClientConnection = self._connector.__enter__()
         if self._ws.subprotocol not in SUBPROTOCOLS:
@@ -73,7 +74,7 @@ class FoxgloveClient:
         self._reader = threading.Thread(target=self._read, name="foxglove-client", daemon=True)
         self._reader.start()
 
-    def __enter__(self) -> "FoxgloveClient":
+    def __enter__(self) -> FoxgloveClient:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -90,18 +91,18 @@ class FoxgloveClient:
         except ConnectionClosed:
             pass
 
-    def _on_text(self, msg: Dict[str, object]) -> None:
+    def _on_text(self, msg: dict[str, Any]) -> None:
         op = msg.get("op")
         with self._changed:
             if op == "serverInfo":
                 self.server_info = msg
             elif op == "advertise":
-                for ch in msg["channels"]:  # type: ignore[union-attr]
+                for ch in msg["channels"]:
                     self.channels[int(ch["id"])] = AdvertisedChannel(
                         int(ch["id"]), ch["topic"], ch["encoding"], ch["schemaName"], ch.get("schema", ""),
                         ch.get("schemaEncoding", ""))
             elif op == "unadvertise":
-                for cid in msg["channelIds"]:  # type: ignore[union-attr]
+                for cid in msg["channelIds"]:
                     self.channels.pop(int(cid), None)
             self._changed.notify_all()
 
@@ -122,7 +123,7 @@ class FoxgloveClient:
                 pass  # a test that stopped reading: keep the connection alive, drop the data
 
     # -- requests ----------------------------------------------------------------------------------
-    def wait_for_topics(self, topics: Iterable[str], timeout_s: float = 20.0) -> Dict[str, AdvertisedChannel]:
+    def wait_for_topics(self, topics: Iterable[str], timeout_s: float = 20.0) -> dict[str, AdvertisedChannel]:
         """Wait until every topic is advertised; returns topic -> channel."""
         wanted = set(topics)
         end = time.monotonic() + timeout_s
@@ -137,7 +138,7 @@ class FoxgloveClient:
                                         f"{timeout_s:g} s (advertised: {sorted(have)})")
                 self._changed.wait(left)
 
-    def subscribe(self, topics: Iterable[str]) -> List[int]:
+    def subscribe(self, topics: Iterable[str]) -> list[int]:
         """Subscribe to advertised topics; returns the subscription ids."""
         with self._lock:
             by_topic = {c.topic: c.id for c in self.channels.values()}
@@ -151,7 +152,7 @@ class FoxgloveClient:
         self._ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
         return [s["id"] for s in subs]
 
-    def next_message(self, timeout_s: float = 10.0, topic: Optional[str] = None) -> Tuple[str, int, bytes]:
+    def next_message(self, timeout_s: float = 10.0, topic: str | None = None) -> tuple[str, int, bytes]:
         """The next received ``(topic, receive time ns, CDR payload)`` (of ``topic`` if given)."""
         end = time.monotonic() + timeout_s
         while True:

@@ -14,6 +14,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import Image, PointCloud2, PointField
 
+from lsu_common.arrays import AnyArray
 from lsu_view.channels import RateLimiter, topic_kind
 from lsu_view.node import FoxgloveBridgeNode
 from lsu_view.wsclient import FoxgloveClient
@@ -25,14 +26,14 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=Relia
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def sphere_points(n: int, seed: int) -> np.ndarray:
+def sphere_points(n: int, seed: int) -> AnyArray:
     """``n`` points on the sphere (CENTRE, RADIUS), seeded."""
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n, 3))
     return (CENTRE + RADIUS * v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
 
 
-def cloud_msg(points: np.ndarray, frame: str = "lsu_left_optical") -> PointCloud2:
+def cloud_msg(points: AnyArray, frame: str = "lsu_left_optical") -> PointCloud2:
     msg = PointCloud2()
     msg.header.frame_id = frame
     msg.height, msg.width = 1, len(points)
@@ -42,7 +43,7 @@ def cloud_msg(points: np.ndarray, frame: str = "lsu_left_optical") -> PointCloud
     return msg
 
 
-def decode_xyz(payload: bytes, store) -> np.ndarray:
+def decode_xyz(payload: bytes, store) -> AnyArray:
     """x y z of a PointCloud2 CDR payload, decoded with rosbags (not with the code under test)."""
     cloud = store.deserialize_cdr(payload, "sensor_msgs/msg/PointCloud2")
     offsets = {f.name: f.offset for f in cloud.fields}

@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List
 
 import numpy as np
 
@@ -32,7 +31,7 @@ SCENE_NAMES = ("plane", "sphere", "board", "head")
 
 
 def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = None, yaw_deg: float = 0.0,
-                pitch_deg: float = 0.0) -> List[SceneObject]:
+                pitch_deg: float = 0.0) -> list[SceneObject]:
     """A named scene centred on the rig's subject point (``distance_m`` overrides the subject distance).
 
     ``plane``: a textured plane facing the rig; ``sphere``: a 6 cm ball; ``board``: a 9x6, 20 mm

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import List, Optional
 
 from .geometry import RigConfigError, load_rig, write_true_calibration
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Write left.yaml/right.yaml/stereo.yaml from the simulated rig's geometry."""
     parser = argparse.ArgumentParser(prog="python -m lsu_cameras.sim", description=__doc__)
     parser.add_argument("--rig", default=None, help="sim rig YAML (default: config/sim_rig.yaml)")

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
-from typing import List, Sequence, Tuple
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from lsu_common.arrays import AnyArray
 
 from .geometry import RigGeometry
 from .rig import CarriageState, SimulatedRig
 from .scenes import make_board
 
 
-def random_board_poses(geometry: RigGeometry, count: int, seed: int, inner_corners: Tuple[int, int] = (9, 6),
-                       square_m: float = 0.020, distance_m: Tuple[float, float] = (0.33, 0.50),
-                       max_tilt_deg: float = 35.0, border_px: float = 12.0) -> List[Tuple[np.ndarray, np.ndarray]]:
+def random_board_poses(geometry: RigGeometry, count: int, seed: int, inner_corners: tuple[int, int] = (9, 6),
+                       square_m: float = 0.020, distance_m: tuple[float, float] = (0.33, 0.50),
+                       max_tilt_deg: float = 35.0, border_px: float = 12.0) -> list[tuple[AnyArray, AnyArray]]:
     """``count`` board poses (R, t of the first corner, left frame) varied like a careful calibration session.
 
     Tilts up to ``max_tilt_deg`` about both board axes (needed to separate focal length from
@@ -27,7 +29,7 @@ def random_board_poses(geometry: RigGeometry, count: int, seed: int, inner_corne
     W, H = geometry.image_size
     j, i = np.mgrid[-1:rows + 1, -1:cols + 1]
     outline = np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * square_m
-    poses: List[Tuple[np.ndarray, np.ndarray]] = []
+    poses: list[tuple[AnyArray, AnyArray]] = []
     for _ in range(200 * count):
         if len(poses) == count:
             break
@@ -51,9 +53,9 @@ def random_board_poses(geometry: RigGeometry, count: int, seed: int, inner_corne
     return poses
 
 
-def render_board_pairs(geometry: RigGeometry, poses: Sequence[Tuple[np.ndarray, np.ndarray]], seed: int,
-                       inner_corners: Tuple[int, int] = (9, 6),
-                       square_m: float = 0.020) -> List[Tuple[str, np.ndarray, np.ndarray]]:
+def render_board_pairs(geometry: RigGeometry, poses: Sequence[tuple[AnyArray, AnyArray]], seed: int,
+                       inner_corners: tuple[int, int] = (9, 6),
+                       square_m: float = 0.020) -> list[tuple[str, AnyArray, AnyArray]]:
     """Render each pose (laser off) as ``(name, left, right)``, noise seeded per view."""
     out = []
     rig = None

@@ -13,11 +13,13 @@ frame a user hands to ``lsu face``; ``u``, ``v`` are its pixel coordinates.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Dict, Sequence
 
 import numpy as np
 import open3d as o3d
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["DepthCamera", "depth_scan"]
 
@@ -38,8 +40,8 @@ class DepthCamera:
     max_range_m: float = 3.5
 
 
-def depth_scan(objects: Sequence, camera_from_scene: np.ndarray, cam: DepthCamera = DepthCamera(),  # noqa: ANN001
-               seed: int = 0) -> Dict[str, np.ndarray]:
+def depth_scan(objects: Sequence, camera_from_scene: AnyArray, cam: DepthCamera = DepthCamera(),  # noqa: ANN001
+               seed: int = 0) -> dict[str, AnyArray]:
     """Cloud columns (x y z u v) the depth camera gives of ``objects`` (``SceneObject``, scene frame).
 
     ``camera_from_scene`` is the 4x4 transform of scene points into the depth camera's optical frame.

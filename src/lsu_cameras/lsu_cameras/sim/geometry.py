@@ -16,11 +16,13 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, Optional, Tuple
+from typing import Any
 
 import cv2
 import numpy as np
 import yaml
+
+from lsu_common.arrays import AnyArray
 
 from ..calib_io import CameraCalibration, StereoCalibration, fundamental_from, write_calibration_dir
 from ..paths import config_dir
@@ -35,19 +37,19 @@ class RigConfigError(ValueError):
 class CameraModel:
     """Pinhole + plumb_bob camera placed in the left optical frame (X_cam = R X_left + t)."""
 
-    K: np.ndarray
-    D: np.ndarray
-    R: np.ndarray = field(default_factory=lambda: np.eye(3))
-    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    K: AnyArray
+    D: AnyArray
+    R: AnyArray = field(default_factory=lambda: np.eye(3))
+    t: AnyArray = field(default_factory=lambda: np.zeros(3))
     width: int = 640
     height: int = 480
 
     @property
-    def center(self) -> np.ndarray:
+    def center(self) -> AnyArray:
         """Optical centre in the left frame."""
         return -self.R.T @ self.t
 
-    def project(self, points_left: np.ndarray) -> np.ndarray:
+    def project(self, points_left: AnyArray) -> AnyArray:
         """Distorted pixel coordinates (N,2) of left-frame points (N,3), via OpenCV's plumb_bob model."""
         pts = np.asarray(points_left, dtype=np.float64).reshape(-1, 3)
         if len(pts) == 0:
@@ -56,7 +58,7 @@ class CameraModel:
         px, _ = cv2.projectPoints(pts, rvec, self.t.astype(np.float64), self.K, self.D)
         return px.reshape(-1, 2)
 
-    def pixel_rays(self, pixels: np.ndarray, iterations: int = 60) -> np.ndarray:
+    def pixel_rays(self, pixels: AnyArray, iterations: int = 60) -> AnyArray:
         """Unit ray directions (N,3) in the left frame through distorted pixels (N,2).
 
         OpenCV's iterative undistortion, run to convergence (not its 5-iteration default) so a ray
@@ -80,7 +82,7 @@ class LaserModel:
 
     sheet_sigma_m: float
     power: float
-    spectral_bgr: np.ndarray
+    spectral_bgr: AnyArray
     tilt_deg: float = 0.0
     wavelength_nm: float = 671.0
 
@@ -91,7 +93,7 @@ class Lighting:
 
     ambient: float = 0.22
     key: float = 0.30
-    key_light_m: np.ndarray = field(default_factory=lambda: np.array([0.06, -0.40, 0.05]))
+    key_light_m: AnyArray = field(default_factory=lambda: np.array([0.06, -0.40, 0.05]))
     specular: float = 0.35
     shininess: float = 40.0
     background: float = 0.03
@@ -138,22 +140,22 @@ class RigGeometry:
         return f_m / max(self.subject_distance_m - f_m, 1e-9)
 
     @property
-    def image_size(self) -> Tuple[int, int]:
+    def image_size(self) -> tuple[int, int]:
         """(width, height)."""
         return (self.left.width, self.left.height)
 
     @property
-    def rotation(self) -> np.ndarray:
+    def rotation(self) -> AnyArray:
         """R of the right camera w.r.t. the left (X_right = R X_left + T)."""
         return self.right.R
 
     @property
-    def translation(self) -> np.ndarray:
+    def translation(self) -> AnyArray:
         """T [m]."""
         return self.right.t
 
     @property
-    def rig_axes(self) -> np.ndarray:
+    def rig_axes(self) -> AnyArray:
         """Rows x (baseline), y (down), z (forward) of the rig frame, in the left frame."""
         x = self.right.center - self.left.center
         x = x / np.linalg.norm(x)
@@ -164,28 +166,28 @@ class RigGeometry:
         return np.stack([x, y, z])
 
     @property
-    def rig_center(self) -> np.ndarray:
+    def rig_center(self) -> AnyArray:
         """Mid-point of the two optical centres (left frame, m)."""
         return 0.5 * (self.left.center + self.right.center)
 
     @property
-    def subject_center(self) -> np.ndarray:
+    def subject_center(self) -> AnyArray:
         """Where a subject is placed by default: ``subject_distance_m`` ahead of the rig centre."""
         return self.rig_center + self.subject_distance_m * self.rig_axes[2]
 
-    def laser_origin(self, position_steps: float) -> np.ndarray:
+    def laser_origin(self, position_steps: float) -> AnyArray:
         """Laser exit point at a carriage position (left frame, m)."""
         x, _, z = self.rig_axes
         return self.rig_center + self.laser_forward_m * z + (position_steps - self.center_step) * self.step_m * x
 
     @property
-    def laser_normal(self) -> np.ndarray:
+    def laser_normal(self) -> AnyArray:
         """Unit normal of the light sheet (constant along the track)."""
         x, y, _ = self.rig_axes
         tilt = np.deg2rad(self.laser.tilt_deg)
         return np.cos(tilt) * x + np.sin(tilt) * y
 
-    def laser_plane(self, position_steps: float) -> Tuple[np.ndarray, float]:
+    def laser_plane(self, position_steps: float) -> tuple[AnyArray, float]:
         """(n, c) with the sheet's centre plane n . X = c at ``position_steps``."""
         n = self.laser_normal
         return n, float(n.dot(self.laser_origin(position_steps)))
@@ -199,7 +201,7 @@ class RigGeometry:
                                  date="simulated")
 
 
-def _get(data: Dict[str, Any], path: str, default: Any = None) -> Any:
+def _get(data: dict[str, Any], path: str, default: Any = None) -> Any:
     node: Any = data
     for key in path.split("."):
         if not isinstance(node, dict) or key not in node:
@@ -210,7 +212,7 @@ def _get(data: Dict[str, Any], path: str, default: Any = None) -> Any:
     return node
 
 
-def _camera(data: Dict[str, Any], side: str, w: int, h: int, R: np.ndarray, t: np.ndarray) -> CameraModel:
+def _camera(data: dict[str, Any], side: str, w: int, h: int, R: AnyArray, t: AnyArray) -> CameraModel:
     K = np.asarray(_get(data, f"{side}.camera_matrix"), dtype=np.float64)
     D = np.asarray(_get(data, f"{side}.distortion_coefficients"), dtype=np.float64)
     if K.size != 9 or D.size != 5:
@@ -218,7 +220,7 @@ def _camera(data: Dict[str, Any], side: str, w: int, h: int, R: np.ndarray, t: n
     return CameraModel(K.reshape(3, 3), D.reshape(5), R, t, w, h)
 
 
-def rig_from_dict(data: Dict[str, Any]) -> RigGeometry:
+def rig_from_dict(data: dict[str, Any]) -> RigGeometry:
     """Build a `RigGeometry` from the mapping of ``sim_rig.yaml``."""
     w, h = int(_get(data, "image_width")), int(_get(data, "image_height"))
     if w <= 0 or h <= 0:
@@ -278,7 +280,7 @@ def default_rig_path() -> Path:
     return config_dir() / "sim_rig.yaml"
 
 
-def load_rig(path: Optional[os.PathLike | str] = None) -> RigGeometry:
+def load_rig(path: os.PathLike | str | None = None) -> RigGeometry:
     """Read ``sim_rig.yaml`` (default: the workspace's) into a `RigGeometry`."""
     path = Path(path) if path else default_rig_path()
     if not path.is_file():

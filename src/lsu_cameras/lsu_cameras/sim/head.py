@@ -16,11 +16,12 @@ camera whose optical axis is +z. Pose = yaw (about y, positive turns the face to
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Dict, Tuple
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
+
+from lsu_common.arrays import AnyArray
 
 from .scenes import AlbedoFn, SceneObject
 
@@ -48,7 +49,7 @@ class HeadIdentity:
     skin_tone: float = 1.0
 
     @classmethod
-    def from_seed(cls, identity_seed: int) -> "HeadIdentity":
+    def from_seed(cls, identity_seed: int) -> HeadIdentity:
         """Draw every parameter around the mean face (seeded, so identities are reproducible)."""
         rng = np.random.default_rng(np.random.SeedSequence([0x4EAD, int(identity_seed)]))
         mean = cls()
@@ -57,7 +58,7 @@ class HeadIdentity:
                   "eye_depth_m": 0.25, "brow_m": 0.35, "cheek_m": 0.35, "lips_m": 0.25, "chin_m": 0.30,
                   "ear_m": 0.2, "skin_tone": 0.12}
         shifts = {"nose_tip_beta_rad": 0.03, "eye_beta_rad": 0.03, "mouth_beta_rad": 0.03}
-        values: Dict[str, float] = {}
+        values: dict[str, float] = {}
         for f in fields(cls):
             base = getattr(mean, f.name)
             if f.name in spread:
@@ -72,29 +73,29 @@ class Head:
     """A posed synthetic head in its mesh frame (origin = head centre)."""
 
     mesh: o3d.geometry.TriangleMesh
-    nose_tip_m: np.ndarray          # (3,) mesh frame, after pose: a vertex of the mesh
+    nose_tip_m: AnyArray          # (3,) mesh frame, after pose: a vertex of the mesh
     identity: HeadIdentity
-    pose_R: np.ndarray              # head frame -> mesh frame rotation
+    pose_R: AnyArray              # head frame -> mesh frame rotation
     identity_seed: int
 
-    def albedo_in(self, translation: np.ndarray) -> AlbedoFn:
+    def albedo_in(self, translation: AnyArray) -> AlbedoFn:
         """Albedo function for this head placed at ``translation`` (left frame)."""
         return _skin_albedo(self.identity, self.pose_R, np.asarray(translation, dtype=np.float64), self.identity_seed)
 
 
-def _bump(alpha: np.ndarray, beta: np.ndarray, a0: float, b0: float, sa: float, sb: float, amp: float) -> np.ndarray:
+def _bump(alpha: AnyArray, beta: AnyArray, a0: float, b0: float, sa: float, sb: float, amp: float) -> AnyArray:
     da = np.angle(np.exp(1j * (alpha - a0)))  # wrap so features near alpha = +-pi stay continuous
     return amp * np.exp(-0.5 * ((da / sa) ** 2 + ((beta - b0) / sb) ** 2))
 
 
-def _face_angles(d: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _face_angles(d: AnyArray) -> tuple[AnyArray, AnyArray]:
     """(alpha, beta) of unit directions (head frame)."""
     alpha = np.arctan2(d[:, 0], -d[:, 2])
     beta = np.arcsin(np.clip(-d[:, 1], -1.0, 1.0))
     return alpha, beta
 
 
-def head_radius(identity: HeadIdentity, d: np.ndarray) -> np.ndarray:
+def head_radius(identity: HeadIdentity, d: AnyArray) -> AnyArray:
     """Distance from the head centre to the surface along unit directions ``d`` (N,3)."""
     p = identity
     r0 = 1.0 / np.sqrt((d[:, 0] / p.half_width_m) ** 2 + (d[:, 1] / p.half_height_m) ** 2
@@ -118,7 +119,7 @@ def head_radius(identity: HeadIdentity, d: np.ndarray) -> np.ndarray:
     return r0 + disp
 
 
-def _uv_sphere(n_lat: int, n_lon: int) -> Tuple[np.ndarray, np.ndarray]:
+def _uv_sphere(n_lat: int, n_lon: int) -> tuple[AnyArray, AnyArray]:
     """Unit directions and triangles of a latitude/longitude sphere with its poles on the y axis."""
     theta = np.linspace(0.0, np.pi, n_lat + 1)[1:-1]           # from -y (top) to +y (bottom), poles apart
     phi = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)   # 0 = towards -z (the face)
@@ -141,7 +142,7 @@ def _uv_sphere(n_lat: int, n_lon: int) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def make_head(identity_seed: int, yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg: float = 0.0,
-              resolution: Tuple[int, int] = (180, 360)) -> Head:
+              resolution: tuple[int, int] = (180, 360)) -> Head:
     """A synthetic head for ``identity_seed`` in the given pose; deterministic.
 
     ``resolution`` = (latitude rows, longitude columns): the default gives ~1.7 mm edges. The nose
@@ -161,7 +162,7 @@ def make_head(identity_seed: int, yaw_deg: float = 0.0, pitch_deg: float = 0.0, 
     return Head(mesh, posed[tip_index].copy(), identity, R, int(identity_seed))
 
 
-def _skin_albedo(identity: HeadIdentity, pose_R: np.ndarray, translation: np.ndarray, seed: int) -> AlbedoFn:
+def _skin_albedo(identity: HeadIdentity, pose_R: AnyArray, translation: AnyArray, seed: int) -> AlbedoFn:
     rng = np.random.default_rng(np.random.SeedSequence([0x5C1, int(seed)]))
     freqs = rng.normal(size=(5, 3)) / 0.015
     phases = rng.uniform(0, 2 * np.pi, 5)
@@ -170,7 +171,7 @@ def _skin_albedo(identity: HeadIdentity, pose_R: np.ndarray, translation: np.nda
     brow = np.array([0.10, 0.11, 0.13])
     p = identity
 
-    def albedo(points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    def albedo(points: AnyArray, du: AnyArray, dv: AnyArray) -> AnyArray:
         local = (points - translation) @ pose_R  # left frame -> head frame
         d = local / np.maximum(np.linalg.norm(local, axis=1, keepdims=True), 1e-12)
         a, b = _face_angles(d)
@@ -187,7 +188,7 @@ def _skin_albedo(identity: HeadIdentity, pose_R: np.ndarray, translation: np.nda
     return albedo
 
 
-def head_object(head: Head, translation: np.ndarray, name: str = "head") -> SceneObject:
+def head_object(head: Head, translation: AnyArray, name: str = "head") -> SceneObject:
     """The head placed with its centre at ``translation`` (left frame) as a scene object."""
     t = np.asarray(translation, dtype=np.float64)
     mesh = o3d.geometry.TriangleMesh(head.mesh)

@@ -28,16 +28,19 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 from scipy.spatial.transform import Rotation
 
+from lsu_common.arrays import AnyArray
+
 from ..paths import config_dir
-from .scenes import AlbedoFn, SceneObject, SceneError
+from .scenes import AlbedoFn, SceneError, SceneObject
 
 __all__ = ["PersonSpec", "Person", "make_person", "person_objects", "heads_dir", "build_assets", "EXPRESSIONS"]
 
@@ -46,7 +49,7 @@ _ID_GROUPS = ("head", "forehead", "eyebrows", "nose", "mouth", "chin", "cheek", 
 _EXPRESSION_UNITS = ("mouth-open", "mouth-corner-puller", "mouth-elevation", "mouth-upward-retraction",
                      "eyebrows-left-up", "eyebrows-right-up", "eye-left-slit", "eye-right-slit")
 # expression name -> {unit: weight at strength 1}
-EXPRESSIONS: Dict[str, Dict[str, float]] = {
+EXPRESSIONS: dict[str, dict[str, float]] = {
     "neutral": {},
     "open_mouth": {"mouth-open": 1.0},
     "smile": {"mouth-corner-puller": 1.0, "mouth-upward-retraction": 0.5, "eye-left-slit": 0.3,
@@ -65,10 +68,10 @@ def heads_dir() -> Path:
 
 
 # ------------------------------------------------------------------------------------------ asset building
-def _read_obj(path: Path) -> Tuple[np.ndarray, List[List[int]], List[str]]:
-    verts: List[List[float]] = []
-    faces: List[List[int]] = []
-    groups: List[str] = []
+def _read_obj(path: Path) -> tuple[AnyArray, list[list[int]], list[str]]:
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    groups: list[str] = []
     group = ""
     with open(path) as fh:
         for line in fh:
@@ -82,13 +85,13 @@ def _read_obj(path: Path) -> Tuple[np.ndarray, List[List[int]], List[str]]:
     return np.asarray(verts), faces, groups
 
 
-def _read_target(path: Path) -> Tuple[np.ndarray, np.ndarray]:
+def _read_target(path: Path) -> tuple[AnyArray, AnyArray]:
     rows = [ln.split() for ln in open(path) if ln.strip() and not ln.startswith("#")]
     a = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
     return a[:, 0].astype(np.int64), a[:, 1:]
 
 
-def _triangulate(quads: Sequence[Sequence[int]]) -> np.ndarray:
+def _triangulate(quads: Sequence[Sequence[int]]) -> AnyArray:
     tris = []
     for f in quads:
         for k in range(1, len(f) - 1):
@@ -96,7 +99,7 @@ def _triangulate(quads: Sequence[Sequence[int]]) -> np.ndarray:
     return np.asarray(tris, dtype=np.int64)
 
 
-def build_assets(makehuman_dir: "str | Path", lps_dir: "str | Path", out_dir: "str | Path") -> List[Path]:
+def build_assets(makehuman_dir: str | Path, lps_dir: str | Path, out_dir: str | Path) -> list[Path]:
     """Cut, convert and save the bust meshes and the morph targets used here (see the module doc)."""
     mh, lps, out = Path(makehuman_dir), Path(lps_dir), Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -113,11 +116,11 @@ def build_assets(makehuman_dir: "str | Path", lps_dir: "str | Path", out_dir: "s
     # person frame: origin at the head centre, x subject's left (image right), y down, z away from the camera
     flip = np.array([1.0, -1.0, -1.0])
     verts_m = (V[used] - _HEAD_CENTRE_DM) * 0.1 * flip
-    arrays: Dict[str, np.ndarray] = {"vertices": verts_m.astype(np.float32), "triangles": tris.astype(np.int32),
+    arrays: dict[str, Any] = {"vertices": verts_m.astype(np.float32), "triangles": tris.astype(np.int32),
                                      "eye_triangle": (tri_part == 1), "nose_vertex": np.array(inv[_NOSE_VERTEX])}
     mods = json.loads((mh / "modifiers" / "modeling_modifiers.json").read_text())
-    sliders: List[Dict[str, object]] = []
-    names: List[str] = []
+    sliders: list[dict[str, Any]] = []
+    names: list[str] = []
 
     def add_target(name: str, path: Path) -> None:
         idx, d = _read_target(path)
@@ -143,8 +146,8 @@ def build_assets(makehuman_dir: "str | Path", lps_dir: "str | Path", out_dir: "s
     for unit in _EXPRESSION_UNITS:
         add_target(f"expr:{unit}", mh / "targets" / "expression" / "units" / "caucasian" / f"{unit}.target")
     arrays["sliders_json"] = np.array(json.dumps([s for s in sliders if all(f in names for f in s["files"])]))
-    files = [out / "makehuman_bust.npz"]
-    np.savez_compressed(files[0], **arrays)
+    assets = [out / "makehuman_bust.npz"]
+    np.savez_compressed(assets[0], **arrays)
     # Lee Perry-Smith: +Y up, +Z the face direction, arbitrary units -> the person frame in metres
     LV, lfaces, _ = _read_obj(lps / "LeePerrySmith.obj")
     lv = LV * _LPS_UNIT_M * flip
@@ -155,17 +158,17 @@ def build_assets(makehuman_dir: "str | Path", lps_dir: "str | Path", out_dir: "s
     # origin at the cranium's middle: 0.10 m behind the nose tip, level with it
     centre = lv[nose] + np.array([0.0, -0.01, 0.10])
     lv = lv - centre
-    files.append(out / "leeperrysmith_bust.npz")
-    np.savez_compressed(files[1], vertices=lv.astype(np.float32), triangles=ltris.astype(np.int32),
+    assets.append(out / "leeperrysmith_bust.npz")
+    np.savez_compressed(assets[1], vertices=lv.astype(np.float32), triangles=ltris.astype(np.int32),
                         nose_vertex=np.array(nose))
-    return files
+    return assets
 
 
 # ------------------------------------------------------------------------------------------ assets
-_ASSETS: Dict[str, Dict[str, np.ndarray]] = {}
+_ASSETS: dict[str, dict[str, AnyArray]] = {}
 
 
-def _assets(name: str) -> Dict[str, np.ndarray]:
+def _assets(name: str) -> dict[str, AnyArray]:
     """The arrays of ``config/heads/<name>.npz`` (read once per process: constant data)."""
     if name not in _ASSETS:
         path = heads_dir() / f"{name}.npz"
@@ -186,10 +189,10 @@ class PersonSpec:
     base: str = "makehuman"              # or "leeperrysmith" (a real scan; one identity, scaled by the seed)
     expression: str = "neutral"          # one of EXPRESSIONS
     expression_strength: float = 1.0
-    hair_m: Optional[float] = None       # hair thickness on the crown; None: drawn from the seed (5-40 mm)
+    hair_m: float | None = None       # hair thickness on the crown; None: drawn from the seed (5-40 mm)
     fringe: bool = False                 # hair over the upper forehead
     glasses: bool = False
-    hand: Optional[str] = None           # None, "beside" (raised beside the face) or "front" (fist before the chin)
+    hand: str | None = None           # None, "beside" (raised beside the face) or "front" (fist before the chin)
     yaw_deg: float = 0.0
     pitch_deg: float = 0.0
     roll_deg: float = 0.0
@@ -201,20 +204,20 @@ class PersonSpec:
 class Person:
     """A posed person in its own frame (origin = head centre): meshes and the true landmarks."""
 
-    parts: Dict[str, o3d.geometry.TriangleMesh]     # skin, hair, glasses, hand (present ones)
-    landmarks: Dict[str, np.ndarray]                # nose_tip, eye_r, eye_l, mouth, chin (posed, person frame)
+    parts: dict[str, o3d.geometry.TriangleMesh]     # skin, hair, glasses, hand (present ones)
+    landmarks: dict[str, AnyArray]                # nose_tip, eye_r, eye_l, mouth, chin (posed, person frame)
     spec: PersonSpec
-    pose_R: np.ndarray
-    identity_weights: Dict[str, float] = field(default_factory=dict)
+    pose_R: AnyArray
+    identity_weights: dict[str, float] = field(default_factory=dict)
 
 
-def _identity_weights(seed: int, sigma: float, sliders: List[Dict[str, object]]) -> Dict[str, float]:
+def _identity_weights(seed: int, sigma: float, sliders: list[dict[str, object]]) -> dict[str, float]:
     rng = np.random.default_rng(np.random.SeedSequence([0x9E0, int(seed)]))
-    weights: Dict[str, float] = {}
-    right: Dict[str, float] = {}
+    weights: dict[str, float] = {}
+    right: dict[str, float] = {}
     for s in sliders:
         t = str(s["target"])
-        files = list(s["files"])  # type: ignore[arg-type]
+        files = [str(f) for f in s["files"]]  # type: ignore[attr-defined]
         base = t[2:] if t.startswith(("l-", "r-")) else None
         v = rng.normal(0.0, sigma)
         if base is not None and t.startswith("l-") and base in right:
@@ -229,7 +232,7 @@ def _identity_weights(seed: int, sigma: float, sliders: List[Dict[str, object]])
     return weights
 
 
-def _apply(verts: np.ndarray, a: Dict[str, np.ndarray], weights: Dict[str, float]) -> np.ndarray:
+def _apply(verts: AnyArray, a: dict[str, AnyArray], weights: dict[str, float]) -> AnyArray:
     out = verts.astype(np.float64).copy()
     for name, w in weights.items():
         if w == 0 or f"t:{name}:i" not in a:
@@ -238,21 +241,21 @@ def _apply(verts: np.ndarray, a: Dict[str, np.ndarray], weights: Dict[str, float
     return out
 
 
-def _smooth_noise(points: np.ndarray, rng: np.random.Generator, scale_m: float, n: int = 8) -> np.ndarray:
+def _smooth_noise(points: AnyArray, rng: np.random.Generator, scale_m: float, n: int = 8) -> AnyArray:
     """Smooth seeded scalar field in [-1, 1] over 3D points (sum of random sinusoids)."""
     freqs = rng.normal(size=(n, 3)) / scale_m
     phases = rng.uniform(0, 2 * np.pi, n)
     return np.sin(points @ freqs.T + phases).mean(axis=1) * np.sqrt(2.0)
 
 
-def _vertex_normals(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _vertex_normals(v: AnyArray, t: AnyArray) -> AnyArray:
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
     m.compute_vertex_normals()
     return np.asarray(m.vertex_normals)
 
 
-def _hair(verts: np.ndarray, tris: np.ndarray, eye_tri: np.ndarray, landmarks: Dict[str, np.ndarray],
-          spec: PersonSpec, rng: np.random.Generator) -> Optional[o3d.geometry.TriangleMesh]:
+def _hair(verts: AnyArray, tris: AnyArray, eye_tri: AnyArray, landmarks: dict[str, AnyArray],
+          spec: PersonSpec, rng: np.random.Generator) -> o3d.geometry.TriangleMesh | None:
     """A hair shell: the scalp's triangles pushed out along the normals by a seeded thickness."""
     thickness = spec.hair_m if spec.hair_m is not None else float(rng.uniform(0.005, 0.040))
     if thickness <= 0:
@@ -281,7 +284,7 @@ def _hair(verts: np.ndarray, tris: np.ndarray, eye_tri: np.ndarray, landmarks: D
     return mesh
 
 
-def _glasses(landmarks: Dict[str, np.ndarray]) -> o3d.geometry.TriangleMesh:
+def _glasses(landmarks: dict[str, AnyArray]) -> o3d.geometry.TriangleMesh:
     parts = o3d.geometry.TriangleMesh()
     er, el = landmarks["eye_r"], landmarks["eye_l"]
     z = min(er[2], el[2]) - 0.014                         # rims ~14 mm in front of the eyes
@@ -304,7 +307,7 @@ def _glasses(landmarks: Dict[str, np.ndarray]) -> o3d.geometry.TriangleMesh:
     return parts
 
 
-def _hand(landmarks: Dict[str, np.ndarray], where: str, rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
+def _hand(landmarks: dict[str, AnyArray], where: str, rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
     """A raised hand: a palm (flattened ellipsoid) and four fingers (capsules), pointing up."""
     nose = landmarks["nose_tip"]
     if where == "front":      # a fist before the chin, knuckles towards the camera: protrudes beyond the nose
@@ -357,7 +360,6 @@ def make_person(spec: PersonSpec = PersonSpec()) -> Person:
         nose_i = int(a["nose_vertex"])
     else:
         raise SceneError(f"base must be 'makehuman' or 'leeperrysmith' (got {spec.base!r})")
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
     if spec.subdivide:
         # Loop subdivision keeps the original vertices first (moved by the smoothing rule): indices stay valid
         n_eye = int(eye_tri.sum())
@@ -371,7 +373,7 @@ def make_person(spec: PersonSpec = PersonSpec()) -> Person:
         else:
             verts, tris, eye_tri = sv, st, np.zeros(len(st), bool)
     landmarks = _landmarks(verts, tris, eye_tri, nose_i, spec.base)
-    parts: Dict[str, o3d.geometry.TriangleMesh] = {}
+    parts: dict[str, o3d.geometry.TriangleMesh] = {}
     parts["skin"] = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
     hair = _hair(verts, tris, eye_tri, landmarks, spec, rng)
     if hair is not None:
@@ -388,8 +390,8 @@ def make_person(spec: PersonSpec = PersonSpec()) -> Person:
     return Person(parts, posed, spec, R, weights)
 
 
-def _landmarks(verts: np.ndarray, tris: np.ndarray, eye_tri: np.ndarray, nose_i: int,
-               base: str) -> Dict[str, np.ndarray]:
+def _landmarks(verts: AnyArray, tris: AnyArray, eye_tri: AnyArray, nose_i: int,
+               base: str) -> dict[str, AnyArray]:
     nose = verts[nose_i].copy()
     out = {"nose_tip": nose}
     if eye_tri.any():
@@ -412,7 +414,7 @@ def _landmarks(verts: np.ndarray, tris: np.ndarray, eye_tri: np.ndarray, nose_i:
     return out
 
 
-def _albedos(person: Person, translation: np.ndarray) -> Dict[str, Tuple[AlbedoFn, float]]:
+def _albedos(person: Person, translation: AnyArray) -> dict[str, tuple[AlbedoFn, float]]:
     from .scenes import mottled_albedo, uniform_albedo
 
     seed = person.spec.identity_seed
@@ -425,7 +427,7 @@ def _albedos(person: Person, translation: np.ndarray) -> Dict[str, Tuple[AlbedoF
             "hand": (mottled_albedo(np.array([0.46, 0.55, 0.74]) * tone, 0.08, seed=seed + 2, scale_m=0.015), 0.25)}
 
 
-def person_objects(person: Person, translation: Sequence[float], name: str = "person") -> List[SceneObject]:
+def person_objects(person: Person, translation: Sequence[float], name: str = "person") -> list[SceneObject]:
     """The person placed with its head centre at ``translation`` (left frame) as scene objects.
 
     The first object (the skin) carries the truth in ``extra``: ``nose_tip_m`` and ``landmarks_m``
@@ -438,7 +440,7 @@ def person_objects(person: Person, translation: Sequence[float], name: str = "pe
         m = o3d.geometry.TriangleMesh(mesh)
         m.translate(t)
         fn, spec = albedo[part]
-        extra: Dict[str, object] = {}
+        extra: dict[str, object] = {}
         if part == "skin":
             extra = {"nose_tip_m": person.landmarks["nose_tip"] + t,
                      "landmarks_m": {k: v + t for k, v in person.landmarks.items()},
@@ -449,7 +451,7 @@ def person_objects(person: Person, translation: Sequence[float], name: str = "pe
     return out
 
 
-def _main(argv: List[str]) -> int:
+def _main(argv: list[str]) -> int:
     if len(argv) == 4 and argv[0] == "build-assets":
         for f in build_assets(argv[1], argv[2], argv[3]):
             print(f"{f} {f.stat().st_size / 1e6:.2f} MB")

@@ -31,12 +31,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
 
 import cv2
 import numpy as np
 import scipy.fft
 from scipy.special import erfcx
+
+from lsu_common.arrays import AnyArray
 
 __all__ = ["SpeckleModel", "SkinModel", "speckle_tiles", "SpeckleField", "skin_profile", "bloom", "BAYER_PATTERNS",
            "mosaic", "demosaic"]
@@ -67,11 +68,11 @@ class SkinModel:
         return 1.0 / (self.mu_a_per_m + self.mu_s_prime_per_m)
 
 
-_TILE_CACHE: Dict[Tuple, np.ndarray] = {}
+_TILE_CACHE: dict[tuple, AnyArray] = {}
 
 
 def speckle_tiles(wavelength_m: float, f_number: float, magnification: float, pixel_m: float, rows: int, cols: int,
-                  count: int, seed: int) -> np.ndarray:
+                  count: int, seed: int) -> AnyArray:
     """``count`` pixel-integrated speckle intensity tiles (count, rows, cols), float32, mean 1 each.
 
     The rough surface sends a circular complex Gaussian field (many random scatterers per sample)
@@ -117,7 +118,7 @@ class SpeckleField:
         self.tiles = (speckle_tiles(wavelength_m, f_number, magnification, pixel_m, height, model.tile_cols,
                                     model.tiles, seed) if model.contrast > 0 else None)
 
-    def sample(self, rows: np.ndarray, cols: np.ndarray, rng: np.random.Generator) -> Optional[np.ndarray]:
+    def sample(self, rows: AnyArray, cols: AnyArray, rng: np.random.Generator) -> AnyArray | None:
         """Speckle factors (mean 1) at pixels (rows, cols) for a new realisation; None when off."""
         if self.tiles is None:
             return None
@@ -133,7 +134,7 @@ class SpeckleField:
         return s
 
 
-def _emg_two_sided(x: np.ndarray, sigma: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _emg_two_sided(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
     """Density of a Gaussian (sigma) convolved with a two-sided exponential exp(-|x|/b) / (2 b).
 
     Each side is an exponentially modified Gaussian; written with erfcx so no term overflows:
@@ -151,8 +152,8 @@ def _emg_two_sided(x: np.ndarray, sigma: np.ndarray, b: np.ndarray) -> np.ndarra
     return total / (4.0 * b)
 
 
-def skin_profile(d: np.ndarray, s2: np.ndarray, sheet_sigma_m: float, width_d: np.ndarray, shift_d: np.ndarray,
-                 fraction: float) -> np.ndarray:
+def skin_profile(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray, shift_d: AnyArray,
+                 fraction: float) -> AnyArray:
     """Laser profile on skin at sheet offsets ``d`` (same normalisation as the surface profile).
 
     ``s2``: pixel-integrated sheet variance; ``width_d``: the diffusion length along the sheet normal;
@@ -167,7 +168,7 @@ def skin_profile(d: np.ndarray, s2: np.ndarray, sheet_sigma_m: float, width_d: n
     return (1.0 - fraction) * surface + fraction * remitted
 
 
-def bloom(img: np.ndarray, fraction: float) -> None:
+def bloom(img: AnyArray, fraction: float) -> None:
     """Saturation with blooming, in place on an (H, W[, C]) float image in full-scale units (1 = full well).
 
     The charge above full well is clipped; ``fraction`` of it spills, half up and half down the
@@ -190,7 +191,7 @@ BAYER_PATTERNS = {"RGGB": cv2.COLOR_BayerBG2BGR, "BGGR": cv2.COLOR_BayerRG2BGR, 
 _CHANNEL = {"B": 0, "G": 1, "R": 2}
 
 
-def mosaic(img: np.ndarray, pattern: str) -> np.ndarray:
+def mosaic(img: AnyArray, pattern: str) -> AnyArray:
     """The single-channel Bayer image (H, W) a colour sensor records of a BGR image (H, W, 3)."""
     out = np.empty(img.shape[:2], img.dtype)
     for k, colour in enumerate(pattern):
@@ -199,6 +200,6 @@ def mosaic(img: np.ndarray, pattern: str) -> np.ndarray:
     return out
 
 
-def demosaic(raw: np.ndarray, pattern: str) -> np.ndarray:
+def demosaic(raw: AnyArray, pattern: str) -> AnyArray:
     """BGR uint8 from a Bayer uint8 image (OpenCV's bilinear demosaicing)."""
     return cv2.cvtColor(raw, BAYER_PATTERNS[pattern])

@@ -27,13 +27,16 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any
 
 import cv2
 import numpy as np
 import open3d as o3d
+
+from lsu_common.arrays import AnyArray
 
 from .geometry import CameraModel, RigGeometry
 from .physics import SpeckleField, bloom, demosaic, mosaic, skin_profile
@@ -52,19 +55,19 @@ class CarriageState:
 
     position_steps: float
     laser_on: bool = True
-    stopped_at_s: Optional[float] = None
+    stopped_at_s: float | None = None
     vibration_amplitude_steps: float = 0.0
     vibration_tau_s: float = 0.05
     vibration_freq_hz: float = 30.0
     velocity_steps_per_s: float = 0.0
-    position_time_s: Optional[float] = None
+    position_time_s: float | None = None
 
     @property
     def moving(self) -> bool:
         """The carriage moves at a constant rate and the time of ``position_steps`` is known."""
         return self.velocity_steps_per_s != 0.0 and self.position_time_s is not None
 
-    def displacement_steps(self, t_s: np.ndarray) -> np.ndarray:
+    def displacement_steps(self, t_s: AnyArray) -> AnyArray:
         """Displacement from ``position_steps`` [steps] at times ``t_s``: the motion, or the post-stop vibration."""
         t = np.asarray(t_s, dtype=np.float64)
         if self.moving:
@@ -80,10 +83,10 @@ class CarriageState:
 class CameraTruth:
     """Exact laser-line samples seen by one camera: one per (row, crossing)."""
 
-    points_m: np.ndarray          # (N,3) on surface and sheet centre plane, left optical frame
-    pixels: np.ndarray            # (N,2) distorted (u, v) in this camera; v is the integer row
-    other_pixels: np.ndarray      # (N,2) the same points in the other camera
-    other_visible: np.ndarray     # (N,) bool: the other camera sees the point (inside the image, not occluded)
+    points_m: AnyArray          # (N,3) on surface and sheet centre plane, left optical frame
+    pixels: AnyArray            # (N,2) distorted (u, v) in this camera; v is the integer row
+    other_pixels: AnyArray      # (N,2) the same points in the other camera
+    other_visible: AnyArray     # (N,) bool: the other camera sees the point (inside the image, not occluded)
 
 
 @dataclass
@@ -91,14 +94,14 @@ class LaserTruth:
     """Ground truth of one laser position for both cameras."""
 
     position_steps: float
-    plane_normal: np.ndarray      # n, with the sheet centre plane n . X = plane_offset_m (left frame)
+    plane_normal: AnyArray      # n, with the sheet centre plane n . X = plane_offset_m (left frame)
     plane_offset_m: float
     left: CameraTruth
     right: CameraTruth
 
-    def to_npz(self, path: Union[str, os.PathLike]) -> None:
+    def to_npz(self, path: str | os.PathLike) -> None:
         """Save as an .npz (keys: position_steps, plane_normal, plane_offset_m, {left,right}_{points_m,...})."""
-        arrays: Dict[str, np.ndarray] = {"position_steps": np.array(self.position_steps),
+        arrays: dict[str, Any] = {"position_steps": np.array(self.position_steps),
                                          "plane_normal": self.plane_normal, "plane_offset_m": np.array(self.plane_offset_m)}
         for side in ("left", "right"):
             cam = getattr(self, side)
@@ -107,7 +110,7 @@ class LaserTruth:
         np.savez_compressed(path, **arrays)
 
     @classmethod
-    def from_npz(cls, path: Union[str, os.PathLike]) -> "LaserTruth":
+    def from_npz(cls, path: str | os.PathLike) -> LaserTruth:
         """Load what `to_npz` wrote."""
         with np.load(path) as z:
             cams = [CameraTruth(*(z[f"{side}_{k}"] for k in ("points_m", "pixels", "other_pixels", "other_visible")))
@@ -119,17 +122,17 @@ class LaserTruth:
 class StereoFrame:
     """One rendered pair (BGR uint8) and what produced it."""
 
-    left: np.ndarray
-    right: np.ndarray
+    left: AnyArray
+    right: AnyArray
     position_steps: float
     laser_on: bool
-    capture_time_s: Optional[float]
+    capture_time_s: float | None
     laser_offset_steps: float = 0.0           # mean displacement (vibration or motion) over the left camera's exposure
-    truth: Optional[LaserTruth] = None
+    truth: LaserTruth | None = None
     # per camera (left, right): exposure start [s] and mean carriage displacement over that exposure (moving:
     # the displacement at mid-exposure, so the sheet a camera saw is at position_steps + its offset)
-    exposure_start_s: Tuple[Optional[float], Optional[float]] = (None, None)
-    laser_offsets_steps: Tuple[float, float] = (0.0, 0.0)
+    exposure_start_s: tuple[float | None, float | None] = (None, None)
+    laser_offsets_steps: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass
@@ -137,23 +140,23 @@ class _View:
     """What one camera sees of the scene, cached between carriage positions."""
 
     camera: CameraModel
-    origin: np.ndarray
-    dirs: np.ndarray                          # (H*W,3) unit rays, left frame
-    hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    t: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    geom: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    normals: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    red_albedo: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    base: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
-    pn: np.ndarray = field(default_factory=lambda: np.zeros(0))          # n . P per pixel
-    sigma2: np.ndarray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
-    reach: np.ndarray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
-    skin: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
-    speckle: Optional[SpeckleField] = None
+    origin: AnyArray
+    dirs: AnyArray                          # (H*W,3) unit rays, left frame
+    hit: AnyArray = field(default_factory=lambda: np.zeros(0, bool))
+    t: AnyArray = field(default_factory=lambda: np.zeros(0))
+    geom: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))
+    points: AnyArray = field(default_factory=lambda: np.zeros((0, 3)))
+    normals: AnyArray = field(default_factory=lambda: np.zeros((0, 3)))
+    red_albedo: AnyArray = field(default_factory=lambda: np.zeros(0))
+    base: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    pn: AnyArray = field(default_factory=lambda: np.zeros(0))          # n . P per pixel
+    sigma2: AnyArray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
+    reach: AnyArray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
+    skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
+    speckle: SpeckleField | None = None
 
 
-def _footprints(points: np.ndarray, ok: np.ndarray, depth: np.ndarray, axis: int) -> np.ndarray:
+def _footprints(points: AnyArray, ok: AnyArray, depth: AnyArray, axis: int) -> AnyArray:
     """dP per pixel along ``axis`` (0 rows, 1 cols): central differences, one-sided at edges and depth jumps."""
     H, W = ok.shape
     fwd = np.zeros_like(points)
@@ -177,10 +180,10 @@ def _footprints(points: np.ndarray, ok: np.ndarray, depth: np.ndarray, axis: int
     return out
 
 
-_RAY_CACHE: Dict[bytes, np.ndarray] = {}
+_RAY_CACHE: dict[bytes, AnyArray] = {}
 
 
-def _grid_rays(camera: CameraModel) -> np.ndarray:
+def _grid_rays(camera: CameraModel) -> AnyArray:
     """Rays of every pixel centre; cached per camera model because converged undistortion costs ~0.3 s."""
     key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
                    for a in (camera.K, camera.D, camera.R, camera.t, np.array([camera.width, camera.height])))
@@ -202,14 +205,14 @@ class SimulatedRig:
         # one generator per camera, so the two views can be rendered on two threads (numpy and
         # OpenCV release the GIL in the per-pixel work) and stay reproducible from ``seed``
         self._view_rngs = self.rng.spawn(2)
-        self._pool: Optional[ThreadPoolExecutor] = None
+        self._pool: ThreadPoolExecutor | None = None
         self._views = [_View(cam, cam.center, _grid_rays(cam)) for cam in (geometry.left, geometry.right)]
         for k, view in enumerate(self._views):
             # a bank per camera (seeded by the camera index: scene-independent, shared by every rig of
             # the process); the realisation of each capture comes from the capture's generator
             view.speckle = SpeckleField(geometry.speckle, geometry.laser.wavelength_nm * 1e-9, geometry.sensor.f_number,
                                         geometry.magnification, geometry.sensor.pixel_size_m, geometry.image_size[1], k)
-        self.objects: List[SceneObject] = []
+        self.objects: list[SceneObject] = []
         self.set_scene(objects)
 
     # ------------------------------------------------------------------ scene
@@ -219,8 +222,8 @@ class SimulatedRig:
             raise ValueError("the scene needs at least one object")
         self.objects = list(objects)
         self._scene = o3d.t.geometry.RaycastingScene()
-        self._tris: List[np.ndarray] = []
-        self._vnormals: List[np.ndarray] = []
+        self._tris: list[AnyArray] = []
+        self._vnormals: list[AnyArray] = []
         for obj in self.objects:
             mesh = obj.mesh
             if not mesh.has_vertex_normals():
@@ -231,12 +234,12 @@ class SimulatedRig:
         for view in self._views:
             self._cache_view(view)
 
-    def _cast(self, origins: np.ndarray, dirs: np.ndarray) -> Dict[str, np.ndarray]:
+    def _cast(self, origins: AnyArray, dirs: AnyArray) -> dict[str, AnyArray]:
         rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in result.items()}
 
-    def _smooth_normals(self, geom: np.ndarray, prim: np.ndarray, uvs: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    def _smooth_normals(self, geom: AnyArray, prim: AnyArray, uvs: AnyArray, hit: AnyArray) -> AnyArray:
         normals = np.zeros((len(geom), 3))
         for gid in range(len(self.objects)):
             sel = hit & (geom == gid)
@@ -304,7 +307,7 @@ class SimulatedRig:
         view.sigma2 = sigma2
 
     # ------------------------------------------------------------------ laser
-    def _lit(self, origin: np.ndarray, points: np.ndarray) -> np.ndarray:
+    def _lit(self, origin: AnyArray, points: AnyArray) -> AnyArray:
         """True where the laser at ``origin`` reaches ``points`` unshadowed."""
         if len(points) == 0:
             return np.zeros(0, bool)
@@ -313,7 +316,7 @@ class SimulatedRig:
         cast = self._cast(origin, to / dist[:, None])
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
 
-    def _laser_radiance(self, view: _View, offsets_m: np.ndarray, origin: np.ndarray):
+    def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray):
         """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``."""
         g = self.geometry
         lo, hi = float(offsets_m.min()), float(offsets_m.max())
@@ -343,7 +346,7 @@ class SimulatedRig:
         value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
 
-    def _skin_profile(self, d: np.ndarray, s2: np.ndarray, normals: np.ndarray, cos_i: np.ndarray) -> np.ndarray:
+    def _skin_profile(self, d: AnyArray, s2: AnyArray, normals: AnyArray, cos_i: AnyArray) -> AnyArray:
         """Laser profile of skin pixels (`physics.skin_profile`), averaged over the sheet offsets (rows of ``d``).
 
         Across the line on the surface, ``n . P`` changes at ``sin psi = |n - (n.N) N|`` per metre: the
@@ -369,8 +372,8 @@ class SimulatedRig:
         return prof / len(d)
 
     # ------------------------------------------------------------------ render
-    def render(self, carriage: Union[CarriageState, float], capture_time_s: Optional[float] = None,
-               seed: Optional[int] = None, with_truth: bool = False) -> StereoFrame:
+    def render(self, carriage: CarriageState | float, capture_time_s: float | None = None,
+               seed: int | None = None, with_truth: bool = False) -> StereoFrame:
         """Render a stereo pair exposed from ``capture_time_s`` for ``sensor.exposure_s``.
 
         ``carriage`` is a `CarriageState` or a plain position in steps (laser on, settled).
@@ -380,20 +383,21 @@ class SimulatedRig:
         g = self.geometry
         sensor = g.sensor
         rngs = np.random.default_rng(seed).spawn(2) if seed is not None else self._view_rngs
-        starts: List[Optional[float]] = [None, None]
+        starts: list[float | None] = [None, None]
         if capture_time_s is not None:
             # each camera's own exposure start (drawn first, so the noise stream does not depend on it)
             jitter = [float(r.standard_normal()) * sensor.capture_jitter_s for r in rngs]
             starts = [capture_time_s + jitter[0], capture_time_s + sensor.capture_offset_s + jitter[1]]
         laser = [self._laser_exposure(state, t0) for t0 in starts]
 
-        def expose(k: int) -> np.ndarray:
+        def expose(k: int) -> AnyArray:
             view = self._views[k]
             rng = rngs[k]
             img = view.base.copy()
             if state.laser_on:
                 _, offsets, origin = laser[k]
                 idx, value = self._laser_radiance(view, offsets, origin)
+                assert view.speckle is not None  # set for both views in __init__
                 speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rng)
                 if speckle is not None:
                     value *= speckle[:, None]
@@ -425,7 +429,7 @@ class SimulatedRig:
         return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, laser[0][0], truth,
                            (starts[0], starts[1]), (laser[0][0], laser[1][0]))
 
-    def _laser_exposure(self, state: CarriageState, start_s: Optional[float]):
+    def _laser_exposure(self, state: CarriageState, start_s: float | None):
         """(mean displacement [steps], sheet offsets [m] of the sub-exposures, laser origin) of one exposure."""
         g = self.geometry
         sensor = g.sensor
@@ -455,7 +459,7 @@ class SimulatedRig:
             self.geometry.sensor, capture_offset_s=float(offset_s), capture_jitter_s=float(jitter_s)))
 
     # ------------------------------------------------------------------ ground truth
-    def _cast_pixels(self, view: _View, u: np.ndarray, v: np.ndarray):
+    def _cast_pixels(self, view: _View, u: AnyArray, v: AnyArray):
         dirs = view.camera.pixel_rays(np.stack([u, v], axis=1))
         cast = self._cast(view.origin, dirs)
         t = cast["t_hit"].astype(np.float64)
@@ -463,7 +467,7 @@ class SimulatedRig:
         pts = view.origin + dirs * np.where(hit, t, 0.0)[:, None]
         return pts, hit, cast["geometry_ids"].astype(np.int64)
 
-    def _camera_truth(self, view: _View, other: _View, n: np.ndarray, c: float, origin: np.ndarray,
+    def _camera_truth(self, view: _View, other: _View, n: AnyArray, c: float, origin: AnyArray,
                       iterations: int = 30) -> CameraTruth:
         W, H = self.geometry.image_size
         f = (view.pn - c).reshape(H, W)

@@ -9,14 +9,16 @@ camera, where the sensor integrates the light over the pixel).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 import open3d as o3d
 
-AlbedoFn = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+from lsu_common.arrays import AnyArray
+
+AlbedoFn = Callable[[AnyArray, AnyArray, AnyArray], AnyArray]
 MATERIALS = ("surface", "skin")
 
 
@@ -46,20 +48,20 @@ def uniform_albedo(bgr: Sequence[float]) -> AlbedoFn:
     """Constant colour."""
     colour = np.asarray(bgr, dtype=np.float64).reshape(1, 3)
 
-    def albedo(points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    def albedo(points: AnyArray, du: AnyArray, dv: AnyArray) -> AnyArray:
         return np.repeat(colour, len(points), axis=0)
 
     return albedo
 
 
-def mottled_albedo(bgr: Sequence[float], contrast: float = 0.12, seed: int = 0, scale_m: float = 0.02) -> AlbedoFn:
+def mottled_albedo(bgr: Sequence[float] | AnyArray, contrast: float = 0.12, seed: int = 0, scale_m: float = 0.02) -> AlbedoFn:
     """A colour with a smooth, seeded 3D texture (sum of random sinusoids): paper, skin, plaster."""
     rng = np.random.default_rng(seed)
     freqs = rng.normal(size=(6, 3)) / scale_m
     phases = rng.uniform(0, 2 * np.pi, size=6)
     colour = np.asarray(bgr, dtype=np.float64).reshape(1, 3)
 
-    def albedo(points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    def albedo(points: AnyArray, du: AnyArray, dv: AnyArray) -> AnyArray:
         wave = np.sin(points @ freqs.T + phases).mean(axis=1, keepdims=True)
         return np.clip(colour * (1.0 + contrast * wave), 0.0, 1.0)
 
@@ -72,7 +74,7 @@ def _legacy(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
 
 
 def make_plane(point: Sequence[float], normal: Sequence[float] = (0.0, 0.0, -1.0), size_m: float = 0.8,
-               albedo: Optional[AlbedoFn] = None, name: str = "plane") -> SceneObject:
+               albedo: AlbedoFn | None = None, name: str = "plane") -> SceneObject:
     """A square plane through ``point`` with ``normal`` (two triangles, ``size_m`` wide)."""
     n = np.asarray(normal, dtype=np.float64)
     n = n / np.linalg.norm(n)
@@ -90,7 +92,7 @@ def make_plane(point: Sequence[float], normal: Sequence[float] = (0.0, 0.0, -1.0
 
 
 def make_sphere(center: Sequence[float], radius_m: float = 0.06, resolution: int = 120,
-                albedo: Optional[AlbedoFn] = None, name: str = "sphere") -> SceneObject:
+                albedo: AlbedoFn | None = None, name: str = "sphere") -> SceneObject:
     """A sphere (open3d UV sphere, ``resolution`` segments: ~3 mm edges for a 6 cm radius at 120)."""
     if radius_m <= 0:
         raise SceneError(f"sphere radius must be positive, got {radius_m}")
@@ -100,9 +102,9 @@ def make_sphere(center: Sequence[float], radius_m: float = 0.06, resolution: int
                        {"center": np.asarray(center, dtype=np.float64), "radius_m": radius_m})
 
 
-def _box_square_wave(x: np.ndarray, width: np.ndarray) -> np.ndarray:
+def _box_square_wave(x: AnyArray, width: AnyArray) -> AnyArray:
     """sign(sin(pi x)) averaged over [x - w/2, x + w/2] (period 2): the pixel integral of a stripe pattern."""
-    def tri(z: np.ndarray) -> np.ndarray:  # antiderivative of the unit square wave: a triangle wave
+    def tri(z: AnyArray) -> AnyArray:  # antiderivative of the unit square wave: a triangle wave
         m = np.mod(z, 2.0)
         return np.where(m < 1.0, m, 2.0 - m)
 
@@ -110,12 +112,12 @@ def _box_square_wave(x: np.ndarray, width: np.ndarray) -> np.ndarray:
     return (tri(x + w / 2) - tri(x - w / 2)) / w
 
 
-def board_albedo(origin: np.ndarray, axis_x: np.ndarray, axis_y: np.ndarray, square_m: float,
-                 squares: Tuple[int, int], dark: float = 0.06, light: float = 0.85) -> AlbedoFn:
+def board_albedo(origin: AnyArray, axis_x: AnyArray, axis_y: AnyArray, square_m: float,
+                 squares: tuple[int, int], dark: float = 0.06, light: float = 0.85) -> AlbedoFn:
     """Checkerboard of ``squares`` (cols, rows) starting at the board's first square, white margin around."""
     cols, rows = squares
 
-    def albedo(points: np.ndarray, du: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    def albedo(points: AnyArray, du: AnyArray, dv: AnyArray) -> AnyArray:
         rel = points - origin
         x, y = rel @ axis_x / square_m, rel @ axis_y / square_m
         # pixel footprint along the board axes (in squares): box filter widths
@@ -131,7 +133,7 @@ def board_albedo(origin: np.ndarray, axis_x: np.ndarray, axis_y: np.ndarray, squ
     return albedo
 
 
-def make_board(pose_R: np.ndarray, pose_t: Sequence[float], inner_corners: Tuple[int, int] = (9, 6),
+def make_board(pose_R: AnyArray, pose_t: Sequence[float] | AnyArray, inner_corners: tuple[int, int] = (9, 6),
                square_m: float = 0.025, margin_squares: float = 1.0, name: str = "board") -> SceneObject:
     """A flat calibration chessboard; corners (board frame) at (i*s, j*s, 0), i < cols, j < rows.
 
@@ -156,8 +158,8 @@ def make_board(pose_R: np.ndarray, pose_t: Sequence[float], inner_corners: Tuple
                        {"object_points": obj, "corners_m": obj @ R.T + t, "pose_R": R, "pose_t": t})
 
 
-def load_mesh_file(path: os.PathLike | str, center: Optional[Sequence[float]] = None, scale: float = 1.0,
-                   albedo: Optional[AlbedoFn] = None) -> SceneObject:
+def load_mesh_file(path: os.PathLike | str, center: Sequence[float] | None = None, scale: float = 1.0,
+                   albedo: AlbedoFn | None = None) -> SceneObject:
     """A PLY/OBJ/STL mesh (metres), optionally scaled and moved so its bounding-box centre is ``center``."""
     path = Path(path)
     if not path.is_file():
