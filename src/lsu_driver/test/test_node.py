@@ -56,7 +56,10 @@ def test_services_home_move_step_and_laser(rig, emulator):
     truth = {(e["line"].split()[0], int(e["line"].split()[1]), e["device_ms"]): e["wall_s"]
              for e in emulator.handle_control({"get": "events"})["events"]}
     moving = [m for m in carriage if m.source == "pos"]
-    assert len(moving) >= 10 and all(m.moving and m.header.frame_id == "lsu_laser_origin" for m in moving)
+    # ~10 events at 20 Hz over the 0.5 s move; the subscription may match after the first ones, and a busy
+    # host may starve the emulator's timer, so the count is not asserted: every event the unit sent from the
+    # first one received on is published, in order (checked against the emulator's own record below)
+    assert len(moving) >= 3 and all(m.moving and m.header.frame_id == "lsu_laser_origin" for m in moving)
     for m in moving + [m for m in carriage if m.source == "done"]:
         stamp = m.header.stamp.sec + m.header.stamp.nanosec * 1e-9
         candidates = [wall for (kind, pos, _), wall in truth.items()
@@ -64,6 +67,9 @@ def test_services_home_move_step_and_laser(rig, emulator):
         assert candidates and min(abs(stamp - wall) for wall in candidates) <= m.uncertainty_s, m
     stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in moving]
     assert stamps == sorted(stamps) and [m.position_steps for m in moving] == sorted(m.position_steps for m in moving)
+    sent = sorted((wall, pos) for (kind, pos, _), wall in truth.items() if kind == "!POS")
+    since_first = [pos for wall, pos in sent if wall >= stamps[0] - moving[0].uncertainty_s]
+    assert since_first == [round(m.position_steps) for m in moving]
     stepped = h.call(c["step"], Step.Request(steps=-30), timeout_s=10)
     assert stepped.success and stepped.position_steps == 70
     beyond = h.call(c["move_to"], MoveTo.Request(position_steps=900))
