@@ -74,6 +74,8 @@ class ScanCanceled(ScanAborted):
 
 
 _key = stamps.to_ns  # an image stamp as the key of its acknowledgement
+# how long a new scan waits for the driver's and the camera's services (a graph still starting) [s]
+GRAPH_WAIT_S = 20.0
 
 
 # name -> (default, description, (low, high) or None). Every one is read when it is used, so a
@@ -477,6 +479,13 @@ class ScanCoordinatorNode(Node):
             if not state.homed:
                 raise ScanAborted("the carriage is not homed: call carriage/home (or `lsu service call "
                                   "/lsu/carriage/home`) before scanning")
+            # a scan asked for as soon as the graph is launched may come before the camera node is up (the
+            # driver homes first): nothing is captured and the laser is off yet, so waiting here loses nothing
+            clients = (self.laser, self.move, self.capture)
+            if not self._wait(lambda: all(c.service_is_ready() for c in clients), GRAPH_WAIT_S):
+                missing = [c.srv_name for c in clients if not c.service_is_ready()]
+                raise ScanAborted(f"service {', '.join(missing)} is not available after {GRAPH_WAIT_S:g} s (is its "
+                                  f"node running?)")
             try:
                 plan = plan_positions(goal.start_steps, goal.end_steps, goal.step_steps, state.track_steps,
                                       goal.settle_s, goal.texture)
