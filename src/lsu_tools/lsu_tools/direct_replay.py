@@ -19,7 +19,6 @@ import collections
 import itertools
 import queue
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -229,53 +228,34 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exi
     published (at most the matcher's scan_timeout_s later). One thread: the replay calls into
     the nodes between the executor's turns.
     """
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-
     from lsu_bags.bags import BagError
 
-    from .runner import build_nodes
+    from .runner import spinning_nodes
 
     if not Path(bag).exists():
         raise FileNotFoundError(f"bag '{bag}' not found: give a bag folder (or its .mcap/.db3 file)")
-    rclpy.init()
-    nodes: list[Any] = []
-    try:
-        with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
-            nodes = build_nodes(description, Path(tmp), out=out)
-            replay = DirectReplay(nodes)
-            spinner = SingleThreadedExecutor()
-            for node in nodes:
-                spinner.add_node(node)
-            out.write(f"[lsu run] replaying {bag} directly into laser_extractor and stereo_matcher "
-                      f"({len(nodes)} node(s) in one process)\n")
+    with spinning_nodes(description, out, "single") as (nodes, spinner):
+        replay = DirectReplay(nodes)
+        out.write(f"[lsu run] replaying {bag} directly into laser_extractor and stereo_matcher "
+                  f"({len(nodes)} node(s) in one process)\n")
+        out.flush()
+        spinner.spin_once(timeout_sec=0.0)
+        try:
+            stats = replay.run(bag, spin=lambda: spinner.spin_once(timeout_sec=0.0))
+        except BagError as exc:
+            out.write(f"[lsu run] error: {exc}\n")
+            return 2
+        out.write(f"[lsu run] {stats.summary(Path(bag))}\n")
+        out.flush()
+        if exit_when_done:
+            timeout = float(replay.matcher.get_parameter("scan_timeout_s").value) + 1.0
+            deadline = time.monotonic() + timeout
+            while replay.scan_pending() and time.monotonic() < deadline:
+                spinner.spin_once(timeout_sec=0.05)
+            spinner.spin_once(timeout_sec=0.0)
+        else:
+            out.write("[lsu run] replay done; the nodes keep running (Ctrl-C stops)\n")
             out.flush()
-            try:
-                spinner.spin_once(timeout_sec=0.0)
-                try:
-                    stats = replay.run(bag, spin=lambda: spinner.spin_once(timeout_sec=0.0))
-                except BagError as exc:
-                    out.write(f"[lsu run] error: {exc}\n")
-                    return 2
-                out.write(f"[lsu run] {stats.summary(Path(bag))}\n")
-                out.flush()
-                if exit_when_done:
-                    timeout = float(replay.matcher.get_parameter("scan_timeout_s").value) + 1.0
-                    deadline = time.monotonic() + timeout
-                    while replay.scan_pending() and time.monotonic() < deadline:
-                        spinner.spin_once(timeout_sec=0.05)
-                    spinner.spin_once(timeout_sec=0.0)
-                else:
-                    out.write("[lsu run] replay done; the nodes keep running (Ctrl-C stops)\n")
-                    out.flush()
-                    spinner.spin()
-            except (KeyboardInterrupt, ExternalShutdownException):
-                pass
-            finally:
-                spinner.shutdown(timeout_sec=2.0)
-    finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+            spinner.spin()
     out.write("[lsu run] stopped\n")
     return 0

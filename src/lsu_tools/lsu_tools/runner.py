@@ -7,8 +7,10 @@ no serialization between nodes, and the easiest way to run the whole graph in a 
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -46,12 +48,13 @@ def build_nodes(description: LaunchDescription, param_dir: Path, context: Any | 
     return nodes
 
 
-def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, executor: str = "multi") -> int:
-    """Build all nodes and spin them until Ctrl-C / SIGTERM; returns the exit code.
+@contextlib.contextmanager
+def spinning_nodes(description: LaunchDescription, out: TextIO = sys.stdout,
+                   executor: str = "multi") -> Iterator[tuple[list[Any], Any]]:
+    """rclpy, every node of ``description`` and an executor holding them, for the ``with`` block.
 
-    ``executor``: "multi" (a thread pool: nodes may block in a callback waiting for another
-    node's reply) or "single" (one thread: no hand-off between threads per callback, so a
-    pipeline of processing nodes runs faster; a callback that waits would deadlock it).
+    A Ctrl-C / SIGTERM inside the block ends it quietly; on every way out the executor stops, the
+    nodes are destroyed and rclpy shut down.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
@@ -64,11 +67,8 @@ def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, exe
             spinner = MultiThreadedExecutor() if executor == "multi" else SingleThreadedExecutor()
             for node in nodes:
                 spinner.add_node(node)
-            out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process ({executor}-threaded executor); "
-                      "Ctrl-C stops\n")
-            out.flush()
             try:
-                spinner.spin()
+                yield nodes, spinner
             except (KeyboardInterrupt, ExternalShutdownException):
                 pass
             finally:
@@ -77,5 +77,19 @@ def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, exe
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, executor: str = "multi") -> int:
+    """Build all nodes and spin them until Ctrl-C / SIGTERM; returns the exit code.
+
+    ``executor``: "multi" (a thread pool: nodes may block in a callback waiting for another
+    node's reply) or "single" (one thread: no hand-off between threads per callback, so a
+    pipeline of processing nodes runs faster; a callback that waits would deadlock it).
+    """
+    with spinning_nodes(description, out, executor) as (nodes, spinner):
+        out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process ({executor}-threaded executor); "
+                  "Ctrl-C stops\n")
+        out.flush()
+        spinner.spin()
     out.write("[lsu run] stopped\n")
     return 0
