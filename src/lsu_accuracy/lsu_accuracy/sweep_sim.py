@@ -8,9 +8,8 @@ exposure; the carriage positions come stamped as the driver publishes them (`!PO
 renders the same scene stop-snap (settled after each move, the emulator's residual vibration after
 the settle time), through the same extractor and matcher: the reference of the sweep's accuracy.
 
-`fit_sim_laser_sheet` calibrates the simulated rig's laser sheet the way a lab does it: stop-snap
-scans of a flat target at two distances, fitted with `fit_laser_sheet` (what
-``config/calibration/sim/laser.yaml`` holds).
+The simulated rig's laser sheet (``config/calibration/sim/laser.yaml``) is calibrated as in a lab,
+by `lsu calibrate --laser` on scans of flat boards (`lsu_reconstruct.laser_cli`).
 """
 
 from __future__ import annotations
@@ -22,7 +21,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-__all__ = ["SweepScan", "sweep_scene", "stopsnap_scene", "fit_sim_laser_sheet", "sweep_frame_count"]
+__all__ = ["SweepScan", "sweep_scene", "stopsnap_scene", "sweep_frame_count"]
 
 # the emulator's post-stop vibration (lsu_driver.emulator.EmulatorConfig defaults, at 200 steps/s)
 VIBRATION_AMPLITUDE_STEPS = 0.6
@@ -127,21 +126,3 @@ def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int 
     points = np.concatenate(xyz) if xyz else np.zeros((0, 3))
     return SweepScan(points, len(xyz), len(positions), 0.0, {"stereo": int(len(points))},
                      np.concatenate(checked) if checked else (np.zeros((0, 3)) if sheet is not None else None))
-
-
-def fit_sim_laser_sheet(geometry, model, distances_m: Sequence[float] = (0.26, 0.34),
-                        positions: Sequence[int] = tuple(range(60, 411, 25)), seed: int = 11):
-    """The sim rig's sheet calibrated as in a lab: stop-snap scans of a flat target at two distances."""
-    from lsu_cameras.sim import SimulatedRig, build_scene
-    from lsu_reconstruct.laser_sheet import fit_laser_sheet
-    from lsu_reconstruct.pipeline import reconstruct_snap
-
-    points, where = [], []
-    for distance in distances_m:
-        rig = SimulatedRig(geometry, build_scene("plane", geometry, distance_m=distance), seed=seed)
-        for p in positions:
-            frame = rig.render(float(p), seed=int(p))
-            snap = reconstruct_snap(model, _lines(frame.left), _lines(frame.right), snap=int(p))
-            points.append(snap.xyz)
-            where.append(np.full(len(snap.xyz), float(p)))
-    return fit_laser_sheet(np.concatenate(points), np.concatenate(where))
