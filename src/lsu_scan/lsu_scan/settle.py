@@ -55,11 +55,7 @@ def line_profile(image: AnyArray) -> AnyArray:
     from lsu_extract.extractor import extract_laser_line
 
     result = extract_laser_line(image)
-    profile = np.full(image.shape[0], np.nan)
-    rows = np.asarray(result.v, dtype=np.int64)
-    ok = (rows >= 0) & (rows < image.shape[0])
-    profile[rows[ok]] = np.asarray(result.u, dtype=np.float64)[ok]
-    return profile
+    return profile_from_line(result.u, result.v, image.shape[0])
 
 
 def profile_from_line(u: AnyArray, v: AnyArray, height: int) -> AnyArray:
