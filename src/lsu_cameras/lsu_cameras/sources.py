@@ -165,12 +165,14 @@ class V4l2Source(StereoSource):
 
     def __init__(self, devices: Sequence[str | int], size: tuple[int, int] = (640, 480),
                  profile: Profile | None = None, flush_frames: int = 2,
-                 opener: Callable[..., cv2.VideoCapture] = cv2.VideoCapture, latency_s: float = 0.0) -> None:
+                 opener: Callable[..., cv2.VideoCapture] = cv2.VideoCapture, latency_s: float = 0.0,
+                 clocks: Callable[[], tuple[float, float]] = lambda: (time.time(), time.monotonic())) -> None:
         if len(devices) != 2:
             raise CameraError(f"need exactly two devices (left, right), got {list(devices)}")
         self.devices = list(devices)
         self.flush_frames = flush_frames
         self.latency_s = float(latency_s)
+        self.clocks = clocks  # (wall, monotonic) read together, to move the drivers' monotonic stamps to wall time
         # V4L2's exposure_time_absolute (OpenCV CAP_PROP_EXPOSURE on CAP_V4L2) counts 100 us units
         exposure = profile.controls.get("exposure") if profile is not None else None
         self._exposure_s = float(exposure) * 1e-4 if exposure is not None and float(exposure) > 0 else 0.0
@@ -229,9 +231,9 @@ class V4l2Source(StereoSource):
         for side, dev, cap in zip(("left", "right"), self.devices, self._caps):
             if not cap.grab():
                 raise CameraError(f"{side} camera '{dev}' returned no frame (unplugged?)")
-            wall, mono = time.time(), time.monotonic()
+            wall, mono = self.clocks()
             starts.append(buffer_stamp_s(float(cap.get(cv2.CAP_PROP_POS_MSEC)), wall, mono, self.latency_s))
-            if mono > deadline:
+            if time.monotonic() > deadline:
                 raise CameraError(f"grabbing the pair took longer than {timeout_s} s")
         images = []
         for side, cap in zip(("left", "right"), self._caps):
