@@ -270,15 +270,27 @@ def test_stream_publishes_every_slot_on_its_stamp_with_the_carriage_at_that_time
 def test_a_stream_that_falls_too_far_behind_ends_with_an_error_and_keeps_what_it_published(ros_node):
     from lsu_interfaces.srv import StreamStereo
 
+    from diagnostic_msgs.msg import DiagnosticArray
+
     node = make_node(ros_node, stream_max_lag_s=0.2)
     slowed_source(node, 0.3)
-    images = []
+    images, diags = [], []
     ros_node.node.create_subscription(Image, "/lsu/stereo/left/image_raw", images.append, 10)
+    ros_node.node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     stream = ros_node.node.create_client(StreamStereo, "/lsu/stereo/stream")
     assert ros_node.call(stream, StreamStereo.Request(frame_rate_hz=30.0)).success
     assert ros_node.spin_until(lambda: node._stream is not None and not node._stream.running, 10.0)
     stop = ros_node.call(stream, StreamStereo.Request(frame_rate_hz=0.0))
     assert not stop.success and "more than stream_max_lag_s = 0.2 s" in stop.message
     assert stop.frames_published == 1 and ros_node.spin_until(lambda: len(images) == 1, 5.0)
+    # /diagnostics says why the stream ended and how late its pairs were
+    def stream_status():
+        return [st for d in diags for st in d.status if any(kv.key == "stream" for kv in st.values)]
+
+    assert ros_node.spin_until(lambda: stream_status(), 5.0)
+    status = stream_status()[-1]
+    values = {kv.key: kv.value for kv in status.values}
+    assert "stream_max_lag_s" in status.message and values["stream"] == "stopped"
+    assert values["stream_frames_published"] == "1" and float(values["stream_lag_max_s"]) > 0.2
     bad = ros_node.call(stream, StreamStereo.Request(frame_rate_hz=-1.0))
     assert not bad.success and "0 < frame_rate_hz" in bad.message
