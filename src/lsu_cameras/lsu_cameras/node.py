@@ -583,8 +583,8 @@ class StereoCameraNode(Node):
             index += 1
 
     def _publish_diagnostics(self) -> None:
-        values = {"calibration_id": self.calibration.calibration_id if self.calibration else "",
-                  "sim_truth": "received" if self._truth is not None else "none"}
+        values: dict[str, object] = {"calibration_id": self.calibration.calibration_id if self.calibration else "",
+                                     "sim_truth": "received" if self._truth is not None else "none"}
         level, message = self.status_level, self.status_message
         with self._stream_lock:
             stream = self._stream
