@@ -93,7 +93,7 @@ PARAMETERS: dict[str, Param] = {
     "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
     "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),
     "laser_on": Param(True, "sim: laser state used until /lsu/sim/truth arrives"),
-    "stream_max_lag_s": Param(30.0, "stream: a pair published later than this after its stamp ends the stream with "
+    "stream_max_lag_s": Param(120.0, "stream: a pair published later than this after its stamp ends the stream with "
                               "an error (a source that cannot keep up must not pile up frames) [s]", (0.1, 600.0)),
     "v4l2_latency_s": Param(0.0, "v4l2: exposure start to arrival of a frame, for drivers without buffer timestamps "
                             "[s]", (0.0, 10.0), read_only=R),
