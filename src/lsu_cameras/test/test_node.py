@@ -289,3 +289,6 @@ def test_a_stream_that_falls_too_far_behind_ends_with_an_error_and_keeps_what_it
     assert values["stream_frames_published"] == "1" and float(values["stream_lag_max_s"]) > 0.2
     bad = ros_node.call(stream, StreamStereo.Request(frame_rate_hz=-1.0))
     assert not bad.success and "0 < frame_rate_hz" in bad.message
+    past = stamps.to_msg(ros_node.node.get_clock().now().nanoseconds - 5_000_000_000)
+    late = ros_node.call(stream, StreamStereo.Request(frame_rate_hz=30.0, start=past))
+    assert not late.success and "s in the past" in late.message and not node._stream.running
