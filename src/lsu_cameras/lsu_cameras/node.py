@@ -221,11 +221,10 @@ class StereoCameraNode(Node):
             self._truth_msg = self._truth_history.newest
             return self._truth_msg
 
-    def _truth_at(self, t: float) -> SimTruth | None:
-        """The ``sim/truth`` sample that held at ``t`` (the newest stamped at or before it)."""
+    def _truth_at(self, t_ns: int) -> SimTruth | None:
+        """The ``sim/truth`` sample that held at ``t_ns`` (the newest stamped at or before it)."""
         if self._truth is None:
             return None
-        t_ns = stamps.seconds_to_ns(t)
         with self._truth_lock:
             truth = self._truth_history.at(t_ns)
             # later frames and captures look up later times only: older samples can go (bounded memory)
@@ -236,10 +235,10 @@ class StereoCameraNode(Node):
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
 
-    def _sim_carriage(self, t: float) -> CarriageState:
+    def _sim_carriage(self, t_ns: int) -> CarriageState:
         from .sim import CarriageState
 
-        truth = self._truth_at(t)
+        truth = self._truth_at(t_ns)
         if truth is None:
             return CarriageState(float(self.get_parameter("carriage_position_steps").value),
                                  bool(self.get_parameter("laser_on").value))
@@ -558,7 +557,7 @@ class StereoCameraNode(Node):
                 stream.wake.wait(stamps.ns_to_seconds(wait_ns))
                 stream.wake.clear()
             with self._lock:
-                pair = source.pair_at(stamps.ns_to_seconds(t_ns), index)
+                pair = source.pair_at(t_ns, index)
             self._stream_publish(stream, pair, t_ns, index)
             index += 1
 

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import cv2
 
 from lsu_common.arrays import AnyArray
+from lsu_common.stamps import ns_to_seconds, seconds_to_ns
 
 from .profiles import Profile, apply_profile
 from .stream import buffer_stamp_s, frame_seed
@@ -73,8 +74,8 @@ class StereoSource(abc.ABC):
         """Clocked sources: how long after its slot a frame can exist (the end of its later exposure)."""
         return self.exposure_s
 
-    def pair_at(self, time_s: float, index: int) -> StereoPair:
-        """Clocked sources: the pair of stream frame ``index`` exposed from ``time_s`` (its stamp)."""
+    def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
+        """Clocked sources: the pair of stream frame ``index`` exposed from ``stamp_ns`` (its stamp, integer ns)."""
         raise CameraError(f"{type(self).__name__} runs at its own rate and cannot make a frame for a given time")
 
     def start_stream(self, rate_hz: float) -> float:
@@ -131,10 +132,10 @@ class FolderSource(StereoSource):
     def image_size(self) -> tuple[int, int]:
         return self._size
 
-    def pair_at(self, time_s: float, index: int) -> StereoPair:
+    def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
         """The folder's next pair, stamped with its slot (a folder streams its pairs in name order at the rate)."""
         pair = self.grab_pair()
-        pair.time_s = time_s
+        pair.time_s = ns_to_seconds(stamp_ns)
         return pair
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
@@ -276,9 +277,10 @@ class V4l2Source(StereoSource):
 
 
 class SimSource(StereoSource):
-    """The simulated rig; ``carriage(t)`` says where the carriage is at time t (from /lsu/sim/truth or a parameter)."""
+    """The simulated rig; ``carriage(t_ns)`` says where the carriage is at time t_ns (integer ns: from
+    /lsu/sim/truth or a parameter)."""
 
-    def __init__(self, rig: SimulatedRig, carriage: Callable[[float], CarriageState],
+    def __init__(self, rig: SimulatedRig, carriage: Callable[[int], CarriageState],
                  clock: Callable[[], float] = time.time, seed: int = 0) -> None:
         self.rig = rig
         self.carriage = carriage
@@ -299,22 +301,23 @@ class SimSource(StereoSource):
         # the later camera's exposure end (jitter: 3 sigma), as a real frame would arrive
         return max(sensor.capture_offset_s, 0.0) + 3.0 * sensor.capture_jitter_s + sensor.exposure_s
 
-    def _pair(self, t: float, seed: int | None) -> StereoPair:
-        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s)
-        frame = self.rig.render(self.carriage(t), capture_time_s=t, seed=seed)
+    def _pair(self, t_ns: int, seed: int | None) -> StereoPair:
+        t = ns_to_seconds(t_ns)
+        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
+        # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
+        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed)
         left_start, right_start = frame.exposure_start_s
         assert left_start is not None and right_start is not None  # a capture time gives both starts
         return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
 
-    def pair_at(self, time_s: float, index: int) -> StereoPair:
-        """The pair exposed from ``time_s`` with the carriage as known then; its noise (and start jitter)
+    def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
+        """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
         seeded by the sim seed and ``index`` (`frame_seed`)."""
-        return self._pair(time_s, frame_seed(self.seed, index))
+        return self._pair(stamp_ns, frame_seed(self.seed, index))
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
-        t = self.clock()
         started = time.monotonic()
-        pair = self._pair(t, None)
+        pair = self._pair(seconds_to_ns(self.clock()), None)
         # a real frame is not there before its exposure has ended: a render faster than the
         # exposure must not make a simulated scan faster than the unit could be
         remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)

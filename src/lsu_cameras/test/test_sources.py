@@ -100,9 +100,9 @@ def test_folder_source_streams_its_pairs_in_order_on_the_slots_stamps(tmp_path):
     for k in range(2):
         write_pair(tmp_path, f"{k:03d}", value=10 * k)
     source = FolderSource(tmp_path)
-    pairs = [source.pair_at(100.0 + k / 30, k) for k in range(3)]
-    assert [int(p.left[0, 0, 0]) for p in pairs] == [0, 10, 0] and [p.time_s for p in pairs] == [100.0, 100.0 + 1 / 30,
-                                                                                                 100.0 + 2 / 30]
+    pairs = [source.pair_at(100_000_000_000 + k * 33_333_333, k) for k in range(3)]
+    assert [int(p.left[0, 0, 0]) for p in pairs] == [0, 10, 0]
+    assert [p.time_s for p in pairs] == pytest.approx([100.0, 100.0 + 1 / 30, 100.0 + 2 / 30], abs=1e-9)
     assert source.clocked and source.exposure_s == 0.0
 
 

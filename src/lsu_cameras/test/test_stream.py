@@ -94,7 +94,7 @@ def test_a_sim_stream_frame_is_a_function_of_seed_index_and_truth():
     geometry = load_rig()
     scene = build_scene("plane", geometry)
 
-    def sweep(t):  # a constant-rate sweep: the truth every source below is given
+    def sweep(t_ns):  # a constant-rate sweep: the truth every source below is given
         return CarriageState(200.0, velocity_steps_per_s=120.0, position_time_s=1000.0)
 
     def source(rig_seed):
@@ -103,7 +103,7 @@ def test_a_sim_stream_frame_is_a_function_of_seed_index_and_truth():
         return SimSource(rig, sweep, seed=5)
 
     a, b = source(0), source(1)  # the rig's own generator (single captures) plays no part
-    pairs = [a.pair_at(1000.1, 7), b.pair_at(1000.1, 7), a.pair_at(1000.1, 8)]
+    pairs = [a.pair_at(1_000_100_000_000, 7), b.pair_at(1_000_100_000_000, 7), a.pair_at(1_000_100_000_000, 8)]
     assert np.array_equal(pairs[0].left, pairs[1].left) and np.array_equal(pairs[0].right, pairs[1].right)
     assert (pairs[0].left_offset_s, pairs[0].skew_s) == (pairs[1].left_offset_s, pairs[1].skew_s)
     assert not np.array_equal(pairs[0].left, pairs[2].left)  # each frame its own noise and start jitter
