@@ -456,6 +456,8 @@ class StereoCameraNode(Node):
             try:
                 rate = source.start_stream(rate)
                 period_ns = frame_period_ns(rate)
+                for problem in source.report():
+                    self.get_logger().warning(f"camera setting: {problem}", throttle_duration_sec=60.0)
             except CameraError as exc:
                 response.success = False
                 response.message = f"stream not started: {exc}"

@@ -174,9 +174,11 @@ class V4l2Source(StereoSource):
         self.flush_frames = flush_frames
         self.latency_s = float(latency_s)
         self.clocks = clocks  # (wall, monotonic) read together, to move the drivers' monotonic stamps to wall time
-        # V4L2's exposure_time_absolute (OpenCV CAP_PROP_EXPOSURE on CAP_V4L2) counts 100 us units
-        exposure = profile.controls.get("exposure") if profile is not None else None
-        self._exposure_s = float(exposure) * 1e-4 if exposure is not None and float(exposure) > 0 else 0.0
+        # V4L2's exposure_time_absolute (OpenCV CAP_PROP_EXPOSURE on CAP_V4L2) counts 100 us units; it is the
+        # exposure only in manual mode (auto_exposure 1, V4L2_EXPOSURE_MANUAL); otherwise the source does not know it
+        controls = profile.controls if profile is not None else {}
+        exposure = float(controls.get("exposure", 0)) if controls.get("auto_exposure") == 1 else 0.0
+        self._exposure_s = exposure * 1e-4 if exposure > 0 else 0.0
         self._problems: list[str] = []
         self._caps = []
         try:

@@ -159,3 +159,12 @@ def test_v4l2_stream_is_stamped_from_the_buffers_and_a_missing_frame_counts_as_d
     assert (tally.expected, tally.published, tally.dropped) == (6, 5, 1)
     with pytest.raises(CameraError, match="left camera '/dev/video0' returned no frame"):
         source.next_pair(1.0)
+
+
+def test_v4l2_exposure_is_known_from_a_manual_exposure_profile_only():
+    def opened(profile):
+        cameras = iter([FakeStreamingCamera([]), FakeStreamingCamera([])])
+        return V4l2Source(["/dev/video0", "/dev/video1"], profile=load_profile(profile), opener=lambda *_: next(cameras))
+
+    # "dark": manual exposure 6 in V4L2's 100 us units; "normal": auto exposure, the time is the camera's choice
+    assert opened("dark").exposure_s == pytest.approx(0.0006) and opened("normal").exposure_s == 0.0
