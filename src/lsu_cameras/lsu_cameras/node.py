@@ -514,13 +514,16 @@ class StereoCameraNode(Node):
                 self._run_free(stream, source)
         except CameraError as exc:
             stream.error = f"stream ended: {exc}"
-        except Exception as exc:  # a thread dies silently otherwise: report it as the stream's end
-            stream.error = f"stream ended by an internal error: {exc!r}"
+        except Exception as exc:
+            if not self.context.ok():  # Ctrl-C / SIGTERM shut ROS down under the stream: a normal end
+                stream.error = "stream ended: the node shut down"
+                return
+            stream.error = f"stream ended by an internal error: {exc!r}"  # a thread dies silently otherwise
             raise
         finally:
             if not source.clocked:
                 source.stop_stream()
-            if stream.error:
+            if stream.error and self.context.ok():
                 self.get_logger().error(stream.error)
             stream.started.set()
             stream.done.set()
