@@ -625,12 +625,16 @@ def only(parts: set, bag: Path | None = None) -> int:
         at = rest.find("bridge: a default")
         notes = head + REPLAY_NOTES + replay_note + (rest[at:] if at >= 0 else "")
     view_parts = parts - {"replay"}
+    # the settle section of the notes (with its measurement note) stays when the settle figures do
+    kept_settle = notes.partition(" settle: in one")[2]
+    kept_settle = " settle: in one" + min(kept_settle.split(" ||")[0], kept_settle.split(" sweep: live")[0], key=len) \
+        if kept_settle else ""
     if view_parts:
         notes = notes.split(" bridge: a default")[0] + (
             f" {VIEW_NOTES} [{', '.join(sorted(view_parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
             f"`bench_scan.py --only {','.join(sorted(view_parts))}`, load average {os.getloadavg()[0]:.1f} on "
             f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
-        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else "")
+        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else kept_settle)
     if parts:
         write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=notes)
     if failure is not None:
