@@ -242,3 +242,37 @@ def test_sweep_sequence_gives_each_frame_once_the_next_right_exposure_is_in(head
     assert len(early.add(sync, track)) == 0  # no right exposure after its left one yet
     done = early.finish(track)
     assert len(done) == 1 and done[0].positions_steps[0] == done[0].positions_steps[1]
+
+
+def _plane_line(model: StereoModel, sheet: LaserSheet, side: str, position: float, z_m: float) -> LineArrays:
+    """The sheet at ``position`` on the plane z = ``z_m`` as one camera's line (projected, < 1 px apart)."""
+    n, c = sheet.plane(position)
+    y = np.linspace(-0.04, 0.04, 400)
+    x = (c - n[1] * y - n[2] * z_m) / n[0]
+    X = np.column_stack([x, y, np.full_like(y, z_m)])
+    uv = model.project_left(X) if side == "left" else model.project_right(X)
+    order = np.argsort(uv[:, 1])
+    return LineArrays(uv[order, 0], uv[order, 1])
+
+
+def test_cross_frame_interpolation_puts_the_left_line_on_the_sheet_and_rejects_a_depth_edge(rig_model):
+    """Analytic lines on a plane: the right lines at 249 and 251 steps, the left at 250 between them."""
+    geometry, model = rig_model
+    sheet = true_sheet(geometry)
+    track = CarriageTrack(np.array([0.0, 10.0]), np.array([0.0, 10.0 * RATE]))
+    exposure = 0.02
+
+    def frame(index: int, p_left: float, p_right: float, right_z: float = 0.3) -> SweepFrame:
+        return SweepFrame(index, _plane_line(model, sheet, "left", p_left, 0.3),
+                          _plane_line(model, sheet, "right", p_right, right_z),
+                          p_left / RATE - exposure / 2, p_right / RATE - exposure / 2, exposure)
+
+    out = reconstruct_sweep(model, sheet, track, [frame(0, 248.0, 249.0), frame(1, 250.0, 251.0)])[1]
+    assert np.all(out.source == SOURCE_CROSS_STEREO) and len(out.points) > 100
+    xyz = out.points.xyz
+    assert np.max(np.abs(xyz[:, 2] - 0.3)) * 1000.0 < 0.005
+    assert np.max(np.abs(sheet.distance_m(xyz, np.full(len(xyz), 250.0)))) * 1000.0 < 0.005
+    # the right line just after the left exposure lies on a nearer surface (a depth edge between the
+    # two exposures): its crossings are tens of pixels away, no point is interpolated across it
+    edge = reconstruct_sweep(model, sheet, track, [frame(0, 248.0, 249.0), frame(1, 250.0, 251.0, right_z=0.27)])[1]
+    assert len(edge.points) == 0 and edge.stats["cross_rejected_jump"] > 100
