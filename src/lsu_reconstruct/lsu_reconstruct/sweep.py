@@ -313,9 +313,10 @@ def _bracket_stereo(model: StereoModel, sheet: LaserSheet, left: LineArrays, p_l
 class SweepSequence:
     """Sweep frames in, points out, each left line matched across frames (module doc).
 
-    Feed frames in capture order with `add`; a frame's points come out once a right exposure with a
-    mid-exposure time after its left one has arrived (usually one or two frames later), in frame
-    order; `finish` gives the rest at the end of the sweep. The carriage track is passed with each
+    One sequence per sweep. Feed frames in capture order with `add`; a frame's points come out once
+    a right exposure with a mid-exposure time after its left one has arrived (with the right camera
+    late, at once; else one frame later), in frame order; `finish` gives the rest at the end of the
+    sweep. The carriage track is passed with each
     call (the live track grows; positions are read when a frame is reconstructed). A left line with
     no usable right line around it (the first frames, a dropped frame, a gap of more than
     ``max_bracket_steps``) falls back to `reconstruct_sweep_frame` (its own pair, or the sheet).
