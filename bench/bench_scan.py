@@ -3,6 +3,7 @@
     make bench-scan   ->  bench/results/scan.json
     .venv/bin/python bench/bench_scan.py --only view,two_host   (only parts 3 and 4, merged into scan.json)
     .venv/bin/python bench/bench_scan.py --only sweep           (only part 5, merged into scan.json)
+    .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 5's accuracy figures, no ROS)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -506,15 +507,19 @@ SWEEP_NOTES = (
     "config/calibration/sim with its laser.yaml): stop-snap 0..470 step 2 with the emulator's vibration 0.1 s "
     f"after each stop vs sweeps at {SWEEP_RATE:g} steps/s, {SWEEP_FPS:g} fps (sheet moving during each 20 ms exposure), "
     f"synchronised and with the right camera {1000 * SWEEP_OFFSET_S:g} ms late (jitter {1000 * SWEEP_JITTER_S:g} ms "
-    "std): each line on the laser sheet at its camera's mid-exposure carriage position (from 20 Hz stamped "
-    "positions), stereo where the exposures overlap, checked against the sheet; RMS distance of the raw points "
-    "to the rendered head mesh, sweep / stop-snap. The sweep's check against the sheet also rejects stereo "
-    "mismatches that stop-snap keeps: _checked figures divide by the stop-snap points that pass the same check.")
+    "std), rendered once each: every left line matched across frames (lsu_reconstruct.sweep.reconstruct_sweep: "
+    "to the right line at its mid-exposure carriage position, from 20 Hz stamped positions, or to the two right "
+    "lines exposed around it, interpolated along the epipolar line by carriage position) and checked against "
+    "the sheet; RMS distance of the raw points to the rendered head mesh, sweep / stop-snap. The sweep's check "
+    "against the sheet also rejects stereo mismatches that stop-snap keeps: _checked figures divide by the "
+    "stop-snap points that pass the same check. _per_frame: the same 50 ms frames frame by frame "
+    "(reconstruct_sweep_frame: each camera's line on the sheet at its own mid-exposure position).")
 SWEEP_UNITS = {"sweep_scan_s": "s", "sweep_lines": "lines", "sweep_frames_dropped_pct": "%", "sweep_points": "points",
                "sweep_rms_over_stopsnap": "x", "sweep_rms_over_stopsnap_50ms": "x", "stopsnap_rms_mm": "mm",
                "sweep_rms_mm": "mm", "sweep_50ms_rms_mm": "mm", "sweep_50ms_lines": "lines",
                "sweep_sim_lines": "lines", "stopsnap_sim_lines": "lines", "stopsnap_checked_rms_mm": "mm",
-               "sweep_rms_over_stopsnap_checked": "x", "sweep_rms_over_stopsnap_checked_50ms": "x"}
+               "sweep_rms_over_stopsnap_checked": "x", "sweep_rms_over_stopsnap_checked_50ms": "x",
+               "sweep_50ms_per_frame_rms_mm": "mm", "sweep_rms_over_stopsnap_checked_50ms_per_frame": "x"}
 
 
 def sweep_live(tmp: Path) -> dict:
@@ -543,7 +548,7 @@ def sweep_live(tmp: Path) -> dict:
 def sweep_accuracy() -> dict:
     """Part 5, without ROS: RMS to the rendered head of sweeps against stop-snap, same scene and physics."""
     from lsu_accuracy.accuracy import surface_rms_mm
-    from lsu_accuracy.sweep_sim import stopsnap_scene, sweep_scene
+    from lsu_accuracy.sweep_sim import reconstruct_rendered, render_sweep, stopsnap_scene
     from lsu_cameras.sim import build_scene, load_rig
     from lsu_config import config_dir
     from lsu_reconstruct.laser_sheet import read_laser_yaml
@@ -554,24 +559,30 @@ def sweep_accuracy() -> dict:
     geometry = load_rig()
     head = build_scene("head:7", geometry)
     stop = stopsnap_scene(model, geometry, head, seed=7, sheet=sheet)
-    sync = sweep_scene(model, sheet, geometry, head, SWEEP_RATE, SWEEP_FPS, seed=7)
-    late = sweep_scene(model, sheet, geometry, head, SWEEP_RATE, SWEEP_FPS, offset_s=SWEEP_OFFSET_S,
-                       jitter_s=SWEEP_JITTER_S, seed=7)
-    rms = {name: surface_rms_mm(head, scan.xyz) for name, scan in (("stop", stop), ("sync", sync), ("late", late))}
+    sync = reconstruct_rendered(model, sheet, render_sweep(geometry, head, SWEEP_RATE, SWEEP_FPS, seed=7))
+    late_frames = render_sweep(geometry, head, SWEEP_RATE, SWEEP_FPS, offset_s=SWEEP_OFFSET_S,
+                               jitter_s=SWEEP_JITTER_S, seed=7)
+    late = reconstruct_rendered(model, sheet, late_frames)
+    late_per_frame = reconstruct_rendered(model, sheet, late_frames, cross_frame=False)
+    rms = {name: surface_rms_mm(head, scan.xyz)
+           for name, scan in (("stop", stop), ("sync", sync), ("late", late), ("late_per_frame", late_per_frame))}
     rms["stop_checked"] = surface_rms_mm(head, stop.checked_xyz)
     return {"sweep_rms_over_stopsnap": rms["sync"] / rms["stop"], "sweep_rms_over_stopsnap_50ms": rms["late"] / rms["stop"],
             "stopsnap_rms_mm": rms["stop"], "sweep_rms_mm": rms["sync"], "sweep_50ms_rms_mm": rms["late"],
             "sweep_50ms_lines": late.lines, "sweep_sim_lines": sync.lines, "stopsnap_sim_lines": stop.lines,
             "stopsnap_checked_rms_mm": rms["stop_checked"],
             "sweep_rms_over_stopsnap_checked": rms["sync"] / rms["stop_checked"],
-            "sweep_rms_over_stopsnap_checked_50ms": rms["late"] / rms["stop_checked"]}
+            "sweep_rms_over_stopsnap_checked_50ms": rms["late"] / rms["stop_checked"],
+            "sweep_50ms_per_frame_rms_mm": rms["late_per_frame"],
+            "sweep_rms_over_stopsnap_checked_50ms_per_frame": rms["late_per_frame"] / rms["stop_checked"]}
 
 
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the replay, live-view and/or two-host figures and merge them into the existing scan.json."""
-    unknown = parts - {"replay", "view", "two_host", "settle", "sweep"}
+    unknown = parts - {"replay", "view", "two_host", "settle", "sweep", "sweep_accuracy"}
     if unknown:
-        raise SystemExit(f"--only takes replay, view, two_host, settle, sweep (comma-separated); not {', '.join(sorted(unknown))}")
+        raise SystemExit("--only takes replay, view, two_host, settle, sweep, sweep_accuracy (comma-separated); "
+                         f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
     failure = None
@@ -592,6 +603,7 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(settle_figures(tmp))
             if "sweep" in parts:
                 figures.update(sweep_live(tmp))
+            if parts & {"sweep", "sweep_accuracy"}:
                 figures.update(sweep_accuracy())
             if "two_host" in parts:
                 unavailable = why_unavailable()
@@ -613,12 +625,16 @@ def only(parts: set, bag: Path | None = None) -> int:
         at = rest.find("bridge: a default")
         notes = head + REPLAY_NOTES + replay_note + (rest[at:] if at >= 0 else "")
     view_parts = parts - {"replay"}
+    # the settle section of the notes (with its measurement note) stays when the settle figures do
+    kept_settle = notes.partition(" settle: in one")[2]
+    kept_settle = " settle: in one" + min(kept_settle.split(" ||")[0], kept_settle.split(" sweep: live")[0], key=len) \
+        if kept_settle else ""
     if view_parts:
         notes = notes.split(" bridge: a default")[0] + (
             f" {VIEW_NOTES} [{', '.join(sorted(view_parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
             f"`bench_scan.py --only {','.join(sorted(view_parts))}`, load average {os.getloadavg()[0]:.1f} on "
             f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
-        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if "sweep" in view_parts else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else "")
+        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else kept_settle)
     if parts:
         write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=notes)
     if failure is not None:

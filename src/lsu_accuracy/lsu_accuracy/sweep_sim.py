@@ -4,7 +4,8 @@
 at ``rate_steps_s`` while both cameras free-run at ``fps``, each frame exposed from its camera's own
 start (the rig's ``capture_offset_s`` / ``capture_jitter_s``), with the sheet moving during the
 exposure; the carriage positions come stamped as the driver publishes them (`!POS` at
-``position_rate_hz``), and `lsu_reconstruct.sweep` turns every frame into points. `stopsnap_scene`
+``position_rate_hz``), and `lsu_reconstruct.sweep` turns the frames into points (`render_sweep` renders and
+extracts once, `reconstruct_rendered` reconstructs those lines across frames or frame by frame). `stopsnap_scene`
 renders the same scene stop-snap (settled after each move, the emulator's residual vibration after
 the settle time), through the same extractor and matcher: the reference of the sweep's accuracy.
 
@@ -16,12 +17,17 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-__all__ = ["SweepScan", "sweep_scene", "stopsnap_scene", "sweep_frame_count"]
+if TYPE_CHECKING:
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame
+
+__all__ = ["SweepScan", "RenderedSweep", "render_sweep", "reconstruct_rendered", "sweep_scene", "stopsnap_scene",
+           "sweep_frame_count"]
 
 # the emulator's post-stop vibration (lsu_driver.emulator.EmulatorConfig defaults, at 200 steps/s)
 VIBRATION_AMPLITUDE_STEPS = 0.6
@@ -54,15 +60,22 @@ def _lines(image: AnyArray):
     return LineArrays(res.u, res.v, res.peak, res.width, res.quality, image.shape[1], image.shape[0])
 
 
-def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0,
-                start: int = 0, end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0,
-                position_rate_hz: float = 20.0, seed: int = 0, params=None,
-                frames: int | None = None) -> SweepScan:
-    """Render and reconstruct a sweep (module doc); ``frames`` limits the count (tests)."""
-    from lsu_cameras.sim import CarriageState, SimulatedRig
-    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
+@dataclass
+class RenderedSweep:
+    """The extracted lines of a rendered sweep, every frame with each camera's exposure start, and the track."""
 
-    params = params or SweepParams()
+    frames: list[SweepFrame]
+    track: CarriageTrack
+    seconds: float
+
+
+def render_sweep(geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0, start: int = 0,
+                 end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0, position_rate_hz: float = 20.0,
+                 seed: int = 0, frames: int | None = None) -> RenderedSweep:
+    """Render a sweep (module doc) and extract both lines of every frame; ``frames`` limits the count (tests)."""
+    from lsu_cameras.sim import CarriageState, SimulatedRig
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame
+
     rig = SimulatedRig(geometry, objects, seed=seed)
     rig.set_capture_timing(offset_s, jitter_s)
     direction = 1.0 if end >= start else -1.0
@@ -72,9 +85,7 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
     track = CarriageTrack(stamps, np.rint(start + direction * rate_steps_s * stamps))
     count = sweep_frame_count(start, end, rate_steps_s, fps) if frames is None else int(frames)
     exposure = geometry.sensor.exposure_s
-    xyz: list[AnyArray] = []
-    stats: dict[str, int] = {}
-    lines = 0
+    out: list[SweepFrame] = []
     for index in range(count):
         t = index / fps  # the left camera's nominal exposure start; the rig draws each camera's jitter
         state = CarriageState(float(start), True, velocity_steps_per_s=direction * rate_steps_s, position_time_s=0.0)
@@ -82,15 +93,41 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
             state = CarriageState(float(end), True)
         frame = rig.render(state, capture_time_s=t, seed=seed + index)
         assert frame.exposure_start_s[0] is not None and frame.exposure_start_s[1] is not None  # given capture_time_s
-        sweep_frame = SweepFrame(index, _lines(frame.left), _lines(frame.right), float(frame.exposure_start_s[0]),
-                                 float(frame.exposure_start_s[1]), exposure)
-        out = reconstruct_sweep_frame(model, sheet, track, sweep_frame, params)
+        out.append(SweepFrame(index, _lines(frame.left), _lines(frame.right), float(frame.exposure_start_s[0]),
+                              float(frame.exposure_start_s[1]), exposure))
+    return RenderedSweep(out, track, duration)
+
+
+def reconstruct_rendered(model, sheet, rendered: RenderedSweep, params=None, cross_frame: bool = True) -> SweepScan:
+    """Points of a rendered sweep: across frames (`lsu_reconstruct.sweep.reconstruct_sweep`) or frame by frame."""
+    from lsu_reconstruct.sweep import SweepParams, reconstruct_sweep, reconstruct_sweep_frame
+
+    params = params or SweepParams()
+    if cross_frame:
+        results = reconstruct_sweep(model, sheet, rendered.track, rendered.frames, params)
+    else:
+        results = [reconstruct_sweep_frame(model, sheet, rendered.track, f, params) for f in rendered.frames]
+    xyz: list[AnyArray] = []
+    stats: dict[str, int] = {}
+    lines = 0
+    for out in results:
         for key, value in out.stats.items():
             stats[key] = stats.get(key, 0) + int(value)
         if len(out.points):
             xyz.append(out.points.xyz)
             lines += int(len(np.unique(out.source)))
-    return SweepScan(np.concatenate(xyz) if xyz else np.zeros((0, 3)), lines, count, duration, stats)
+    return SweepScan(np.concatenate(xyz) if xyz else np.zeros((0, 3)), lines, len(rendered.frames), rendered.seconds,
+                     stats)
+
+
+def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0,
+                start: int = 0, end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0,
+                position_rate_hz: float = 20.0, seed: int = 0, params=None,
+                frames: int | None = None, cross_frame: bool = True) -> SweepScan:
+    """Render and reconstruct a sweep (module doc); ``frames`` limits the count (tests)."""
+    rendered = render_sweep(geometry, objects, rate_steps_s, fps, start, end, offset_s, jitter_s, position_rate_hz,
+                            seed, frames)
+    return reconstruct_rendered(model, sheet, rendered, params, cross_frame)
 
 
 def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int = 470, step: int = 2,

@@ -20,6 +20,20 @@ Per frame (`reconstruct_sweep_frame`):
   surface line as the left's);
 - where the exposures do not overlap, both cameras' sheet points are kept: two lines per frame.
 
+Over a sequence of frames (`SweepSequence`, `reconstruct_sweep`) the left line is instead matched
+*across frames*, to the right lines exposed just before and just after it. The carriage moves
+the sheet by a fraction of a millimetre between those exposures, so on a left pixel's epipolar
+plane the surface point the left camera saw lies between the two surface points the right lines
+show; along the right epipolar line its image is interpolated linearly in carriage position
+between the two crossings (exact for a plane up to perspective over ~2 steps; a face curves by
+micrometres over 0.85 mm) and triangulated with the left ray as in stop-snap. This keeps what
+stereo has over one camera and the sheet: the point is where both cameras see the same light on
+the surface, so the skin's subsurface glow, which shifts the line's centre along the surface away
+from the sheet, moves the point along the surface, not off it; and the depth error follows the
+122 mm stereo baseline rather than a camera's distance to the sheet (which falls to zero twice a
+sweep). Every such point is checked against the sheet at the left line's position; left pixels
+whose two crossings jump apart (a depth edge between the exposures) give no point.
+
 Sheet points whose ray meets the sheet at a grazing angle (below ``min_sheet_angle_deg``: the laser
 near that camera's optical centre) are dropped: their depth error grows as 1 / tan(angle).
 """
@@ -32,14 +46,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .laser_sheet import LaserSheet
-from .matching import LineArrays, MatchParams, _links, smooth_line
+from .matching import LineArrays, MatchParams, _links, match_line, smooth_line
 from .pipeline import SnapPoints, reconstruct_snap
 from .stereo import StereoModel
+from .triangulate import accept_points, triangulate
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["SweepError", "CarriageTrack", "SweepParams", "SweepFrame", "exposure_mid_s", "sheet_points",
-           "reconstruct_sweep_frame"]
+__all__ = ["SweepError", "CarriageTrack", "SweepParams", "SweepFrame", "SweepFramePoints", "SweepSequence",
+           "exposure_mid_s", "sheet_points", "reconstruct_sweep_frame", "reconstruct_sweep", "SOURCE_STEREO",
+           "SOURCE_LEFT_SHEET", "SOURCE_RIGHT_SHEET", "SOURCE_CROSS_STEREO"]
 
 
 class SweepError(ValueError):
@@ -118,6 +134,14 @@ class SweepParams:
     min_sheet_angle_deg: float = 10.0  # a ray meeting the sheet flatter than this gives no sheet point
     min_run_rows: int = 9             # sheet points: shorter continuous pieces of line are dropped
     trim_run_rows: int = 2            # sheet points: rows dropped at each end of a piece of line
+    # across frames (`SweepSequence`): a right line within ``same_position_steps`` of the left's is
+    # matched alone; else the right lines just before and after it, at most ``max_bracket_steps``
+    # apart, are interpolated; a left pixel whose two crossings lie more than ``max_jump_px`` per
+    # step of travel apart on its epipolar line (a depth edge between the exposures) gives no point
+    # (8 steps: the right exposures of a 180 steps/s sweep at 30 fps lie 6 steps apart, +-1 of jitter)
+    same_position_steps: float = 0.1
+    max_bracket_steps: float = 8.0
+    max_jump_px: float = 3.0
 
     def __post_init__(self) -> None:
         if not self.consistency_mm > 0:
@@ -126,6 +150,9 @@ class SweepParams:
             raise SweepError(f"min_overlap must be in (0, 1], got {self.min_overlap}")
         if not 0.0 <= self.min_sheet_angle_deg < 90.0:
             raise SweepError(f"min_sheet_angle_deg must be in [0, 90), got {self.min_sheet_angle_deg}")
+        for name in ("same_position_steps", "max_bracket_steps", "max_jump_px"):
+            if not getattr(self, name) >= 0:
+                raise SweepError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass
@@ -204,12 +231,13 @@ class SweepFramePoints:
     """Points of one sweep frame and where each came from."""
 
     points: SnapPoints
-    source: NDArray[np.uint8]          # per point: 0 stereo (checked against the sheet), 1 left sheet, 2 right sheet
+    source: NDArray[np.uint8]          # per point: SOURCE_* (0 stereo, 1 left sheet, 2 right sheet, 3 cross-frame)
     positions_steps: tuple[float, float]  # carriage at each camera's mid-exposure
     stats: dict[str, int] = field(default_factory=dict)
 
 
 SOURCE_STEREO, SOURCE_LEFT_SHEET, SOURCE_RIGHT_SHEET = 0, 1, 2
+SOURCE_CROSS_STEREO = 3  # the left line matched to the right lines exposed around it (`SweepSequence`)
 
 
 def reconstruct_sweep_frame(model: StereoModel, sheet: LaserSheet, track: CarriageTrack, frame: SweepFrame,
@@ -250,3 +278,122 @@ def reconstruct_sweep_frame(model: StereoModel, sheet: LaserSheet, track: Carria
     source = np.concatenate([np.full(len(p[0]), p[3], np.uint8) for p in parts]) if parts else np.zeros(0, np.uint8)
     points = SnapPoints(xyz=xyz, u=u, v=v, snap=np.full(len(xyz), frame.index, dtype=np.uint32), stats=stats)
     return SweepFramePoints(points, source, (p_left, p_right), stats)
+
+
+def _bracket_stereo(model: StereoModel, sheet: LaserSheet, left: LineArrays, p_left: float,
+                    rights: list[tuple[LineArrays, float]], params: SweepParams, index: int,
+                    stats: dict[str, int]) -> SnapPoints:
+    """The left line against one right line at its position, or two around it interpolated (module doc)."""
+    matches = [match_line(model, left, line, params.match) for line, _p in rights]
+    if len(matches) == 1:
+        rows, x1, x2 = matches[0].left_index, matches[0].x1, matches[0].x2
+    else:
+        (a, b), (pa, pb) = matches, (rights[0][1], rights[1][1])
+        rows, ia, ib = np.intersect1d(a.left_index, b.left_index, assume_unique=True, return_indices=True)
+        w = (p_left - pa) / (pb - pa)
+        x1 = a.x1[ia]
+        x2 = (1.0 - w) * a.x2[ia] + w * b.x2[ib]  # both on the left pixel's epipolar line: so is x2
+        smooth = np.linalg.norm(b.x2[ib] - a.x2[ia], axis=1) <= params.max_jump_px * max(abs(pb - pa), 1.0)
+        stats["cross_rejected_jump"] += int(np.count_nonzero(~smooth))
+        rows, x1, x2 = rows[smooth], x1[smooth], x2[smooth]
+    X = triangulate(model, x1, x2, params.match.method)
+    ok, _counts = accept_points(model, X, x1, x2, params.match.depth_min_m, params.match.depth_max_m,
+                                params.match.max_reproj_px)
+    with np.errstate(invalid="ignore"):
+        on_sheet = np.abs(sheet.distance_m(X, np.full(len(X), p_left))) * 1000.0 <= params.consistency_mm
+    stats["cross_rejected_inconsistent"] += int(np.count_nonzero(ok & ~on_sheet))
+    ok &= on_sheet
+    rows, X = rows[ok], X[ok]
+    order = np.argsort(left.v[rows], kind="stable")  # along the line, top to bottom, as reconstruct_snap
+    rows, X = rows[order], X[order]
+    return SnapPoints(xyz=X, u=left.u[rows].copy(), v=left.v[rows].copy(),
+                      snap=np.full(len(rows), index, dtype=np.uint32), stats={})
+
+
+class SweepSequence:
+    """Sweep frames in, points out, each left line matched across frames (module doc).
+
+    One sequence per sweep. Feed frames in capture order with `add`; a frame's points come out once
+    a right exposure with a mid-exposure time after its left one has arrived (with the right camera
+    late, at once; else one frame later), in frame order; `finish` gives the rest at the end of the
+    sweep. The carriage track is passed with each
+    call (the live track grows; positions are read when a frame is reconstructed). A left line with
+    no usable right line around it (the first frames, a dropped frame, a gap of more than
+    ``max_bracket_steps``) falls back to `reconstruct_sweep_frame` (its own pair, or the sheet).
+    """
+
+    def __init__(self, model: StereoModel, sheet: LaserSheet, params: SweepParams = SweepParams()) -> None:
+        self.model, self.sheet, self.params = model, sheet, params
+        self._pending: list[SweepFrame] = []
+        self._rights: list[tuple[float, LineArrays]] = []  # (mid-exposure [s], line), by time
+
+    def add(self, frame: SweepFrame, track: CarriageTrack) -> list[SweepFramePoints]:
+        """Take one frame; return the points of the frames now complete (possibly none)."""
+        mid_r = exposure_mid_s(frame.right_start_s, frame.exposure_s)
+        exposure_mid_s(frame.left_start_s, frame.exposure_s)  # refuses a bad start before it is buffered
+        self._rights.append((mid_r, frame.right))
+        self._rights.sort(key=lambda r: r[0])
+        self._pending.append(frame)
+        latest = self._rights[-1][0]
+        ready = [f for f in self._pending if exposure_mid_s(f.left_start_s, f.exposure_s) < latest]
+        return self._emit(ready, track)
+
+    def finish(self, track: CarriageTrack) -> list[SweepFramePoints]:
+        """The points of every frame still waiting (end of the sweep)."""
+        return self._emit(list(self._pending), track)
+
+    def _emit(self, ready: list[SweepFrame], track: CarriageTrack) -> list[SweepFramePoints]:
+        out = [self._frame(f, track) for f in ready]
+        self._pending = [f for f in self._pending if not any(f is r for r in ready)]
+        # keep the right lines a later left line may still need: from the last one before the earliest
+        # left mid-exposure still to come (a waiting frame's, else the last one reconstructed: frames
+        # come in capture order, so later left lines are later still)
+        mids = [exposure_mid_s(f.left_start_s, f.exposure_s) for f in self._pending + ready[-1:]]
+        if mids:
+            before = [i for i, r in enumerate(self._rights) if r[0] <= min(mids)]
+            self._rights = self._rights[before[-1]:] if before else self._rights
+        return out
+
+    def _frame(self, frame: SweepFrame, track: CarriageTrack) -> SweepFramePoints:
+        params = self.params
+        mid_l = exposure_mid_s(frame.left_start_s, frame.exposure_s)
+        p_left = float(track.position_at(mid_l))
+        times = np.array([r[0] for r in self._rights])
+        positions = track.position_at(times)
+        p_right = float(track.position_at(exposure_mid_s(frame.right_start_s, frame.exposure_s)))
+        stats = {"stereo": 0, "stereo_rejected_inconsistent": 0, "left_sheet": 0, "right_sheet": 0,
+                 "cross_stereo": 0, "cross_rejected_jump": 0, "cross_rejected_inconsistent": 0,
+                 "no_carriage_position": int(not np.isfinite(p_left)) + int(not np.isfinite(p_right))}
+        rights: list[tuple[LineArrays, float]] = []
+        if np.isfinite(p_left) and len(frame.left):
+            known = np.isfinite(positions)
+            near = np.nonzero(known & (np.abs(positions - p_left) <= params.same_position_steps))[0]
+            before = np.nonzero(known & (times <= mid_l))[0]
+            after = np.nonzero(known & (times > mid_l))[0]
+            if near.size:
+                best = near[np.argmin(np.abs(times[near] - mid_l))]
+                rights = [(self._rights[best][1], float(positions[best]))]
+            elif before.size and after.size:
+                a, b = before[-1], after[0]
+                if 0 < abs(positions[b] - positions[a]) <= params.max_bracket_steps and \
+                        min(positions[a], positions[b]) <= p_left <= max(positions[a], positions[b]):
+                    rights = [(self._rights[a][1], float(positions[a])), (self._rights[b][1], float(positions[b]))]
+        if not rights:
+            fallback = reconstruct_sweep_frame(self.model, self.sheet, track, frame, params)
+            fallback.stats.update({k: v for k, v in stats.items() if k not in fallback.stats})
+            return fallback
+        points = _bracket_stereo(self.model, self.sheet, frame.left, p_left, rights, params, frame.index, stats)
+        stats["cross_stereo"] = len(points)
+        points.stats = stats
+        return SweepFramePoints(points, np.full(len(points), SOURCE_CROSS_STEREO, np.uint8), (p_left, p_right), stats)
+
+
+def reconstruct_sweep(model: StereoModel, sheet: LaserSheet, track: CarriageTrack, frames: list[SweepFrame],
+                      params: SweepParams = SweepParams()) -> list[SweepFramePoints]:
+    """Every frame of a recorded sweep (capture order) through `SweepSequence`: one result per frame, in order."""
+    sequence = SweepSequence(model, sheet, params)
+    out: list[SweepFramePoints] = []
+    for frame in frames:
+        out.extend(sequence.add(frame, track))
+    out.extend(sequence.finish(track))
+    return out
