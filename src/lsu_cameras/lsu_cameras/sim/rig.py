@@ -9,7 +9,10 @@ near the sheet. A capture integrates that term over the exposure (``sub_exposure
 following the post-stop vibration, from each camera's own exposure start: ``capture_offset_s`` and
 ``capture_jitter_s``), multiplies it by the camera's laser speckle, broadens and shifts it on skin,
 then adds lens blur, saturation with blooming, the optional Bayer mosaic, shot + read noise, 8-bit
-quantisation (and demosaicing). `physics` documents each effect and its sources.
+quantisation (and demosaicing). `physics` documents each effect and its sources. A constant-rate
+motion is averaged over the exposure in closed form, and the sensor steps run on the laser's
+rectangle of the image (`SimulatedRig.render`); ``reference=True`` renders the plain way, sub-exposure
+by sub-exposure and on the whole image, which the tests and the benchmark compare against.
 
 Pixel integration: the laser sheet is only ~2.5 px thick, so sampling it at pixel centres would
 alias. Over one pixel ``n . P`` is close to linear (slope g per pixel), and the box average of a
@@ -167,9 +170,9 @@ class _View:
     pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
-    # the sensor's view of ``base`` (blurred, x255) and its noise sigma (x255), for the settings in ``sensor_key``
+    # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
     sensor_key: tuple = ()
-    base255: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    blurred: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     sigma255: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
     base_saturates: bool = False
 
@@ -326,6 +329,7 @@ class SimulatedRig:
         view.skin, view.reach = skin, reach
         view.red_albedo = albedo[:, 2]
         view.base = radiance.reshape(H, W, 3).astype(np.float32)
+        view.sensor_key = ()  # the sensor's view of the base is made again at the next render
         view.pn = np.where(hit, points @ n, np.nan)
         view.sigma2 = sigma2
         view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
@@ -526,13 +530,13 @@ class SimulatedRig:
     def _sensor_cache(self, view: _View) -> None:
         """(Re)compute the view's blurred base and its noise sigma when the sensor settings changed."""
         sensor = self.geometry.sensor
-        key = (id(view.base), sensor.psf_sigma_px, sensor.full_well_e, sensor.read_noise_dn)
+        key = (sensor.psf_sigma_px, sensor.full_well_e, sensor.read_noise_dn)
         if view.sensor_key == key:
             return
         base = view.base
         if sensor.psf_sigma_px > 0:
             base = cv2.GaussianBlur(base, (0, 0), sensor.psf_sigma_px)
-        view.base255 = base
+        view.blurred = base
         view.sigma255 = self._noise_sigma255(base)
         view.base_saturates = bool(base.max() > 1.0)
         view.sensor_key = key
@@ -542,7 +546,7 @@ class SimulatedRig:
         view = self._views[k]
         sensor = self.geometry.sensor
         self._sensor_cache(view)
-        base = view.base255
+        base = view.blurred
         H, W = base.shape[:2]
         noise, sign = noise_window(base.shape, rng)
         if laser is None or len(laser[0]) == 0 or view.base_saturates:
