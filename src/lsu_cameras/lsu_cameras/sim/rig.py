@@ -168,6 +168,7 @@ class _View:
     reach_max: float = 0.0
     pn_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # pixels that hit, by n . P
     pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
+    reach_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))        # their reach
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
     # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
@@ -335,6 +336,7 @@ class SimulatedRig:
         view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
         view.pn_order = np.flatnonzero(hit)[np.argsort(view.pn[hit], kind="stable")]
         view.pn_sorted = view.pn[view.pn_order]
+        view.reach_sorted = reach[view.pn_order]
 
     # ------------------------------------------------------------------ laser
     def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False) -> AnyArray:
@@ -357,7 +359,7 @@ class SimulatedRig:
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
 
     def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray,
-                        box_m: tuple[float, float] | None = None):
+                        box_m: tuple[float, float] | None = None, normal: AnyArray | None = None):
         """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``.
 
         ``box_m``: the sheet's offsets at the exposure's start and end when it moves at a constant rate
@@ -368,15 +370,15 @@ class SimulatedRig:
         spacings differs from it by a few 1e-3 of the peak).
         """
         g = self.geometry
+        normal = g.laser_normal if normal is None else normal
         sheet = g.laser.sheet_sigma_m
         use_box = box_m is not None and not self.reference and box_m[1] - box_m[0] > 1e-3 * sheet
         lo, hi = (float(box_m[0]), float(box_m[1])) if use_box and box_m is not None else \
             (float(offsets_m.min()), float(offsets_m.max()))
         # candidates from the pixels sorted by n . P (at most the largest reach away), then each pixel's own reach
         a, b = np.searchsorted(view.pn_sorted, [lo - view.reach_max, hi + view.reach_max])
-        idx = view.pn_order[a:b]
-        pn = view.pn[idx]
-        idx = np.sort(idx[(pn > lo - view.reach[idx]) & (pn < hi + view.reach[idx])])
+        pn, reach = view.pn_sorted[a:b], view.reach_sorted[a:b]
+        idx = np.sort(view.pn_order[a:b][(pn > lo - reach) & (pn < hi + reach)])
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
         s2 = view.sigma2[idx]
@@ -395,7 +397,7 @@ class SimulatedRig:
         incidence = np.clip(cos_i, 0.0, None)
         on_skin = view.skin[idx]
         if np.any(on_skin):
-            width_d, shift_d = self._skin_kernel(normals[on_skin], cos_i[on_skin])
+            width_d, shift_d = self._skin_kernel(normals[on_skin], cos_i[on_skin], normal)
             if use_box:
                 profile[on_skin] = skin_profile_box(d[0, on_skin], d[1, on_skin], s2[on_skin], sheet, width_d, shift_d,
                                                     g.skin.subsurface_fraction)
@@ -416,7 +418,7 @@ class SimulatedRig:
         value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
 
-    def _skin_kernel(self, normals: AnyArray, cos_i: AnyArray) -> tuple[AnyArray, AnyArray]:
+    def _skin_kernel(self, normals: AnyArray, cos_i: AnyArray, n: AnyArray) -> tuple[AnyArray, AnyArray]:
         """Diffusion length and centre shift of skin pixels' remitted light, in sheet-offset units (`physics.skin_profile`).
 
         Across the line on the surface, ``n . P`` changes at ``sin psi = |n - (n.N) N|`` per metre: the
@@ -425,7 +427,6 @@ class SimulatedRig:
         ``sin(alpha_t) / (mu_a + mu_s')`` with ``sin(alpha_t) = sin(alpha_i) / n_skin``.
         """
         g = self.geometry
-        n = g.laser_normal
         nN = normals @ n
         sin_psi = np.sqrt(np.clip(1.0 - nN * nN, 0.0, 1.0))
         sin_i = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0))
@@ -462,12 +463,13 @@ class SimulatedRig:
             # each camera's own exposure start (drawn first, so the noise stream does not depend on it)
             jitter = [float(r.standard_normal()) * sensor.capture_jitter_s for r in rngs]
             starts = [capture_time_s + jitter[0], capture_time_s + sensor.capture_offset_s + jitter[1]]
-        laser = [self._laser_exposure(state, t0) for t0 in starts]
+        sheet = self._sheet_frame(state.position_steps)
+        laser = [self._laser_exposure(state, t0, sheet) for t0 in starts]
 
         def laser_term(k: int) -> tuple[AnyArray, AnyArray]:
             view = self._views[k]
             _, offsets, origin, box = laser[k]
-            idx, value = self._laser_radiance(view, offsets, origin, box)
+            idx, value = self._laser_radiance(view, offsets, origin, box, sheet[0])
             assert view.speckle is not None  # set for both views in __init__
             speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rngs[k])
             if speckle is not None:
@@ -576,7 +578,13 @@ class SimulatedRig:
         out[r0:r1, c0:c1] = self._quantise(term, self._noise_sigma255(term), noise[r0:r1, c0:c1], sign)
         return out
 
-    def _laser_exposure(self, state: CarriageState, start_s: float | None):
+    def _sheet_frame(self, position_steps: float) -> tuple[AnyArray, AnyArray, AnyArray]:
+        """(sheet normal n, track axis x, laser origin) at ``position_steps``: the origin moves along x."""
+        g = self.geometry
+        return g.laser_normal, g.rig_axes[0], g.laser_origin(position_steps)
+
+    def _laser_exposure(self, state: CarriageState, start_s: float | None,
+                        sheet: tuple[AnyArray, AnyArray, AnyArray] | None = None):
         """(mean displacement [steps], sheet offsets [m] of the sub-exposures, laser origin, moving box) of one exposure.
 
         The moving box: the sheet's offsets (low, high) at the start and end of the exposure when the
@@ -589,10 +597,7 @@ class SimulatedRig:
         box = None
         # the sheet keeps its orientation and its origin moves along the track's axis x: the offset is
         # linear in the displacement
-        x, y, _ = g.rig_axes
-        tilt = np.deg2rad(g.laser.tilt_deg)
-        n = np.cos(tilt) * x + np.sin(tilt) * y                    # = g.laser_normal
-        origin0 = g.laser_origin(state.position_steps)
+        n, x, origin0 = sheet if sheet is not None else self._sheet_frame(state.position_steps)
         c0, per_step = float(n.dot(origin0)), float(n.dot(x)) * g.step_m
         if start_s is not None and state.moving:
             # the sheet sweeps over the surface while the shutter is open: the line is the sheet's
