@@ -865,7 +865,7 @@ class ScanCoordinatorNode(Node):
 
         try:
             # uncompressed (rosbag2's default): the sensor noise leaves camera images ~1.8x compressible
-            # with zstd, and decompressing them cost a replay ~8x the CPU of reading them plain
+            # with zstd, and decompressing them costs a replay ~6x the CPU of reading them plain
             recorder = BagRecorder(node, topics, folder / "bag", "mcap", compress=False,
                                    log=lambda text: self.get_logger().info(text))
         except BaseException:
