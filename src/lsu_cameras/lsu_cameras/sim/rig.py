@@ -169,6 +169,8 @@ class _View:
     pn_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # pixels that hit, by n . P
     pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
     reach_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))        # their reach
+    band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 8)))      # their sigma2, P, N, red albedo
+    skin_sorted: AnyArray = field(default_factory=lambda: np.zeros(0, bool))   # their skin flag
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
     # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
@@ -337,6 +339,10 @@ class SimulatedRig:
         view.pn_order = np.flatnonzero(hit)[np.argsort(view.pn[hit], kind="stable")]
         view.pn_sorted = view.pn[view.pn_order]
         view.reach_sorted = reach[view.pn_order]
+        # what the laser term reads of a band's pixels, in the same order: one row gather per capture
+        view.band_rows = np.column_stack([sigma2[view.pn_order], points[view.pn_order], normals[view.pn_order],
+                                          albedo[view.pn_order, 2]])
+        view.skin_sorted = skin[view.pn_order]
 
     # ------------------------------------------------------------------ laser
     def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False) -> AnyArray:
@@ -378,24 +384,24 @@ class SimulatedRig:
         # candidates from the pixels sorted by n . P (at most the largest reach away), then each pixel's own reach
         a, b = np.searchsorted(view.pn_sorted, [lo - view.reach_max, hi + view.reach_max])
         pn, reach = view.pn_sorted[a:b], view.reach_sorted[a:b]
-        idx = np.sort(view.pn_order[a:b][(pn > lo - reach) & (pn < hi + reach)])
+        sel = a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
+        idx = view.pn_order[sel]      # pixel indices (in the order of n . P: every step below is per pixel)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
-        s2 = view.sigma2[idx]
-        pn = view.pn[idx]
+        rows = view.band_rows[sel]
+        s2, pts, normals, red_albedo = rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7]
+        pn = view.pn_sorted[sel]
         if use_box:
             d: AnyArray = np.stack([pn - hi, pn - lo])       # the interval of sheet offsets d = n . P - c
             profile = surface_profile_box(d[0], d[1], s2, sheet)
         else:
             d = pn[None, :] - offsets_m[:, None]
             profile = (np.exp(-0.5 * d * d / s2) * np.sqrt(sheet ** 2 / s2)).mean(axis=0)
-        pts = view.points[idx]
         to_laser = origin - pts
         dist = np.linalg.norm(to_laser, axis=1)
-        normals = view.normals[idx]
         cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
         incidence = np.clip(cos_i, 0.0, None)
-        on_skin = view.skin[idx]
+        on_skin = view.skin_sorted[sel]
         if np.any(on_skin):
             width_d, shift_d = self._skin_kernel(normals[on_skin], cos_i[on_skin], normal)
             if use_box:
@@ -413,9 +419,10 @@ class SimulatedRig:
             # (< 0.2 DN at full power) before the shadow rays, the costly part
             keep = profile > 1e-3
             idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
+            red_albedo = red_albedo[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
         power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts, any_hit=not self.reference)
-        value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
+        value = (power * profile * red_albedo)[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
 
     def _skin_kernel(self, normals: AnyArray, cos_i: AnyArray, n: AnyArray) -> tuple[AnyArray, AnyArray]:
