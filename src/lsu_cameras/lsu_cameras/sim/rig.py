@@ -539,15 +539,19 @@ class SimulatedRig:
     def _sensor_cache(self, view: _View) -> None:
         """(Re)compute the view's blurred base and its noise sigma when the sensor settings changed."""
         sensor = self.geometry.sensor
-        key = (sensor.psf_sigma_px, sensor.full_well_e, sensor.read_noise_dn)
+        key = (sensor.psf_sigma_px, sensor.full_well_e, sensor.read_noise_dn, sensor.blooming)
         if view.sensor_key == key:
             return
         base = view.base
         if sensor.psf_sigma_px > 0:
             base = cv2.GaussianBlur(base, (0, 0), sensor.psf_sigma_px)
+        view.base_saturates = bool(base.max() > 1.0)
+        if view.base_saturates:
+            # the laser-off image; laser-on ones then take the full-image path (`_expose_fast`)
+            base = base.copy()
+            bloom(base, sensor.blooming)
         view.blurred = base
         view.sigma255 = self._noise_sigma255(base)
-        view.base_saturates = bool(base.max() > 1.0)
         view.sensor_key = key
 
     def _expose_fast(self, k: int, laser: tuple[AnyArray, AnyArray] | None, rng: np.random.Generator) -> AnyArray:
