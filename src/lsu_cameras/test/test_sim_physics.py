@@ -17,7 +17,16 @@ from lsu_cameras.sim import (
     make_plane,
     rig_from_dict,
 )
-from lsu_cameras.sim.physics import BAYER_PATTERNS, bloom, demosaic, mosaic, skin_profile, speckle_tiles
+from lsu_cameras.sim.physics import (
+    BAYER_PATTERNS,
+    bloom,
+    demosaic,
+    mosaic,
+    skin_profile,
+    skin_profile_box,
+    skin_profile_tails,
+    speckle_tiles,
+)
 from lsu_cameras.sim.scenes import SceneError, uniform_albedo
 
 
@@ -60,6 +69,22 @@ def test_skin_profile_keeps_the_energy_and_moves_and_widens_the_line_as_the_kern
     # mixture: (1-f) N(0, s^2) + f (N(shift, s^2) * Laplace(b)); a Laplace kernel has variance 2 b^2
     expected_var = sheet ** 2 + frac * 2 * b * b + frac * (1 - frac) * shift ** 2
     assert var == pytest.approx(expected_var, rel=1e-3)
+
+
+@pytest.mark.parametrize("b", [1e-3, 3e-4, 3e-5, 1e-6])
+def test_closed_form_exposure_average_and_kernel_tails_equal_the_sampled_profile(b):
+    # a moving sheet sweeps its offset uniformly over [lo, hi] during the exposure: the closed form must equal
+    # the mean of the profile over 4000 sub-exposures (the midpoint rule, independent of the erf/CDF algebra)
+    d = np.linspace(-0.012, 0.012, 4001)
+    sheet = 0.001 / 2.3548
+    s2, width, shift = np.full_like(d, 0.00045 ** 2), np.full_like(d, b), np.full_like(d, 0.0003)
+    lo, hi = -0.0007, 0.0008
+    offsets = lo + (np.arange(4000) + 0.5) / 4000 * (hi - lo)
+    sampled = np.mean([skin_profile(d - o, s2, sheet, width, shift, 0.9) for o in offsets], axis=0)
+    box = skin_profile_box(d - hi, d - lo, s2, sheet, width, shift, 0.9)
+    assert np.max(np.abs(box - sampled)) < 1e-6 * sampled.max()
+    exact = skin_profile(d, s2, sheet, width, shift, 0.9)
+    assert np.max(np.abs(skin_profile_tails(d, s2, sheet, width, shift, 0.9) - exact)) < 1e-8 * exact.max()
 
 
 def test_speckle_tiles_are_seeded_and_independent_between_cameras():
