@@ -335,6 +335,32 @@ def replay_direct(bag: Path) -> dict:
             "read_cpu_s": float(match.group(4)) * snaps / 1000.0, "lost": int(match.group(5)) + int(match.group(6))}
 
 
+def _bag_mb(bag: Path) -> float:
+    return sum(f.stat().st_size for f in Path(bag).rglob("*") if f.is_file()) / 1e6
+
+
+def compression_cost(bag: Path, snaps: int) -> dict:
+    """Disk size per snap of ``bag`` and of a zstd-compressed copy (mcap chunks, rosbags' level), and the
+    CPU per snap of reading the copy's scan events and images (what reading cost with compressed scan bags)."""
+    from lsu_bags.bags import BagWriter, bag_topics, read_messages
+
+    topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
+    with tempfile.TemporaryDirectory(prefix="lsu-bench-zstd-") as tmp:
+        copy = Path(tmp) / "bag"
+        with BagWriter(copy, "mcap", compress=True) as out:
+            for topic, (msgtype, qos) in bag_topics(bag).items():
+                out.add_topic(topic, msgtype, qos)
+            for m in read_messages(bag):
+                out.write(m.topic, m.timestamp_ns, m.data)
+        c0 = time.process_time()
+        for _ in read_messages(copy, topics):
+            pass
+        read_s = time.process_time() - c0
+        return {"replay_bag_mb_per_snap": _bag_mb(bag) / max(1, snaps),
+                "replay_bag_zstd_mb_per_snap": _bag_mb(copy) / max(1, snaps),
+                "replay_read_zstd_ms_per_snap": 1000 * read_s / max(1, snaps)}
+
+
 def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAYS) -> dict:
     """replay_cpu_over_compute and replay_snaps_per_s (direct replay), beside the message path's (dds)."""
     reference = compute_reference(bag)
@@ -353,6 +379,7 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
     figures["replay_cpu_over_compute_and_read"] = figures["replay_cpu_ms_per_snap"] / (compute_ms + read_ms)
     figures["replay_processing_cpu_over_compute"] = 1000 * (rep["cpu_s"] - rep["read_cpu_s"]) / max(1, rep["snaps"]) \
         / compute_ms
+    figures.update(compression_cost(bag, reference["snaps"]))
     if dds_runs:
         dds = sorted((replay(bag) for _ in range(dds_runs)), key=lambda r: r["snaps"] / r["seconds"])
         mid = dds[len(dds) // 2]
@@ -368,7 +395,8 @@ REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps
                 "replay_lost": "frames+lines", "replay_cpu_over_compute": "x", "replay_dds_snaps_per_s": "snaps/s",
                 "replay_dds_cpu_ms_per_snap": "ms", "replay_dds_snaps": "snaps", "bag_snaps_missing_images": "snaps",
                 "replay_dds_cpu_over_compute": "x", "replay_read_ms_per_snap": "ms",
-                "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x"}
+                "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x",
+                "replay_bag_mb_per_snap": "MB", "replay_bag_zstd_mb_per_snap": "MB", "replay_read_zstd_ms_per_snap": "ms"}
 REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
     "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
@@ -380,14 +408,17 @@ REPLAY_NOTES = (
     "included), CPU of the whole process (all threads); median of 3 runs, min and max beside it; "
     "replay_cpu_over_compute = replay_cpu_ms_per_snap / replay_compute_ms_per_snap, replay_lost: "
     "frames unreadable + lines unpaired. replay_read_ms_per_snap: CPU per snap of reading the bag alone "
-    "(rosbags, the mcap chunks' zstd decompression included; same run), which the direct replay does "
+    "(rosbags; scan bags are recorded uncompressed; same run), which the direct replay does "
     "in a second thread; replay_cpu_over_compute_and_read = replay CPU / (compute + read); "
     "replay_processing_cpu_over_compute: the replay's CPU without its bag-reading thread's (thread CPU "
     "clock) over compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
     "by the benchmark. replay_dds_*: the message path (`lsu run replay --executor "
     "single`, the bag's raw CDR published into it closed-loop with at most 4 snaps awaiting their "
     "/lsu/points, below the image queue depth 5), CPU of that process only (median of 3 runs, each in a "
-    "fresh graph); these were replay_snaps_per_s / replay_cpu_ms_per_snap before the direct replay. ")
+    "fresh graph); these were replay_snaps_per_s / replay_cpu_ms_per_snap before the direct replay. "
+    "replay_bag_mb_per_snap: the bag's disk size per snap; replay_bag_zstd_mb_per_snap and "
+    "replay_read_zstd_ms_per_snap: a zstd-compressed copy of it (mcap chunks, as scan bags were recorded "
+    "before) and the CPU per snap of reading that copy, same run. ")
 
 
 def sim_bag(tmp: Path) -> Path:
@@ -397,7 +428,7 @@ def sim_bag(tmp: Path) -> Path:
 
     geometry = load_rig()
     return write_sim_scan_bag(tmp / "bag", build_scene("head:7", geometry), list(range(0, 471, 2)), seed=7,
-                              geometry=geometry)
+                              geometry=geometry, compress=False)  # as the scan coordinator records
 
 
 VIEW_NOTES = (

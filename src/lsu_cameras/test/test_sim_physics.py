@@ -2,13 +2,31 @@
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 import yaml
 
 from lsu_cameras.paths import config_dir
-from lsu_cameras.sim import CarriageState, RigConfigError, SimulatedRig, load_rig, make_plane, rig_from_dict
-from lsu_cameras.sim.physics import BAYER_PATTERNS, bloom, demosaic, mosaic, skin_profile, speckle_tiles
+from lsu_cameras.sim import (
+    CarriageState,
+    RigConfigError,
+    SimulatedRig,
+    build_scene,
+    load_rig,
+    make_plane,
+    rig_from_dict,
+)
+from lsu_cameras.sim.physics import (
+    BAYER_PATTERNS,
+    bloom,
+    demosaic,
+    mosaic,
+    skin_profile,
+    skin_profile_box,
+    skin_profile_tails,
+    speckle_tiles,
+)
 from lsu_cameras.sim.scenes import SceneError, uniform_albedo
 
 
@@ -51,6 +69,22 @@ def test_skin_profile_keeps_the_energy_and_moves_and_widens_the_line_as_the_kern
     # mixture: (1-f) N(0, s^2) + f (N(shift, s^2) * Laplace(b)); a Laplace kernel has variance 2 b^2
     expected_var = sheet ** 2 + frac * 2 * b * b + frac * (1 - frac) * shift ** 2
     assert var == pytest.approx(expected_var, rel=1e-3)
+
+
+@pytest.mark.parametrize("b", [1e-3, 3e-4, 3e-5, 1e-6])
+def test_closed_form_exposure_average_and_kernel_tails_equal_the_sampled_profile(b):
+    # a moving sheet sweeps its offset uniformly over [lo, hi] during the exposure: the closed form must equal
+    # the mean of the profile over 4000 sub-exposures (the midpoint rule, independent of the erf/CDF algebra)
+    d = np.linspace(-0.012, 0.012, 4001)
+    sheet = 0.001 / 2.3548
+    s2, width, shift = np.full_like(d, 0.00045 ** 2), np.full_like(d, b), np.full_like(d, 0.0003)
+    lo, hi = -0.0007, 0.0008
+    offsets = lo + (np.arange(4000) + 0.5) / 4000 * (hi - lo)
+    sampled = np.mean([skin_profile(d - o, s2, sheet, width, shift, 0.9) for o in offsets], axis=0)
+    box = skin_profile_box(d - hi, d - lo, s2, sheet, width, shift, 0.9)
+    assert np.max(np.abs(box - sampled)) < 1e-6 * sampled.max()
+    exact = skin_profile(d, s2, sheet, width, shift, 0.9)
+    assert np.max(np.abs(skin_profile_tails(d, s2, sheet, width, shift, 0.9) - exact)) < 1e-8 * exact.max()
 
 
 def test_speckle_tiles_are_seeded_and_independent_between_cameras():
@@ -116,3 +150,67 @@ def test_bad_physics_settings_are_refused_with_the_field_named():
     with pytest.raises(SceneError, match="material"):
         make_plane((0, 0, 0.3)).__class__("x", make_plane((0, 0, 0.3)).mesh, uniform_albedo((1, 1, 1)),
                                            material="metal")
+
+
+def _row_centres(image, columns, rows, half=10):
+    """Red-minus-row-median centroid around the given columns (the test's own estimator)."""
+    red = image[:, :, 2].astype(float)
+    out = []
+    for r, c in zip(rows, columns):
+        lo = int(round(c)) - half
+        w = np.clip(red[r, lo:lo + 2 * half + 1] - np.median(red[r]) - 6.0, 0.0, None)
+        out.append((w * np.arange(lo, lo + 2 * half + 1)).sum() / w.sum() if w.sum() > 0 else np.nan)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_fast_render_puts_the_line_where_the_reference_render_does_on_a_moving_skin_head(noise):
+    g = load_rig()
+    if not noise:
+        g = dataclasses.replace(g, sensor=dataclasses.replace(g.sensor, read_noise_dn=0.0, full_well_e=1e15))
+    objects = build_scene("head:7", g)
+    assert any(o.material == "skin" for o in objects)
+    fast, reference = SimulatedRig(g, objects, seed=3), SimulatedRig(g, objects, seed=3, reference=True)
+    for position, start in ((150.0, 0.004), (300.0, 0.011)):
+        state = CarriageState(position, velocity_steps_per_s=180.0, position_time_s=0.0)  # the fastest sweep
+        a = fast.render(state, capture_time_s=start, seed=11)
+        b = reference.render(state, capture_time_s=start, seed=11)
+        assert a.laser_offsets_steps == b.laser_offsets_steps
+        for side in ("left", "right"):
+            # rows and columns from the renderer's ray-cast truth at the sheet's mid-exposure position
+            truth = getattr(fast.laser_truth(position + a.laser_offsets_steps[0 if side == "left" else 1]), side)
+            cols = truth.pixels[:, 0]
+            keep = (cols > 15) & (cols < 625)
+            rows = np.round(truth.pixels[keep, 1]).astype(int)
+            ca = _row_centres(getattr(a, side), cols[keep], rows)
+            cb = _row_centres(getattr(b, side), cols[keep], rows)
+            diff = np.abs(ca - cb)[np.isfinite(ca - cb)]
+            assert len(diff) > 300
+            if not noise:
+                # the same speckle and the same sheet: only the sub-exposure sum vs the exact interval average
+                # and 1 DN of rounding differ
+                assert np.percentile(diff, 95) < 0.02 and diff.max() < 0.2
+            else:
+                # independent noise realisations: the centres differ by the noise, not by a bias
+                assert np.median(diff) < 0.1
+                assert abs(np.median(np.clip((ca - cb)[np.isfinite(ca - cb)], -0.5, 0.5))) < 0.02
+                err_a, err_b = np.nanmedian(np.abs(ca - cols[keep])), np.nanmedian(np.abs(cb - cols[keep]))
+                assert err_a == pytest.approx(err_b, rel=0.15)
+
+
+def test_fast_render_noise_has_the_reference_sigma_and_is_new_in_every_capture():
+    g = load_rig()
+    x, y, z = g.rig_axes
+    plane = [make_plane(g.rig_center + 0.3 * z, -z, albedo=uniform_albedo((0.5, 0.5, 0.5)))]
+    fast, reference = SimulatedRig(g, plane, seed=1), SimulatedRig(g, plane, seed=1, reference=True)
+    off = CarriageState(235.0, laser_on=False)
+    f1, f2 = fast.render(off, seed=1).left.astype(float), fast.render(off, seed=2).left.astype(float)
+    r1, r2 = reference.render(off, seed=1).left.astype(float), reference.render(off, seed=2).left.astype(float)
+    # the difference of two captures is pure noise (sqrt 2 sigma): same sigma as the reference's fresh draws
+    centre = (slice(100, 380), slice(120, 520))
+    assert np.std((f1 - f2)[centre]) == pytest.approx(np.std((r1 - r2)[centre]), rel=0.03)
+    assert np.mean(f1[centre]) == pytest.approx(np.mean(r1[centre]), abs=0.05)
+    # a pixel's noise is independent from capture to capture (high-passed: the lamp's shading removed)
+    a, b = ((f - cv2.blur(f, (9, 9)))[centre].ravel() for f in (f1, f2))
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.02
+    assert np.array_equal(fast.render(off, seed=1).left, f1.astype(np.uint8))

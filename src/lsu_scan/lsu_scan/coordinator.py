@@ -864,7 +864,9 @@ class ScanCoordinatorNode(Node):
                 executor.spin_once(timeout_sec=0.1)
 
         try:
-            recorder = BagRecorder(node, topics, folder / "bag", "mcap", compress=True,
+            # uncompressed (rosbag2's default): the sensor noise leaves camera images ~1.8x compressible
+            # with zstd, and decompressing them costs a replay ~6x the CPU of reading them plain
+            recorder = BagRecorder(node, topics, folder / "bag", "mcap", compress=False,
                                    log=lambda text: self.get_logger().info(text))
         except BaseException:
             executor.shutdown()

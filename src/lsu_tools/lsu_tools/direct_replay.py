@@ -69,9 +69,9 @@ def _side(topic: str, suffix: str) -> str | None:
 
 
 def _prefetched(messages: Iterator[Any], cpu: dict[str, float], depth: int = PREFETCH) -> Iterator[Any]:
-    """``messages`` read ahead by a thread: the bag's decompression (zstd chunks, which releases the GIL)
-    runs on the other core while this one extracts and matches. Exceptions come out where they occurred;
-    ``cpu["read_s"]`` is the reading thread's CPU time so far."""
+    """``messages`` read ahead by a thread: the bag's reading (and a compressed bag's zstd decompression,
+    which releases the GIL) runs on the other core while this one extracts and matches. Exceptions come
+    out where they occurred; ``cpu["read_s"]`` is the reading thread's CPU time so far."""
     box: queue.Queue[Any] = queue.Queue(maxsize=depth)
     done = object()
     stop = threading.Event()

@@ -35,12 +35,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.fft
-from scipy.special import erfcx
+from scipy.special import erf, erfc, erfcx
 
 from lsu_common.arrays import AnyArray
 
-__all__ = ["SpeckleModel", "SkinModel", "speckle_tiles", "SpeckleField", "skin_profile", "bloom", "BAYER_PATTERNS",
-           "mosaic", "demosaic"]
+__all__ = ["SpeckleModel", "SkinModel", "speckle_tiles", "SpeckleField", "skin_profile", "skin_profile_tails",
+           "surface_profile_box", "skin_profile_box", "noise_window", "bloom", "BAYER_PATTERNS", "mosaic", "demosaic"]
 
 
 @dataclass
@@ -134,6 +134,17 @@ class SpeckleField:
         return s
 
 
+def _exp_erfc(z: AnyArray, a: AnyArray, g: AnyArray) -> AnyArray:
+    """``exp(a) erfc(z)`` where ``a = z^2 + log g``, without overflow.
+
+    ``exp(a) erfc(z) = g erfcx(z)`` for z >= 0 and ``2 exp(a) - g erfcx(-z)`` for z < 0 (where ``a``
+    stays moderate in every use here).
+    """
+    e = erfcx(np.abs(z))
+    with np.errstate(over="ignore"):
+        return np.where(z >= 0, g * e, 2.0 * np.exp(np.minimum(a, 700.0)) - g * e)
+
+
 def _emg_two_sided(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
     """Density of a Gaussian (sigma) convolved with a two-sided exponential exp(-|x|/b) / (2 b).
 
@@ -146,10 +157,25 @@ def _emg_two_sided(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
     for sign in (1.0, -1.0):
         z = (sigma / b - sign * x / sigma) / math.sqrt(2.0)
         a = 0.5 * (sigma / b) ** 2 - sign * x / b
-        with np.errstate(over="ignore"):
-            term = np.where(z >= 0, g * erfcx(np.abs(z)), 2.0 * np.exp(np.minimum(a, 700.0)) - g * erfcx(np.abs(z)))
-        total += term
+        total += _exp_erfc(z, a, g)
     return total / (4.0 * b)
+
+
+def _emg_two_sided_cdf(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
+    """Distribution function of `_emg_two_sided` (Gaussian ``sigma`` + two-sided exponential ``b``).
+
+    Half of the kernel is ``+E``, half ``-E`` with E exponential (rate 1/b); for a Gaussian plus
+    ``+-E``: ``Phi(x/s) -+ exp(s^2/2b^2 -+ x/b) Phi(+-x/s - s/b)`` (the exponentially modified Gaussian's
+    distribution function), so ``F = Phi(x/s) - exp(a1) erfc(z1) / 4 + exp(a2) erfc(z2) / 4`` with the
+    ``z``, ``a`` of `_emg_two_sided`; each product through `_exp_erfc`.
+    """
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    total = 0.5 * erfc(-x / (sigma * math.sqrt(2.0)))
+    for sign in (1.0, -1.0):
+        z = (sigma / b - sign * x / sigma) / math.sqrt(2.0)
+        a = 0.5 * (sigma / b) ** 2 - sign * x / b
+        total += (-0.25 * sign) * _exp_erfc(z, a, g)
+    return total
 
 
 def skin_profile(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray, shift_d: AnyArray,
@@ -166,6 +192,101 @@ def skin_profile(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyAr
     b = np.maximum(width_d, 1e-9)
     remitted = _emg_two_sided(d - shift_d, sigma, b) * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
     return (1.0 - fraction) * surface + fraction * remitted
+
+
+def surface_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float) -> AnyArray:
+    """The surface profile ``exp(-d^2/2 s2) sheet_sigma / sqrt(s2)`` averaged over d uniform in [d_lo, d_hi].
+
+    A sheet moving at a constant rate during the exposure sweeps its offset uniformly over an
+    interval: the exposure is this box average (closed form, erf), not a sum of sub-exposures.
+    ``d_hi - d_lo`` must be > 0 (a few percent of ``sqrt(s2)`` or more keeps the difference exact).
+    """
+    r = 1.0 / np.sqrt(2.0 * s2)
+    return (erf(d_hi * r) - erf(d_lo * r)) * (sheet_sigma_m * math.sqrt(0.5 * math.pi) / (d_hi - d_lo))
+
+
+# Beyond TAIL_Z standard deviations past the kernel's own scale (x / sigma - sigma / b >= TAIL_Z) one
+# side of `_emg_two_sided` is the plain exponential exp(sigma^2/2b^2 - |x|/b) / (2 b): the terms left out
+# are below exp(-TAIL_Z^2 / 2) = 1.5e-8 of it (the erfc of the exponential side differs from 2 by
+# erfc(TAIL_Z / sqrt 2), the other side and the Gaussian by exp(-z^2) relative). Most of the pixels in a
+# skin line's band are in these tails: one exponential each instead of the erfcx forms.
+TAIL_Z = 6.0
+
+
+def _kernel_tails(u_lo: AnyArray, u_hi: AnyArray, sigma: AnyArray, b: AnyArray) -> tuple[AnyArray, AnyArray]:
+    """Masks of the points whose whole interval [u_lo, u_hi] is in the right / left exponential tail."""
+    r = sigma / b
+    return u_lo / sigma - r >= TAIL_Z, -u_hi / sigma - r >= TAIL_Z
+
+
+def skin_profile_tails(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray, shift_d: AnyArray,
+                       fraction: float) -> AnyArray:
+    """`skin_profile` with the remitted part's exponential tails in their closed form (within 1.5e-8, `TAIL_Z`)."""
+    sigma = np.sqrt(s2)
+    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / sigma)
+    b = np.maximum(width_d, 1e-9)
+    u = d - shift_d
+    right, left = _kernel_tails(u, u, sigma, b)
+    core = ~(right | left)
+    density = np.empty_like(u)
+    density[core] = _emg_two_sided(u[core], sigma[core], b[core])
+    for side, sign in ((right, -1.0), (left, 1.0)):
+        bs = b[side]
+        density[side] = np.exp(0.5 * (sigma[side] / bs) ** 2 + sign * u[side] / bs) / (2.0 * bs)
+    return (1.0 - fraction) * surface + fraction * density * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
+
+
+def skin_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray,
+                     shift_d: AnyArray, fraction: float) -> AnyArray:
+    """`skin_profile` averaged over d uniform in [d_lo, d_hi]: distribution-function differences (closed form).
+
+    In the exponential tails (`TAIL_Z`) the difference is ``exp(sigma^2/2b^2 - |u_near|/b)
+    (1 - exp(-(d_hi - d_lo)/b)) / 2`` with ``u_near`` the interval's end nearer the line.
+    """
+    surface = surface_profile_box(d_lo, d_hi, s2, sheet_sigma_m)
+    sigma = np.sqrt(s2)
+    b = np.maximum(width_d, 1e-9)
+    u_lo, u_hi = d_lo - shift_d, d_hi - shift_d
+    right, left = _kernel_tails(u_lo, u_hi, sigma, b)
+    core = ~(right | left)
+    mass = np.empty_like(u_lo)
+    sc, bc = sigma[core], b[core]
+    mass[core] = _emg_two_sided_cdf(u_hi[core], sc, bc) - _emg_two_sided_cdf(u_lo[core], sc, bc)
+    for side, near in ((right, -u_lo), (left, u_hi)):
+        bs = b[side]
+        mass[side] = (0.5 * np.exp(0.5 * (sigma[side] / bs) ** 2 + near[side] / bs)
+                      * -np.expm1(-(u_hi[side] - u_lo[side]) / bs))
+    remitted = mass * (sheet_sigma_m * math.sqrt(2.0 * math.pi) / (d_hi - d_lo))
+    return (1.0 - fraction) * surface + fraction * remitted
+
+
+_NOISE_BANK: dict[int, AnyArray] = {}
+NOISE_BANK_SIZE = 1 << 22   # standard normal samples (16 MB); > 4 x a 640x480x3 image
+
+
+def noise_window(shape: tuple[int, ...], rng: np.random.Generator) -> tuple[AnyArray, float]:
+    """A window of iid standard normal samples of ``shape`` (a read-only view) and a random sign, for one capture.
+
+    The windows come from one bank drawn once per process from a fixed seed, at an offset and with a
+    sign drawn from the capture's generator (as the speckle bank does): same seed, same noise, in
+    every process. Statistically the same as fresh draws for every use of an image: the samples of
+    one window are distinct draws, so within a capture the noise is iid N(0, 1) (times the sign, which
+    keeps N(0, 1)); two captures get the same sample at the same pixel only when their offsets are
+    equal (probability ~1 / 3.3e6 per pair at 640x480x3), so a pixel's noise is independent from
+    capture to capture; what two captures share are samples at pixels a fixed distance apart,
+    which no per-capture or per-pixel statistic (the extractor's, the tests') can see.
+    """
+    count = int(np.prod(shape))
+    size = max(NOISE_BANK_SIZE, 4 * count)
+    bank = _NOISE_BANK.get(size)
+    if bank is None:
+        bank = np.random.default_rng(np.random.SeedSequence([0x4015E, size])).standard_normal(size, dtype=np.float32)
+        bank.setflags(write=False)
+        _NOISE_BANK.clear()
+        _NOISE_BANK[size] = bank
+    start = int(rng.integers(size - count + 1))
+    sign = -1.0 if rng.integers(2) else 1.0
+    return bank[start:start + count].reshape(shape), sign
 
 
 def bloom(img: AnyArray, fraction: float) -> None:

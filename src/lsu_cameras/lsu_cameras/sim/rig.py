@@ -9,7 +9,10 @@ near the sheet. A capture integrates that term over the exposure (``sub_exposure
 following the post-stop vibration, from each camera's own exposure start: ``capture_offset_s`` and
 ``capture_jitter_s``), multiplies it by the camera's laser speckle, broadens and shifts it on skin,
 then adds lens blur, saturation with blooming, the optional Bayer mosaic, shot + read noise, 8-bit
-quantisation (and demosaicing). `physics` documents each effect and its sources.
+quantisation (and demosaicing). `physics` documents each effect and its sources. A constant-rate
+motion is averaged over the exposure in closed form, and the sensor steps run on the laser's
+rectangle of the image (`SimulatedRig.render`); ``reference=True`` renders the plain way, sub-exposure
+by sub-exposure and on the whole image, which the tests and the benchmark compare against.
 
 Pixel integration: the laser sheet is only ~2.5 px thick, so sampling it at pixel centres would
 alias. Over one pixel ``n . P`` is close to linear (slope g per pixel), and the box average of a
@@ -39,7 +42,17 @@ import open3d as o3d
 from lsu_common.arrays import AnyArray
 
 from .geometry import CameraModel, RigGeometry
-from .physics import SpeckleField, bloom, demosaic, mosaic, skin_profile
+from .physics import (
+    SpeckleField,
+    bloom,
+    demosaic,
+    mosaic,
+    noise_window,
+    skin_profile,
+    skin_profile_box,
+    skin_profile_tails,
+    surface_profile_box,
+)
 from .scenes import SceneObject
 
 
@@ -152,8 +165,19 @@ class _View:
     pn: AnyArray = field(default_factory=lambda: np.zeros(0))          # n . P per pixel
     sigma2: AnyArray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
     reach: AnyArray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
+    reach_max: float = 0.0
+    pn_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # pixels that hit, by n . P
+    pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
+    reach_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))        # their reach
+    band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 8)))      # their sigma2, P, N, red albedo
+    skin_sorted: AnyArray = field(default_factory=lambda: np.zeros(0, bool))   # their skin flag
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
+    # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
+    sensor_key: tuple = ()
+    blurred: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    sigma255: AnyArray = field(default_factory=lambda: np.zeros((0, 0, 3), np.float32))
+    base_saturates: bool = False
 
 
 def _footprints(points: AnyArray, ok: AnyArray, depth: AnyArray, axis: int) -> AnyArray:
@@ -199,8 +223,13 @@ def _grid_rays(camera: CameraModel) -> AnyArray:
 class SimulatedRig:
     """The virtual LSU: a `RigGeometry`, a scene of `SceneObject`s, and a seeded sensor noise source."""
 
-    def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0) -> None:
+    def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0,
+                 reference: bool = False) -> None:
         self.geometry = geometry
+        # reference: the plain render (every sub-exposure evaluated, fresh noise for the whole image, every
+        # step on the full image); the default render gives the same images at a fraction of the CPU
+        # (see `render`), the reference is what it is tested and benchmarked against
+        self.reference = reference
         self.rng = np.random.default_rng(seed)
         # one generator per camera, so the two views can be rendered on two threads (numpy and
         # OpenCV release the GIL in the per-pixel work) and stay reproducible from ``seed``
@@ -303,51 +332,101 @@ class SimulatedRig:
         view.skin, view.reach = skin, reach
         view.red_albedo = albedo[:, 2]
         view.base = radiance.reshape(H, W, 3).astype(np.float32)
+        view.sensor_key = ()  # the sensor's view of the base is made again at the next render
         view.pn = np.where(hit, points @ n, np.nan)
         view.sigma2 = sigma2
+        view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
+        view.pn_order = np.flatnonzero(hit)[np.argsort(view.pn[hit], kind="stable")]
+        view.pn_sorted = view.pn[view.pn_order]
+        view.reach_sorted = reach[view.pn_order]
+        # what the laser term reads of a band's pixels, in the same order: one row gather per capture
+        view.band_rows = np.column_stack([sigma2[view.pn_order], points[view.pn_order], normals[view.pn_order],
+                                          albedo[view.pn_order, 2]])
+        view.skin_sorted = skin[view.pn_order]
 
     # ------------------------------------------------------------------ laser
-    def _lit(self, origin: AnyArray, points: AnyArray) -> AnyArray:
-        """True where the laser at ``origin`` reaches ``points`` unshadowed."""
+    def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False) -> AnyArray:
+        """True where the laser at ``origin`` reaches ``points`` unshadowed (nothing hit before 1e-5 m + 1e-5 of the way).
+
+        ``any_hit``: an occlusion query (Embree's any-hit: cheaper than the closest hit) along the
+        unnormalised rays, with the margin of the farthest point for all (self-hits are ~3e-8 m).
+        """
         if len(points) == 0:
             return np.zeros(0, bool)
         to = points - origin
         dist = np.linalg.norm(to, axis=1)
+        if any_hit:
+            rays = np.empty((len(to), 6), np.float32)
+            rays[:, :3] = origin
+            rays[:, 3:] = to
+            tfar = float(1.0 - 1e-5 - 1e-5 / dist.max())
+            return ~self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=tfar).numpy().astype(bool)
         cast = self._cast(origin, to / dist[:, None])
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
 
-    def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray):
-        """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``."""
+    def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray,
+                        box_m: tuple[float, float] | None = None, normal: AnyArray | None = None):
+        """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``.
+
+        ``box_m``: the sheet's offsets at the exposure's start and end when it moves at a constant rate
+        (``offsets_m`` are then the sub-exposures' midpoints between them); unless this rig is the
+        reference, the average is the closed-form average over that interval (`physics.surface_profile_box`,
+        `physics.skin_profile_box`): one evaluation instead of one per sub-exposure, and the limit the
+        sub-exposures' mean approaches (their midpoint sum of a profile that varies over ~2 sub-exposure
+        spacings differs from it by a few 1e-3 of the peak).
+        """
         g = self.geometry
-        lo, hi = float(offsets_m.min()), float(offsets_m.max())
-        with np.errstate(invalid="ignore"):
-            band = (view.pn > lo - view.reach) & (view.pn < hi + view.reach)
-        idx = np.flatnonzero(band)
+        normal = g.laser_normal if normal is None else normal
+        sheet = g.laser.sheet_sigma_m
+        use_box = box_m is not None and not self.reference and box_m[1] - box_m[0] > 1e-3 * sheet
+        lo, hi = (float(box_m[0]), float(box_m[1])) if use_box and box_m is not None else \
+            (float(offsets_m.min()), float(offsets_m.max()))
+        # candidates from the pixels sorted by n . P (at most the largest reach away), then each pixel's own reach
+        a, b = np.searchsorted(view.pn_sorted, [lo - view.reach_max, hi + view.reach_max])
+        pn, reach = view.pn_sorted[a:b], view.reach_sorted[a:b]
+        sel = a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
+        idx = view.pn_order[sel]      # pixel indices (in the order of n . P: every step below is per pixel)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
-        s2 = view.sigma2[idx]
-        d = view.pn[idx][None, :] - offsets_m[:, None]
-        profile = (np.exp(-0.5 * d * d / s2) * np.sqrt(g.laser.sheet_sigma_m ** 2 / s2)).mean(axis=0)
-        pts = view.points[idx]
+        rows = view.band_rows[sel]
+        s2, pts, normals, red_albedo = rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7]
+        pn = view.pn_sorted[sel]
+        if use_box:
+            d: AnyArray = np.stack([pn - hi, pn - lo])       # the interval of sheet offsets d = n . P - c
+            profile = surface_profile_box(d[0], d[1], s2, sheet)
+        else:
+            d = pn[None, :] - offsets_m[:, None]
+            profile = (np.exp(-0.5 * d * d / s2) * np.sqrt(sheet ** 2 / s2)).mean(axis=0)
         to_laser = origin - pts
         dist = np.linalg.norm(to_laser, axis=1)
-        normals = view.normals[idx]
         cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
         incidence = np.clip(cos_i, 0.0, None)
-        on_skin = view.skin[idx]
+        on_skin = view.skin_sorted[sel]
         if np.any(on_skin):
-            profile[on_skin] = self._skin_profile(d[:, on_skin], s2[on_skin], normals[on_skin], cos_i[on_skin])
+            width_d, shift_d = self._skin_kernel(normals[on_skin], cos_i[on_skin], normal)
+            if use_box:
+                profile[on_skin] = skin_profile_box(d[0, on_skin], d[1, on_skin], s2[on_skin], sheet, width_d, shift_d,
+                                                    g.skin.subsurface_fraction)
+            else:
+                prof = np.zeros(int(on_skin.sum()))
+                # the same profile; the reference evaluates the exponential tails through the general form
+                profile_of = skin_profile if self.reference else skin_profile_tails
+                for row in d[:, on_skin]:
+                    prof += profile_of(row, s2[on_skin], sheet, width_d, shift_d, g.skin.subsurface_fraction)
+                profile[on_skin] = prof / len(d)
+        if np.any(on_skin) or not self.reference:
             # the skin band is wide for the kernel's tail: drop pixels it leaves below 1e-3 of the peak
             # (< 0.2 DN at full power) before the shadow rays, the costly part
             keep = profile > 1e-3
             idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
+            red_albedo = red_albedo[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
-        power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts)
-        value = (power * profile * view.red_albedo[idx])[:, None] * g.laser.spectral_bgr[None, :]
+        power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts, any_hit=not self.reference)
+        value = (power * profile * red_albedo)[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
 
-    def _skin_profile(self, d: AnyArray, s2: AnyArray, normals: AnyArray, cos_i: AnyArray) -> AnyArray:
-        """Laser profile of skin pixels (`physics.skin_profile`), averaged over the sheet offsets (rows of ``d``).
+    def _skin_kernel(self, normals: AnyArray, cos_i: AnyArray, n: AnyArray) -> tuple[AnyArray, AnyArray]:
+        """Diffusion length and centre shift of skin pixels' remitted light, in sheet-offset units (`physics.skin_profile`).
 
         Across the line on the surface, ``n . P`` changes at ``sin psi = |n - (n.N) N|`` per metre: the
         kernel's length and the centre shift are scaled by it to sheet-offset units. The shift points
@@ -355,7 +434,6 @@ class SimulatedRig:
         ``sin(alpha_t) / (mu_a + mu_s')`` with ``sin(alpha_t) = sin(alpha_i) / n_skin``.
         """
         g = self.geometry
-        n = g.laser_normal
         nN = normals @ n
         sin_psi = np.sqrt(np.clip(1.0 - nN * nN, 0.0, 1.0))
         sin_i = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0))
@@ -366,10 +444,7 @@ class SimulatedRig:
         with np.errstate(invalid="ignore", divide="ignore"):
             shift_d = np.where(sin_i > 1e-9, shift_len / np.maximum(sin_i, 1e-9) * np.clip(cos_i, 0.0, None) * nN, 0.0)
         width_d = g.skin.diffusion_length_m * np.maximum(sin_psi, 1e-3)
-        prof = np.zeros(d.shape[1])
-        for row in d:
-            prof += skin_profile(row, s2, g.laser.sheet_sigma_m, width_d, shift_d, g.skin.subsurface_fraction)
-        return prof / len(d)
+        return width_d, shift_d
 
     # ------------------------------------------------------------------ render
     def render(self, carriage: CarriageState | float, capture_time_s: float | None = None,
@@ -378,6 +453,13 @@ class SimulatedRig:
 
         ``carriage`` is a `CarriageState` or a plain position in steps (laser on, settled).
         ``seed`` fixes the sensor noise of this pair (default: the rig's own generator).
+
+        Unless the rig is the reference, the laser term of a constant-rate motion is averaged in closed
+        form over the exposure (`_laser_radiance`), and the sensor works on the laser's rows and columns
+        only: the lens blur is linear, so the blurred image is the cached blurred base plus the blurred
+        laser term; blooming moves only charge above full well, which only the laser's pixels hold when
+        the blurred base stays below it; outside the laser's rectangle the noise sigma is the cached
+        base's. The noise comes from a seeded bank (`physics.noise_window`).
         """
         state = carriage if isinstance(carriage, CarriageState) else CarriageState(float(carriage))
         g = self.geometry
@@ -388,38 +470,46 @@ class SimulatedRig:
             # each camera's own exposure start (drawn first, so the noise stream does not depend on it)
             jitter = [float(r.standard_normal()) * sensor.capture_jitter_s for r in rngs]
             starts = [capture_time_s + jitter[0], capture_time_s + sensor.capture_offset_s + jitter[1]]
-        laser = [self._laser_exposure(state, t0) for t0 in starts]
+        sheet = self._sheet_frame(state.position_steps)
+        laser = [self._laser_exposure(state, t0, sheet) for t0 in starts]
+
+        def laser_term(k: int) -> tuple[AnyArray, AnyArray]:
+            view = self._views[k]
+            _, offsets, origin, box = laser[k]
+            idx, value = self._laser_radiance(view, offsets, origin, box, sheet[0])
+            assert view.speckle is not None  # set for both views in __init__
+            speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rngs[k])
+            if speckle is not None:
+                value *= speckle[:, None]
+            return idx, value.astype(np.float32)
 
         def expose(k: int) -> AnyArray:
-            view = self._views[k]
-            rng = rngs[k]
-            img = view.base.copy()
+            if not self.reference and sensor.bayer == "none":
+                return self._expose_fast(k, laser_term(k) if state.laser_on else None, rngs[k])
+            img = self._views[k].base.copy()
             if state.laser_on:
-                _, offsets, origin = laser[k]
-                idx, value = self._laser_radiance(view, offsets, origin)
-                assert view.speckle is not None  # set for both views in __init__
-                speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rng)
-                if speckle is not None:
-                    value *= speckle[:, None]
-                img.reshape(-1, 3)[idx] += value.astype(np.float32)
+                idx, value = laser_term(k)
+                img.reshape(-1, 3)[idx] += value
             if sensor.psf_sigma_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
             bloom(img, sensor.blooming)
             if sensor.bayer != "none":
                 img = mosaic(img, sensor.bayer)
-            # shot + read noise, sigma^2 = max(img, 0) / full_well + read^2; in place, float32: this runs
-            # at every capture and the temporaries of the plain expression cost ~40 % of the render
-            sigma = np.maximum(img, np.float32(0.0))
-            sigma *= np.float32(1.0 / sensor.full_well_e)
-            sigma += np.float32((sensor.read_noise_dn / 255.0) ** 2)
-            np.sqrt(sigma, out=sigma)
-            noise = rng.standard_normal(img.shape, dtype=np.float32)
-            noise *= sigma
-            img += noise  # img is this capture's own copy of the base image
-            img *= np.float32(255.0)
-            np.rint(img, out=img)
-            np.clip(img, 0, 255, out=img)
-            out = img.astype(np.uint8)
+            if self.reference:
+                # shot + read noise, sigma^2 = max(img, 0) / full_well + read^2; in place, float32
+                sigma = np.maximum(img, np.float32(0.0))
+                sigma *= np.float32(1.0 / sensor.full_well_e)
+                sigma += np.float32((sensor.read_noise_dn / 255.0) ** 2)
+                np.sqrt(sigma, out=sigma)
+                noise = rngs[k].standard_normal(img.shape, dtype=np.float32)
+                noise *= sigma
+                img += noise  # img is this capture's own copy of the base image
+                img *= np.float32(255.0)
+                np.rint(img, out=img)
+                np.clip(img, 0, 255, out=img)
+                out = img.astype(np.uint8)
+            else:
+                out = self._quantise(img, self._noise_sigma255(img), *noise_window(img.shape, rngs[k]))
             return demosaic(out, sensor.bayer) if sensor.bayer != "none" else out
 
         if self._pool is None:
@@ -429,26 +519,112 @@ class SimulatedRig:
         return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, laser[0][0], truth,
                            (starts[0], starts[1]), (laser[0][0], laser[1][0]))
 
-    def _laser_exposure(self, state: CarriageState, start_s: float | None):
-        """(mean displacement [steps], sheet offsets [m] of the sub-exposures, laser origin) of one exposure."""
+    def _noise_sigma255(self, img: AnyArray) -> AnyArray:
+        """Shot + read noise sigma x 255 of an image in full-scale units: ``sqrt(max(img, 0) / full_well + read^2)``."""
+        sensor = self.geometry.sensor
+        sigma = np.maximum(img, np.float32(0.0))
+        sigma *= np.float32(255.0 ** 2 / sensor.full_well_e)
+        sigma += np.float32(sensor.read_noise_dn ** 2)
+        return cv2.sqrt(sigma)
+
+    @staticmethod
+    def _quantise(img: AnyArray, sigma255: AnyArray, noise: AnyArray, sign: float = 1.0) -> AnyArray:
+        """8-bit image of ``img`` (full-scale units) plus ``sigma255 * noise`` DN: rounded to nearest, saturated.
+
+        OpenCV's saturating conversion rounds half to even like ``np.rint`` and clips to 0..255.
+        """
+        noisy = cv2.multiply(sigma255, noise, scale=sign)
+        return cv2.addWeighted(img, 255.0, noisy, 1.0, 0.0, dtype=cv2.CV_8U)
+
+    def _sensor_cache(self, view: _View) -> None:
+        """(Re)compute the view's blurred base and its noise sigma when the sensor settings changed."""
+        sensor = self.geometry.sensor
+        key = (sensor.psf_sigma_px, sensor.full_well_e, sensor.read_noise_dn, sensor.blooming)
+        if view.sensor_key == key:
+            return
+        base = view.base
+        if sensor.psf_sigma_px > 0:
+            base = cv2.GaussianBlur(base, (0, 0), sensor.psf_sigma_px)
+        view.base_saturates = bool(base.max() > 1.0)
+        if view.base_saturates:
+            # the laser-off image; laser-on ones then take the full-image path (`_expose_fast`)
+            base = base.copy()
+            bloom(base, sensor.blooming)
+        view.blurred = base
+        view.sigma255 = self._noise_sigma255(base)
+        view.sensor_key = key
+
+    def _expose_fast(self, k: int, laser: tuple[AnyArray, AnyArray] | None, rng: np.random.Generator) -> AnyArray:
+        """One camera's 8-bit image (no Bayer mosaic): the sensor steps on the laser's rectangle only (see `render`)."""
+        view = self._views[k]
+        sensor = self.geometry.sensor
+        self._sensor_cache(view)
+        base = view.blurred
+        H, W = base.shape[:2]
+        noise, sign = noise_window(base.shape, rng)
+        if laser is None or len(laser[0]) == 0 or view.base_saturates:
+            img = base
+            if laser is not None and len(laser[0]):
+                img = view.base.copy()
+                img.reshape(-1, 3)[laser[0]] += laser[1]
+                if sensor.psf_sigma_px > 0:
+                    img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
+                bloom(img, sensor.blooming)
+                return self._quantise(img, self._noise_sigma255(img), noise, sign)
+            return self._quantise(img, view.sigma255, noise, sign)
+        idx, value = laser
+        rows, cols = idx // W, idx % W
+        # the blur kernel's radius (OpenCV: ksize = round(8 sigma + 1) | 1) plus one row for the blooming spill;
+        # the laser term is zero in the margin, so blurring the rectangle alone equals blurring the image
+        margin = int(np.ceil(4.0 * sensor.psf_sigma_px)) + 2
+        r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, H)
+        c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, W)
+        term = np.zeros((r1 - r0, c1 - c0, 3), np.float32)
+        term[rows - r0, cols - c0] = value
+        if sensor.psf_sigma_px > 0:
+            term = cv2.GaussianBlur(term, (0, 0), sensor.psf_sigma_px)
+        term += base[r0:r1, c0:c1]
+        bloom(term, sensor.blooming)
+        out = self._quantise(base, view.sigma255, noise, sign)
+        out[r0:r1, c0:c1] = self._quantise(term, self._noise_sigma255(term), noise[r0:r1, c0:c1], sign)
+        return out
+
+    def _sheet_frame(self, position_steps: float) -> tuple[AnyArray, AnyArray, AnyArray]:
+        """(sheet normal n, track axis x, laser origin) at ``position_steps``: the origin moves along x."""
+        g = self.geometry
+        return g.laser_normal, g.rig_axes[0], g.laser_origin(position_steps)
+
+    def _laser_exposure(self, state: CarriageState, start_s: float | None,
+                        sheet: tuple[AnyArray, AnyArray, AnyArray] | None = None):
+        """(mean displacement [steps], sheet offsets [m] of the sub-exposures, laser origin, moving box) of one exposure.
+
+        The moving box: the sheet's offsets (low, high) at the start and end of the exposure when the
+        carriage moves at a constant rate, else None.
+        """
         g = self.geometry
         sensor = g.sensor
         if not state.laser_on:
-            return 0.0, np.zeros(0), np.zeros(0)
+            return 0.0, np.zeros(0), np.zeros(0), None
+        box = None
+        # the sheet keeps its orientation and its origin moves along the track's axis x: the offset is
+        # linear in the displacement
+        n, x, origin0 = sheet if sheet is not None else self._sheet_frame(state.position_steps)
+        c0, per_step = float(n.dot(origin0)), float(n.dot(x)) * g.step_m
         if start_s is not None and state.moving:
             # the sheet sweeps over the surface while the shutter is open: the line is the sheet's
             # sub-exposures averaged (motion blur), centred on the sheet at mid-exposure
             times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
             disp = state.displacement_steps(times)
+            ends = c0 + per_step * state.displacement_steps(np.array([start_s, start_s + sensor.exposure_s]))
+            box = (float(ends.min()), float(ends.max()))
         elif start_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
             disp = np.zeros(1)
         else:
             times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
             disp = state.displacement_steps(times)
         mean_offset = float(disp.mean())
-        n = g.laser_normal
-        offsets = np.array([n.dot(g.laser_origin(state.position_steps + d)) for d in disp])
-        return mean_offset, offsets, g.laser_origin(state.position_steps + mean_offset)
+        offsets = c0 + per_step * disp
+        return mean_offset, offsets, origin0 + (mean_offset * g.step_m) * x, box
 
     def set_capture_timing(self, offset_s: float, jitter_s: float) -> None:
         """Exposure start of the right camera relative to the left, and each start's jitter (std), seconds."""
