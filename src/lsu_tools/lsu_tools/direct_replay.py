@@ -150,7 +150,7 @@ class DirectReplay:
         from sensor_msgs.msg import CameraInfo
 
         from lsu_bags.bags import BagError
-        from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
+        from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
 
         topics = bag_topics(bag)
         images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
@@ -161,6 +161,8 @@ class DirectReplay:
             raise BagError(f"bag {bag} holds neither stereo/{{left,right}}/image_raw nor stereo/{{left,right}}/"
                            f"laser_line (it has: {', '.join(sorted(topics)) or 'no topics'})")
         events = [t for t in topics if t.endswith("scan/events")]
+        # a sweep's frames are placed by the pairs' exposures and the driver's stamped carriage positions
+        sweep_inputs = [t for t in topics if t.endswith(("stereo/exposure", "driver/carriage"))]
         calibration = []
         if str(self.matcher.get_parameter("calibration_source").value) == "topics":
             calibration = [t for t in topics if _side(t, "camera_info") or t.endswith("stereo/extrinsics")]
@@ -170,7 +172,7 @@ class DirectReplay:
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"read_s": 0.0}
-        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *calibration]), reading)
+        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *sweep_inputs, *calibration]), reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
         next_spin = t0 + SPIN_EVERY_S
@@ -199,6 +201,10 @@ class DirectReplay:
                     stats.snaps += lines_of[key] >= 2
                 extractor.on_event(event)
                 matcher.on_event(event)
+            elif m.topic.endswith("stereo/exposure"):
+                matcher.on_exposure(deserialize_message(m.data, StereoExposure))
+            elif m.topic.endswith("driver/carriage"):
+                matcher.on_carriage(deserialize_message(m.data, CarriagePosition))
             elif m.topic.endswith("extrinsics"):
                 matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
             elif (side := _side(m.topic, "camera_info")) is not None:
