@@ -6,11 +6,22 @@ Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair) and with 
 both transient-local), serves ``stereo/capture`` (a fresh pair, published and/or returned) and
 optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth`` (the GP32
 emulator) and falls back to the ``carriage_position_steps`` parameter without it.
+
+``stereo/stream`` (StreamStereo) runs the cameras free: a streaming thread publishes a pair per frame
+slot (clocked sources: stamp ``t_k = t0 + k * period`` exactly; v4l2: the buffer stamps) and, with
+every published pair (captures too), its ``stereo/exposure`` (StereoExposure: each camera's exposure
+start relative to the stamp). A clocked source slower than the frame rate publishes late but never
+skips a slot; the lag is on ``/diagnostics`` and in the stop reply, and a lag beyond
+``stream_max_lag_s`` ends the stream with an error. A stop request ends the stream at the request's
+time: the reply comes once every slot before it is published, with the stream's totals. Captures are
+refused while a stream runs (the stream's own frames are the pairs to use).
 """
 
 from __future__ import annotations
 
+import math
 import threading
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -25,8 +36,8 @@ from lsu_common import diagnostics, qos, stamps
 from lsu_common.images import bgr_to_msg
 from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
-from lsu_interfaces.msg import SimTruth, StereoExtrinsics
-from lsu_interfaces.srv import CaptureStereo
+from lsu_interfaces.msg import SimTruth, StereoExposure, StereoExtrinsics
+from lsu_interfaces.srv import CaptureStereo, StreamStereo
 from tf2_msgs.msg import TFMessage
 
 from .calib_io import (
@@ -39,9 +50,10 @@ from .calib_io import (
 )
 from .frames import TrackGeometry, rig_transforms, transform_msg
 from .paths import config_dir
-from .polled import PolledGroup, take_latest
+from .polled import PolledGroup, take_all
 from .profiles import ProfileError, load_profile
 from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
+from .stream import DropCounter, LagStats, TruthHistory, frame_period_ns, slot_stamp_ns
 
 if TYPE_CHECKING:  # the simulator is imported only when the node simulates
     from .sim import CarriageState
@@ -81,7 +93,39 @@ PARAMETERS: dict[str, Param] = {
     "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
     "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),
     "laser_on": Param(True, "sim: laser state used until /lsu/sim/truth arrives"),
+    "stream_max_lag_s": Param(120.0, "stream: a pair published later than this after its stamp ends the stream with "
+                              "an error (a source that cannot keep up must not pile up frames) [s]", (0.1, 600.0)),
+    "v4l2_latency_s": Param(0.0, "v4l2: exposure start to arrival of a frame, for drivers without buffer timestamps "
+                            "[s]", (0.0, 10.0), read_only=R),
 }
+
+MAX_FRAME_RATE_HZ = 1000.0
+START_PAST_LIMIT_S = 1.0  # a stream start further in the past is refused (clock mix-up)
+TRUTH_DEPTH = 64          # sim/truth samples held by DDS between two reads (50 Hz x > 1 s of rendering)
+
+
+@dataclass
+class _Stream:
+    """One stream's clock, progress and totals; written by its thread, read under the node's stream lock."""
+
+    rate_hz: float
+    period_ns: int
+    frames: int                      # 0: until stopped
+    t0_ns: int                       # first slot (clocked) / first pair (free-running, once known)
+    exposure_s: float
+    drops: DropCounter
+    lags: LagStats = field(default_factory=LagStats)
+    stop_at_ns: int | None = None    # slots stamped at or after it are not taken
+    last_stamp_ns: int = 0
+    error: str = ""
+    wake: threading.Event = field(default_factory=threading.Event)
+    started: threading.Event = field(default_factory=threading.Event)   # first pair published (or the end)
+    done: threading.Event = field(default_factory=threading.Event)
+    thread: threading.Thread | None = None
+
+    @property
+    def running(self) -> bool:
+        return not self.done.is_set()
 
 
 def camera_info_msg(cal: CameraCalibration, frame_id: str) -> CameraInfo:
@@ -113,6 +157,9 @@ class StereoCameraNode(Node):
         self._publish_lock = threading.Lock()
         self._truth_lock = threading.Lock()
         self._truth_msg: SimTruth | None = None
+        self._truth_history: TruthHistory[SimTruth] = TruthHistory()
+        self._stream_lock = threading.Lock()
+        self._stream: _Stream | None = None
         self.source: StereoSource | None = None
         self.calibration: CalibrationSet | None = None
         self.status_level = diagnostics.OK
@@ -128,6 +175,7 @@ class StereoCameraNode(Node):
         self.pub_info_right = self.create_publisher(CameraInfo, "stereo/right/camera_info", sensor_qos)
         self._info: tuple[CameraInfo, CameraInfo] | None = None
         self.pub_extrinsics = self.create_publisher(StereoExtrinsics, "stereo/extrinsics", latched)
+        self.pub_exposure = self.create_publisher(StereoExposure, "stereo/exposure", qos.reliable(64))
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.pub_tf_static = self.create_publisher(TFMessage, "/tf_static", latched)  # tf2's static QoS
 
@@ -135,10 +183,14 @@ class StereoCameraNode(Node):
         self._load_calibration()
         self._publish_calibration()
 
-        # read at capture time, never by the executor (see PolledGroup); depth 1 keeps the newest only
-        self._truth_sub = self.create_subscription(SimTruth, "sim/truth", lambda _msg: None, qos.STATE,
+        # read at capture time, never by the executor (see PolledGroup); deep enough that a stream rendering
+        # behind the truth still finds the sample that held at each frame's stamp
+        self._truth_sub = self.create_subscription(SimTruth, "sim/truth", lambda _msg: None, qos.reliable(TRUTH_DEPTH),
                                                    callback_group=PolledGroup())
         self.srv = self.create_service(CaptureStereo, "stereo/capture", self._on_capture)
+        # its own group: a stop request waits for the stream's last frames while captures are still refused
+        self.stream_srv = self.create_service(StreamStereo, "stereo/stream", self._on_stream,
+                                              callback_group=MutuallyExclusiveCallbackGroup())
         self.preview: Any = None
         self._set_preview_rate(float(self.get_parameter("preview_rate_hz").value))
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -164,15 +216,30 @@ class StereoCameraNode(Node):
     def _truth(self) -> SimTruth | None:
         """The newest ``sim/truth`` received (None before the first), taken from the reader on demand."""
         with self._truth_lock:  # one reader, and `lsu run` may call this from several executor threads
-            latest = take_latest(self._truth_sub)
-            if latest is not None:
-                self._truth_msg = latest
+            for msg in take_all(self._truth_sub):
+                self._truth_history.add(stamps.to_ns(msg.header.stamp), msg)
+            self._truth_msg = self._truth_history.newest
             return self._truth_msg
+
+    def _truth_at(self, t: float) -> SimTruth | None:
+        """The ``sim/truth`` sample that held at ``t`` (the newest stamped at or before it)."""
+        if self._truth is None:
+            return None
+        t_ns = stamps.seconds_to_ns(t)
+        with self._truth_lock:
+            truth = self._truth_history.at(t_ns)
+            # later frames and captures look up later times only: older samples can go (bounded memory)
+            self._truth_history.prune(min(t_ns, self._now_ns()) - stamps.seconds_to_ns(
+                float(self.get_parameter("stream_max_lag_s").value) + 1.0))
+        return truth
+
+    def _now_ns(self) -> int:
+        return int(self.get_clock().now().nanoseconds)
 
     def _sim_carriage(self, t: float) -> CarriageState:
         from .sim import CarriageState
 
-        truth = self._truth
+        truth = self._truth_at(t)
         if truth is None:
             return CarriageState(float(self.get_parameter("carriage_position_steps").value),
                                  bool(self.get_parameter("laser_on").value))
@@ -196,12 +263,14 @@ class StereoCameraNode(Node):
                 geometry = load_rig(rig_path)
                 scene = build_scene(str(self.get_parameter("sim_scene").value), geometry)
                 rig = SimulatedRig(geometry, scene, seed=int(self.get_parameter("sim_seed").value))
-                self.source = SimSource(rig, self._sim_carriage, clock=lambda: stamps.ns_to_seconds(self.get_clock().now().nanoseconds))
+                self.source = SimSource(rig, self._sim_carriage, clock=lambda: stamps.ns_to_seconds(self._now_ns()),
+                                        seed=int(self.get_parameter("sim_seed").value))
             elif kind == "v4l2":
                 profile_name = str(self.get_parameter("profile").value)
                 profile = load_profile(profile_name) if profile_name else None
                 size = (int(self.get_parameter("image_width").value), int(self.get_parameter("image_height").value))
-                self.source = V4l2Source(list(self.get_parameter("devices").value), size, profile)
+                self.source = V4l2Source(list(self.get_parameter("devices").value), size, profile,
+                                         latency_s=float(self.get_parameter("v4l2_latency_s").value))
             elif kind == "folder":
                 self.source = FolderSource(str(self.get_parameter("folder").value))
             else:
@@ -283,10 +352,21 @@ class StereoCameraNode(Node):
             sec = stamps.ns_to_seconds(self.get_clock().now().nanoseconds)
         return stamps.from_seconds(sec)
 
-    def _publish_pair(self, left: Image, right: Image) -> None:
-        # one pair at a time: the capture service and the preview timer may run in parallel (`lsu run`),
-        # and the camera_info messages are reused with each pair's header
+    def _exposure_msg(self, pair: StereoPair, stamp: Time, frame_index: int = 0, streaming: bool = False
+                      ) -> StereoExposure:
+        msg = StereoExposure(left_start_offset_s=float(pair.left_offset_s), right_start_offset_s=float(pair.right_offset_s),
+                             exposure_s=float(self.source.exposure_s if self.source is not None else 0.0),
+                             frame_index=int(frame_index), streaming=bool(streaming))
+        msg.header.stamp = stamp
+        msg.header.frame_id = str(self.get_parameter("left_frame_id").value)
+        return msg
+
+    def _publish_pair(self, left: Image, right: Image, exposure: StereoExposure) -> None:
+        # one pair at a time: the capture service, the preview timer and a stream may run in parallel
+        # (`lsu run`), and the camera_info messages are reused with each pair's header
         with self._publish_lock:
+            # the exposure first: a reader of the images or of their laser lines can already place them in time
+            self.pub_exposure.publish(exposure)
             if self._info is not None:  # info first: whoever holds an image can already know its camera
                 for pub, info, image in ((self.pub_info_left, self._info[0], left),
                                          (self.pub_info_right, self._info[1], right)):
@@ -295,8 +375,19 @@ class StereoCameraNode(Node):
             self.pub_left.publish(left)
             self.pub_right.publish(right)
 
+    def _streaming(self) -> _Stream | None:
+        with self._stream_lock:
+            return self._stream if self._stream is not None and self._stream.running else None
+
     def _on_capture(self, request: CaptureStereo.Request, response: CaptureStereo.Response) -> CaptureStereo.Response:
         timeout = float(request.timeout_s) if request.timeout_s > 0 else float(self.get_parameter("capture_timeout_s").value)
+        stream = self._streaming()
+        if stream is not None:
+            response.success = False
+            response.message = (f"capture refused: the cameras are streaming at {stream.rate_hz:g} Hz; use the stream's "
+                                f"pairs or stop it first (stereo/stream with frame_rate_hz 0)")
+            self.get_logger().warning(response.message, throttle_duration_sec=5.0)
+            return response
         try:
             pair = self.grab(timeout)
         except CameraError as exc:
@@ -308,7 +399,7 @@ class StereoCameraNode(Node):
         left = image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value))
         right = image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value))
         if request.publish:
-            self._publish_pair(left, right)
+            self._publish_pair(left, right, self._exposure_msg(pair, stamp))
             # A captured snap is one its readers have: wait until every reliable subscriber (extractor,
             # matcher, bag recorder) acknowledged both images, so a camera killed right after answering
             # cannot take the frames with it. Briefly: a reader that died still counts until discovery
@@ -325,6 +416,8 @@ class StereoCameraNode(Node):
         return response
 
     def _on_preview(self) -> None:
+        if self._streaming() is not None:  # the stream publishes the pairs
+            return
         try:
             pair = self.grab(float(self.get_parameter("capture_timeout_s").value))
         except CameraError as exc:
@@ -332,20 +425,193 @@ class StereoCameraNode(Node):
             return
         stamp = self._stamp(pair)
         self._publish_pair(image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value)),
-                           image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)))
+                           image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)),
+                           self._exposure_msg(pair, stamp))
+
+    # ------------------------------------------------------------------ stream
+    def _on_stream(self, request: StreamStereo.Request, response: StreamStereo.Response) -> StreamStereo.Response:
+        rate = float(request.frame_rate_hz)
+        if not (math.isfinite(rate) and 0.0 <= rate <= MAX_FRAME_RATE_HZ):
+            response.success = False
+            response.message = (f"frame_rate_hz {rate} is not a rate: give 0 < frame_rate_hz <= {MAX_FRAME_RATE_HZ:g} "
+                                f"to start a stream, 0 to stop it")
+            return response
+        if rate == 0.0:
+            return self._stop_stream(response)
+        if self.source is None:
+            response.success = False
+            response.message = f"stream not started: {self.status_message}"
+            return response
+        if self._streaming() is not None:  # a new rate restarts the stream
+            self._stop_stream(StreamStereo.Response())
+        now_ns = self._now_ns()
+        start_ns = stamps.to_ns(request.start)
+        if start_ns != 0 and start_ns < now_ns - stamps.seconds_to_ns(START_PAST_LIMIT_S):
+            response.success = False
+            response.message = (f"stream not started: its start is {stamps.ns_to_seconds(now_ns - start_ns):.3f} s in the "
+                                f"past; give a start time ahead of the node's clock, or zero for now")
+            return response
+        source = self.source
+        period_ns = frame_period_ns(rate)
+        if not source.clocked:
+            try:
+                rate = source.start_stream(rate)
+                period_ns = frame_period_ns(rate)
+            except CameraError as exc:
+                response.success = False
+                response.message = f"stream not started: {exc}"
+                return response
+        stream = _Stream(rate, period_ns, int(request.frames), start_ns or now_ns, source.exposure_s,
+                         DropCounter(period_ns))
+        stream.thread = threading.Thread(target=self._run_stream, args=(stream,), name="lsu-camera-stream", daemon=True)
+        with self._stream_lock:
+            self._stream = stream
+        stream.thread.start()
+        if not source.clocked:  # the first pair's buffer stamp is the stream's first stamp
+            stream.started.wait(float(self.get_parameter("capture_timeout_s").value) + 1.0)
+        with self._stream_lock:
+            response.success = not stream.error
+            response.message = stream.error
+            response.first_stamp = stamps.to_msg(stream.t0_ns)
+            response.frame_period_s = stamps.ns_to_seconds(stream.period_ns)
+            response.exposure_s = float(stream.exposure_s)
+            response.frames_published, response.frames_dropped = stream.drops.published, stream.drops.dropped
+        self.get_logger().info(f"stream started: {rate:g} Hz from {stamps.to_text(stream.t0_ns)}"
+                               + (f", {stream.frames} frames" if stream.frames else ""))
+        return response
+
+    def _stop_stream(self, response: StreamStereo.Response) -> StreamStereo.Response:
+        with self._stream_lock:
+            stream = self._stream
+            if stream is None:
+                response.success = True
+                response.message = "no stream was started"
+                return response
+            if stream.stop_at_ns is None:
+                stream.stop_at_ns = self._now_ns()
+            stream.wake.set()
+        # every slot before the stop is still published (a clocked source may be running behind)
+        stream.done.wait()
+        with self._stream_lock:
+            response.success = not stream.error
+            response.message = stream.error or stream.lags.summary()
+            response.first_stamp = stamps.to_msg(stream.last_stamp_ns)
+            response.frame_period_s = stamps.ns_to_seconds(stream.period_ns)
+            response.exposure_s = float(stream.exposure_s)
+            response.frames_published, response.frames_dropped = stream.drops.published, stream.drops.dropped
+        self.get_logger().info(f"stream stopped: {response.frames_published} pairs, {response.frames_dropped} dropped; "
+                               f"{response.message}")
+        return response
+
+    def _run_stream(self, stream: _Stream) -> None:
+        source = self.source
+        assert source is not None  # checked before the thread starts
+        try:
+            if source.clocked:
+                self._run_clocked(stream, source)
+            else:
+                self._run_free(stream, source)
+        except CameraError as exc:
+            stream.error = f"stream ended: {exc}"
+        except Exception as exc:  # a thread dies silently otherwise: report it as the stream's end
+            stream.error = f"stream ended by an internal error: {exc!r}"
+            raise
+        finally:
+            if not source.clocked:
+                source.stop_stream()
+            if stream.error:
+                self.get_logger().error(stream.error)
+            stream.started.set()
+            stream.done.set()
+
+    def _stream_publish(self, stream: _Stream, pair: StereoPair, stamp_ns: int, index: int) -> None:
+        stamp = stamps.to_msg(stamp_ns)
+        self._publish_pair(image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value)),
+                           image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)),
+                           self._exposure_msg(pair, stamp, index, streaming=True))
+        lag_s = stamps.ns_to_seconds(self._now_ns() - stamp_ns)
+        with self._stream_lock:
+            stream.drops.add(stamp_ns)
+            stream.lags.add(lag_s)
+            stream.last_stamp_ns = stamp_ns
+        stream.started.set()
+        limit = float(self.get_parameter("stream_max_lag_s").value)
+        if lag_s > limit:
+            raise CameraError(f"pair {index} was published {lag_s:.1f} s after its stamp, more than stream_max_lag_s "
+                              f"= {limit:g} s: the source cannot keep up with {stream.rate_hz:g} Hz; stream at a "
+                              f"lower rate (every pair up to here was published)")
+
+    def _run_clocked(self, stream: _Stream, source: StereoSource) -> None:
+        """Frame k exposed from t_k = t0 + k * period, published once it can exist; never a slot skipped."""
+        ready_ns = stamps.seconds_to_ns(source.ready_after_s)
+        index = 0
+        while not stream.frames or index < stream.frames:
+            t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)
+            while True:
+                with self._stream_lock:
+                    stop_at = stream.stop_at_ns
+                if stop_at is not None and t_ns >= stop_at:
+                    return
+                wait_ns = t_ns + ready_ns - self._now_ns()
+                if wait_ns <= 0:
+                    break
+                stream.wake.wait(stamps.ns_to_seconds(wait_ns))
+                stream.wake.clear()
+            with self._lock:
+                pair = source.pair_at(stamps.ns_to_seconds(t_ns), index)
+            self._stream_publish(stream, pair, t_ns, index)
+            index += 1
+
+    def _run_free(self, stream: _Stream, source: StereoSource) -> None:
+        """Pairs at the devices' rate, stamped from their buffers; missing slots show as stamp gaps."""
+        timeout = float(self.get_parameter("capture_timeout_s").value)
+        index = 0
+        first = True
+        while not stream.frames or index < stream.frames:
+            with self._lock:
+                pair = source.next_pair(timeout)
+            stamp_ns = stamps.seconds_to_ns(pair.time_s)
+            with self._stream_lock:
+                stop_at = stream.stop_at_ns
+                if first:
+                    if stamp_ns < stream.t0_ns:  # exposed before the requested start
+                        continue
+                    stream.t0_ns, first = stamp_ns, False
+            if stop_at is not None and stamp_ns >= stop_at:
+                return
+            self._stream_publish(stream, pair, stamp_ns, index)
+            index += 1
 
     def _publish_diagnostics(self) -> None:
-        values = {"calibration_id": self.calibration.calibration_id if self.calibration else "",
-                  "sim_truth": "received" if self._truth is not None else "none"}
-        self.pub_diag.publish(diagnostics.status_array(self, self.status_level, f"{self.get_name()}: cameras",
-                                                       self.status_message, values,
+        values: dict[str, object] = {"calibration_id": self.calibration.calibration_id if self.calibration else "",
+                                     "sim_truth": "received" if self._truth is not None else "none"}
+        level, message = self.status_level, self.status_message
+        with self._stream_lock:
+            stream = self._stream
+            if stream is not None:
+                values.update({"stream": (f"running at {stream.rate_hz:g} Hz" if stream.running else "stopped"),
+                               "stream_frames_published": stream.drops.published,
+                               "stream_frames_dropped": stream.drops.dropped,
+                               "stream_lag_max_s": f"{stream.lags.max_s:.3f}",
+                               "stream_lag_median_s": f"{stream.lags.median_s:.3f}"})
+                if stream.error and level == diagnostics.OK:
+                    level, message = diagnostics.WARN, stream.error
+        self.pub_diag.publish(diagnostics.status_array(self, level, f"{self.get_name()}: cameras", message, values,
                                                        hardware_id=str(self.get_parameter("source").value)))
 
     def destroy_node(self) -> None:
-        """Release the cameras."""
+        """End a stream (without waiting for a backlog) and release the cameras."""
+        with self._stream_lock:
+            stream = self._stream
+            if stream is not None:
+                stream.stop_at_ns = -1
+                stream.wake.set()
+        if stream is not None and stream.thread is not None:
+            stream.thread.join(timeout=5.0)
         if self.source is not None:
             self.source.close()
         super().destroy_node()
 
 
-main = main_of(StereoCameraNode)
+# multi-threaded: a stream stop waits for the stream's last frames while captures get their refusal
+main = main_of(StereoCameraNode, multi_threaded=True)

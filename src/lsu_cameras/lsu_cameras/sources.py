@@ -1,7 +1,10 @@
 """Stereo camera sources behind one interface: ``v4l2`` (OpenCV), ``folder`` (recorded pairs), ``sim``.
 
 A source returns a `StereoPair`: two BGR images exposed *after* the request, the capture time and
-the measured left/right skew. Pure module (no rclpy): the node maps it onto topics and services.
+the measured left/right skew. Streams (`lsu_cameras.stream`): a *clocked* source (sim, folder) makes
+the pair of a given frame slot (`StereoSource.pair_at`); a free-running one (v4l2) delivers pairs
+at the devices' rate with their buffer stamps (`StereoSource.start_stream` / `next_pair`).
+Pure module (no rclpy): the node maps it onto topics and services.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import cv2
 from lsu_common.arrays import AnyArray
 
 from .profiles import Profile, apply_profile
+from .stream import buffer_stamp_s, frame_seed
 
 if TYPE_CHECKING:  # the simulator is imported only when a SimSource is made
     from .sim import CarriageState, SimulatedRig
@@ -36,6 +40,12 @@ class StereoPair:
     time_s: float               # capture time (source clock: wall or sim time) given to both images
     skew_s: float = 0.0         # right - left exposure time difference
     label: str = ""             # e.g. the folder pair's file suffix
+    left_offset_s: float = 0.0  # left exposure start - time_s (the right one starts skew_s later)
+
+    @property
+    def right_offset_s(self) -> float:
+        """Right exposure start - time_s."""
+        return self.left_offset_s + self.skew_s
 
 
 class StereoSource(abc.ABC):
@@ -49,6 +59,34 @@ class StereoSource(abc.ABC):
     @abc.abstractmethod
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         """A fresh pair exposed after this call started."""
+
+    #: streams on a frame clock (`pair_at`) rather than at the devices' own rate (`next_pair`)
+    clocked: bool = True
+
+    @property
+    def exposure_s(self) -> float:
+        """Each camera's exposure time [s]; 0 when the source does not know it."""
+        return 0.0
+
+    @property
+    def ready_after_s(self) -> float:
+        """Clocked sources: how long after its slot a frame can exist (the end of its later exposure)."""
+        return self.exposure_s
+
+    def pair_at(self, time_s: float, index: int) -> StereoPair:
+        """Clocked sources: the pair of stream frame ``index`` exposed from ``time_s`` (its stamp)."""
+        raise CameraError(f"{type(self).__name__} runs at its own rate and cannot make a frame for a given time")
+
+    def start_stream(self, rate_hz: float) -> float:
+        """Free-running sources: start delivering pairs at ``rate_hz``; returns the rate the devices run at."""
+        raise CameraError(f"{type(self).__name__} streams on a frame clock (pair_at)")
+
+    def next_pair(self, timeout_s: float) -> StereoPair:
+        """Free-running sources: the next pair of the stream, stamped with its exposure start."""
+        raise CameraError(f"{type(self).__name__} streams on a frame clock (pair_at)")
+
+    def stop_stream(self) -> None:  # noqa: B027 (optional: clocked sources have nothing to stop)
+        """Free-running sources: end the stream."""
 
     def close(self) -> None:  # noqa: B027 (optional: a source without devices keeps this no-op)
         """Release devices."""
@@ -93,6 +131,12 @@ class FolderSource(StereoSource):
     def image_size(self) -> tuple[int, int]:
         return self._size
 
+    def pair_at(self, time_s: float, index: int) -> StereoPair:
+        """The folder's next pair, stamped with its slot (a folder streams its pairs in name order at the rate)."""
+        pair = self.grab_pair()
+        pair.time_s = time_s
+        return pair
+
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         if self.index >= len(self._paths):
             if not self.loop:
@@ -117,13 +161,21 @@ class V4l2Source(StereoSource):
     timestamps when they exist, else from the host time of each grab.
     """
 
+    clocked = False
+
     def __init__(self, devices: Sequence[str | int], size: tuple[int, int] = (640, 480),
                  profile: Profile | None = None, flush_frames: int = 2,
-                 opener: Callable[..., cv2.VideoCapture] = cv2.VideoCapture) -> None:
+                 opener: Callable[..., cv2.VideoCapture] = cv2.VideoCapture, latency_s: float = 0.0,
+                 clocks: Callable[[], tuple[float, float]] = lambda: (time.time(), time.monotonic())) -> None:
         if len(devices) != 2:
             raise CameraError(f"need exactly two devices (left, right), got {list(devices)}")
         self.devices = list(devices)
         self.flush_frames = flush_frames
+        self.latency_s = float(latency_s)
+        self.clocks = clocks  # (wall, monotonic) read together, to move the drivers' monotonic stamps to wall time
+        # V4L2's exposure_time_absolute (OpenCV CAP_PROP_EXPOSURE on CAP_V4L2) counts 100 us units
+        exposure = profile.controls.get("exposure") if profile is not None else None
+        self._exposure_s = float(exposure) * 1e-4 if exposure is not None and float(exposure) > 0 else 0.0
         self._problems: list[str] = []
         self._caps = []
         try:
@@ -156,6 +208,40 @@ class V4l2Source(StereoSource):
 
     def report(self) -> list[str]:
         return list(self._problems)
+
+    @property
+    def exposure_s(self) -> float:
+        return self._exposure_s
+
+    def start_stream(self, rate_hz: float) -> float:
+        rates = []
+        for cap in self._caps:
+            cap.set(cv2.CAP_PROP_FPS, float(rate_hz))
+            rates.append(float(cap.get(cv2.CAP_PROP_FPS)))
+        if min(rates) <= 0:
+            return float(rate_hz)  # the driver does not say: the requested rate is the best guess
+        if abs(rates[0] - rates[1]) > 1e-6 * max(rates):
+            self._problems.append(f"left camera runs at {rates[0]:g} fps, right at {rates[1]:g} fps")
+        return min(rates)
+
+    def next_pair(self, timeout_s: float) -> StereoPair:
+        """Grab both cameras (the exposures are latched first), stamp each from its buffer, then decode."""
+        deadline = time.monotonic() + timeout_s
+        starts: list[float] = []
+        for side, dev, cap in zip(("left", "right"), self.devices, self._caps):
+            if not cap.grab():
+                raise CameraError(f"{side} camera '{dev}' returned no frame (unplugged?)")
+            wall, mono = self.clocks()
+            starts.append(buffer_stamp_s(float(cap.get(cv2.CAP_PROP_POS_MSEC)), wall, mono, self.latency_s))
+            if time.monotonic() > deadline:
+                raise CameraError(f"grabbing the pair took longer than {timeout_s} s")
+        images = []
+        for side, cap in zip(("left", "right"), self._caps):
+            ok, image = cap.retrieve()
+            if not ok or image is None:
+                raise CameraError(f"{side} camera: frame could not be decoded")
+            images.append(image)
+        return StereoPair(images[0], images[1], starts[0], starts[1] - starts[0])
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         deadline = time.monotonic() + timeout_s
@@ -193,25 +279,45 @@ class SimSource(StereoSource):
     """The simulated rig; ``carriage(t)`` says where the carriage is at time t (from /lsu/sim/truth or a parameter)."""
 
     def __init__(self, rig: SimulatedRig, carriage: Callable[[float], CarriageState],
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time, seed: int = 0) -> None:
         self.rig = rig
         self.carriage = carriage
         self.clock = clock
+        self.seed = int(seed)
 
     @property
     def image_size(self) -> tuple[int, int]:
         return self.rig.geometry.image_size
 
+    @property
+    def exposure_s(self) -> float:
+        return self.rig.geometry.sensor.exposure_s
+
+    @property
+    def ready_after_s(self) -> float:
+        sensor = self.rig.geometry.sensor
+        # the later camera's exposure end (jitter: 3 sigma), as a real frame would arrive
+        return max(sensor.capture_offset_s, 0.0) + 3.0 * sensor.capture_jitter_s + sensor.exposure_s
+
+    def _pair(self, t: float, seed: int | None) -> StereoPair:
+        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s)
+        frame = self.rig.render(self.carriage(t), capture_time_s=t, seed=seed)
+        left_start, right_start = frame.exposure_start_s
+        assert left_start is not None and right_start is not None  # a capture time gives both starts
+        return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
+
+    def pair_at(self, time_s: float, index: int) -> StereoPair:
+        """The pair exposed from ``time_s`` with the carriage as known then; its noise (and start jitter)
+        seeded by the sim seed and ``index`` (`frame_seed`)."""
+        return self._pair(time_s, frame_seed(self.seed, index))
+
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         t = self.clock()
         started = time.monotonic()
-        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s)
-        frame = self.rig.render(self.carriage(t), capture_time_s=t)
+        pair = self._pair(t, None)
         # a real frame is not there before its exposure has ended: a render faster than the
         # exposure must not make a simulated scan faster than the unit could be
         remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)
         if remaining > 0:
             time.sleep(remaining)
-        left_start, right_start = frame.exposure_start_s
-        skew = (right_start - left_start) if left_start is not None and right_start is not None else 0.0
-        return StereoPair(frame.left, frame.right, t, skew)
+        return pair

@@ -94,3 +94,68 @@ def test_calibration_files_bad_yaml_and_size_mismatch(tmp_path):
     (tmp_path / "left.yaml").write_text("image_width: 640\nimage_height: 480\ncamera_matrix: {data: [1, 2, 3]}\n")
     with pytest.raises(CalibrationParseError, match="'camera_matrix' has 3 numbers, expected 9"):
         read_camera_yaml(tmp_path / "left.yaml")
+
+
+def test_folder_source_streams_its_pairs_in_order_on_the_slots_stamps(tmp_path):
+    for k in range(2):
+        write_pair(tmp_path, f"{k:03d}", value=10 * k)
+    source = FolderSource(tmp_path)
+    pairs = [source.pair_at(100.0 + k / 30, k) for k in range(3)]
+    assert [int(p.left[0, 0, 0]) for p in pairs] == [0, 10, 0] and [p.time_s for p in pairs] == [100.0, 100.0 + 1 / 30,
+                                                                                                 100.0 + 2 / 30]
+    assert source.clocked and source.exposure_s == 0.0
+
+
+class FakeStreamingCamera:
+    """A V4L2 camera running free: each grab delivers the next buffer, stamped by the driver (monotonic ms)."""
+
+    def __init__(self, driver_ms):
+        self.driver_ms = iter(driver_ms)
+        self.current = 0.0
+        self.props = {}
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        self.props[prop] = value
+        return True
+
+    def get(self, prop):
+        return self.current if prop == cv2.CAP_PROP_POS_MSEC else self.props.get(prop, 0.0)
+
+    def grab(self):
+        self.current = next(self.driver_ms, None)
+        return self.current is not None
+
+    def retrieve(self):
+        return True, np.zeros((480, 640, 3), np.uint8)
+
+    def release(self):
+        pass
+
+
+def test_v4l2_stream_is_stamped_from_the_buffers_and_a_missing_frame_counts_as_dropped():
+    from lsu_cameras.stream import count_drops, frame_period_ns
+    from lsu_common.stamps import seconds_to_ns
+
+    slots = [0, 1, 2, 4, 5]  # the devices run at 30 fps; the pair of slot 3 never arrived
+    left_ms = [5000.0 + k * 1000.0 / 30 for k in slots]
+    cameras = iter([FakeStreamingCamera(left_ms), FakeStreamingCamera([ms + 2.0 for ms in left_ms])])
+    wall_minus_mono = 1_764_633_600.0
+    arrivals = iter(ms / 1000.0 + 0.012 for pair in zip(left_ms, left_ms) for ms in pair)  # 12 ms after each buffer
+
+    def clocks():
+        mono = next(arrivals)
+        return wall_minus_mono + mono, mono
+
+    source = V4l2Source(["/dev/video0", "/dev/video1"], opener=lambda *_: next(cameras), clocks=clocks)
+    assert not source.clocked and source.start_stream(30.0) == 30.0
+    pairs = [source.next_pair(1.0) for _ in slots]
+    for k, pair in zip(slots, pairs):
+        assert pair.time_s == pytest.approx(wall_minus_mono + 5.0 + k / 30, abs=1e-6)  # the left buffer's time
+        assert pair.right_offset_s == pytest.approx(0.002, abs=1e-6) and pair.left_offset_s == 0.0
+    tally = count_drops([seconds_to_ns(p.time_s) for p in pairs], frame_period_ns(30.0))
+    assert (tally.expected, tally.published, tally.dropped) == (6, 5, 1)
+    with pytest.raises(CameraError, match="left camera '/dev/video0' returned no frame"):
+        source.next_pair(1.0)
