@@ -683,6 +683,8 @@ class ScanCoordinatorNode(Node):
                                due_s=abs(sweep.start - here) / max(1.0, float(state.step_rate_steps_per_s)))
             if not moved.success:
                 raise ScanAborted(f"move to {sweep.start} failed: {moved.message}")
+            # the stop's vibration decays before the sweep's first frames, as before a stop-snap capture
+            self._sleep(goal_handle, run.plan.settle_s - (self._since_stop_s(moved.stopped_stamp) or 0.0))
         if not self._wait(lambda: self.stream.service_is_ready(), 5.0):
             raise ScanAborted(f"service {self.stream.srv_name} is not available: the camera node cannot stream "
                               "(sweep scans need free-running capture; use --mode stopsnap)")
