@@ -67,9 +67,12 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
             refused = scanner.scan(start=220, end=250, mode="sweep", sweep_rate_steps_s=200.0)
             assert not refused.success and "sweep_rate_steps_s" in refused.status and "180" in refused.status
             # 220..250: the plane's line seen by both cameras at more than the sheet's grazing limit. The
-            # carriage waits there first: the emulator's truth (what the camera renders) comes at 5 Hz at
-            # rest and has no sample at a stop, so frames within ~0.2 s of a move would be rendered from
-            # the move's last sample, extrapolated
+            # camera renders the carriage from the emulator's newest truth sample, extrapolated at its
+            # velocity: across a start or a stop that sample is stale by up to its period (5 Hz at rest, and
+            # the executor's delay on a loaded host), so the truth comes faster here, and the carriage waits
+            # at the start first
+            for name, rate in (("truth_rate_hz", 200.0), ("truth_rest_rate_hz", 100.0)):
+                assert ros_node.set_parameter("/lsu/gp32_emulator", name, rate).successful
             scanner.move_to(220)
             time.sleep(0.5)
             result = scanner.scan(start=220, end=250, mode="sweep", sweep_rate_steps_s=60.0, frame_rate_hz=30.0,
@@ -106,6 +109,7 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
     assert sweep["frames_dropped"] == 0 and sweep["frames_not_published"] == sweep["camera_frames_dropped"] == 0
     # the per-camera sheet path: the exposures do not overlap, so both cameras' lines are kept
     assert int(values["sweep_left_sheet"]) > 0 and int(values["sweep_right_sheet"]) > 0, values
+    assert sweep["laser_sheet"] == "each camera's line on the laser sheet"
     assert int(values["sweep_no_position"]) == int(values["sweep_no_carriage_position"]) == int(values["sweep_stereo"]) == 0
     recorded = [deserialize_ros(m) for m in read_messages(Path(result.output_dir) / "bag", ["/lsu/scan/cloud"])]
     assert len(recorded) == 1
@@ -137,10 +141,11 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
         replay = DirectReplay(nodes)
         clouds_direct: list = []
         replay.matcher.cloud_pub.publish = clouds_direct.append
-        replay.run(Path(result.output_dir) / "bag")
+        stats = replay.run(Path(result.output_dir) / "bag")
     finally:
         for node in nodes:
             node.destroy_node()
+    assert (stats.sweep_frames, stats.frames_dropped, stats.lines_unpaired) == (16, 0, 0)
     assert len(clouds_direct) == 1
     assert np.array_equal(xyz(clouds_direct[0]), live)
 

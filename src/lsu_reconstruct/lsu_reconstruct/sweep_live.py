@@ -10,7 +10,8 @@ the `CarriageTrack` of the sweep:
 - a pair is a sweep frame when its stamp is >= the stream's first stamp (SWEEP_START) and, once the
   end is known, <= the last one;
 - a frame waits for its exposure and for both of its cameras' mid-exposures to be covered by the
-  track (a carriage sample at or after it, or the motion's final stop reported);
+  track (a carriage sample at or after it, or the sweep motion's final stop reported), so that it is
+  placed the same whatever the order its inputs come in (live or replayed);
 - `finish` (the scan ended) releases what still waits: a frame without a position is counted as
   "no position" (`reconstruct_sweep_frame` then gives its stereo points only), one without its
   exposure as "no exposure" (placed at the pair's stamp with the last known exposure time).
@@ -88,12 +89,15 @@ class LiveSweep:
         return sorted(s for s in self.carriage if s[0] >= since)
 
     def track_end_s(self) -> float | None:
-        """Stamp of the motion's final stop (a sample not moving after a moving one), None while it runs."""
-        seen_moving = False
+        """Stamp of the sweep motion's final stop, None while it runs.
+
+        The first stop reported after the stream's first stamp: the stream starts once the carriage
+        stands at the sweep's start (the stop of the move there is earlier), and the sweep's motion
+        is still running at its first frame.
+        """
+        first_s = stamps.ns_to_seconds(self.first_key)
         for t, _p, moving in self._samples():
-            if moving:
-                seen_moving = True
-            elif seen_moving:
+            if not moving and t > first_s:
                 return t
         return None
 

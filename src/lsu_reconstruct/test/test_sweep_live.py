@@ -32,7 +32,8 @@ def true_position(t: float) -> float:
 
 def test_frames_wait_for_the_track_and_come_out_in_order_at_each_cameras_mid_exposure():
     sweep = LiveSweep(key(0), expected=6)
-    sweep.add_carriage(MOTION_AT - 1.0, START, False)  # the stop at the start (the move there)
+    sweep.add_carriage(MOTION_AT - 1.2, START - 40, True)  # the move to the start,
+    sweep.add_carriage(MOTION_AT - 1.0, START, False)      # and its stop there: not the sweep's end
     offsets = (0.0, 0.05)                               # the right camera 50 ms late
     for k in (2, 0, 1):                                 # pairs and exposures out of order
         sweep.add_pair(key(k), line(k), line(k))

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -160,6 +161,9 @@ class ScanCoordinatorNode(Node):
         self._exposures: dict[int, tuple[float, float, float]] = {}
         self._io.create_subscription(StereoExposure, "stereo/exposure", self._on_exposure, QoSProfile(
             depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        # whether stereo_matcher places sweep frames on a laser sheet (its /diagnostics say), for scan.json
+        self._matcher_sheet = ""
+        self._io.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self._state: ScannerState | None = None
         self._acks: dict[int, tuple] = {}  # image stamp -> (points, monotonic arrival time)
@@ -205,6 +209,13 @@ class ScanCoordinatorNode(Node):
     def _on_exposure(self, msg: StereoExposure) -> None:
         if msg.streaming:
             self._exposures[_key(msg.header.stamp)] = (float(msg.exposure_s), time.time(), time.monotonic())
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith("stereo_matcher: stereo matching"):
+                for value in status.values:
+                    if value.key == "laser_sheet":
+                        self._matcher_sheet = value.value
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         with self._cond:
@@ -836,6 +847,9 @@ class ScanCoordinatorNode(Node):
                                            stop_to_reply_s=None, ack_wait_s=0.0, capture_s=0.0))
             run.frame_arrivals[key] = arrived
         run.first_key, run.frame_keys = first, keys
+        sheet = self._matcher_sheet
+        run.stream["laser_sheet"] = ("each camera's line on the laser sheet" if sheet == "loaded" else
+                                     f"stereo only: {sheet}" if sheet else "unknown (no /diagnostics from stereo_matcher)")
         run.frames = count_frames(first, stamps.seconds_to_ns(period_s), sweep.frames_expected, keys, [],
                                   int(run.stream.get("camera_frames_dropped", 0)))
 

@@ -45,6 +45,7 @@ class ReplayStats:
     snap_events: int = 0
     pairs: int = 0              # image (or line) pairs matched, the laser-off texture pair included
     snaps: int = 0              # SNAP events whose pair was matched
+    sweep_frames: int = 0       # pairs the sweeps' streams published (their SWEEP_END events)
     frames_dropped: int = 0     # images the extractor could not read
     lines_unpaired: int = 0     # lines that never found their partner (same stamp)
     seconds: float = 0.0
@@ -52,10 +53,12 @@ class ReplayStats:
     read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
 
     def summary(self, bag: Path) -> str:
-        rate = self.snaps / self.seconds if self.seconds > 0 else 0.0
-        cpu = 1000.0 * self.cpu_s / max(1, self.snaps)
-        read = 1000.0 * self.read_cpu_s / max(1, self.snaps)
-        return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs) in "
+        done = self.snaps + self.sweep_frames  # a sweep's frames are its snaps
+        rate = done / self.seconds if self.seconds > 0 else 0.0
+        cpu = 1000.0 * self.cpu_s / max(1, done)
+        read = 1000.0 * self.read_cpu_s / max(1, done)
+        sweep = f", {self.sweep_frames} sweep frames" if self.sweep_frames else ""
+        return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs){sweep} in "
                 f"{self.seconds:.2f} s, {rate:.0f} snaps/s, {cpu:.2f} ms CPU per snap ({read:.2f} ms of it reading "
                 f"the bag); {self.frames_dropped} frames unreadable, "
                 f"{self.lines_unpaired} lines unpaired")
@@ -199,6 +202,8 @@ class DirectReplay:
                     stats.snap_events += 1
                     key = stamps.to_ns(event.image_stamp)
                     stats.snaps += lines_of[key] >= 2
+                elif event.type == ScanEvent.SWEEP_END:
+                    stats.sweep_frames += int(event.snaps_captured)
                 extractor.on_event(event)
                 matcher.on_event(event)
             elif m.topic.endswith("stereo/exposure"):
