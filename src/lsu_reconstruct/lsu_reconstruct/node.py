@@ -392,7 +392,7 @@ class StereoMatcherNode(Node):
 
     def _start_sweep(self, msg: ScanEvent) -> None:
         first = _stamp_key(msg.image_stamp)
-        sweep = self.sweep = LiveSweep(first, int(msg.expected_snaps))
+        sweep = self.sweep = LiveSweep(first, int(msg.expected_snaps), start_position=float(msg.position_steps))
         for sample in self._carriage:
             sweep.add_carriage(*sample)
         for key, exposure in self._exposures.items():

@@ -54,6 +54,9 @@ class LiveSweep:
 
     first_key: int
     expected: int = 0
+    # where the carriage stands until the motion's first report (SWEEP_START's position): frames before
+    # it are placed there whatever samples from before the scan a live graph still holds and a bag lacks
+    start_position: float | None = None
     last_key: int | None = None
     published: int | None = None
     pairs: dict[int, tuple[LineArrays, LineArrays]] = field(default_factory=dict)
@@ -86,7 +89,8 @@ class LiveSweep:
     # ------------------------------------------------------------------ the carriage track
     def _samples(self) -> list[tuple[float, float, bool]]:
         since = stamps.ns_to_seconds(self.first_key) - CARRIAGE_LOOKBACK_S
-        return sorted(s for s in self.carriage if s[0] >= since)
+        seed = [] if self.start_position is None else [(since, float(self.start_position), False)]
+        return sorted(seed + [s for s in self.carriage if s[0] > since])
 
     def track_end_s(self) -> float | None:
         """Stamp of the sweep motion's final stop, None while it runs.

@@ -60,6 +60,22 @@ def test_frames_wait_for_the_track_and_come_out_in_order_at_each_cameras_mid_exp
     assert sweep.counts == {"no_position": 0, "no_exposure": 0}
 
 
+def test_a_frame_before_the_motions_first_report_is_placed_at_the_start_with_or_without_older_samples():
+    positions = []
+    for older in (False, True):  # a live graph may still hold the stop from before the scan; a bag may not
+        sweep = LiveSweep(key(0), expected=2, start_position=START)
+        if older:
+            sweep.add_carriage(T0 - 0.6, START, False)
+        sweep.add_pair(key(0), line(0), line(0))
+        sweep.add_exposure(key(0), Exposure(0.0, 0.0, EXPOSURE, 0))
+        for t in (T0 + 0.05, T0 + 0.10):  # the motion starts after frame 0's exposure
+            sweep.add_carriage(t, START + RATE * (t - T0 - 0.05), True)
+        frames, track = sweep.ready()
+        assert [f.index for _k, f in frames] == [0]
+        positions.append(float(track.position_at(T0 + EXPOSURE / 2)))
+    assert positions[0] == pytest.approx(positions[1], abs=1e-6) and positions[0] == pytest.approx(START, abs=1e-5)
+
+
 def test_the_end_bounds_the_sweep_and_finish_counts_what_could_not_be_placed():
     sweep = LiveSweep(key(0), expected=4)
     assert not sweep.is_frame(key(0) - 1)              # the texture pair, before the stream
