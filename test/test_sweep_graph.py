@@ -1,26 +1,35 @@
-"""A sweep scan through the whole sim graph (separate processes), and its bag replayed to the same cloud.
+"""A sweep scan through the whole sim graph (separate processes), its bag replayed to the same cloud, and a cancel.
 
-Truth: the rendered plane's geometry (the scene the camera node renders), the frame accounting of
-scan.json against the captured snaps, and the cloud recorded live against the replayed one.
+Truth: the rendered plane's geometry (the scene the camera renders), the stream's slots (stamped
+t0 + k / fps, none skipped) against scan.json's frame accounting, the cloud recorded live against
+the replayed ones, and the emulator's ground truth (/lsu/sim/truth) after a cancel. The rig's right
+camera exposes 50 ms after the left (the thesis' worst case), so each camera's line is placed on the
+laser sheet by itself.
 """
 
 import json
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from lsu_bags.bags import deserialize_ros, read_messages
 from lsu_bags.pointcloud2 import decode, from_msg
+from lsu_common import qos
 from lsu_common.arrays import AnyArray
+from lsu_interfaces.msg import SimTruth
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LSU, LaunchedProcess
 
 pytestmark = pytest.mark.slow
-REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
+REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw", "/lsu/stereo/exposure",
+            "/lsu/driver/carriage"]
+OFFSET_S = 0.05  # the right camera's exposure start after the left's
 
 
 def xyz(msg: PointCloud2) -> AnyArray:
@@ -28,53 +37,165 @@ def xyz(msg: PointCloud2) -> AnyArray:
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 
 
-def test_sweep_scan_and_its_bag_replay(tmp_path, launch, ros_node):
+def by_frame(msg: PointCloud2) -> dict[int, AnyArray]:
+    """A scan cloud's points per frame index."""
+    columns = decode(from_msg(msg))
+    points = np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
+    return {int(i): points[columns["snap"] == i] for i in np.unique(columns["snap"])}
+
+
+def same_frames(replayed: PointCloud2, live: PointCloud2, lost_in_bag: int, lost_live: int) -> None:
+    """The replay gives every frame's points as recorded live; the camera's stream does not wait for its
+    readers, so on a loaded host the recorder can miss a frame the live graph had, or the reverse."""
+    got, want = by_frame(replayed), by_frame(live)
+    assert len(set(want) - set(got)) <= lost_in_bag and len(set(got) - set(want)) <= lost_live, (sorted(got),
+                                                                                               sorted(want))
+    assert len(set(got) & set(want)) >= 8
+    for index in set(got) & set(want):
+        assert got[index].shape == want[index].shape and np.max(np.abs(got[index] - want[index])) <= 1e-9, index
+
+
+def late_right_camera_rig(folder: Path) -> Path:
+    """The packaged sim rig with the right camera exposing ``OFFSET_S`` after the left."""
+    from lsu_cameras.sim.geometry import default_rig_path
+
+    text = default_rig_path().read_text()
+    assert "capture_offset_s: 0.0 " in text
+    path = folder / "rig_late_right.yaml"
+    path.write_text(text.replace("capture_offset_s: 0.0 ", f"capture_offset_s: {OFFSET_S} "))
+    return path
+
+
+def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path, ros_context, ros_node):
     from lsu_accuracy.accuracy import surface_distances_m
     from lsu_cameras.sim import build_scene, load_rig
 
     port = str(tmp_path / "gp32")
-    graph = LaunchedProcess(["launch", "sim", f"port:={port}", "scene:=plane", f"output_dir:={tmp_path / 'scans'}"])
+    rig = late_right_camera_rig(tmp_path)
+    diagnostics: list = []
+    truths: list[SimTruth] = []
+    ros_node.node.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+    ros_node.node.create_subscription(SimTruth, "/lsu/sim/truth", truths.append, qos.STATE)
+    graph = LaunchedProcess(["launch", "sim", f"port:={port}", "scene:=plane", f"rig:={rig}",
+                             f"output_dir:={tmp_path / 'scans'}"])
     try:
         graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=60)
         graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=60)
         with LsuScanner(wait_s=30) as scanner:
-            refused = scanner.scan(start=150, end=270, mode="sweep", sweep_rate_steps_s=200.0)
+            refused = scanner.scan(start=220, end=250, mode="sweep", sweep_rate_steps_s=200.0)
             assert not refused.success and "sweep_rate_steps_s" in refused.status and "180" in refused.status
-            result = scanner.scan(start=150, end=270, mode="sweep", sweep_rate_steps_s=60.0, frame_rate_hz=30.0,
+            # 220..250: the plane's line seen by both cameras at more than the sheet's grazing limit. The
+            # camera renders the carriage from the emulator's newest truth sample, extrapolated at its
+            # velocity: across a start or a stop that sample is stale by up to its period (5 Hz at rest, and
+            # the executor's delay on a loaded host), so the truth comes faster here, and the carriage waits
+            # at the start first
+            for name, rate in (("truth_rate_hz", 200.0), ("truth_rest_rate_hz", 100.0)):
+                assert ros_node.set_parameter("/lsu/gp32_emulator", name, rate).successful
+            scanner.move_to(220)
+            time.sleep(0.5)
+            result = scanner.scan(start=220, end=250, mode="sweep", sweep_rate_steps_s=60.0, frame_rate_hz=30.0,
                                   record_bag=True, output_dir=str(tmp_path / "scans"))
+
+            def sweep_counts() -> dict:
+                return {v.key: v.value for d in diagnostics for s in d.status
+                        if s.name.endswith("stereo_matcher: stereo matching") for v in s.values}
+
+            ros_node.spin_until(lambda: "sweep_no_position" in sweep_counts(), 5.0)  # the sweep ended
+            values = sweep_counts()
+            # a cancel mid-sweep stops the carriage where it is, and the laser
+            scanner.start_scan(start=250, end=470, mode="sweep", sweep_rate_steps_s=20.0, frame_rate_hz=30.0,
+                               output_dir=str(tmp_path / "scans"))
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline:
+                fb = scanner.get_feedback()
+                if fb is not None and fb.stage == "sweeping" and fb.snap_index >= 3:
+                    break
+                time.sleep(0.05)
+            scanner.cancel_task()
+            canceled = scanner.get_result(timeout_s=60)
+            ros_node.spin_until(lambda: False, 1.0)
     finally:
         graph.interrupt(timeout_s=15)
         graph.kill()
     assert result.success, result.status + graph.output[-3000:]
     record = json.loads((Path(result.output_dir) / "scan.json").read_text())
     sweep = record["sweep"]
-    assert sweep["frames_expected"] == 61  # 120 steps at 60 steps/s, 30 fps, both ends
-    assert sweep["frames_captured"] == result.snaps == record["snaps_captured"] == record["snaps_acknowledged"]
-    assert sweep["frames_dropped"] == sweep["frames_expected"] - sweep["frames_captured"] >= 0
-    positions = [s["position_steps"] for s in record["snaps"]]
-    assert positions == sorted(positions) and 150 <= positions[0] < positions[-1] <= 270
-    # the moving line lands on the rendered plane (the camera node renders the sheet during each exposure)
+    assert sweep["frames_expected"] == 16  # 30 steps at 60 steps/s, 30 fps, both ends
+    # the stream never skips a slot and the matcher gave points for every frame, keyed on its stamp
+    assert sweep["frames_captured"] == sweep["camera_frames_published"] == 16 == result.snaps
+    assert sweep["frames_not_published"] == sweep["camera_frames_dropped"] == 0
+    # A pair the camera published but whose image a loaded host lost on its way is a frame without points:
+    # counted, and exactly the frames missing from the cloud. (The stream publishes without waiting for its
+    # readers, keep-last 5: on a loaded 2-core host up to 5 images of 16 were lost in some runs, none in
+    # others. Most frames must come through.)
+    assert sweep["frames_dropped"] == sweep["frames_not_processed"] == 16 - sweep["frames_processed"] <= 8
+    assert record["snaps_acknowledged"] == sweep["frames_processed"]
+    # the per-camera sheet path: the exposures do not overlap, so both cameras' lines are kept
+    assert int(values["sweep_left_sheet"]) > 0 and int(values["sweep_right_sheet"]) > 0, values
+    assert sweep["laser_sheet"] == "each camera's line on the laser sheet"
+    assert int(values["sweep_no_position"]) == int(values["sweep_no_carriage_position"]) == int(values["sweep_stereo"]) == 0
     recorded = [deserialize_ros(m) for m in read_messages(Path(result.output_dir) / "bag", ["/lsu/scan/cloud"])]
     assert len(recorded) == 1
     live = xyz(recorded[0])
-    # every frame pair matched (a plane fills most rows); how many frames a loaded host manages is a figure
-    # of the benchmark (sweep_frames_dropped_pct), not asserted here
-    assert result.snaps >= 2 and len(live) == result.points > result.snaps * 300
-    geometry = load_rig()
-    distances_mm = surface_distances_m(build_scene("plane", geometry), live) * 1000.0
-    assert np.median(distances_mm) < 0.3
+    assert len(live) == result.points > sweep["frames_processed"] * 2 * 200
+    assert len(by_frame(recorded[0])) == sweep["frames_processed"]
+    # The emulator's truth (what the camera renders from) and the driver's !POS counters are whole steps,
+    # each up to one step (0.42 mm of sheet travel) behind its stamp, and a loaded host delays the truth
+    # samples the camera extrapolates from: frames land a few steps off (median 0.7-1.2 mm over runs). The
+    # same bag replayed with every frame one slot late gives a median of 4.7 mm, with the right camera's
+    # line placed at the pair's stamp instead of its own mid-exposure 3.1 mm.
+    distances_mm = surface_distances_m(build_scene("plane", load_rig()), live) * 1000.0
+    # Frames at the very start and end of the motion are rendered from a truth sample across the start or
+    # stop, extrapolated: a few millimetres off, whatever the matcher does (up to ~3 frames of 16 in a run).
+    assert np.median(distances_mm) < 2.0 and np.mean(distances_mm < 3.0) >= 0.75
 
-    replay = launch("launch", "replay")
-    replay.wait_for_line(r"\[stereo_matcher\].*calibration", timeout_s=60)
-    replay.wait_for_line(r"started laser_extractor", timeout_s=60)
-    clouds = []
-    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    ros_node.node.create_subscription(PointCloud2, "/lsu/scan/cloud", clouds.append, latched)
-    ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
-    play = subprocess.run([LSU, "bag", "play", str(Path(result.output_dir) / "bag"), "--topics", *REPLAYED,
-                           "--wait-subscribers", "20"], capture_output=True, text=True, timeout=180)
-    assert play.returncode == 0, play.stdout + play.stderr
-    assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay.output[-3000:]
-    replayed = xyz(clouds[0])
-    assert replayed.shape == live.shape
-    assert np.max(np.abs(replayed - live)) <= 1e-6
+    assert not canceled.success and "cancel" in canceled.status
+    # the frames taken before the cancel are kept: in scan.json (partial) and in the cloud
+    partial = json.loads((Path(canceled.output_dir) / "scan.json").read_text())
+    assert partial["partial"] and partial["sweep"]["frames_captured"] == canceled.snaps >= 3
+    assert canceled.points > 0 and (Path(canceled.output_dir) / "cloud.ply").exists()
+    last = truths[-1]
+    assert last.velocity_steps_per_s == 0.0 and not last.moving and not last.laser_on
+    assert 250 < last.position_steps < 400  # stopped on the way, not run to the end
+
+    # the bag, handed directly to the replay launch file's extractor and matcher (`lsu run replay BAG`)
+    from lsu_tools.cli import resolve_launch_file
+    from lsu_tools.direct_replay import DirectReplay
+    from lsu_tools.launch_file import load_launch, select_nodes
+    from lsu_tools.nodes_index import resolve_executable
+    from lsu_tools.runner import build_nodes
+
+    description = select_nodes(load_launch(resolve_launch_file("replay"), {}, resolve_executable),
+                               ["laser_extractor", "stereo_matcher"], [], {})
+    nodes = build_nodes(description, tmp_path, context=ros_context)
+    try:
+        replay = DirectReplay(nodes)
+        clouds_direct: list = []
+        replay.matcher.cloud_pub.publish = clouds_direct.append
+        stats = replay.run(Path(result.output_dir) / "bag")
+    finally:
+        for node in nodes:
+            node.destroy_node()
+    assert (stats.sweep_frames, stats.frames_dropped) == (16, 0)
+    lost_in_bag = stats.sweep_frames - (stats.pairs - 1)  # the bag's complete pairs, less the texture pair
+    assert len(clouds_direct) == 1
+    same_frames(clouds_direct[0], recorded[0], lost_in_bag, sweep["frames_not_processed"])
+
+    # and through the graph of separate nodes (`lsu bag play` into `lsu launch replay`)
+    replay_graph = LaunchedProcess(["launch", "replay"])
+    try:
+        replay_graph.wait_for_line(r"\[stereo_matcher\].*calibration", timeout_s=60)
+        replay_graph.wait_for_line(r"started laser_extractor", timeout_s=60)
+        clouds = []
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        ros_node.node.create_subscription(PointCloud2, "/lsu/scan/cloud", clouds.append, latched)
+        ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
+        play = subprocess.run([LSU, "bag", "play", str(Path(result.output_dir) / "bag"), "--topics", *REPLAYED,
+                               "--wait-subscribers", "20"], capture_output=True, text=True, timeout=180)
+        assert play.returncode == 0, play.stdout + play.stderr
+        assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay_graph.output[-3000:]
+    finally:
+        replay_graph.interrupt(timeout_s=15)
+        replay_graph.kill()
+    same_frames(clouds[0], recorded[0], lost_in_bag, sweep["frames_not_processed"])

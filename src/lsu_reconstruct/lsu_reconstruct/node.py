@@ -10,16 +10,22 @@ A thin adapter over :mod:`lsu_reconstruct.pipeline`:
   FINISHED / ABORTED publish the whole scan on ``scan/cloud`` (transient-local) once every
   expected snap is in, or after ``scan_timeout_s`` as a partial cloud (logged as partial);
 - calibration from files (``calibration_source: file`` + ``calibration_dir``) or from the
-  camera node's ``stereo/{left,right}/camera_info`` and ``stereo/extrinsics`` (``topics``).
+  camera node's ``stereo/{left,right}/camera_info`` and ``stereo/extrinsics`` (``topics``);
+- sweeps: between SWEEP_START and SWEEP_END every pair stamped from SWEEP_START's image stamp on
+  is a sweep frame (:mod:`lsu_reconstruct.sweep_live` keeps the books); it follows
+  ``driver/carriage`` and ``stereo/exposure`` and turns each frame into points with
+  `reconstruct_sweep_frame` (each camera's line on the laser sheet, ``laser_sheet_file``, at its own
+  mid-exposure) once the carriage track covers the frame; without a sheet, stereo only (said once).
 """
 
 from __future__ import annotations
 
 import struct
 import sys
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -37,11 +43,14 @@ from lsu_common.arrays import AnyArray
 from lsu_common.images import msg_to_bgr
 from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
-from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
+from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
 
+from .laser_sheet import LaserSheet, LaserSheetError, read_laser_yaml
 from .matching import LineArrays, MatchParams, prepare
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
 from .stereo import CalibrationError, StereoModel
+from .sweep import SweepParams, reconstruct_sweep_frame
+from .sweep_live import Exposure, LiveSweep
 from .triangulate import METHODS
 
 __all__ = ["StereoMatcherNode", "cloud_to_msg", "line_from_msg", "image_to_array", "decode_msg",
@@ -51,6 +60,11 @@ RELIABLE_DATA = qos.reliable(50)
 EVENTS = qos.EVENTS
 LATCHED = qos.LATCHED
 IMAGES_KEPT = 8  # newest left frames kept for the texture: its TEXTURE event may come a few frames late
+CARRIAGE_KEPT = 400  # newest carriage positions kept between sweeps (the stop before a sweep's start)
+EXPOSURES_KEPT = 64  # exposures kept before their sweep's SWEEP_START event (the stream starts first)
+# carriage reports a sweep is placed by: the device-stamped ones (a status reply is stamped at the middle
+# of its round trip and may come out of order with them)
+SWEEP_CARRIAGE_SOURCES = ("pos", "done")
 
 
 # ---------------------------------------------------------------------------- message conversion
@@ -120,6 +134,9 @@ def parameter_table() -> dict[str, Param]:
         "pair_buffer": Param(64, "laser lines kept while waiting for their partner (per side)", (1, 100000)),
         "scan_timeout_s": Param(5.0, "after FINISHED/ABORTED, wait this long for missing snaps, then publish the "
                                 "partial scan cloud [s]", (1e-3, 3600.0)),
+        "laser_sheet_file": Param("", "laser sheet calibration (laser.yaml of `lsu calibrate --laser`) for sweep scans; "
+                                  "empty = laser.yaml in calibration_dir; none found: sweeps are matched stereo only",
+                                  read_only=True),
     }
 
 
@@ -158,7 +175,14 @@ class StereoMatcherNode(Node):
         self.free_snap = 0
         self.scan: _Scan | None = None
         self.snap_of_stamp: dict[int, int] = {}
-        self.waiting: OrderedDict[int, SnapPoints] = OrderedDict()  # pairs whose SNAP event is not in yet
+        # pairs whose SNAP (or SWEEP_START) event is not in yet: their lines, reconstructed once it is
+        self.waiting: OrderedDict[int, tuple[LaserLine, LaserLine]] = OrderedDict()
+        self.sweep: LiveSweep | None = None
+        self.sweep_stats: dict[str, int] = {}
+        self._carriage: deque[tuple[float, float, bool]] = deque(maxlen=CARRIAGE_KEPT)
+        self._exposures: OrderedDict[int, Exposure] = OrderedDict()
+        self.sheet: LaserSheet | None = None
+        self.sheet_note = ""
         self._camera_info: dict[str, CameraInfo] = {}
         self._extrinsics: StereoExtrinsics | None = None
 
@@ -171,7 +195,9 @@ class StereoMatcherNode(Node):
                                      RELIABLE_DATA),
             self.create_subscription(LaserLine, "stereo/right/laser_line", lambda m: self.on_line("right", m),
                                      RELIABLE_DATA),
-            self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS)]
+            self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS),
+            self.create_subscription(CarriagePosition, "driver/carriage", self.on_carriage, RELIABLE_DATA),
+            self.create_subscription(StereoExposure, "stereo/exposure", self.on_exposure, RELIABLE_DATA)]
         # Read on demand, only while a TEXTURE event names an image not yet found: the reader keeps
         # the newest few frames in DDS, and the snaps' frames (one per snap, 900 KB) are never
         # taken into Python nor wake the executor (each was a copy and a callback in the replay's
@@ -193,6 +219,7 @@ class StereoMatcherNode(Node):
             self.get_logger().info(self.calibration_error)
         else:
             self._load_calibration_file()
+        self._load_laser_sheet()
         self.create_timer(0.1, self._check_scan_end)
         self.create_timer(1.0, self.publish_diagnostics)
 
@@ -234,6 +261,22 @@ class StereoMatcherNode(Node):
         self.calibration_error = ""
         self.get_logger().info(f"calibration {self.model.calibration_id} from {folder}: baseline "
                                f"{self.model.baseline_m * 1000:.1f} mm")
+
+    def _load_laser_sheet(self) -> None:
+        path = str(self.get_parameter("laser_sheet_file").value)
+        folder = str(self.get_parameter("calibration_dir").value)
+        if not path and folder and (Path(folder) / "laser.yaml").exists():
+            path = str(Path(folder) / "laser.yaml")
+        if not path:
+            self.sheet_note = "no laser sheet calibration (laser_sheet_file, or laser.yaml in calibration_dir)"
+            return
+        try:
+            self.sheet = read_laser_yaml(path)
+        except (LaserSheetError, OSError) as exc:
+            self.sheet_note = f"laser sheet not usable: {exc}"
+            self.get_logger().error(f"{self.sheet_note}; sweeps are matched stereo only")
+            return
+        self.get_logger().info(f"laser sheet from {path}")
 
     def on_info(self, side: str, msg: CameraInfo) -> None:
         """camera_info of one side (one per image); (re)builds the model when it changed and all parts are in."""
@@ -290,23 +333,106 @@ class StereoMatcherNode(Node):
         if self.model is None:
             self._error(f"laser lines arrive but there is no calibration: {self.calibration_error}")
             return
+        if self.sweep is not None and self.sweep.is_frame(key):
+            self.sweep.add_pair(key, line_from_msg(left), line_from_msg(right))
+            self._sweep_progress()
+            return
+        if self.scan is not None and not self.scan.published:
+            index = self.snap_of_stamp.get(key)
+            if index is None:
+                self.waiting[key] = (left, right)  # its SNAP (or SWEEP_START) event is still on the way
+                while len(self.waiting) > int(self.get_parameter("pair_buffer").value):
+                    self.waiting.popitem(last=False)
+                return
+            self._snap_of_pair(key, left, right, index)
+            return
+        snap = self._reconstruct(key, left, right)
+        if snap is not None:
+            self._publish_points(snap, self.free_snap, left.header)
+            self.free_snap += 1
+
+    def _reconstruct(self, key: int, left: LaserLine, right: LaserLine) -> SnapPoints | None:
+        assert self.model is not None
         try:
             snap = reconstruct_snap(self.model, line_from_msg(left), line_from_msg(right), self.params)
         except (CalibrationError, ValueError) as exc:
             self._error(f"cannot reconstruct the pair stamped {key / 1e9:.3f}: {exc}")
-            return
+            return None
         self.points_last = len(snap)
-        if self.scan is not None and not self.scan.published:
-            index = self.snap_of_stamp.get(key)
-            if index is None:
-                self.waiting[key] = snap  # its SNAP event is still on the way
-                while len(self.waiting) > int(self.get_parameter("pair_buffer").value):
-                    self.waiting.popitem(last=False)
-                return
+        return snap
+
+    def _snap_of_pair(self, key: int, left: LaserLine, right: LaserLine, index: int) -> None:
+        snap = self._reconstruct(key, left, right)
+        if snap is not None:
             self._file_snap(index, snap, left.header)
-        else:
-            self._publish_points(snap, self.free_snap, left.header)
-            self.free_snap += 1
+
+    # ------------------------------------------------------------------ sweeps
+    def on_carriage(self, msg: CarriagePosition) -> None:
+        """A stamped carriage position (``driver/carriage``): kept, and it may place waiting sweep frames."""
+        if msg.source not in SWEEP_CARRIAGE_SOURCES:
+            return
+        sample = (stamps.to_seconds(msg.header.stamp), float(msg.position_steps), bool(msg.moving))
+        self._carriage.append(sample)
+        if self.sweep is not None:
+            self.sweep.add_carriage(*sample)
+            self._sweep_progress()
+
+    def on_exposure(self, msg: StereoExposure) -> None:
+        """A pair's exposure (``stereo/exposure``): kept until its sweep frame is placed."""
+        key = _stamp_key(msg.header.stamp)
+        exposure = Exposure(float(msg.left_start_offset_s), float(msg.right_start_offset_s), float(msg.exposure_s),
+                            int(msg.frame_index))
+        if self.sweep is not None and self.sweep.is_frame(key):
+            self.sweep.add_exposure(key, exposure)
+            self._sweep_progress()
+            return
+        self._exposures[key] = exposure
+        while len(self._exposures) > EXPOSURES_KEPT:
+            self._exposures.popitem(last=False)
+
+    def _start_sweep(self, msg: ScanEvent) -> None:
+        first = _stamp_key(msg.image_stamp)
+        sweep = self.sweep = LiveSweep(first, int(msg.expected_snaps), start_position=float(msg.position_steps))
+        for sample in self._carriage:
+            sweep.add_carriage(*sample)
+        for key, exposure in self._exposures.items():
+            sweep.add_exposure(key, exposure)
+        for key in [k for k in self.waiting if sweep.is_frame(k)]:
+            left, right = self.waiting.pop(key)
+            sweep.add_pair(key, line_from_msg(left), line_from_msg(right))
+        if self.sheet is None:
+            self.get_logger().warning(f"sweep: {self.sheet_note}; its frames are matched stereo only")
+        self.get_logger().info(f"sweep: {msg.expected_snaps} frames from the pair stamped {first / 1e9:.3f}")
+        self._sweep_progress()
+
+    def _sweep_progress(self, finish: bool = False) -> None:
+        """Reconstruct every sweep frame that can be placed now (all that wait with ``finish``)."""
+        sweep = self.sweep
+        if sweep is None or self.model is None:
+            return
+        frames, track = sweep.finish() if finish else sweep.ready()
+        params = SweepParams(match=self.params)
+        for key, frame in frames:
+            try:
+                if self.sheet is not None and track is not None:
+                    points = reconstruct_sweep_frame(self.model, self.sheet, track, frame, params).points
+                else:
+                    points = reconstruct_snap(self.model, frame.left, frame.right, self.params, snap=frame.index)
+            except (CalibrationError, ValueError) as exc:
+                self._error(f"cannot reconstruct the sweep frame stamped {key / 1e9:.3f}: {exc}")
+                continue
+            for name, value in points.stats.items():
+                self.sweep_stats[name] = self.sweep_stats.get(name, 0) + int(value)
+            self.points_last = len(points)
+            header = Header(stamp=stamps.to_msg(key))
+            if self.scan is not None and not self.scan.published:
+                self._file_snap(frame.index, points, header)
+            else:
+                self._publish_points(points, frame.index, header)
+        if finish:
+            for name, value in sweep.counts.items():
+                self.sweep_stats[name] = value
+            self.sweep = None
 
     def _file_snap(self, index: int, snap: SnapPoints, header: Header) -> None:
         assert self.scan is not None
@@ -333,6 +459,7 @@ class StereoMatcherNode(Node):
             self.scan = _Scan(msg.scan_id, int(msg.expected_snaps))
             self.snap_of_stamp.clear()
             self.waiting.clear()
+            self.sweep, self.sweep_stats = None, {}
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
@@ -342,13 +469,20 @@ class StereoMatcherNode(Node):
         key = _stamp_key(msg.image_stamp)
         if msg.type == ScanEvent.SNAP:
             self.snap_of_stamp[key] = int(msg.index)
-            snap = self.waiting.pop(key, None)
-            if snap is not None:
-                self._file_snap(int(msg.index), snap, Header(stamp=msg.image_stamp))
+            pair = self.waiting.pop(key, None)
+            if pair is not None:
+                self._snap_of_pair(key, pair[0], pair[1], int(msg.index))
+        elif msg.type == ScanEvent.SWEEP_START:
+            self._start_sweep(msg)
+        elif msg.type == ScanEvent.SWEEP_END:
+            if self.sweep is not None:
+                self.sweep.end(key, int(msg.snaps_captured))
+                self._sweep_progress()
         elif msg.type == ScanEvent.TEXTURE:
             self.scan.texture_key = key
             self._look_for_texture()
         elif msg.type in (ScanEvent.FINISHED, ScanEvent.ABORTED):
+            self._sweep_progress(finish=True)  # the scan is over: what still waits is placed as well as it can be
             self.scan.end_type = msg.type
             if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
                 self.scan.expected = int(msg.snaps_captured)
@@ -428,7 +562,9 @@ class StereoMatcherNode(Node):
                   "unmatched_right": self.unmatched["right"], "buffered_left": len(self.left),
                   "buffered_right": len(self.right), "points_last_snap": self.points_last, "errors": self.errors,
                   "last_error": self.last_error,
-                  "calibration": self.model.calibration_id or self.model.source if self.model else "none"}
+                  "calibration": self.model.calibration_id or self.model.source if self.model else "none",
+                  "laser_sheet": "loaded" if self.sheet is not None else self.sheet_note,
+                  **{f"sweep_{name}": value for name, value in self.sweep_stats.items()}}
         self.diag_pub.publish(diagnostics.status_array(
             self, level, f"{self.get_fully_qualified_name()}: stereo matching", message, values,
             hardware_id="lsu_stereo"))

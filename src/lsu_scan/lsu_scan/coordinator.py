@@ -1,8 +1,14 @@
-"""`scan_coordinator` node: stop-snap scans through the `/lsu/scan` action (thesis ch. 3.3).
+"""`scan_coordinator` node: stop-snap and sweep scans through the `/lsu/scan` action (thesis ch. 3.3).
 
-laser off -> texture pair -> laser on -> for each position: move, settle, the matcher's
+Stop-snap: laser off -> texture pair -> laser on -> for each position: move, settle, the matcher's
 acknowledgement of the previous snap (its per-snap `points`; processed during this move and
 settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED -> scan cloud on disk.
+
+Sweep: laser off -> texture pair -> move to the start -> laser on -> one move to the end at the
+sweep rate and the cameras' free-running stream (``stereo/stream``) -> SWEEP_START -> the motion's
+and the stream's end -> stream stop -> SWEEP_END -> laser off -> the matcher's points of every
+published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped are
+counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
@@ -15,7 +21,6 @@ next capture, and a capture exposed after the laser went off is taken again.
 from __future__ import annotations
 
 import datetime as _dt
-import math
 import threading
 import time
 from collections import OrderedDict
@@ -26,6 +31,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
@@ -34,15 +40,15 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
-from std_srvs.srv import SetBool
+from std_srvs.srv import SetBool, Trigger
 
 from lsu_cameras.polled import PolledGroup, take_latest
 from lsu_common import qos, stamps
 from lsu_common.node import main_of
 from lsu_common.params import declare_parameters
 from lsu_interfaces.action import Scan
-from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState
-from lsu_interfaces.srv import CaptureStereo, MoveTo
+from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState, StereoExposure
+from lsu_interfaces.srv import CaptureStereo, MoveTo, StreamStereo
 
 from .laser_guard import LaserGuard, ack_due_at
 from .scan_plan import (
@@ -56,7 +62,7 @@ from .scan_plan import (
     plan_positions,
 )
 from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
-from .sweep_plan import SweepPlan, plan_sweep, scan_mode
+from .sweep_plan import FrameCount, SweepPlan, count_frames, plan_sweep, scan_mode
 
 EVENTS_QOS = qos.EVENTS
 LATCHED = qos.LATCHED
@@ -117,6 +123,11 @@ class ScanRun:
     abort_reason: str = ""
     canceled: bool = False
     sweep: SweepPlan | None = None                 # a sweep scan's plan; None: stop-snap
+    frames: FrameCount | None = None                # a sweep's frames counted from stamps, once its stream ended
+    stream: dict[str, Any] = field(default_factory=dict)  # a sweep's stream figures for scan.json
+    first_key: int = 0                                # a sweep's first pair (stamp ns)
+    frame_keys: list[int] = field(default_factory=list)          # stamps of the pairs the stream published
+    frame_arrivals: dict[int, float] = field(default_factory=dict)  # stamp -> monotonic time its exposure came
 
 
 class ScanCoordinatorNode(Node):
@@ -143,6 +154,16 @@ class ScanCoordinatorNode(Node):
         self.laser = self._io.create_client(SetBool, "laser/set")
         self.move = self._io.create_client(MoveTo, "carriage/move_to")
         self.capture = self._io.create_client(CaptureStereo, "stereo/capture")
+        self.stream = self._io.create_client(StreamStereo, "stereo/stream")
+        self.stop_carriage = self._io.create_client(Trigger, "carriage/stop")
+        # a sweep's published pairs: stamp -> (exposure_s, wall and monotonic time of arrival); one small
+        # message per pair
+        self._exposures: dict[int, tuple[float, float, float]] = {}
+        self._io.create_subscription(StereoExposure, "stereo/exposure", self._on_exposure, QoSProfile(
+            depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        # whether stereo_matcher places sweep frames on a laser sheet (its /diagnostics say), for scan.json
+        self._matcher_sheet = ""
+        self._io.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
         self.events = self.create_publisher(ScanEvent, "scan/events", EVENTS_QOS)
         self._state: ScannerState | None = None
         self._acks: dict[int, tuple] = {}  # image stamp -> (points, monotonic arrival time)
@@ -184,6 +205,17 @@ class ScanCoordinatorNode(Node):
         with self._cond:
             self._acks[_key(msg.header.stamp)] = (int(msg.width) * int(msg.height), time.monotonic())
             self._cond.notify_all()
+
+    def _on_exposure(self, msg: StereoExposure) -> None:
+        if msg.streaming:
+            self._exposures[_key(msg.header.stamp)] = (float(msg.exposure_s), time.time(), time.monotonic())
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.endswith("stereo_matcher: stereo matching"):
+                for value in status.values:
+                    if value.key == "laser_sheet":
+                        self._matcher_sheet = value.value
 
     def _on_cloud(self, msg: PointCloud2) -> None:
         with self._cond:
@@ -643,12 +675,10 @@ class ScanCoordinatorNode(Node):
         return response, trace, marks["probed"], marks["acked"]
 
     def _sweep_loop(self, goal_handle: Any, run: ScanRun) -> None:
-        """Texture pair, move to the start, then one move to the end at the sweep rate with a capture per frame slot.
+        """Texture pair, move to the start, then the sweep: one move at the sweep rate while the cameras stream.
 
-        Frames are taken on a clock of ``frame_rate_hz`` from the start of the motion; a slot that passed
-        while a capture was still running is dropped (counted in scan.json). Every frame is a SNAP for the
-        extractor and matcher (the stop-snap path, keyed on its image stamp); their points are awaited
-        after the motion. Raises ScanAborted / ScanCanceled; ``run.captured`` holds every frame taken.
+        Raises ScanAborted / ScanCanceled (the carriage and the stream stopped first); ``run.captured``
+        holds every frame the stream published, acknowledged or not.
         """
         sweep, state = run.sweep, run.start_state
         assert sweep is not None
@@ -664,68 +694,183 @@ class ScanCoordinatorNode(Node):
                                due_s=abs(sweep.start - here) / max(1.0, float(state.step_rate_steps_per_s)))
             if not moved.success:
                 raise ScanAborted(f"move to {sweep.start} failed: {moved.message}")
+            # the stop's vibration decays before the sweep's first frames, as before a stop-snap capture
+            self._sleep(goal_handle, run.plan.settle_s - (self._since_stop_s(moved.stopped_stamp) or 0.0))
+        if not self._wait(lambda: self.stream.service_is_ready(), 5.0):
+            raise ScanAborted(f"service {self.stream.srv_name} is not available: the camera node cannot stream "
+                              "(sweep scans need free-running capture; use --mode stopsnap)")
         self._set_laser(True)
-        direction = 1 if sweep.end >= sweep.start else -1
-        period = 1.0 / sweep.frame_rate_hz
+        with self._cond:
+            self._exposures.clear()
         request = MoveTo.Request(position_steps=sweep.end, timeout_s=float(self.move_timeout_s),
                                  rate_steps_per_s=float(sweep.rate_steps_s))
         move = self.move.call_async(request)
-        t0, t0_wall = time.monotonic(), time.time()
+        t0 = time.monotonic()
         # a driver that does not report the end of the motion must not keep the laser on
         self.guard.due("sweep", t0 + sweep.duration_s + 1.0, f"sweep to {sweep.end}: no answer from "
                                                             f"{self.move.srv_name}")
-        pending: list[dict[str, Any]] = []
-        frame_times: list[float] = []
-        slot = 0
+        first: int | None = None
         try:
-            while slot < sweep.frames_expected:
-                self._check_cancel(goal_handle)
-                slot = max(slot, math.ceil((time.monotonic() - t0) / period - 1e-6))
-                # wait for the slot, handling the move's reply and the acknowledgements meanwhile
-                while not move.done() and time.monotonic() < t0 + slot * period:
-                    self._guard_laser()
-                    self._io_executor.spin_once(timeout_sec=min(0.005, max(0.0, t0 + slot * period - time.monotonic())))
-                # the last slot is the end of the motion: its frame sees the carriage stopped at the end
-                if move.done() and slot < sweep.frames_expected - 1:
-                    break
-                if time.monotonic() > t0 + float(self.move_timeout_s or (sweep.duration_s * 2.0 + 10.0)):
-                    self.move.remove_pending_request(move)
-                    raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
-                t_asked = time.monotonic()
-                response = self._capture()
-                t_captured = time.monotonic()
-                stamp_s = int(response.stamp.sec) + int(response.stamp.nanosec) * 1e-9
-                # the carriage's position at the exposure from the commanded rate (for the record;
-                # the points come from the images)
-                travelled = min(abs(sweep.end - sweep.start), max(0.0, (stamp_s - t0_wall) * sweep.rate_steps_s))
-                position = int(round(sweep.start + direction * travelled))
-                index = len(run.captured)
-                key = _key(response.stamp)
-                self._event(ScanEvent.SNAP, run.scan_id, run.folder, index=index, position_steps=position,
-                            image_stamp=response.stamp, expected_snaps=sweep.frames_expected)
-                snap = SnapRecord(index=index, position_steps=position, stamp=stamps.to_text(key),
-                                  skew_s=float(response.skew_s), move_s=0.0, settle_s=0.0, stop_to_reply_s=None,
-                                  ack_wait_s=0.0, capture_s=round(t_captured - t_asked, 4))
-                run.captured.append(snap)
-                pending.append({"snap": snap, "key": key, "t_captured": t_captured, "t_snap": t_asked})
-                frame_times.append(period)
-                self._feedback(goal_handle, "sweeping", index, sweep.frames_expected, position, run.points_total,
-                               frame_times)
-                slot += 1
-            if not move.done():  # every frame slot is taken; the motion's reply is still due
-                self._await_future(move, self.move, t0 + sweep.duration_s + 10.0, stop_early=True)
-            if not move.done():
-                self.move.remove_pending_request(move)
+            started = self._call(self.stream, StreamStereo.Request(frame_rate_hz=sweep.frame_rate_hz,
+                                                                   frames=sweep.frames_expected),
+                                 float(self.capture_timeout_s) + 0.3, "stream start")
+            if not started.success:
+                raise ScanAborted(f"stream start failed: {started.message}")
+            first = _key(started.first_stamp)
+            period_s = float(started.frame_period_s) or 1.0 / sweep.frame_rate_hz
+            run.stream = {"frame_period_s": period_s, "exposure_s": float(started.exposure_s)}
+            self._event(ScanEvent.SWEEP_START, run.scan_id, run.folder, image_stamp=started.first_stamp,
+                        expected_snaps=sweep.frames_expected, position_steps=sweep.start)
+            self._await_sweep(goal_handle, run, move, first, period_s)
+            moved = move.result()
+            if not moved.success:
+                raise ScanAborted(f"sweep to {sweep.end} failed: {moved.message}")
+        except ScanAborted:
+            if not move.done():  # the carriage must not run on to the end by itself
+                self._stop_carriage(move)
+            self._end_sweep(run, first, aborted=True)
+            raise
+        self._end_sweep(run, first, aborted=False)
+        self._feedback(goal_handle, "finishing", len(run.captured), sweep.frames_expected, sweep.end,
+                       run.points_total, [1.0 / sweep.frame_rate_hz])
+
+    def _end_sweep(self, run: ScanRun, first: int | None, aborted: bool) -> None:
+        """Stream stop and SWEEP_END, laser off, then the matcher's points of the frames published.
+
+        On an abort the points are awaited only briefly (the frames so far stay in the cloud) and
+        nothing here replaces the abort's reason.
+        """
+        self.guard.answered("sweep")
+        self.guard.answered("stream")
+        try:
+            if first is not None:
+                self._end_stream(run, first)
+            if aborted:
+                self._laser_off_safely()
+            else:
+                self._set_laser(False)
+            if first is not None and not self.shutting_down:
+                self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s))
+        except ScanAborted as exc:
+            if not aborted:
+                raise
+            self.get_logger().error(f"sweep end: {exc}")
+
+    def _published(self, first: int) -> list[int]:
+        """Stamps of the stream's pairs received so far (from its first pair on), in order."""
+        with self._cond:
+            return sorted(k for k in self._exposures if k >= first)
+
+    def _await_sweep(self, goal_handle: Any, run: ScanRun, move: Any, first: int, period_s: float) -> None:
+        """Until the motion ended and the stream published its frames; cancel, stalls and time-outs raise."""
+        sweep = run.sweep
+        assert sweep is not None
+        stall_s = float(self.capture_timeout_s) + 0.3
+        seen, last_new = 0, time.monotonic()
+        move_deadline = time.monotonic() + float(self.move_timeout_s or (sweep.duration_s * 2.0 + 10.0))
+        next_feedback = 0.0
+        direction = 1 if sweep.end >= sweep.start else -1
+        while True:
+            self._check_cancel(goal_handle)
+            published = len(self._published(first))
+            now = time.monotonic()
+            if published > seen:
+                seen, last_new = published, now
+                # the camera keeps the laser's use alive frame by frame: a hung stream switches it off
+                self.guard.due("stream", now + stall_s, "stream: no frame from the camera")
+            if move.done():
+                self.guard.answered("sweep")  # the carriage stopped; the stream's frames keep the laser's use alive
+                if published >= sweep.frames_expected:
+                    return
+            if now - last_new > stall_s + float(self.laser_pause_s):
+                raise ScanAborted(f"stream: no frame from {self.stream.srv_name} for {now - last_new:.1f} s "
+                                  f"({published} of {sweep.frames_expected} published): is the camera node running?")
+            if not move.done() and now > move_deadline:
                 raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
-        finally:
-            self.guard.answered("sweep")
-        moved = move.result()
-        if not moved.success:
-            raise ScanAborted(f"sweep to {sweep.end} failed: {moved.message}")
-        for item in pending:
-            run.points_total += self._await_ack(item)
-        self._feedback(goal_handle, "finishing", len(run.captured), sweep.frames_expected, sweep.end, run.points_total,
-                       frame_times)
+            if now >= next_feedback:
+                travelled = min(abs(sweep.end - sweep.start), published * period_s * sweep.rate_steps_s)
+                self._feedback(goal_handle, "sweeping", published, sweep.frames_expected,
+                               int(round(sweep.start + direction * travelled)), run.points_total, [period_s])
+                next_feedback = now + 0.2
+            self._guard_laser()
+            self._io_executor.spin_once(timeout_sec=0.01)
+
+    def _stop_carriage(self, move: Any) -> None:
+        """carriage/stop (a cancel or an abort during the sweep's motion); the move's own reply then ends it."""
+        try:
+            stopped = self._call(self.stop_carriage, Trigger.Request(), 2.0, "carriage stop", stop_early=False)
+            if not stopped.success:
+                self.get_logger().error(f"carriage stop failed: {stopped.message}")
+        except ScanAborted as exc:
+            self.get_logger().error(f"carriage stop: {exc}")
+        self._await_future(move, self.move, time.monotonic() + 2.0, stop_early=False)
+        if not move.done():
+            self.move.remove_pending_request(move)
+
+    def _end_stream(self, run: ScanRun, first: int) -> None:
+        """Stop the stream (its totals), SWEEP_END, and count the frames published; on every way out."""
+        sweep = run.sweep
+        assert sweep is not None
+        try:
+            stopped = self._call(self.stream, StreamStereo.Request(frame_rate_hz=0.0),
+                                 float(self.capture_timeout_s) + 0.3, "stream stop", stop_early=False)
+        except ScanAborted as exc:
+            self.get_logger().error(f"stream stop: {exc}")
+            stopped = None
+        # pairs on their way when the stream stopped (it said how many it published)
+        if stopped is not None and stopped.success:
+            self._wait(lambda: len(self._published(first)) >= int(stopped.frames_published), 1.0)
+        keys = self._published(first)
+        last = stamps.to_msg(keys[-1]) if keys else stamps.to_msg(first)
+        if stopped is not None and stopped.success:
+            last = stopped.first_stamp
+            run.stream.update(camera_frames_published=int(stopped.frames_published),
+                              camera_frames_dropped=int(stopped.frames_dropped))
+        self._event(ScanEvent.SWEEP_END, run.scan_id, run.folder, image_stamp=last,
+                    snaps_captured=len(keys), expected_snaps=sweep.frames_expected)
+        with self._cond:
+            arrivals = [self._exposures[k] for k in keys]
+        if keys:
+            # how late the camera delivered: the last pair's arrival after its exposure ended (a
+            # simulated camera renders slower than real time on a small machine)
+            exposure_s, arrived, _mono = arrivals[-1]
+            run.stream["camera_lag_s"] = round(arrived - stamps.ns_to_seconds(keys[-1]) - exposure_s, 4)
+        direction = 1 if sweep.end >= sweep.start else -1
+        period_s = float(run.stream.get("frame_period_s", 1.0 / sweep.frame_rate_hz))
+        for key, (_exposure_s, _wall, arrived) in zip(keys, arrivals):
+            slot = round((key - first) / stamps.seconds_to_ns(period_s))
+            # the carriage at the pair's stamp from the commanded rate (for the record; the points are
+            # placed by the driver's stamped positions)
+            travelled = min(abs(sweep.end - sweep.start), slot * period_s * sweep.rate_steps_s)
+            run.captured.append(SnapRecord(index=int(slot), position_steps=int(round(sweep.start + direction * travelled)),
+                                           stamp=stamps.to_text(key), skew_s=0.0, move_s=0.0, settle_s=0.0,
+                                           stop_to_reply_s=None, ack_wait_s=0.0, capture_s=0.0))
+            run.frame_arrivals[key] = arrived
+        run.first_key, run.frame_keys = first, keys
+        sheet = self._matcher_sheet
+        run.stream["laser_sheet"] = ("each camera's line on the laser sheet" if sheet == "loaded" else
+                                     f"stereo only: {sheet}" if sheet else "unknown (no /diagnostics from stereo_matcher)")
+        run.frames = count_frames(first, stamps.seconds_to_ns(period_s), sweep.frames_expected, keys, [],
+                                  int(run.stream.get("camera_frames_dropped", 0)))
+
+    def _await_sweep_points(self, run: ScanRun, timeout_s: float) -> None:
+        """The matcher's points of every published frame (or ``timeout_s``); frames without them are dropped."""
+        keys = run.frame_keys
+        self._wait(lambda: all(k in self._acks for k in keys), timeout_s)
+        processed = []
+        for snap, key in zip(run.captured, keys):
+            ack = self._acks.pop(key, None)
+            if ack is None:
+                continue
+            processed.append(key)
+            snap.points = int(ack[0])
+            # the pair's arrival (its exposure message) to its points
+            snap.ack_s = round(max(0.0, ack[1] - run.frame_arrivals.get(key, ack[1])), 4)
+            run.points_total += snap.points
+        if run.frames is not None and run.sweep is not None:
+            period_ns = stamps.seconds_to_ns(float(run.stream.get("frame_period_s", 1.0 / run.sweep.frame_rate_hz)))
+            run.frames = count_frames(run.first_key, period_ns, run.sweep.frames_expected, keys, processed,
+                                      run.frames.camera_dropped)
 
     def _finish(self, goal_handle: Any, run: ScanRun, laser_error: str, cloud_serial_before: int,
                 recorder: Any) -> Scan.Result:
@@ -754,7 +899,7 @@ class ScanCoordinatorNode(Node):
                 partial = True
         record.snaps = [snap.as_json() for snap in run.captured]
         if run.sweep is not None:
-            record.sweep = run.sweep.record(len(run.captured))
+            record.sweep = {**run.sweep.record(run.frames), **run.stream}
         record.laser_pauses = [pause.as_json() for pause in self.guard.pauses]
         record.snaps_captured = len(run.captured)
         record.snaps_acknowledged = sum(1 for snap in run.captured if snap.acknowledged)
@@ -851,7 +996,7 @@ class ScanCoordinatorNode(Node):
         topics = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
                   "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
                   "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
-                  "/lsu/driver/state"]
+                  "/lsu/driver/state", "/lsu/stereo/exposure", "/lsu/driver/carriage"]
         # no global arguments: the process's `-r __node:=scan_coordinator` would give it our name
         node = rclpy.create_node("_scan_coordinator_bag", namespace=self.get_namespace(), context=self.context,
                                  use_global_arguments=False, start_parameter_services=False)

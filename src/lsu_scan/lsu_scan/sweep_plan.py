@@ -1,14 +1,16 @@
 """Sweep scan planning (no rclpy): the goal's mode checked, the frames a sweep should give, drops counted.
 
-A sweep runs the carriage from ``start`` to ``end`` at a constant rate while the cameras take frame
-pairs at ``frame_rate_hz``; every pair is one snap for the extractor and matcher. A frame slot that
-passes without a capture (the camera or the pipeline could not keep up) is a dropped frame, counted
-in scan.json.
+A sweep runs the carriage from ``start`` to ``end`` at a constant rate while the cameras free-run at
+``frame_rate_hz`` (``/lsu/stereo/stream``); every pair is one sweep frame for the extractor and
+matcher, keyed on its stamp. A dropped frame is a slot of the stream without a published pair (the
+camera could not keep up) or a published pair the matcher gave no points for (`count_frames`),
+counted in scan.json.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 from .scan_plan import ScanGoalError
@@ -47,18 +49,65 @@ class SweepPlan:
         """Frame slots from the start of the motion to its end, both included."""
         return int(math.floor(self.duration_s * self.frame_rate_hz + 1e-9)) + 1
 
-    def frames_dropped(self, captured: int) -> int:
-        """Slots without a frame."""
-        return max(0, self.frames_expected - int(captured))
+    def record(self, frames: FrameCount | None) -> dict[str, object]:
+        """The scan.json ``sweep`` entry (``frames``: None when the stream never started)."""
+        out: dict[str, object] = {
+            "start_steps": self.start, "end_steps": self.end, "rate_steps_s": self.rate_steps_s,
+            "frame_rate_hz": self.frame_rate_hz, "duration_s": round(self.duration_s, 4),
+            "frames_expected": self.frames_expected}
+        frames = frames or FrameCount(self.frames_expected, 0, 0, 0)
+        dropped = frames.dropped
+        out.update(frames_captured=frames.published, frames_processed=frames.processed,
+                   frames_not_published=frames.not_published, frames_not_processed=frames.not_processed,
+                   frames_dropped=dropped, frames_dropped_pct=round(100.0 * dropped / max(1, frames.slots), 3))
+        return out
 
-    def record(self, captured: int) -> dict[str, object]:
-        """The scan.json ``sweep`` entry."""
-        dropped = self.frames_dropped(captured)
-        return {"start_steps": self.start, "end_steps": self.end, "rate_steps_s": self.rate_steps_s,
-                "frame_rate_hz": self.frame_rate_hz, "duration_s": round(self.duration_s, 4),
-                "frames_expected": self.frames_expected, "frames_captured": int(captured),
-                "frames_dropped": dropped,
-                "frames_dropped_pct": round(100.0 * dropped / max(1, self.frames_expected), 3)}
+
+@dataclass(frozen=True)
+class FrameCount:
+    """A sweep's frames counted from stamps: slots of the stream, pairs published, pairs the matcher processed."""
+
+    slots: int
+    published: int
+    processed: int
+    camera_dropped: int = 0   # what the camera itself reported (the stream's reply), for comparison
+
+    @property
+    def not_published(self) -> int:
+        return max(0, self.slots - self.published)
+
+    @property
+    def not_processed(self) -> int:
+        return max(0, self.published - self.processed)
+
+    @property
+    def dropped(self) -> int:
+        """Slots the camera did not publish + frames the matcher did not process."""
+        return self.not_published + self.not_processed
+
+
+def count_frames(first_ns: int, period_ns: int, slots: int, published: Iterable[int],
+                 processed: Iterable[int], camera_dropped: int = 0) -> FrameCount:
+    """Count a sweep's frames from stamps [ns]: slot k is stamped ``first_ns + k * period_ns``.
+
+    ``published``: stamps of the pairs the stream published (its exposures); ``processed``: stamps the
+    matcher published points for. A stamp off the slot grid by more than a quarter period, or outside
+    the ``slots`` slots, is not a frame of this stream and is not counted.
+    """
+    if period_ns <= 0 or slots < 0:
+        raise ValueError(f"frame period {period_ns} ns and slot count {slots}: need a period > 0, slots >= 0")
+
+    def slot_of(stamps_ns: Iterable[int]) -> set[int]:
+        out = set()
+        for ns in stamps_ns:
+            k = round((int(ns) - first_ns) / period_ns)
+            if 0 <= k < slots and abs(int(ns) - (first_ns + k * period_ns)) * 4 <= period_ns:
+                out.add(k)
+        return out
+
+    pub = slot_of(published)
+    done = slot_of(processed) & pub
+    return FrameCount(slots, len(pub), len(done), int(camera_dropped))
 
 
 def plan_sweep(start: int, end: int, track_steps: int, rate_steps_s: float, frame_rate_hz: float) -> SweepPlan:

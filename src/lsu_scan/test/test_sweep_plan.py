@@ -3,7 +3,7 @@
 import pytest
 
 from lsu_scan.scan_plan import ScanGoalError
-from lsu_scan.sweep_plan import plan_sweep, scan_mode
+from lsu_scan.sweep_plan import count_frames, plan_sweep, scan_mode
 
 
 def test_mode_defaults_to_stopsnap_and_names_the_choices():
@@ -17,9 +17,23 @@ def test_full_track_sweep_at_60_steps_per_s_gives_as_many_frames_as_the_default_
     assert plan.duration_s == pytest.approx(470 / 60.0)
     # frames at 0, 1/30, ... up to the end of the motion: 7.83 s * 30 + 1; stop-snap 0..470 step 2 has 236
     assert plan.frames_expected == 236
-    record = plan.record(230)
-    assert record["frames_dropped"] == 6 and record["frames_dropped_pct"] == pytest.approx(100 * 6 / 236, abs=1e-3)
-    assert plan.record(240)["frames_dropped"] == 0
+
+
+def test_dropped_frames_are_counted_from_stamps_slots_not_published_plus_frames_not_processed():
+    first, period = 1_700_000_000_123_456_789, 33_333_333
+    slots = 10
+    grid = [first + k * period for k in range(slots)]
+    published = [s for k, s in enumerate(grid) if k not in (3, 7)]          # the camera skipped slots 3 and 7
+    processed = [s for s in published if s != grid[5]] + [first - period]   # one not processed; one not a frame
+    frames = count_frames(first, period, slots, published + [first + 3 * period + period // 2], processed,
+                          camera_dropped=2)
+    assert (frames.published, frames.processed) == (8, 7)
+    assert (frames.not_published, frames.not_processed, frames.dropped) == (2, 1, 3)
+    record = plan_sweep(0, 470, 470, 60.0, 30.0).record(frames)
+    assert record["frames_dropped"] == 3 and record["frames_dropped_pct"] == pytest.approx(30.0)
+    assert record["frames_not_published"] == frames.camera_dropped == 2
+    # a stamp a little off the grid (a clock's rounding) is still its slot
+    assert count_frames(first, period, slots, [grid[2] + 1000], [grid[2] + 1000]).processed == 1
 
 
 @pytest.mark.parametrize("args,needle", [

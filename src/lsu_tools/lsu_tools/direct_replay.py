@@ -45,6 +45,7 @@ class ReplayStats:
     snap_events: int = 0
     pairs: int = 0              # image (or line) pairs matched, the laser-off texture pair included
     snaps: int = 0              # SNAP events whose pair was matched
+    sweep_frames: int = 0       # pairs the sweeps' streams published (their SWEEP_END events)
     frames_dropped: int = 0     # images the extractor could not read
     lines_unpaired: int = 0     # lines that never found their partner (same stamp)
     seconds: float = 0.0
@@ -52,10 +53,12 @@ class ReplayStats:
     read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
 
     def summary(self, bag: Path) -> str:
-        rate = self.snaps / self.seconds if self.seconds > 0 else 0.0
-        cpu = 1000.0 * self.cpu_s / max(1, self.snaps)
-        read = 1000.0 * self.read_cpu_s / max(1, self.snaps)
-        return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs) in "
+        done = self.snaps + self.sweep_frames  # a sweep's frames are its snaps
+        rate = done / self.seconds if self.seconds > 0 else 0.0
+        cpu = 1000.0 * self.cpu_s / max(1, done)
+        read = 1000.0 * self.read_cpu_s / max(1, done)
+        sweep = f", {self.sweep_frames} sweep frames" if self.sweep_frames else ""
+        return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs){sweep} in "
                 f"{self.seconds:.2f} s, {rate:.0f} snaps/s, {cpu:.2f} ms CPU per snap ({read:.2f} ms of it reading "
                 f"the bag); {self.frames_dropped} frames unreadable, "
                 f"{self.lines_unpaired} lines unpaired")
@@ -150,7 +153,7 @@ class DirectReplay:
         from sensor_msgs.msg import CameraInfo
 
         from lsu_bags.bags import BagError
-        from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics
+        from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
 
         topics = bag_topics(bag)
         images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
@@ -161,6 +164,8 @@ class DirectReplay:
             raise BagError(f"bag {bag} holds neither stereo/{{left,right}}/image_raw nor stereo/{{left,right}}/"
                            f"laser_line (it has: {', '.join(sorted(topics)) or 'no topics'})")
         events = [t for t in topics if t.endswith("scan/events")]
+        # a sweep's frames are placed by the pairs' exposures and the driver's stamped carriage positions
+        sweep_inputs = [t for t in topics if t.endswith(("stereo/exposure", "driver/carriage"))]
         calibration = []
         if str(self.matcher.get_parameter("calibration_source").value) == "topics":
             calibration = [t for t in topics if _side(t, "camera_info") or t.endswith("stereo/extrinsics")]
@@ -170,7 +175,7 @@ class DirectReplay:
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"read_s": 0.0}
-        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *calibration]), reading)
+        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *sweep_inputs, *calibration]), reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
         next_spin = t0 + SPIN_EVERY_S
@@ -197,8 +202,14 @@ class DirectReplay:
                     stats.snap_events += 1
                     key = stamps.to_ns(event.image_stamp)
                     stats.snaps += lines_of[key] >= 2
+                elif event.type == ScanEvent.SWEEP_END:
+                    stats.sweep_frames += int(event.snaps_captured)
                 extractor.on_event(event)
                 matcher.on_event(event)
+            elif m.topic.endswith("stereo/exposure"):
+                matcher.on_exposure(deserialize_message(m.data, StereoExposure))
+            elif m.topic.endswith("driver/carriage"):
+                matcher.on_carriage(deserialize_message(m.data, CarriagePosition))
             elif m.topic.endswith("extrinsics"):
                 matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
             elif (side := _side(m.topic, "camera_info")) is not None:

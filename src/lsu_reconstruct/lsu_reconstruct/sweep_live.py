@@ -1,0 +1,182 @@
+"""A sweep's frames in the live graph (numpy, no rclpy): which pairs are sweep frames, when each can be placed.
+
+The matcher node feeds a `LiveSweep` what arrives, in any order: the pairs of laser lines (keyed on
+the pair's stamp, integer ns), each pair's exposure (`/lsu/stereo/exposure`: each camera's start
+offset from the stamp and the exposure time), the driver's stamped carriage positions
+(`/lsu/driver/carriage`) and the sweep's end (SWEEP_END: the stamp of the stream's last pair).
+`ready` hands back the frames that can be reconstructed now, in stamp order, as `SweepFrame`s with
+the `CarriageTrack` of the sweep:
+
+- a pair is a sweep frame when its stamp is >= the stream's first stamp (SWEEP_START) and, once the
+  end is known, <= the last one;
+- a frame waits for its exposure and for both of its cameras' mid-exposures to be covered by the
+  track (a carriage sample at or after it, or the sweep motion's final stop reported), so that it is
+  placed the same whatever the order its inputs come in (live or replayed);
+- `finish` (the scan ended) releases what still waits: a frame without a position is counted as
+  "no position" (`reconstruct_sweep_frame` then gives its stereo points only), one without its
+  exposure as "no exposure" (placed at the pair's stamp with the last known exposure time).
+
+A frame's index is the stream's ``frame_index`` of its exposure (its slot: the same in the live graph
+and in a replay, whatever order the messages come in).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lsu_common import stamps
+
+from .matching import LineArrays
+from .sweep import CarriageTrack, SweepFrame, exposure_mid_s
+
+__all__ = ["Exposure", "LiveSweep", "CARRIAGE_LOOKBACK_S"]
+
+# carriage samples kept from before the stream's first frame: the stop at the sweep's start (the
+# driver's first !POS is at the start of the motion, and the stream may start before it)
+CARRIAGE_LOOKBACK_S = 2.0
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """One pair's exposure: each camera's start relative to the pair's stamp, and the exposure time [s]."""
+
+    left_offset_s: float
+    right_offset_s: float
+    exposure_s: float
+    frame_index: int
+
+
+@dataclass
+class LiveSweep:
+    """Bookkeeping of one sweep's frames (module doc). Stamps are integer ns keys."""
+
+    first_key: int
+    expected: int = 0
+    # where the carriage stands until the motion's first report (SWEEP_START's position): frames before
+    # it are placed there whatever samples from before the scan a live graph still holds and a bag lacks
+    start_position: float | None = None
+    last_key: int | None = None
+    published: int | None = None
+    pairs: dict[int, tuple[LineArrays, LineArrays]] = field(default_factory=dict)
+    exposures: dict[int, Exposure] = field(default_factory=dict)
+    carriage: list[tuple[float, float, bool]] = field(default_factory=list)  # (stamp s, position, moving)
+    done: set[int] = field(default_factory=set)       # frames handed out by `ready` / `finish`
+    counts: dict[str, int] = field(default_factory=lambda: {"no_position": 0, "no_exposure": 0})
+
+    def is_frame(self, key: int) -> bool:
+        """The pair stamped ``key`` belongs to this sweep."""
+        return key >= self.first_key and (self.last_key is None or key <= self.last_key)
+
+    def add_pair(self, key: int, left: LineArrays, right: LineArrays) -> None:
+        if self.is_frame(key) and key not in self.done:
+            self.pairs[key] = (left, right)
+
+    def add_exposure(self, key: int, exposure: Exposure) -> None:
+        if self.is_frame(key):
+            self.exposures[key] = exposure
+
+    def add_carriage(self, stamp_s: float, position_steps: float, moving: bool) -> None:
+        self.carriage.append((float(stamp_s), float(position_steps), bool(moving)))
+
+    def end(self, last_key: int, published: int) -> None:
+        """SWEEP_END: the stream's last pair and how many it published; later pairs are not sweep frames."""
+        self.last_key, self.published = int(last_key), int(published)
+        for key in [k for k in self.pairs if k > last_key]:
+            del self.pairs[key]
+
+    # ------------------------------------------------------------------ the carriage track
+    def _samples(self) -> list[tuple[float, float, bool]]:
+        since = stamps.ns_to_seconds(self.first_key) - CARRIAGE_LOOKBACK_S
+        seed = [] if self.start_position is None else [(since, float(self.start_position), False)]
+        return sorted(seed + [s for s in self.carriage if s[0] > since])
+
+    def track_end_s(self) -> float | None:
+        """Stamp of the sweep motion's final stop, None while it runs.
+
+        The first stop reported after the stream's first stamp: the stream starts once the carriage
+        stands at the sweep's start (the stop of the move there is earlier), and the sweep's motion
+        is still running at its first frame.
+        """
+        first_s = stamps.ns_to_seconds(self.first_key)
+        for t, _p, moving in self._samples():
+            if not moving and t > first_s:
+                return t
+        return None
+
+    def track(self) -> CarriageTrack | None:
+        """The sweep's carriage track so far (None with fewer than 2 samples)."""
+        samples = self._samples()
+        if len({s[0] for s in samples}) < 2:
+            return None
+        arr = np.asarray([(t, p) for t, p, _m in samples], dtype=np.float64)
+        return CarriageTrack(arr[:, 0], arr[:, 1], np.asarray([m for _t, _p, m in samples], dtype=bool))
+
+    # ------------------------------------------------------------------ frames out
+    def _frame(self, key: int, exposure: Exposure) -> SweepFrame:
+        left, right = self.pairs[key]
+        t = stamps.ns_to_seconds(key)
+        return SweepFrame(exposure.frame_index, left, right, t + exposure.left_offset_s, t + exposure.right_offset_s,
+                          exposure.exposure_s)
+
+    def _mid_exposures(self, key: int, exposure: Exposure) -> float:
+        t = stamps.ns_to_seconds(key)
+        return max(exposure_mid_s(t + exposure.left_offset_s, exposure.exposure_s),
+                   exposure_mid_s(t + exposure.right_offset_s, exposure.exposure_s))
+
+    def ready(self) -> tuple[list[tuple[int, SweepFrame]], CarriageTrack | None]:
+        """Frames whose pair, exposure and carriage positions are in, in stamp order, with the track to use."""
+        track = self.track()
+        if track is None:
+            return [], None
+        covered_until = float(track.stamps_s[-1])
+        ended = self.track_end_s() is not None
+        out = []
+        for key in sorted(self.pairs):
+            exposure = self.exposures.get(key)
+            if exposure is None:
+                continue
+            if not ended and self._mid_exposures(key, exposure) > covered_until:
+                break  # later frames are later still: they wait too
+            out.append((key, self._frame(key, exposure)))
+        for key, frame in out:
+            self._count_position(frame, track)
+            self._take(key)
+        return out, track
+
+    def finish(self) -> tuple[list[tuple[int, SweepFrame]], CarriageTrack | None]:
+        """Every frame still waiting (the scan ended), placed as well as the data allows; counted (module doc)."""
+        ready, track = self.ready()
+        last_exposure = max(self.exposures.values(), key=lambda e: e.frame_index, default=None)
+        out = list(ready)
+        for key in sorted(self.pairs):
+            exposure = self.exposures.get(key)
+            if exposure is None:
+                self.counts["no_exposure"] += 1
+                exposure = Exposure(0.0, 0.0, last_exposure.exposure_s if last_exposure else 0.0,
+                                    self._index_by_order(key))
+            out.append((key, self._frame(key, exposure)))
+        for key, frame in out[len(ready):]:
+            self._count_position(frame, track)
+            self._take(key)
+        return out, track
+
+    def _count_position(self, frame: SweepFrame, track: CarriageTrack | None) -> None:
+        mids = np.asarray([exposure_mid_s(frame.left_start_s, frame.exposure_s),
+                           exposure_mid_s(frame.right_start_s, frame.exposure_s)])
+        if track is None or not np.isfinite(track.position_at(mids)).all():
+            self.counts["no_position"] += 1
+
+    def _index_by_order(self, key: int) -> int:
+        """A frame without its exposure: its place among the sweep's stamps seen so far."""
+        return sum(1 for k in (*self.done, *self.pairs) if k < key)
+
+    def _take(self, key: int) -> None:
+        self.pairs.pop(key, None)
+        self.done.add(key)
+
+    @property
+    def waiting(self) -> int:
+        """Frames received but not handed out yet."""
+        return len(self.pairs)
