@@ -43,7 +43,7 @@ lint: setup
 PYTEST_WORKERS ?= 2
 test: lint
 	cd $(ROOT) && par=0 && ser=0; \
-	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadgroup -m "not serial and not fault" $(PYTEST_ARGS) \
+	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -m "not serial and not fault" $(PYTEST_ARGS) \
 		|| par=$$?; \
 	$(VENV)/bin/python -m pytest -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
 	if [ $$par = 5 ] && [ $$ser = 5 ]; then exit 5; fi; \

@@ -22,7 +22,7 @@ def check_exchange(lsu_cli, ns: str) -> None:
     echo = lsu_cli("topic", "echo", f"/{ns}/selftest/echo", "--once", "--timeout", "20")
     assert echo.returncode == 0, echo.stderr
     msg = yaml.safe_load(echo.stdout.split("---")[0])
-    assert msg["firmware"] == "selftest" and msg["track_steps"] == 300  # inline param reached the talker
+    assert msg["firmware"] == "selftest" and msg["track_steps"] == 1000000  # inline param reached the talker
     assert re.fullmatch(r"echo \d+", msg["fault"])  # it went through the listener
     call = lsu_cli("service", "call", f"/{ns}/selftest/step", "lsu_interfaces/srv/Step", "{steps: 7}",
                    "--timeout", "20")

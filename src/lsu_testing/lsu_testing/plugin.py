@@ -4,10 +4,9 @@
   holds) and forces ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST before anything touches DDS;
   subprocesses inherit both. Under pytest-xdist every worker is a session of its own and claims
   its own domain, so the graphs of tests running side by side never see each other.
-- Under pytest-xdist (``-n 2 --dist loadgroup``, as `make test` runs the suite) a test module runs
-  whole on one worker, so its module-scoped fixtures are built once; tests that name an
-  ``xdist_group`` run on that group's worker. Tests marked ``serial`` (timing-sensitive) and the
-  fault tests are left to the second, serial pytest run of `make test`.
+- `make test` runs the suite under pytest-xdist with ``--dist loadfile`` (a test module runs whole
+  on one worker, so its module-scoped fixtures are built once); the tests marked ``serial``
+  (timing-sensitive) and the fault tests are left to its second, serial pytest run.
 - ``ros_context``: a fresh rclpy Context per test, always shut down.
 - ``ros_node`` / ``spin_until``: a helper node on an executor and a bounded spin.
 - ``launch``: starts `lsu launch ...` (or any `lsu` long-runner) in a subprocess and always
@@ -49,16 +48,6 @@ def pytest_configure(config: pytest.Config) -> None:
     else:
         _claim = rosenv.isolate()
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
-
-
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Give every test without an ``xdist_group`` its module as group (before xdist reads the marks)."""
-    if not config.pluginmanager.hasplugin("xdist"):
-        return
-    for item in items:
-        if item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
 
 
 _FAULTS: dict[str, dict[str, Any]] = {}  # test id -> its fault record
