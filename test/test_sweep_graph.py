@@ -19,7 +19,7 @@ from lsu_common.arrays import AnyArray
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LSU, LaunchedProcess
 
-pytestmark = [pytest.mark.slow, pytest.mark.serial]  # timing-sensitive: alone, in the serial part
+pytestmark = pytest.mark.slow
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
 
 
