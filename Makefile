@@ -18,7 +18,7 @@ help:
 	@echo "make setup   - create .venv, install pinned ROS 2 Jazzy wheels, build lsu_interfaces (idempotent)"
 	@echo "make demo    - set up if needed, run the LSU graph on the emulated unit and show what it does"
 	@echo "make lint    - ruff check, then mypy over every package under src/ (settings: pyproject.toml)"
-	@echo "make test    - set up if needed, lint, run the whole test suite"
+	@echo "make test    - set up if needed, lint, run the whole test suite (2 workers, then the serial tests)"
 	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
 	@echo "make bench   - run the benchmarks, JSON in bench/results/ and a table in bench/results/SUMMARY.md"
 	@echo "make lock    - re-resolve requirements.in into requirements.lock"
@@ -35,8 +35,19 @@ demo: setup
 lint: setup
 	cd $(ROOT) && $(VENV)/bin/ruff check && $(VENV)/bin/mypy
 
+# The suite in two parts, each with its own summary; it fails if either part failed:
+#  1. all but the timing-sensitive tests on PYTEST_WORKERS pytest-xdist workers (each worker claims its
+#     own ROS domain; a test module stays on one worker, so its module fixtures are built once),
+#  2. the tests marked serial and the fault-injection tests, alone in one process.
+# Exit status 5 (no test selected) of one part is no failure: PYTEST_ARGS may name tests of one part only.
+PYTEST_WORKERS ?= 2
 test: lint
-	cd $(ROOT) && $(VENV)/bin/python -m pytest $(PYTEST_ARGS)
+	cd $(ROOT) && par=0 && ser=0; \
+	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -m "not serial and not fault" $(PYTEST_ARGS) \
+		|| par=$$?; \
+	$(VENV)/bin/python -m pytest -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
+	if [ $$par = 5 ] && [ $$ser = 5 ]; then exit 5; fi; \
+	for rc in $$par $$ser; do [ $$rc = 0 ] || [ $$rc = 5 ] || exit $$rc; done
 
 # the fault-injection suite alone (make test runs it too); summary in test-results/faults.json
 test-faults: setup

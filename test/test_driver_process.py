@@ -11,7 +11,7 @@ import pytest
 from lsu_driver.emulator import send_control
 
 LAUNCH = str(Path(__file__).parent / "data" / "launch" / "driver_no_respawn.launch.yaml")
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # timing-sensitive: alone, in the serial part
 
 
 def truth(control: str) -> dict:

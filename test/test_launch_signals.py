@@ -21,7 +21,7 @@ from lsu_driver.emulator import send_control
 from lsu_scan.scanner import LsuScanner
 from lsu_tools.processes import LaunchedProcess, pid_alive
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # timing-sensitive: alone, in the serial part
 SIM_LAUNCH = Path(__file__).resolve().parents[1] / "config" / "launch" / "sim.launch.yaml"
 
 

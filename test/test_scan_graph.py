@@ -20,7 +20,7 @@ from lsu_driver.emulator import send_control
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LaunchedProcess
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # timing-sensitive: alone, in the serial part
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from lsu_tools.demo import accuracy_against_scene
 from lsu_tools.processes import LSU
 from lsu_tools.twohosts import TwoHosts, split_scan, why_unavailable
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.serial]  # timing-sensitive: alone, in the serial part
 UNAVAILABLE = why_unavailable()
 needs_namespaces = pytest.mark.skipif(UNAVAILABLE is not None,
                                       reason=f"two hosts need network namespaces here: {UNAVAILABLE}")

@@ -11,6 +11,17 @@ from lsu_driver.firmware import FirmwareUnavailable, Gp32Firmware, build, toolch
 START_POSITION = 20.0  # carriage position at power-on in every unit test [steps]
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests on the firmware run in `make test`'s serial part: a running simulator takes a core and
+    the firmware's time follows it, and every such test builds the image in firmware/gp32/build
+    (two workers running make there at once would race)."""
+    for item in items:
+        params = getattr(item, "callspec", None)
+        if "firmware_build" in getattr(item, "fixturenames", ()) or (
+                params is not None and params.params.get("unit") == "firmware"):
+            item.add_marker(pytest.mark.serial)
+
+
 @pytest.fixture(scope="session")
 def firmware_build():
     """The firmware image, built with SDCC; skips (with the reason) where sdcc/ucsim are missing."""

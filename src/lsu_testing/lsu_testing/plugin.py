@@ -2,7 +2,11 @@
 
 - Every test session claims its own ROS_DOMAIN_ID (a lock no other LSU run on this machine
   holds) and forces ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST before anything touches DDS;
-  subprocesses inherit both.
+  subprocesses inherit both. Under pytest-xdist every worker is a session of its own and claims
+  its own domain, so the graphs of tests running side by side never see each other.
+- `make test` runs the suite under pytest-xdist with ``--dist loadfile`` (a test module runs whole
+  on one worker, so its module-scoped fixtures are built once); the tests marked ``serial``
+  (timing-sensitive) and the fault tests are left to its second, serial pytest run.
 - ``ros_context``: a fresh rclpy Context per test, always shut down.
 - ``ros_node`` / ``spin_until``: a helper node on an executor and a bounded spin.
 - ``launch``: starts `lsu launch ...` (or any `lsu` long-runner) in a subprocess and always
@@ -36,7 +40,8 @@ _claim: rosenv.DomainClaim | None = None
 def pytest_configure(config: pytest.Config) -> None:
     """Isolate DDS for the whole session before any test module imports rclpy."""
     global _claim
-    forced = os.environ.get("LSU_TEST_DOMAIN_ID")
+    # one forced domain cannot keep the graphs of two xdist workers apart: workers always claim
+    forced = None if os.environ.get("PYTEST_XDIST_WORKER") else os.environ.get("LSU_TEST_DOMAIN_ID")
     os.environ[rosenv.DISCOVERY_VAR] = rosenv.LOCALHOST
     if forced:
         os.environ[rosenv.DOMAIN_VAR] = forced
