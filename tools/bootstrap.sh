@@ -96,8 +96,9 @@ if_hash="$(inputs_hash src/lsu_interfaces src/tf2_msgs requirements.lock)"
 if ! stamp_ok interfaces "$if_hash" || ! "$VENV/bin/python" -c 'import lsu_interfaces.msg, tf2_msgs.msg' 2>/dev/null; then
     say "building lsu_interfaces and tf2_msgs with colcon into .venv (~60 s)"
     mkdir -p "$ROOT/log"
+    # MAKEFLAGS with -j: colcon then adds no "-l <cores>" load limit, which on a busy host builds one job at a time
     if ! env -i HOME="${HOME:-/root}" PATH="$VENV/bin:/usr/local/bin:/usr/bin:/bin" LANG=C.UTF-8 \
-        VIRTUAL_ENV="$VENV" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" \
+        MAKEFLAGS="-j$(nproc)" VIRTUAL_ENV="$VENV" AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" \
         "$VENV/bin/colcon" --log-base "$ROOT/log" build --base-paths "$ROOT/src/lsu_interfaces" "$ROOT/src/tf2_msgs" \
         --build-base "$ROOT/build" --merge-install --install-base "$VENV" \
         --packages-select lsu_interfaces tf2_msgs --event-handlers console_cohesion- summary- > "$ROOT/log/interfaces-build.txt" 2>&1; then
