@@ -206,3 +206,27 @@ def test_sweep_points_refuse_an_unknown_matching(plane_rig):
     model, sheet = plane_rig
     with pytest.raises(ValueError, match="cross_frame, per_frame"):
         SweepPoints(model, sheet, matching="across")
+
+
+def test_a_frame_that_cannot_be_placed_is_reported_and_costs_no_other(plane_rig):
+    from lsu_reconstruct.sweep import CarriageTrack, SweepFrame
+    from lsu_reconstruct.sweep_live import SweepPoints
+
+    model, sheet = plane_rig
+    t = np.arange(MOTION_AT, stamps.ns_to_seconds(key(6)), 0.025)
+    track = CarriageTrack(t, np.array([sweep_position(float(x)) for x in t]), np.ones(len(t), bool))
+    points = SweepPoints(model, sheet)
+
+    def frame(k: int, exposure_s: float = EXPOSURE) -> tuple[int, SweepFrame]:
+        left, right, _e = plane_frame(model, sheet, k)
+        start = stamps.ns_to_seconds(key(k))
+        return key(k), SweepFrame(k, left, right, start, start + RIGHT_OFFSET, exposure_s)
+
+    assert [i for _k, i, _p in points.add([frame(0), frame(1)], track)] == [0]
+    # frame 2's exposure time is not a number: reported; frame 1, waiting for it, is placed alone
+    got = points.add([frame(2, float("nan"))], track)
+    assert [i for _k, i, _p in got] == [1] and len(got[0][2]) > 100
+    assert [k for k, _m in points.errors] == [key(2), key(2)] and "exposure" in points.errors[1][1]
+    # the frames after it are matched across frames again
+    assert [i for _k, i, _p in points.add([frame(3), frame(4)], track)] == [3]
+    assert [i for _k, i, _p in points.flush()] == [4] and points.waiting == 0
