@@ -13,9 +13,12 @@ A thin adapter over :mod:`lsu_reconstruct.pipeline`:
   camera node's ``stereo/{left,right}/camera_info`` and ``stereo/extrinsics`` (``topics``);
 - sweeps: between SWEEP_START and SWEEP_END every pair stamped from SWEEP_START's image stamp on
   is a sweep frame (:mod:`lsu_reconstruct.sweep_live` keeps the books); it follows
-  ``driver/carriage`` and ``stereo/exposure`` and turns each frame into points with
-  `reconstruct_sweep_frame` (each camera's line on the laser sheet, ``laser_sheet_file``, at its own
-  mid-exposure) once the carriage track covers the frame; without a sheet, stereo only (said once).
+  ``driver/carriage`` and ``stereo/exposure`` and, once the carriage track covers a frame, turns it
+  into points on the laser sheet (``laser_sheet_file``): by default across frames (``sweep_matching:
+  cross_frame``, `SweepSequence`: the left line matched to the right lines exposed around it, so a
+  frame's points may come one frame later, still stamped with its pair's stamp; the sweep's last
+  frame, or the scan's end, flushes the rest), or ``per_frame`` (`reconstruct_sweep_frame`: each
+  camera's line on the sheet at its own mid-exposure); without a sheet, stereo only (said once).
 """
 
 from __future__ import annotations
@@ -49,8 +52,8 @@ from .laser_sheet import LaserSheet, LaserSheetError, read_laser_yaml
 from .matching import LineArrays, MatchParams, prepare
 from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
 from .stereo import CalibrationError, StereoModel
-from .sweep import SweepParams, reconstruct_sweep_frame
-from .sweep_live import Exposure, LiveSweep
+from .sweep import SweepParams
+from .sweep_live import SWEEP_MATCHING, Exposure, LiveSweep, SweepPoints
 from .triangulate import METHODS
 
 __all__ = ["StereoMatcherNode", "cloud_to_msg", "line_from_msg", "image_to_array", "decode_msg",
@@ -137,6 +140,9 @@ def parameter_table() -> dict[str, Param]:
         "laser_sheet_file": Param("", "laser sheet calibration (laser.yaml of `lsu calibrate --laser`) for sweep scans; "
                                   "empty = laser.yaml in calibration_dir; none found: sweeps are matched stereo only",
                                   read_only=True),
+        "sweep_matching": Param(SWEEP_MATCHING[0], "sweep frames to points: 'cross_frame' (each left line matched to "
+                                "the right lines exposed around it) or 'per_frame' (each frame alone); refused "
+                                "while a sweep runs"),
     }
 
 
@@ -178,6 +184,7 @@ class StereoMatcherNode(Node):
         # pairs whose SNAP (or SWEEP_START) event is not in yet: their lines, reconstructed once it is
         self.waiting: OrderedDict[int, tuple[LaserLine, LaserLine]] = OrderedDict()
         self.sweep: LiveSweep | None = None
+        self.sweep_points: SweepPoints | None = None  # the running sweep's frames to points (with a calibration)
         self.sweep_stats: dict[str, int] = {}
         self._carriage: deque[tuple[float, float, bool]] = deque(maxlen=CARRIAGE_KEPT)
         self._exposures: OrderedDict[int, Exposure] = OrderedDict()
@@ -235,12 +242,20 @@ class StereoMatcherNode(Node):
     def _use_params(self, params: MatchParams) -> None:
         prepare(params)  # caches filled now, not on the first snap
         self.params = params
+        sweep_points: SweepPoints | None = getattr(self, "sweep_points", None)  # None before __init__ sets it
+        if sweep_points is not None:
+            sweep_points.use_params(SweepParams(match=params))
 
     def _check_parameters(self, params: list[Any]) -> str | None:
         """Choices and odd window sizes (the ranges are in the descriptors, checked by rclpy)."""
         for param in params:
             if param.name == "triangulation" and param.value not in METHODS:
                 return f"triangulation must be one of {', '.join(METHODS)}"
+            if param.name == "sweep_matching" and param.value not in SWEEP_MATCHING:
+                return f"sweep_matching must be one of {', '.join(SWEEP_MATCHING)}"
+            if param.name == "sweep_matching" and getattr(self, "sweep", None) is not None \
+                    and param.value != self.get_parameter("sweep_matching").value:
+                return "sweep_matching cannot change while a sweep runs: set it between sweeps"
             if param.name == "smooth_window_rows" and not (param.value == 0 or (param.value >= 5 and param.value % 2)):
                 return "smooth_window_rows must be 0 or an odd number >= 5"
         return None
@@ -393,6 +408,7 @@ class StereoMatcherNode(Node):
     def _start_sweep(self, msg: ScanEvent) -> None:
         first = _stamp_key(msg.image_stamp)
         sweep = self.sweep = LiveSweep(first, int(msg.expected_snaps), start_position=float(msg.position_steps))
+        self.sweep_points = None
         for sample in self._carriage:
             sweep.add_carriage(*sample)
         for key, exposure in self._exposures.items():
@@ -410,29 +426,29 @@ class StereoMatcherNode(Node):
         sweep = self.sweep
         if sweep is None or self.model is None:
             return
+        if self.sweep_points is None:
+            self.sweep_points = SweepPoints(self.model, self.sheet, SweepParams(match=self.params),
+                                            str(self.get_parameter("sweep_matching").value))
         frames, track = sweep.finish() if finish else sweep.ready()
-        params = SweepParams(match=self.params)
-        for key, frame in frames:
-            try:
-                if self.sheet is not None and track is not None:
-                    points = reconstruct_sweep_frame(self.model, self.sheet, track, frame, params).points
-                else:
-                    points = reconstruct_snap(self.model, frame.left, frame.right, self.params, snap=frame.index)
-            except (CalibrationError, ValueError) as exc:
-                self._error(f"cannot reconstruct the sweep frame stamped {key / 1e9:.3f}: {exc}")
-                continue
+        done = self.sweep_points.add(frames, track)
+        if finish or sweep.complete:  # no later frame to match with: the frames still waiting come out
+            done += self.sweep_points.flush()
+        for key, message in self.sweep_points.errors:
+            self._error(f"cannot reconstruct the sweep frame stamped {key / 1e9:.3f}: {message}")
+        self.sweep_points.errors.clear()
+        for key, index, points in done:
             for name, value in points.stats.items():
                 self.sweep_stats[name] = self.sweep_stats.get(name, 0) + int(value)
             self.points_last = len(points)
             header = Header(stamp=stamps.to_msg(key))
             if self.scan is not None and not self.scan.published:
-                self._file_snap(frame.index, points, header)
+                self._file_snap(index, points, header)
             else:
-                self._publish_points(points, frame.index, header)
+                self._publish_points(points, index, header)
         if finish:
             for name, value in sweep.counts.items():
                 self.sweep_stats[name] = value
-            self.sweep = None
+            self.sweep, self.sweep_points = None, None
 
     def _file_snap(self, index: int, snap: SnapPoints, header: Header) -> None:
         assert self.scan is not None
@@ -459,7 +475,7 @@ class StereoMatcherNode(Node):
             self.scan = _Scan(msg.scan_id, int(msg.expected_snaps))
             self.snap_of_stamp.clear()
             self.waiting.clear()
-            self.sweep, self.sweep_stats = None, {}
+            self.sweep, self.sweep_points, self.sweep_stats = None, None, {}
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):

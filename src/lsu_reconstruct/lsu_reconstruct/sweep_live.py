@@ -18,6 +18,14 @@ the `CarriageTrack` of the sweep:
 
 A frame's index is the stream's ``frame_index`` of its exposure (its slot: the same in the live graph
 and in a replay, whatever order the messages come in).
+
+`SweepPoints` turns the frames `ready` / `finish` hand out into points: by default across frames
+(`SweepSequence`: each left line matched to the right lines exposed around it), so a frame's points
+may come one frame later than the frame, and `flush` (the sweep's last frame is out, or the scan
+ended) gives the rest; ``per_frame`` places each frame alone (`reconstruct_sweep_frame`). Since a
+frame is handed out only once the track covers both its mid-exposures, every right line a left one
+is matched to is placed by interpolation between the same carriage samples as in a recorded sweep:
+the points equal `reconstruct_sweep`'s on the same frames, whatever order the inputs came in.
 """
 
 from __future__ import annotations
@@ -28,10 +36,23 @@ import numpy as np
 
 from lsu_common import stamps
 
+from .laser_sheet import LaserSheet
 from .matching import LineArrays
-from .sweep import CarriageTrack, SweepFrame, exposure_mid_s
+from .pipeline import SnapPoints, reconstruct_snap
+from .stereo import CalibrationError, StereoModel
+from .sweep import (
+    CarriageTrack,
+    SweepFrame,
+    SweepFramePoints,
+    SweepParams,
+    SweepSequence,
+    exposure_mid_s,
+    reconstruct_sweep_frame,
+)
 
-__all__ = ["Exposure", "LiveSweep", "CARRIAGE_LOOKBACK_S"]
+__all__ = ["Exposure", "LiveSweep", "SweepPoints", "SWEEP_MATCHING", "CARRIAGE_LOOKBACK_S"]
+
+SWEEP_MATCHING = ("cross_frame", "per_frame")  # `SweepPoints`: the first is the default
 
 # carriage samples kept from before the stream's first frame: the stop at the sweep's start (the
 # driver's first !POS is at the start of the motion, and the stream may start before it)
@@ -177,6 +198,113 @@ class LiveSweep:
         self.done.add(key)
 
     @property
+    def complete(self) -> bool:
+        """The sweep's end is known and its last frame (or as many frames as the stream published) is out."""
+        return self.last_key is not None and (self.last_key in self.done or len(self.done) >= (self.published or 0))
+
+    @property
     def waiting(self) -> int:
         """Frames received but not handed out yet."""
         return len(self.pairs)
+
+
+class SweepPoints:
+    """A sweep's frames (as `LiveSweep` hands them out) to points, across frames or frame by frame (module doc).
+
+    Without a laser sheet, or for frames handed out without a track (no carriage report at all),
+    each frame is matched stereo only (`reconstruct_snap`). A frame that cannot be reconstructed is
+    reported in `errors` (pair stamp, message) and the frames waiting with it are placed frame by
+    frame, so one bad frame costs no other.
+    """
+
+    def __init__(self, model: StereoModel, sheet: LaserSheet | None, params: SweepParams | None = None,
+                 matching: str = SWEEP_MATCHING[0]) -> None:
+        if matching not in SWEEP_MATCHING:
+            raise ValueError(f"sweep matching '{matching}' is not one of {', '.join(SWEEP_MATCHING)}")
+        self.model, self.sheet, self.matching = model, sheet, matching
+        self.params = params if params is not None else SweepParams()
+        self._sequence = self._new_sequence()
+        self._in_sequence: dict[int, tuple[int, SweepFrame]] = {}  # frame index -> (pair stamp, frame), waiting
+        self._track: CarriageTrack | None = None
+        self.errors: list[tuple[int, str]] = []
+
+    def _new_sequence(self) -> SweepSequence | None:
+        if self.sheet is None or self.matching != "cross_frame":
+            return None
+        return SweepSequence(self.model, self.sheet, self.params)
+
+    def use_params(self, params: SweepParams) -> None:
+        """New settings (the matcher's parameters were set): for every frame reconstructed from now on."""
+        self.params = params
+        if self._sequence is not None:
+            self._sequence.params = params
+
+    @property
+    def waiting(self) -> int:
+        """Frames taken whose points are not out yet."""
+        return len(self._in_sequence)
+
+    def add(self, frames: list[tuple[int, SweepFrame]],
+            track: CarriageTrack | None) -> list[tuple[int, int, SnapPoints]]:
+        """Frames in stamp order with the track they were placed on; (pair stamp, index, points) of those done."""
+        out: list[tuple[int, int, SnapPoints]] = []
+        if track is not None:
+            self._track = track
+        for key, frame in frames:
+            if self._sequence is None or track is None:
+                out.extend(self._alone(key, frame, track))
+                continue
+            self._in_sequence[frame.index] = (key, frame)
+            try:
+                done = self._sequence.add(frame, track)
+            except (CalibrationError, ValueError) as exc:
+                out.extend(self._recover(key, exc))
+                continue
+            out.extend(self._taken(done))
+        return out
+
+    def flush(self) -> list[tuple[int, int, SnapPoints]]:
+        """The points of every frame still waiting for a later one (the sweep's frames are all in)."""
+        if self._sequence is None or self._track is None or not self._in_sequence:
+            return []
+        try:
+            return self._taken(self._sequence.finish(self._track))
+        except (CalibrationError, ValueError) as exc:
+            return self._recover(next(iter(self._in_sequence.values()))[0], exc)
+
+    def _taken(self, done: list[SweepFramePoints]) -> list[tuple[int, int, SnapPoints]]:
+        """The sequence's results, one per frame in the order the frames were added: each to its pair stamp.
+
+        A result with points names its frame (``snap``); one without is the earliest frame waiting that
+        no other result names (the frames come out in capture order).
+        """
+        named = {int(r.points.snap[0]) for r in done if len(r.points)}
+        unnamed = iter([i for i in self._in_sequence if i not in named])
+        out = []
+        for result in done:
+            index = int(result.points.snap[0]) if len(result.points) else next(unnamed)
+            key, _frame = self._in_sequence.pop(index)
+            out.append((key, index, result.points))
+        return out
+
+    def _alone(self, key: int, frame: SweepFrame, track: CarriageTrack | None) -> list[tuple[int, int, SnapPoints]]:
+        try:
+            if self.sheet is not None and track is not None:
+                points = reconstruct_sweep_frame(self.model, self.sheet, track, frame, self.params).points
+            else:
+                points = reconstruct_snap(self.model, frame.left, frame.right, self.params.match, snap=frame.index)
+        except (CalibrationError, ValueError) as exc:
+            self.errors.append((key, str(exc)))
+            return []
+        return [(key, frame.index, points)]
+
+    def _recover(self, key: int, exc: Exception) -> list[tuple[int, int, SnapPoints]]:
+        """The sequence failed (at ``key``): report it, place its waiting frames alone, start a new one."""
+        self.errors.append((key, f"across frames: {exc}; the frames waiting are placed frame by frame"))
+        waiting = sorted(self._in_sequence.values(), key=lambda kf: kf[0])
+        self._in_sequence.clear()
+        self._sequence = self._new_sequence()
+        out = []
+        for k, frame in waiting:
+            out.extend(self._alone(k, frame, self._track))
+        return out

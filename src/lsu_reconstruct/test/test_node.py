@@ -243,8 +243,18 @@ def test_every_matcher_parameter_takes_effect_when_set_or_is_refused(ros_node):
     # read where they are used (the pairing buffer's trim, the end-of-scan wait)
     cases["pair_buffer"] = (8, lambda: node.get_parameter("pair_buffer").value == 8)
     cases["scan_timeout_s"] = (1.5, lambda: node.get_parameter("scan_timeout_s").value == 1.5)
+    # read at a sweep's start (a change while a sweep runs is refused, below)
+    cases["sweep_matching"] = ("per_frame", lambda: node.get_parameter("sweep_matching").value == "per_frame")
     ros_node.check_parameters(node, cases)
     for name, value in (("smooth_window_rows", 6), ("triangulation", "best"), ("min_quality", 2.0)):
         refused = ros_node.set_parameter(f"{ns}/stereo_matcher", name, value)
         assert not refused.successful and refused.reason, name
     assert node.params.smooth_window_rows == 7 and node.params.method == "dlt" and node.params.min_quality == 0.2
+    refused = ros_node.set_parameter(f"{ns}/stereo_matcher", "sweep_matching", "across")
+    assert not refused.successful and "cross_frame, per_frame" in refused.reason
+    from lsu_reconstruct.sweep_live import LiveSweep
+
+    node.sweep = LiveSweep(1)  # a sweep runs
+    refused = ros_node.set_parameter(f"{ns}/stereo_matcher", "sweep_matching", "cross_frame")
+    assert not refused.successful and "while a sweep runs" in refused.reason
+    assert node.get_parameter("sweep_matching").value == "per_frame"
