@@ -12,7 +12,10 @@ slot (clocked sources: stamp ``t_k = t0 + k * period`` exactly; v4l2: the buffer
 every published pair (captures too), its ``stereo/exposure`` (StereoExposure: each camera's exposure
 start relative to the stamp). A clocked source slower than the frame rate publishes late but never
 skips a slot; the lag is on ``/diagnostics`` and in the stop reply, and a lag beyond
-``stream_max_lag_s`` ends the stream with an error. A stop request ends the stream at the request's
+``stream_max_lag_s`` ends the stream with an error. Each pair waits (up to ``stream_ack_timeout_s``) until
+every image reader acknowledged it, so the stream goes at its slowest reader's pace instead of
+pushing unread images out of the publishers' short queues; a pair not acknowledged in time is counted
+as dropped (stop reply, ``/diagnostics``). A stop request ends the stream at the request's
 time: the reply comes once every slot before it is published, with the stream's totals. Captures are
 refused while a stream runs (the stream's own frames are the pairs to use).
 """
@@ -95,6 +98,9 @@ PARAMETERS: dict[str, Param] = {
     "laser_on": Param(True, "sim: laser state used until /lsu/sim/truth arrives"),
     "stream_max_lag_s": Param(120.0, "stream: a pair published later than this after its stamp ends the stream with "
                               "an error (a source that cannot keep up must not pile up frames) [s]", (0.1, 600.0)),
+    "stream_ack_timeout_s": Param(1.0, "stream: how long a pair may wait for every image reader (extractor, "
+                                  "recorder) to acknowledge it; one not acknowledged by then is counted as "
+                                  "dropped [s]", (0.01, 60.0)),
     "v4l2_latency_s": Param(0.0, "v4l2: exposure start to arrival of a frame, for drivers without buffer timestamps "
                             "[s]", (0.0, 10.0), read_only=R),
 }
@@ -221,16 +227,19 @@ class StereoCameraNode(Node):
             self._truth_msg = self._truth_history.newest
             return self._truth_msg
 
-    def _truth_at(self, t_ns: int) -> SimTruth | None:
-        """The ``sim/truth`` sample that held at ``t_ns`` (the newest stamped at or before it)."""
+    def _truth_at(self, t_ns: int) -> tuple[SimTruth | None, list[SimTruth]]:
+        """The ``sim/truth`` sample that held at ``t_ns`` (the newest stamped at or before it), and the samples
+        after it up to the end of the pair's exposures (a motion starting or stopping while they last)."""
         if self._truth is None:
-            return None
+            return None, []
+        window_ns = stamps.seconds_to_ns(self.source.ready_after_s if self.source is not None else 0.0)
         with self._truth_lock:
             truth = self._truth_history.at(t_ns)
+            later = self._truth_history.between(t_ns, t_ns + window_ns)
             # later frames and captures look up later times only: older samples can go (bounded memory)
             self._truth_history.prune(min(t_ns, self._now_ns()) - stamps.seconds_to_ns(
                 float(self.get_parameter("stream_max_lag_s").value) + 1.0))
-        return truth
+        return truth, later
 
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
@@ -238,16 +247,31 @@ class StereoCameraNode(Node):
     def _sim_carriage(self, t_ns: int) -> CarriageState:
         from .sim import CarriageState
 
-        truth = self._truth_at(t_ns)
+        truth, later = self._truth_at(t_ns)
         if truth is None:
             return CarriageState(float(self.get_parameter("carriage_position_steps").value),
                                  bool(self.get_parameter("laser_on").value))
         stamp = stamps.to_seconds(truth.header.stamp)
+        start = next((s for s in later if s.moving and s.velocity_steps_per_s != 0.0), None)
+        if (not truth.moving or truth.velocity_steps_per_s == 0.0) and start is not None:
+            # at rest at t, moving before the later camera's exposure ends: rest until the start's sample
+            truth, stamp, later = start, stamps.to_seconds(start.header.stamp), later[later.index(start) + 1:]
+            started: float | None = stamp
+        else:
+            started = None
         if truth.moving:
             # the carriage keeps going between samples: the renderer follows it through each camera's
-            # own exposure (motion blur) from the sample's position and time
+            # own exposure (motion blur) from the sample's position and time, up to a stop in that time
+            stop = next((s for s in later if not s.moving), None)
+            if stop is None:
+                return CarriageState(truth.position_steps, truth.laser_on,
+                                     velocity_steps_per_s=truth.velocity_steps_per_s, position_time_s=stamp,
+                                     motion_start_s=started)
             return CarriageState(truth.position_steps, truth.laser_on, velocity_steps_per_s=truth.velocity_steps_per_s,
-                                 position_time_s=stamp)
+                                 position_time_s=stamp, motion_start_s=started,
+                                 motion_stop_s=stamps.to_seconds(stop.stopped_at) or stamps.to_seconds(stop.header.stamp),
+                                 vibration_amplitude_steps=stop.vibration_amplitude_steps,
+                                 vibration_tau_s=stop.vibration_tau_s, vibration_freq_hz=stop.vibration_freq_hz)
         stopped = stamps.to_seconds(truth.stopped_at)
         return CarriageState(truth.position_steps, truth.laser_on, stopped if stopped > 0 else None,
                              truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
@@ -374,6 +398,17 @@ class StereoCameraNode(Node):
             self.pub_left.publish(left)
             self.pub_right.publish(right)
 
+    def _wait_for_readers(self, timeout_s: float) -> bool:
+        """Wait until every reliable reader of the images (extractor, matcher, bag recorder) acknowledged the
+        pair just published, at most ``timeout_s`` in all; False if one did not. The publishers keep only the
+        last few images: one more published before a slow reader took the older ones would push them out."""
+        deadline_ns = self._now_ns() + stamps.seconds_to_ns(timeout_s)
+        for pub in (self.pub_left, self.pub_right):
+            left_ns = max(0, deadline_ns - self._now_ns())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=left_ns)):
+                return False
+        return True
+
     def _streaming(self) -> _Stream | None:
         with self._stream_lock:
             return self._stream if self._stream is not None and self._stream.running else None
@@ -403,10 +438,9 @@ class StereoCameraNode(Node):
             # matcher, bag recorder) acknowledged both images, so a camera killed right after answering
             # cannot take the frames with it. Briefly: a reader that died still counts until discovery
             # drops it, and must not hold up the scan.
-            for pub in (self.pub_left, self.pub_right):
-                if not pub.wait_for_all_acked(Duration(seconds=0.2)):
-                    self.get_logger().warning("capture: not every image subscriber acknowledged the frame in time",
-                                              throttle_duration_sec=5.0)
+            if not self._wait_for_readers(0.2):
+                self.get_logger().warning("capture: not every image subscriber acknowledged the frame in time",
+                                          throttle_duration_sec=5.0)
         if request.return_images:
             response.left, response.right = left, right
         response.success = True
@@ -533,9 +567,13 @@ class StereoCameraNode(Node):
         self._publish_pair(image_msg(pair.left, stamp, str(self.get_parameter("left_frame_id").value)),
                            image_msg(pair.right, stamp, str(self.get_parameter("right_frame_id").value)),
                            self._exposure_msg(pair, stamp, index, streaming=True))
+        acknowledged = self._wait_for_readers(float(self.get_parameter("stream_ack_timeout_s").value))
+        if not acknowledged:
+            self.get_logger().warning(f"stream: pair {index} was not acknowledged by every image reader in time: "
+                                      f"counted as dropped", throttle_duration_sec=5.0)
         lag_s = stamps.ns_to_seconds(self._now_ns() - stamp_ns)
         with self._stream_lock:
-            stream.drops.add(stamp_ns)
+            stream.drops.add(stamp_ns, acknowledged)
             stream.lags.add(lag_s)
             stream.last_stamp_ns = stamp_ns
         stream.started.set()
@@ -596,6 +634,7 @@ class StereoCameraNode(Node):
                 values.update({"stream": (f"running at {stream.rate_hz:g} Hz" if stream.running else "stopped"),
                                "stream_frames_published": stream.drops.published,
                                "stream_frames_dropped": stream.drops.dropped,
+                               "stream_frames_unacknowledged": stream.drops.unacknowledged,
                                "stream_lag_max_s": f"{stream.lags.max_s:.3f}",
                                "stream_lag_median_s": f"{stream.lags.median_s:.3f}"})
                 if stream.error and level == diagnostics.OK:

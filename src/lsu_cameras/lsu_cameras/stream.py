@@ -81,12 +81,18 @@ class DropCounter:
     period_ns: int
     published: int = 0
     dropped: int = 0
+    unacknowledged: int = 0   # of the dropped: sent, but not acknowledged by every reader in time
     last_ns: int | None = None
 
-    def add(self, stamp_ns: int) -> int:
-        """Count a published pair; returns the slots found missing just before it."""
+    def add(self, stamp_ns: int, acknowledged: bool = True) -> int:
+        """Count a pair sent; returns the slots found missing just before it. A pair some reader did not
+        acknowledge may be lost to it: it counts as dropped, not published."""
         missing = 0 if self.last_ns is None else missing_slots(int(stamp_ns) - self.last_ns, self.period_ns)
-        self.published += 1
+        if acknowledged:
+            self.published += 1
+        else:
+            self.dropped += 1
+            self.unacknowledged += 1
         self.dropped += missing
         self.last_ns = int(stamp_ns)
         return missing
@@ -183,6 +189,12 @@ class TruthHistory(Generic[T]):
             return None
         i = bisect.bisect_right(self._stamps, int(t_ns))
         return self._samples[max(i - 1, 0)]
+
+    def between(self, after_ns: int, until_ns: int) -> list[T]:
+        """The samples stamped after ``after_ns`` and at or before ``until_ns``, oldest first."""
+        lo = bisect.bisect_right(self._stamps, int(after_ns))
+        hi = bisect.bisect_right(self._stamps, int(until_ns))
+        return self._samples[lo:hi]
 
     def prune(self, before_ns: int) -> None:
         """Forget samples no lookup at or after ``before_ns`` can return (the one holding then stays)."""

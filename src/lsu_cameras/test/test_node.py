@@ -169,6 +169,7 @@ def test_every_camera_parameter_takes_effect_when_set_or_is_refused(ros_node):
         "laser_on": (False, lambda: not node._sim_carriage(0).laser_on),
         "capture_timeout_s": (0.5, lambda: node.get_parameter("capture_timeout_s").value == 0.5),  # read per call
         "stream_max_lag_s": (5.0, lambda: node.get_parameter("stream_max_lag_s").value == 5.0),  # read per frame
+        "stream_ack_timeout_s": (0.5, lambda: node.get_parameter("stream_ack_timeout_s").value == 0.5),  # per frame
         "preview_rate_hz": (4.0, lambda: node.preview is not None and node.preview.timer_period_ns == 250_000_000
                             and len(images) >= 2),  # free-running now
     })

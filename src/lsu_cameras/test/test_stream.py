@@ -1,8 +1,12 @@
 """Stream bookkeeping without ROS: frame clock, drop accounting by stamps, buffer stamps, truth history."""
 
+import math
+
 import pytest
 
+from lsu_cameras.sim import CarriageState
 from lsu_cameras.stream import (
+    DropCounter,
     DropTally,
     LagStats,
     TruthHistory,
@@ -78,6 +82,24 @@ def test_truth_history_gives_the_sample_at_or_before_a_time_and_prunes_what_no_l
     assert len(history) == 2 and history.at(250) == "b" and history.at(0) == "b"
     history.add(300, "c2")  # a repeated stamp replaces
     assert len(history) == 2 and history.at(300) == "c2"
+    assert history.between(200, 300) == ["c2"] and history.between(199, 299) == ["b"] and history.between(300, 900) == []
+
+
+def test_a_pair_some_reader_did_not_acknowledge_is_dropped_not_published():
+    counter = DropCounter(10 * MS)
+    for stamp, acknowledged in ((0, True), (10 * MS, False), (20 * MS, True), (40 * MS, True)):
+        counter.add(stamp, acknowledged)
+    assert counter.tally == DropTally(expected=5, published=3, dropped=2) and counter.unacknowledged == 1
+
+
+def test_a_motion_starting_or_stopping_within_the_exposures_rests_outside_it():
+    # sample at t=1.0 s at 100 steps, 60 steps/s; the motion started at 0.9 s and stops at 1.2 s
+    state = CarriageState(100.0, velocity_steps_per_s=60.0, position_time_s=1.0, motion_start_s=0.9,
+                          motion_stop_s=1.2, vibration_amplitude_steps=0.5, vibration_tau_s=0.04, vibration_freq_hz=20.0)
+    d = state.displacement_steps([0.8, 0.9, 1.1, 1.2, 1.2 + 0.025, 5.0])
+    assert d[:3] == pytest.approx([-6.0, -6.0, 6.0])  # at rest at 94 before the start
+    assert d[3] == pytest.approx(12.0 + 0.5)  # the stop at 112, and its vibration from there
+    assert d[4] == pytest.approx(12.0 + 0.5 * math.exp(-0.025 / 0.04) * math.cos(math.pi)) and d[5] == pytest.approx(12.0)
 
 
 def test_frame_seeds_depend_on_the_seed_and_index_only():

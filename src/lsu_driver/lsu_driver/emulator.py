@@ -76,14 +76,14 @@ class Faults:
 class Truth:
     """What really happens on the unit (SimTruth), for the simulated cameras and tests."""
 
-    stamp_s: float                 # wall-clock time of this sample [s since epoch]
+    stamp_s: float                 # wall-clock instant the position holds at [s since epoch]
     position_steps: float          # true carriage position, vibration excluded
-    velocity_steps_per_s: float
+    velocity_steps_per_s: float    # true travel per second (overstep included): position + v * (t - stamp)
     counter_steps: int
     moving: bool
     laser_on: bool
     homed: bool
-    stopped_at_s: float            # wall-clock time of the last stop; 0 while moving
+    stopped_at_s: float            # wall-clock instant of the last stop (its last pulse); 0 while moving
     vibration_amplitude_steps: float
     vibration_tau_s: float
     vibration_freq_hz: float
@@ -193,6 +193,13 @@ class ControlServer:
                     stream.flush()
 
 
+def mono_to_wall(mono: float) -> float:
+    """Wall-clock time (the host time base of ROS stamps) of monotonic instant ``mono``: the motion runs on
+    the monotonic clock, stamps are on the wall clock; their offset is read now, so a stepped wall
+    clock moves past instants with it."""
+    return mono + (time.time() - time.monotonic())
+
+
 @dataclass
 class _Motion:
     kind: str                    # "goto", "move", "home", "sweep"
@@ -202,6 +209,12 @@ class _Motion:
     started: float               # monotonic time of the phase start
     sent: int = 0
     phase: str = ""              # homing: "seek", "measure", "return"
+
+    @property
+    def last_pulse_at(self) -> float:
+        """Monotonic instant of the last pulse sent (pulse n is due at ``started + n / rate``); the start
+        before the first."""
+        return self.started + self.sent / self.rate
 
 
 class Gp32Emulator:
@@ -240,6 +253,8 @@ class Gp32Emulator:
         # stamped events with the true host time of the instant they report: {"line", "device_ms", "wall_s"}
         self.timed_events: collections.deque[dict[str, object]] = collections.deque(maxlen=512)
         self._stamp_wall = 0.0
+        # exact samples at every motion start, stop and velocity change, for the ROS node (`take_truth_events`)
+        self._truth_events: collections.deque[Truth] = collections.deque(maxlen=256)
         # called (from the firmware thread) whenever the discrete state changes: motion started or
         # stopped, laser, homing, reset; the ROS node publishes the truth at once instead of polling
         self.on_change: Callable[[], None] | None = None
@@ -275,12 +290,14 @@ class Gp32Emulator:
         ticks = math.floor(elapsed * 1000.0 * (1.0 + self.config.clock_drift_ppm * 1e-6))
         return (self._clock_start_ms + ticks) % p.MS_WRAP
 
-    def _stamp(self) -> int | None:
-        """The counter now (None for a v1 unit), with the true host time logged by `_send_timed`."""
+    def _stamp(self, mono: float | None = None) -> int | None:
+        """The counter at monotonic ``mono`` (now by default; None for a v1 unit), with the true host time
+        logged by `_send_timed`."""
         if not self.v2:
             return None
-        self._stamp_wall = time.time()
-        return self.device_ms()
+        mono = time.monotonic() if mono is None else mono
+        self._stamp_wall = mono_to_wall(mono)
+        return self.device_ms(mono)
 
     def _send_timed(self, line: p.Line) -> None:
         """Send an event stamped by `_stamp` and remember when it really happened."""
@@ -350,11 +367,25 @@ class Gp32Emulator:
         motion = self._motion
         self._motion = None
         self._velocity = 0.0
+        stop_mono = None
         if motion is not None:
-            self._stopped_at_wall = time.time()
+            # the carriage stopped at its last pulse, not when this loop noticed
+            stop_mono = motion.last_pulse_at
+            self._stopped_at_wall = mono_to_wall(stop_mono)
             self._vib_amp = stop_vibration_amplitude(self.config, motion.rate)
+            self._truth_events.append(self._truth_at(self._stopped_at_wall))
         if done:
-            self._send_timed(p.Done(self.counter, self._stamp()))
+            self._send_timed(p.Done(self.counter, self._stamp(stop_mono)))
+
+    def _velocity_of(self, motion: _Motion) -> float:
+        """True travel per second of ``motion``: its pulse rate times the travel of one pulse."""
+        return motion.direction * motion.rate * overstep_gain(self.config, motion.rate)
+
+    def _new_phase(self, motion: _Motion) -> None:
+        """A motion (or a new phase of one: sweep reversal, homing) starts at ``motion.started``."""
+        self._motion = motion
+        self._velocity = self._velocity_of(motion)
+        self._truth_events.append(self._truth_at(mono_to_wall(motion.started)))
 
     def _advance(self, now: float) -> None:
         motion = self._motion
@@ -369,9 +400,10 @@ class Gp32Emulator:
                 self._homing_phase(tripped, now)
                 return
             if motion.kind == "sweep" and tripped is not None:
-                self._motion = _Motion("sweep", -motion.direction, None, motion.rate, now)
+                # the reversal happens at the tripping pulse; the pulses still due follow on its clock
+                self._new_phase(_Motion("sweep", -motion.direction, None, motion.rate, motion.last_pulse_at))
+                assert self._motion is not None
                 motion = self._motion
-                self._velocity = motion.direction * motion.rate
                 continue
             if tripped is not None:  # a sensor ended a G/M early: the counter has drifted or the target is off-track
                 self._finish_motion()
@@ -379,7 +411,8 @@ class Gp32Emulator:
         if motion.pulses is not None and motion.sent >= motion.pulses:
             self._finish_motion()
         elif self.pos_rate_hz and self._motion is not None and now >= self._next_pos:
-            self._send_timed(p.Position(self.counter, int(self._stamp() or 0)))
+            # the counter holds since its last pulse: that is the instant it reports
+            self._send_timed(p.Position(self.counter, int(self._stamp(motion.last_pulse_at) or 0)))
             self._next_pos = max(self._next_pos + 1.0 / self.pos_rate_hz, now)
 
     def _homing_phase(self, tripped: int, now: float) -> None:
@@ -390,13 +423,12 @@ class Gp32Emulator:
             if motion.phase == "return":
                 self.homed = True
                 self._finish_motion(done=False)
-                self._send_timed(p.HomeDone(self.track_measured, self._stamp()))
+                self._send_timed(p.HomeDone(self.track_measured, self._stamp(motion.last_pulse_at)))
                 return
-            self._motion = _Motion("home", +1, None, motion.rate, now, phase="measure")
+            self._new_phase(_Motion("home", +1, None, motion.rate, motion.last_pulse_at, phase="measure"))
         elif motion.phase == "measure" and tripped == 1:
             self.track_measured = self.counter
-            self._motion = _Motion("home", -1, None, motion.rate, now, phase="return")
-        self._velocity = self._motion.direction * self._motion.rate if self._motion else 0.0
+            self._new_phase(_Motion("home", -1, None, motion.rate, motion.last_pulse_at, phase="return"))
 
     def _check_watchdog(self, now: float) -> None:
         if self.laser_on and self.watchdog_ms > 0 and (now - self._last_command) * 1000.0 > self.watchdog_ms:
@@ -405,10 +437,10 @@ class Gp32Emulator:
 
     # ---------------------------------------------------------------------------- commands
     def _start_motion(self, kind: str, direction: int, pulses: int | None, phase: str = "") -> None:
-        self._motion = _Motion(kind, direction, pulses, float(self.rate), time.monotonic(), phase=phase)
-        self._velocity = direction * self.rate
         self._stopped_at_wall = 0.0
-        self._next_pos = self._motion.started  # the first !POS at the start, then one every 1 / R s
+        motion = _Motion(kind, direction, pulses, float(self.rate), time.monotonic(), phase=phase)
+        self._new_phase(motion)
+        self._next_pos = motion.started  # the first !POS at the start, then one every 1 / R s
 
     def _handle(self, raw: bytes) -> None:
         self.log.append("< " + raw.decode("ascii", "replace").rstrip())
@@ -578,11 +610,25 @@ class Gp32Emulator:
 
     # ---------------------------------------------------------------------------- truth / faults
     def truth(self) -> Truth:
-        """The physical state right now."""
+        """The physical state now: while moving, stamped at the last pulse (the instant its position holds
+        at; the carriage goes on at its velocity from there), at rest stamped now."""
+        with self._lock:
+            return self._truth_at(mono_to_wall(self._motion.last_pulse_at if self._motion is not None
+                                               else time.monotonic()))
+
+    def take_truth_events(self) -> list[Truth]:
+        """The exact samples at the motion starts, stops and velocity changes since the last call, oldest first."""
+        with self._lock:
+            events = list(self._truth_events)
+            self._truth_events.clear()
+            return events
+
+    def _truth_at(self, stamp_s: float) -> Truth:
+        """The state as it is now, stamped ``stamp_s`` (wall clock): the instant it holds at."""
         with self._lock:
             moving = self._motion is not None
             return Truth(
-                stamp_s=time.time(), position_steps=self._true,
+                stamp_s=stamp_s, position_steps=self._true,
                 velocity_steps_per_s=self._velocity if not self.faults.stalled else 0.0,
                 counter_steps=self.counter, moving=moving, laser_on=self.laser_on, homed=self.homed,
                 stopped_at_s=0.0 if moving else self._stopped_at_wall,

@@ -130,12 +130,21 @@ class Gp32EmulatorNode(Node):
             pass
 
     def _periodic(self) -> None:
+        self._send_events()
         truth = self.emulator.truth()
         if truth.moving or time.monotonic() - self._last_publish >= self.rest_period_s:
             self._send(truth)
 
     def _publish(self) -> None:
+        self._send_events()
         self._send(self.emulator.truth())
+
+    def _send_events(self) -> None:
+        """The exact samples at each motion start, stop and velocity change, stamped when they happened: a
+        camera rendering a frame across one extrapolates from the right side of it."""
+        take = getattr(self.emulator, "take_truth_events", None)  # the firmware unit has none
+        for truth in take() if take is not None else ():
+            self._send(truth)
 
     def _send(self, truth: Truth) -> None:
         self._last_publish = time.monotonic()

@@ -5,7 +5,7 @@ import time
 import pytest
 from std_srvs.srv import SetBool, Trigger
 
-from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator
+from lsu_driver.emulator import EmulatorConfig, Faults, Gp32Emulator, overstep_gain
 from lsu_driver.emulator_node import Gp32EmulatorNode
 from lsu_driver.node import Gp32DriverNode
 from lsu_interfaces.msg import CarriagePosition, ScannerState, SimTruth
@@ -117,7 +117,8 @@ def test_move_at_its_own_rate_then_the_drivers_rate_again(rig, emulator):
     assert h.spin_until(future.done, 10.0) and future.result().success
     future = c["move_to"].call_async(MoveTo.Request(position_steps=100))
     assert h.spin_until(lambda: emulator.truth().moving, 5.0)
-    assert abs(emulator.truth().velocity_steps_per_s) == pytest.approx(200.0)  # the driver's default rate
+    # the driver's default rate; above 180 steps/s each pulse travels a little more than a step
+    assert abs(emulator.truth().velocity_steps_per_s) == pytest.approx(200.0 * overstep_gain(emulator.config, 200.0))
     assert h.spin_until(future.done, 10.0) and future.result().success
     refused = h.call(c["move_to"], MoveTo.Request(position_steps=300, rate_steps_per_s=1000.0))
     assert not refused.success and "rate_steps_per_s 1000" in refused.message and "20..400" in refused.message

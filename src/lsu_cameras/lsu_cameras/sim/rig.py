@@ -64,6 +64,8 @@ class CarriageState:
     ``t >= t0 = stopped_at_s``; ``stopped_at_s = None`` means settled long ago.
     Constant-rate motion (a sweep): ``velocity_steps_per_s`` != 0 with ``position_steps`` the position
     at ``position_time_s``; the displacement is then ``velocity (t - position_time_s)`` (no vibration).
+    A motion that starts or stops during a frame's exposures has ``motion_start_s`` / ``motion_stop_s``:
+    the carriage rests before the start, and after the stop vibrates as above with ``t0 = motion_stop_s``.
     """
 
     position_steps: float
@@ -74,6 +76,8 @@ class CarriageState:
     vibration_freq_hz: float = 30.0
     velocity_steps_per_s: float = 0.0
     position_time_s: float | None = None
+    motion_start_s: float | None = None
+    motion_stop_s: float | None = None
 
     @property
     def moving(self) -> bool:
@@ -84,10 +88,18 @@ class CarriageState:
         """Displacement from ``position_steps`` [steps] at times ``t_s``: the motion, or the post-stop vibration."""
         t = np.asarray(t_s, dtype=np.float64)
         if self.moving:
-            return self.velocity_steps_per_s * (t - float(self.position_time_s))  # type: ignore[arg-type]
-        if self.stopped_at_s is None or self.vibration_amplitude_steps == 0.0 or self.vibration_tau_s <= 0.0:
+            lo = -np.inf if self.motion_start_s is None else self.motion_start_s
+            hi = np.inf if self.motion_stop_s is None else self.motion_stop_s
+            travel = self.velocity_steps_per_s * (np.clip(t, lo, hi) - float(self.position_time_s))  # type: ignore[arg-type]
+            if self.motion_stop_s is None:
+                return travel
+            return travel + np.where(t >= self.motion_stop_s, self._vibration(t, self.motion_stop_s), 0.0)
+        return self._vibration(t, self.stopped_at_s)
+
+    def _vibration(self, t: AnyArray, stopped_at_s: float | None) -> AnyArray:
+        if stopped_at_s is None or self.vibration_amplitude_steps == 0.0 or self.vibration_tau_s <= 0.0:
             return np.zeros_like(t)
-        dt = np.maximum(t - self.stopped_at_s, 0.0)
+        dt = np.maximum(t - stopped_at_s, 0.0)
         return (self.vibration_amplitude_steps * np.exp(-dt / self.vibration_tau_s)
                 * np.cos(2.0 * np.pi * self.vibration_freq_hz * dt))
 
@@ -615,7 +627,7 @@ class SimulatedRig:
             # sub-exposures averaged (motion blur), centred on the sheet at mid-exposure
             times = start_s + (np.arange(sensor.sub_exposures) + 0.5) / sensor.sub_exposures * sensor.exposure_s
             disp = state.displacement_steps(times)
-            ends = c0 + per_step * state.displacement_steps(np.array([start_s, start_s + sensor.exposure_s]))
+            ends = c0 + per_step * np.concatenate([state.displacement_steps(np.array([start_s, start_s + sensor.exposure_s])), disp])
             box = (float(ends.min()), float(ends.max()))
         elif start_s is None or state.stopped_at_s is None or state.vibration_amplitude_steps == 0.0:
             disp = np.zeros(1)
