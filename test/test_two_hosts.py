@@ -64,12 +64,17 @@ def test_scan_across_two_hosts_gives_the_cloud_and_bag_of_one_host(tmp_path):
         acc = accuracy_against_scene(folder / "cloud.ply", "head:7")
         assert acc["median_mm"] < 0.1, (folder, acc)
     # the bags hold the same topics and types, and the same message counts (every image pair crossed the
-    # link) except for the scanner state, which the driver publishes at a rate, so with the scan's duration
+    # link) except for those the driver publishes at a rate, so with the scan's and the moves' durations: the
+    # scanner state, and the carriage positions (a !POS every 1/R s while moving, besides one !DONE per move)
     info_a, info_b = bag_info(one / "bag"), bag_info(two / "bag")
-    counts_a = {t.name: (t.msgtype, t.count) for t in info_a.topics if t.name != "/lsu/driver/state"}
-    counts_b = {t.name: (t.msgtype, t.count) for t in info_b.topics if t.name != "/lsu/driver/state"}
+    rated = {"/lsu/driver/state", "/lsu/driver/carriage"}
+    counts_a = {t.name: (t.msgtype, t.count) for t in info_a.topics if t.name not in rated}
+    counts_b = {t.name: (t.msgtype, t.count) for t in info_b.topics if t.name not in rated}
     assert {t.name for t in info_a.topics} == {t.name for t in info_b.topics}
     assert counts_a == counts_b
+    carriage_a, carriage_b = ({t.name: t.count for t in info.topics}["/lsu/driver/carriage"] for info in (info_a, info_b))
+    assert carriage_a >= 10 and carriage_b >= 10  # at least one !DONE per move between the 11 snaps
+    assert abs(carriage_a - carriage_b) <= 0.1 * max(carriage_a, carriage_b), (carriage_a, carriage_b)
     assert counts_b["/lsu/stereo/left/image_raw"][1] >= 12  # 11 snaps + the laser-off texture pair
 
 
