@@ -238,13 +238,18 @@ class V4l2Source(StereoSource):
             starts.append(buffer_stamp_s(float(cap.get(cv2.CAP_PROP_POS_MSEC)), wall, mono, self.latency_s))
             if time.monotonic() > deadline:
                 raise CameraError(f"grabbing the pair took longer than {timeout_s} s")
+        images = self._retrieve_pair()
+        return StereoPair(images[0], images[1], starts[0], starts[1] - starts[0])
+
+    def _retrieve_pair(self) -> list[AnyArray]:
+        """Decode the frames both cameras have grabbed (left, right)."""
         images = []
         for side, cap in zip(("left", "right"), self._caps):
             ok, image = cap.retrieve()
             if not ok or image is None:
                 raise CameraError(f"{side} camera: frame could not be decoded")
             images.append(image)
-        return StereoPair(images[0], images[1], starts[0], starts[1] - starts[0])
+        return images
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         deadline = time.monotonic() + timeout_s
@@ -260,12 +265,7 @@ class V4l2Source(StereoSource):
             stamps.append((host, driver_ms))
             if time.monotonic() > deadline:
                 raise CameraError(f"grabbing the pair took longer than {timeout_s} s")
-        images = []
-        for side, cap in zip(("left", "right"), self._caps):
-            ok, image = cap.retrieve()
-            if not ok or image is None:
-                raise CameraError(f"{side} camera: frame could not be decoded")
-            images.append(image)
+        images = self._retrieve_pair()
         if stamps[0][1] > 0 and stamps[1][1] > 0:
             skew = (stamps[1][1] - stamps[0][1]) / 1000.0
         else:
