@@ -769,7 +769,6 @@ class ScanCoordinatorNode(Node):
         seen, last_new = 0, time.monotonic()
         move_deadline = time.monotonic() + float(self.move_timeout_s or (sweep.duration_s * 2.0 + 10.0))
         next_feedback = 0.0
-        direction = 1 if sweep.end >= sweep.start else -1
         while True:
             self._check_cancel(goal_handle)
             published = len(self._published(first))
@@ -788,9 +787,8 @@ class ScanCoordinatorNode(Node):
             if not move.done() and now > move_deadline:
                 raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
             if now >= next_feedback:
-                travelled = min(abs(sweep.end - sweep.start), published * period_s * sweep.rate_steps_s)
                 self._feedback(goal_handle, "sweeping", published, sweep.frames_expected,
-                               int(round(sweep.start + direction * travelled)), run.points_total, [period_s])
+                               sweep.position_at(published * period_s), run.points_total, [period_s])
                 next_feedback = now + 0.2
             self._guard_laser()
             self._io_executor.spin_once(timeout_sec=0.01)
@@ -835,14 +833,10 @@ class ScanCoordinatorNode(Node):
             # simulated camera renders slower than real time on a small machine)
             exposure_s, arrived, _mono = arrivals[-1]
             run.stream["camera_lag_s"] = round(arrived - stamps.ns_to_seconds(keys[-1]) - exposure_s, 4)
-        direction = 1 if sweep.end >= sweep.start else -1
         period_s = float(run.stream.get("frame_period_s", 1.0 / sweep.frame_rate_hz))
         for key, (_exposure_s, _wall, arrived) in zip(keys, arrivals):
             slot = round((key - first) / stamps.seconds_to_ns(period_s))
-            # the carriage at the pair's stamp from the commanded rate (for the record; the points are
-            # placed by the driver's stamped positions)
-            travelled = min(abs(sweep.end - sweep.start), slot * period_s * sweep.rate_steps_s)
-            run.captured.append(SnapRecord(index=int(slot), position_steps=int(round(sweep.start + direction * travelled)),
+            run.captured.append(SnapRecord(index=int(slot), position_steps=sweep.position_at(slot * period_s),
                                            stamp=stamps.to_text(key), skew_s=0.0, move_s=0.0, settle_s=0.0,
                                            stop_to_reply_s=None, ack_wait_s=0.0, capture_s=0.0))
             run.frame_arrivals[key] = arrived

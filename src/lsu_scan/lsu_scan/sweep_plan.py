@@ -44,6 +44,12 @@ class SweepPlan:
         """Carriage time of the sweep [s]."""
         return abs(self.end - self.start) / self.rate_steps_s
 
+    def position_at(self, elapsed_s: float) -> int:
+        """The carriage [steps] ``elapsed_s`` after the motion's start at the commanded rate (for records and
+        feedback; points are placed by the driver's stamped positions), held at the end once reached."""
+        travelled = min(abs(self.end - self.start), max(0.0, elapsed_s) * self.rate_steps_s)
+        return int(round(self.start + (1 if self.end >= self.start else -1) * travelled))
+
     @property
     def frames_expected(self) -> int:
         """Frame slots from the start of the motion to its end, both included."""

@@ -47,3 +47,10 @@ def test_dropped_frames_are_counted_from_stamps_slots_not_published_plus_frames_
 def test_bad_sweep_goals_are_refused_with_what_to_change(args, needle):
     with pytest.raises(ScanGoalError, match=needle):
         plan_sweep(*args)
+
+
+def test_position_at_follows_the_commanded_rate_both_ways_and_holds_at_the_end():
+    up = plan_sweep(100, 400, 470, 60.0, 30.0)
+    assert [up.position_at(t) for t in (0.0, 0.5, 5.0, 9.0)] == [100, 130, 400, 400]
+    down = plan_sweep(400, 100, 470, 60.0, 30.0)
+    assert [down.position_at(t) for t in (0.0, 0.5, 5.0, 9.0)] == [400, 370, 100, 100]
