@@ -20,7 +20,7 @@ from sensor_msgs.msg import PointCloud2
 
 from lsu_bags.bags import deserialize_ros, read_messages
 from lsu_bags.pointcloud2 import decode, from_msg
-from lsu_common import qos
+from lsu_common import qos, stamps
 from lsu_common.arrays import AnyArray
 from lsu_interfaces.msg import SimTruth
 from lsu_scan.scanner import LsuScanner
@@ -53,6 +53,18 @@ def same_frames(replayed: PointCloud2, live: PointCloud2) -> None:
     assert sorted(got) == sorted(want) == list(range(FRAMES))
     for index in want:
         assert got[index].shape == want[index].shape and np.max(np.abs(got[index] - want[index])) <= 1e-9, index
+
+
+def timeline(bag: Path) -> str:
+    """The bag's carriage reports, exposures and events around the sweep, in stamp order (for a failure's message)."""
+    rows = []
+    for msg in (deserialize_ros(m) for m in read_messages(bag, ["/lsu/driver/carriage", "/lsu/stereo/exposure",
+                                                                  "/lsu/scan/events"])):
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9 if hasattr(msg, "header") else float("nan")
+        rows.append((stamp, type(msg).__name__, {k: getattr(msg, k) for k in msg.get_fields_and_field_types()
+                                                 if k != "header"}))
+    rows.sort(key=lambda r: r[0])
+    return "\n".join(f"{t:.4f} {name} {fields}" for t, name, fields in rows[:80])
 
 
 def late_right_camera_rig(folder: Path) -> Path:
@@ -136,9 +148,14 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
     # step (0.42 mm of sheet travel) off would show.
     scene = build_scene("plane", load_rig())
     distances_mm = surface_distances_m(scene, live) * 1000.0
-    assert np.median(distances_mm) < 0.4 and np.percentile(distances_mm, 99) < 1.0, np.percentile(distances_mm, [50, 99])
     per_frame = {k: float(np.median(surface_distances_m(scene, v))) * 1000.0 for k, v in by_frame(recorded[0]).items()}
-    assert max(per_frame.values()) < 0.6, per_frame
+    placement = (f"per-frame median [mm] {per_frame}, scan.json sweep {sweep}\n"
+                 f"{timeline(Path(result.output_dir) / 'bag')}\ntruth (stamp, steps, moving): "
+                 f"{[(round(stamps.to_seconds(t.header.stamp), 4), t.position_steps, t.moving) for t in truths if START - 0.5 <= t.position_steps <= END + 0.5][:80]}"
+                 f"\n{graph.output[-3000:]}")
+    assert np.median(distances_mm) < 0.4 and np.percentile(distances_mm, 99) < 1.0, \
+        f"{np.percentile(distances_mm, [50, 99])}; {placement}"
+    assert max(per_frame.values()) < 0.6, placement
 
     assert not canceled.success and "cancel" in canceled.status
     # the frames taken before the cancel are kept: in scan.json (partial) and in the cloud

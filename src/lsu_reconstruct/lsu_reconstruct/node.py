@@ -498,7 +498,8 @@ class StereoMatcherNode(Node):
             self.scan.texture_key = key
             self._look_for_texture()
         elif msg.type in (ScanEvent.FINISHED, ScanEvent.ABORTED):
-            self._sweep_progress(finish=True)  # the scan is over: what still waits is placed as well as it can be
+            if msg.type == ScanEvent.ABORTED:
+                self._sweep_progress(finish=True)  # the scan is over: what still waits is placed as well as it can be
             self.scan.end_type = msg.type
             if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
                 self.scan.expected = int(msg.snaps_captured)
@@ -534,9 +535,17 @@ class StereoMatcherNode(Node):
         scan = self.scan
         if scan is None or scan.end_type is None or scan.published:
             return
-        complete = len(scan.snaps) >= scan.expected and scan.end_type == ScanEvent.FINISHED
         waited = stamps.ns_to_seconds(self.get_clock().now().nanoseconds) - scan.end_time_s
-        if not complete and waited < float(self.get_parameter("scan_timeout_s").value):
+        timeout_s = float(self.get_parameter("scan_timeout_s").value)
+        if self.sweep is not None:
+            # FINISHED may overtake the sweep's last frames: the extractor's lines come later than the events
+            # (a replayed bag plays them at the recorded pace, the extraction lags on a busy host); the frames
+            # SWEEP_END counted as published are awaited like missing snaps, then what waits is placed
+            if not self.sweep.complete and waited < timeout_s:
+                return
+            self._sweep_progress(finish=True)
+        complete = len(scan.snaps) >= scan.expected and scan.end_type == ScanEvent.FINISHED
+        if not complete and waited < timeout_s:
             return
         self.publish_scan(partial=not complete)
 

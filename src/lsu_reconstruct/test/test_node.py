@@ -11,7 +11,8 @@ from rclpy.parameter import Parameter  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2  # noqa: E402
 
 from lsu_bags.pointcloud2 import unpack_rgb  # noqa: E402
-from lsu_interfaces.msg import LaserLine, ScanEvent, StereoExtrinsics  # noqa: E402
+from lsu_common import stamps  # noqa: E402
+from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics  # noqa: E402
 from lsu_reconstruct import synthetic as S  # noqa: E402
 from lsu_reconstruct.node import LATCHED, StereoMatcherNode, decode_msg  # noqa: E402
 
@@ -167,6 +168,45 @@ def test_a_texture_image_that_never_comes_leaves_the_cloud_uncoloured_and_stops_
     assert ros_node.spin_until(lambda: clouds, 10), "no scan/cloud after FINISHED"
     assert node.scan.texture is None
     assert np.all(unpack_rgb(decode_msg(clouds[0])["rgb"]) == 255)  # uncoloured: white
+
+
+def test_finished_that_overtakes_a_sweeps_last_frame_waits_for_it(ros_node, rig, tmp_path):
+    """FINISHED may come before the extractor's lines of the sweep's last frame (a replayed bag plays the events
+    at the recorded pace while the extraction lags): the cloud holds every frame SWEEP_END counted."""
+    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, "/lsu_rt_sweep_end", "s3", 3, scan_timeout_s=30.0)
+    h = ros_node.node
+    carriage = h.create_publisher(CarriagePosition, "/lsu_rt_sweep_end/driver/carriage", 50)
+    exposures = h.create_publisher(StereoExposure, "/lsu_rt_sweep_end/stereo/exposure", 50)
+    assert ros_node.spin_until(lambda: carriage.get_subscription_count() and exposures.get_subscription_count(), 10)
+    t0 = 400.0
+    keys = [stamps.seconds_to_ns(t0 + k / 30.0) for k in range(3)]
+    pub["events"].publish(ev(type=ScanEvent.SWEEP_START, image_stamp=stamps.to_msg(keys[0]), expected_snaps=3,
+                             position_steps=100))
+    for t, position, moving in [(t0, 100.0, True), (t0 + 0.05, 103.0, True), (t0 + 0.1, 106.0, False)]:
+        msg = CarriagePosition(position_steps=position, moving=moving, source="pos" if moving else "done")
+        msg.header.stamp = stamps.to_msg(stamps.seconds_to_ns(t))
+        carriage.publish(msg)
+    for k, key in enumerate(keys):
+        exposure = StereoExposure(exposure_s=0.02, frame_index=k, streaming=True)
+        exposure.header.stamp = stamps.to_msg(key)
+        exposures.publish(exposure)
+    for k, x in enumerate((-0.02, 0.0)):
+        left, right = snap_lines(rig, x)
+        pub["left"].publish(line_msg(left, stamps.to_msg(keys[k])))
+        pub["right"].publish(line_msg(right, stamps.to_msg(keys[k])))
+    pub["events"].publish(ev(type=ScanEvent.SWEEP_END, image_stamp=stamps.to_msg(keys[2]), snaps_captured=3))
+    pub["events"].publish(ev(type=ScanEvent.FINISHED, expected_snaps=3, snaps_captured=3))
+    assert ros_node.spin_until(lambda: node.scan.end_type == ScanEvent.FINISHED, 10)
+    ros_node.spin_until(lambda: False, 0.5)
+    assert not clouds and node.sweep is not None  # the last frame is awaited, not given up at FINISHED
+    left, right = snap_lines(rig, 0.02)
+    pub["left"].publish(line_msg(left, stamps.to_msg(keys[2])))
+    pub["right"].publish(line_msg(right, stamps.to_msg(keys[2])))
+    assert ros_node.spin_until(lambda: clouds, 10), "no scan/cloud after the last frame's lines"
+    cols = decode_msg(clouds[0])
+    assert set(cols["snap"].tolist()) == {0, 1, 2}
+    xyz = np.c_[cols["x"], cols["y"], cols["z"]].astype(np.float64)
+    assert np.abs(xyz @ PLANE.normal - PLANE.offset).max() < 2e-5
 
 
 @pytest.mark.fault('scan: a snap never arrives')
