@@ -314,12 +314,14 @@ class SweepSequence:
     """Sweep frames in, points out, each left line matched across frames (module doc).
 
     One sequence per sweep. Feed frames in capture order with `add`; a frame's points come out once
-    a right exposure with a mid-exposure time after its left one has arrived (with the right camera
-    late, at once; else one frame later), in frame order; `finish` gives the rest at the end of the
-    sweep. The carriage track is passed with each
-    call (the live track grows; positions are read when a frame is reconstructed). A left line with
-    no usable right line around it (the first frames, a dropped frame, a gap of more than
-    ``max_bracket_steps``) falls back to `reconstruct_sweep_frame` (its own pair, or the sheet).
+    right exposures with mid-exposure times before and after its left one have arrived (with the
+    right camera late, at once; else one frame later), in frame order; `finish` gives the rest at
+    the end of the sweep. The carriage track is passed with each
+    call (the live track grows; positions are read when a frame is reconstructed). The first (last)
+    left line of a sweep has no right exposure before (after) it: it waits for two after it (or, at
+    `finish`, takes the two before it) and is extrapolated along the epipolar line. A left line with
+    no usable right line around it (a dropped frame, a gap of more than ``max_bracket_steps``) falls
+    back to `reconstruct_sweep_frame` (its own pair, or the sheet).
     """
 
     def __init__(self, model: StereoModel, sheet: LaserSheet, params: SweepParams = SweepParams()) -> None:
@@ -334,9 +336,17 @@ class SweepSequence:
         self._rights.append((mid_r, frame.right))
         self._rights.sort(key=lambda r: r[0])
         self._pending.append(frame)
-        latest = self._rights[-1][0]
-        ready = [f for f in self._pending if exposure_mid_s(f.left_start_s, f.exposure_s) < latest]
+        ready = []
+        for f in self._pending:  # in frame order: a frame waits while an earlier one waits
+            if not self._placeable(exposure_mid_s(f.left_start_s, f.exposure_s)):
+                break
+            ready.append(f)
         return self._emit(ready, track)
+
+    def _placeable(self, mid_l: float) -> bool:
+        """A right exposure on either side of the left one, or (the sweep's first frames) two after it."""
+        after = sum(1 for t, _line in self._rights if t > mid_l)
+        return after >= 2 or (after >= 1 and len(self._rights) > after)
 
     def finish(self, track: CarriageTrack) -> list[SweepFramePoints]:
         """The points of every frame still waiting (end of the sweep)."""
@@ -351,7 +361,8 @@ class SweepSequence:
         mids = [exposure_mid_s(f.left_start_s, f.exposure_s) for f in self._pending + ready[-1:]]
         if mids:
             before = [i for i, r in enumerate(self._rights) if r[0] <= min(mids)]
-            self._rights = self._rights[before[-1]:] if before else self._rights
+            # two of them: the sweep's last left line may have no right one after it (extrapolated)
+            self._rights = self._rights[max(before[-1] - 1, 0):] if before else self._rights
         return out
 
     def _frame(self, frame: SweepFrame, track: CarriageTrack) -> SweepFramePoints:
@@ -362,7 +373,7 @@ class SweepSequence:
         positions = track.position_at(times)
         p_right = float(track.position_at(exposure_mid_s(frame.right_start_s, frame.exposure_s)))
         stats = {"stereo": 0, "stereo_rejected_inconsistent": 0, "left_sheet": 0, "right_sheet": 0,
-                 "cross_stereo": 0, "cross_rejected_jump": 0, "cross_rejected_inconsistent": 0,
+                 "cross_stereo": 0, "cross_extrapolated": 0, "cross_rejected_jump": 0, "cross_rejected_inconsistent": 0,
                  "no_carriage_position": int(not np.isfinite(p_left)) + int(not np.isfinite(p_right))}
         rights: list[tuple[LineArrays, float]] = []
         if np.isfinite(p_left) and len(frame.left):
@@ -378,6 +389,17 @@ class SweepSequence:
                 if 0 < abs(positions[b] - positions[a]) <= params.max_bracket_steps and \
                         min(positions[a], positions[b]) <= p_left <= max(positions[a], positions[b]):
                     rights = [(self._rights[a][1], float(positions[a])), (self._rights[b][1], float(positions[b]))]
+            elif (after.size >= 2 and not before.size) or (before.size >= 2 and not after.size):
+                # the sweep's first (last) left line: no right one before (after) it, so the two nearest
+                # on the other side are extrapolated. Still stereo: a carriage-time error common to both
+                # cameras (the device clock's mapping) moves every position alike and cancels, where the
+                # sheet alone would turn it into depth (one step of 0.42 mm at 10-25 deg: ~1 mm)
+                a, b = (after[0], after[1]) if after.size >= 2 else (before[-2], before[-1])
+                pa, pb = float(positions[a]), float(positions[b])
+                if 0 < abs(pb - pa) <= params.max_bracket_steps and \
+                        max(abs(p_left - pa), abs(p_left - pb)) <= params.max_bracket_steps:
+                    rights = [(self._rights[a][1], pa), (self._rights[b][1], pb)]
+                    stats["cross_extrapolated"] = 1
         if not rights:
             fallback = reconstruct_sweep_frame(self.model, self.sheet, track, frame, params)
             fallback.stats.update({k: v for k, v in stats.items() if k not in fallback.stats})
