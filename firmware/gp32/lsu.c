@@ -52,6 +52,7 @@ static uint8_t sensors;          /* HAL_SENSOR_* seen at the last tick */
 static uint32_t now_ms;          /* milliseconds since power-on: the stamp of T, P, !DONE, !POS, !HOME */
 static uint16_t pos_period_ms;   /* between !POS events during motion; 0 = off (R0, the power-on value) */
 static uint16_t pos_elapsed_ms;  /* since the last !POS; a motion starts with one */
+static uint32_t pulse_ms;        /* the last step pulse (or the motion's start): the instant the counter holds since */
 
 static char line[MAX_LINE];
 static uint8_t line_len;
@@ -84,10 +85,15 @@ static void put_int(int32_t value)
 }
 
 /* " <ms>": the instant a reply or event reports, on the millisecond counter */
-static void put_stamp(void)
+static void put_stamp_at(uint32_t ms)
 {
     hal_sci_putc(' ');
-    put_uint(now_ms);
+    put_uint(ms);
+}
+
+static void put_stamp(void)
+{
+    put_stamp_at(now_ms);
 }
 
 static void put_end(void)
@@ -128,6 +134,7 @@ static void start_motion(uint8_t kind, int8_t dir)
     motion_fresh = 1;
     phase_pulses = 0;
     pos_elapsed_ms = 0;
+    pulse_ms = now_ms;
     hal_step_dir(dir > 0);
 }
 
@@ -197,6 +204,7 @@ static void motion_tick(void)
     step_acc -= 1000u;
     hal_step_pulse();
     counter += direction;
+    pulse_ms = now_ms;
     if (phase_pulses != 0xFFu)
         phase_pulses++;
     if ((motion == MO_GOTO || motion == MO_MOVE) && --remaining == 0)
@@ -218,7 +226,8 @@ static void sensor_tick(void)
     }
 }
 
-/* after motion_tick: the counter as it stands at the end of this millisecond */
+/* after motion_tick: the counter as it stands, stamped with the instant it got there (its last pulse),
+ * not this millisecond: between pulses the carriage is on its way to the next step */
 static void position_tick(void)
 {
     if (motion == MO_IDLE || !pos_period_ms)
@@ -226,7 +235,7 @@ static void position_tick(void)
     if (pos_elapsed_ms == 0) {
         put_str("!POS ");
         put_int(counter);
-        put_stamp();
+        put_stamp_at(pulse_ms);
         put_end();
     }
     if (++pos_elapsed_ms >= pos_period_ms)

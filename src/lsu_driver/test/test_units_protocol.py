@@ -137,6 +137,26 @@ def _clock(line: Line) -> int:
     return p.parse_clock(p.parse_line(reply[0]).payload)  # type: ignore[union-attr]
 
 
+def test_pos_stamps_the_instant_of_its_counters_last_pulse(line):
+    """!POS reports the counter with the instant it got there (its last pulse), not the millisecond the event
+    leaves: between pulses the carriage is on its way to the next step, and a sweep frame is placed by these
+    stamps. At 20 steps/s (a pulse every 50 ms) and 15 events/s the events fall at every phase of the pulse
+    period: every stamp lies on the pulse grid, start + n * 50 ms (within the firmware's 1 ms tick and the
+    millisecond it skips at the start), where the send time would miss it by up to 49 ms."""
+    assert line.ask(b"S20\n") == [b"OK S20\n"]
+    assert line.ask(b"R15\n") == [b"OK R15\n"]
+    assert line.ask(b"M+12\n", 0.0)[0] == b"OK\n"
+    seen = line.wait_for(b"!DONE 12\n", 5.0)
+    assert seen[-1] == b"!DONE 12\n", seen
+    events = [p.parse_line(x) for x in line.raw_since_command if x.startswith(b"!POS")]
+    positions = [e for e in events if isinstance(e, p.Position) and e.device_ms is not None]
+    assert len(positions) >= 6 and positions[0].position == 0, events  # 0.6 s at 15 Hz, the first at the start
+    start_ms = positions[0].device_ms
+    offsets = [(e.device_ms - start_ms) - 50 * e.position for e in positions[1:]]
+    assert all(0 <= off <= 2 for off in offsets), offsets
+    assert len({e.position for e in positions}) >= 5  # the events did fall between pulses, at varied phases
+
+
 def test_v2_clock_stamps_and_position_events(line):
     """T, R and the stamps of P, !POS and !DONE on the device's own clock: the stamps never go back,
     a motion of n pulses at r steps/s spans at least n / r on it, and !POS comes every 1 / R s."""
