@@ -3,7 +3,8 @@
 1. claims a ROS domain of its own (localhost only) and starts `lsu launch sim` (GP32 emulator,
    driver, simulated cameras looking at a synthetic head, extractor, matcher, face processor,
    scan coordinator) as separate processes;
-2. runs a full stop-snap scan through the `/lsu/scan` action with a bag recorded;
+2. runs a full scan through the `/lsu/scan` action with a bag recorded (``--mode``: stop-snap, the
+   default, or a sweep: the carriage at a constant rate while the cameras free-run);
 3. measures the cloud against the renderer's geometry (distance of every point to the true
    head surface: truth from the simulator, not from the code under test);
 4. stops everything and prints where the files are.
@@ -62,8 +63,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
                     pass  # the driver is still starting
                 if graph.process.poll() is not None or time.monotonic() - t0 > 90:
                     raise ScannerError("the graph did not come up (driver not homed within 90 s); see the log above")
+            how = (f"step {args.step} (settle {args.settle} s)" if args.mode == "stopsnap" else
+                   f"sweeping at {args.rate:g} steps/s, {args.fps:g} fps")
             print(f"[demo] graph up and carriage homed after {time.monotonic() - t0:.1f} s; scanning "
-                  f"{args.start}..{args.end} step {args.step} (settle {args.settle} s), recording a bag")
+                  f"{args.start}..{args.end} {how}, recording a bag")
             last = [-1]
 
             def progress(fb) -> None:
@@ -73,7 +76,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                           f"{fb.points_so_far} points, ETA {fb.eta_s:.0f} s", flush=True)
 
             result = scanner.scan(feedback=progress, start=args.start, end=args.end, step=args.step,
-                                  settle_s=args.settle, record_bag=True, label="make demo")
+                                  settle_s=args.settle, record_bag=True, label="make demo", mode=args.mode,
+                                  sweep_rate_steps_s=args.rate, frame_rate_hz=args.fps)
             mesh = Path(result.output_dir) / "mesh.ply"
             deadline = time.monotonic() + 60.0  # face_processor meshes and renders the cloud after the scan
             while result.points and not mesh.is_file() and time.monotonic() < deadline:
@@ -99,7 +103,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
             claim.release()
     folder = Path(result.output_dir)
     print(f"[demo] scan {result.scan_id}: {result.status}")
-    print(f"[demo]   {result.snaps} snaps, {result.points} points in {result.seconds:.1f} s")
+    print(f"[demo]   {result.snaps} {'snaps' if args.mode == 'stopsnap' else 'frames'}, {result.points} points in "
+          f"{result.seconds:.1f} s")
     record = json.loads((folder / "scan.json").read_text()) if (folder / "scan.json").is_file() else {}
     bound = record.get("timings_s", {}).get("mechanical_lower_bound")
     if bound:
@@ -129,7 +134,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--end", type=int, default=470)
     p.add_argument("--step", type=int, default=2)
-    p.add_argument("--settle", type=float, default=0.1)
+    p.add_argument("--settle", type=float, default=0.1, help="stop-snap: settle after each stop [s]")
+    p.add_argument("--mode", choices=("stopsnap", "sweep"), default="stopsnap",
+                   help="stopsnap (stop, settle, capture per line) or sweep (constant rate, free-running cameras)")
+    p.add_argument("--rate", type=float, default=60.0, help="sweep: carriage rate [steps/s], at most 180")
+    p.add_argument("--fps", type=float, default=30.0, help="sweep: camera frame rate [frames/s]")
     p.add_argument("--out", default="", help="parent folder of the scan folder (default scans/ in the current directory)")
     p.set_defaults(func=cmd_demo)
 
