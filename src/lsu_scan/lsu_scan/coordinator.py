@@ -4,11 +4,13 @@ Stop-snap: laser off -> texture pair -> laser on -> for each position: move, set
 acknowledgement of the previous snap (its per-snap `points`; processed during this move and
 settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED -> scan cloud on disk.
 
-Sweep: laser off -> texture pair -> move to the start -> laser on -> one move to the end at the
-sweep rate and the cameras' free-running stream (``stereo/stream``) -> SWEEP_START -> the motion's
-and the stream's end -> stream stop -> SWEEP_END -> laser off -> the matcher's points of every
-published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped are
-counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
+Sweep: laser off -> (a move to the nearer end of the range, unless the carriage stands at one: the
+sweep runs from that end to the other, in either direction) -> laser on -> one move to the other
+end at the sweep rate and the cameras' free-running stream (``stereo/stream``) -> SWEEP_START -> the
+motion's and the stream's end -> stream stop -> SWEEP_END -> laser off -> texture pair (the
+carriage stands still; the matcher meanwhile processes the last frames) -> the matcher's points of
+every published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped
+are counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
@@ -62,7 +64,7 @@ from .scan_plan import (
     plan_positions,
 )
 from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
-from .sweep_plan import FrameCount, SweepPlan, count_frames, plan_sweep, scan_mode
+from .sweep_plan import FrameCount, SweepPlan, count_frames, oriented, plan_sweep, scan_mode
 
 EVENTS_QOS = qos.EVENTS
 LATCHED = qos.LATCHED
@@ -461,9 +463,15 @@ class ScanCoordinatorNode(Node):
         if isinstance(run, Scan.Result):
             return run  # refused before anything moved
         recorder = self._start_bag_or_warn(run) if goal_handle.request.record_bag else None
-        self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
-                               f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
-                               f"{run.plan.settle_s:g} s -> {run.folder}")
+        if run.sweep is None:
+            self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
+                                   f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
+                                   f"{run.plan.settle_s:g} s -> {run.folder}")
+        else:
+            sweep = run.sweep
+            self.get_logger().info(f"scan {run.scan_id}: sweep {sweep.start}..{sweep.end} ({sweep.direction}) at "
+                                   f"{sweep.rate_steps_s:g} steps/s, {sweep.frames_expected} frames at "
+                                   f"{sweep.frame_rate_hz:g} fps -> {run.folder}")
         self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=run.record.snaps_expected)
         cloud_serial_before = self._cloud_serial
         with self._cond:
@@ -523,8 +531,9 @@ class ScanCoordinatorNode(Node):
                                       goal.settle_s, goal.texture)
                 sweep = None
                 if scan_mode(goal.mode) == "sweep":
-                    sweep = plan_sweep(goal.start_steps, goal.end_steps, state.track_steps,
-                                       float(goal.sweep_rate_steps_s), float(goal.frame_rate_hz))
+                    sweep = oriented(plan_sweep(goal.start_steps, goal.end_steps, state.track_steps,
+                                                float(goal.sweep_rate_steps_s), float(goal.frame_rate_hz)),
+                                     float(state.position_steps))
             except ScanGoalError as exc:
                 raise ScanAborted(f"bad goal: {exc}") from None
         except ScanAborted as exc:
@@ -675,17 +684,16 @@ class ScanCoordinatorNode(Node):
         return response, trace, marks["probed"], marks["acked"]
 
     def _sweep_loop(self, goal_handle: Any, run: ScanRun) -> None:
-        """Texture pair, move to the start, then the sweep: one move at the sweep rate while the cameras stream.
+        """Move to the sweep's start if needed, then the sweep: one move at the sweep rate while the cameras
+        stream; the texture pair after it (`_end_sweep`).
 
-        Raises ScanAborted / ScanCanceled (the carriage and the stream stopped first); ``run.captured``
-        holds every frame the stream published, acknowledged or not.
+        ``run.sweep`` is oriented (`sweep_plan.oriented`): its start is the end of the range the carriage
+        stands at or nearer to. Raises ScanAborted / ScanCanceled (the carriage and the stream stopped
+        first); ``run.captured`` holds every frame the stream published, acknowledged or not.
         """
         sweep, state = run.sweep, run.start_state
         assert sweep is not None
         self._set_laser(False)
-        if run.plan.texture:
-            response = self._capture(lit=False)
-            self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         here = int(state.position_steps)
         if here != sweep.start:
             self._feedback(goal_handle, "moving", 0, sweep.frames_expected, sweep.start, 0, [])
@@ -735,7 +743,8 @@ class ScanCoordinatorNode(Node):
                        run.points_total, [1.0 / sweep.frame_rate_hz])
 
     def _end_sweep(self, run: ScanRun, first: int | None, aborted: bool) -> None:
-        """Stream stop and SWEEP_END, laser off, then the matcher's points of the frames published.
+        """Stream stop and SWEEP_END, laser off, the texture pair (not after an abort), then the matcher's
+        points of the frames published.
 
         On an abort the points are awaited only briefly (the frames so far stay in the cloud) and
         nothing here replaces the abort's reason.
@@ -749,6 +758,12 @@ class ScanCoordinatorNode(Node):
                 self._laser_off_safely()
             else:
                 self._set_laser(False)
+                if run.plan.texture:
+                    # the laser-off pair once the carriage has stopped: a continuous sweep has no laser-off
+                    # frame, and here the capture overlaps the matcher's work on the last frames instead
+                    # of delaying the sweep's start
+                    response = self._capture(lit=False)
+                    self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
             if first is not None and not self.shutting_down:
                 self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s))
         except ScanAborted as exc:
