@@ -66,6 +66,12 @@ def test_a_sweep_runs_back_from_the_end_it_stands_at_and_otherwise_from_the_near
     assert (sweep["start_steps"], sweep["end_steps"], sweep["direction"]) == (END, START, "reverse")
     assert record["goal"]["start_steps"] == START and record["goal"]["end_steps"] == END
     assert sweep["frames_expected"] == sweep["frames_processed"] == FRAMES and sweep["frames_dropped"] == 0
+    # no move before it (it stood at the range's end), and the laser-off pair after the laser went off
+    timeline = sweep["timeline_s"]
+    order = ["at_start", "laser_on", "stream_started", "motion_ended", "frames_published", "stream_stopped",
+             "laser_off", "texture", "points"]
+    assert set(timeline) == set(order) and [timeline[k] for k in order] == sorted(timeline.values()), timeline
+    assert record["timings_s"]["mechanical_lower_bound"] < (END - START) / RATE + 0.1  # the sweep and the texture
     # the frames' positions at the commanded rate: from the end down, 2 steps a frame
     assert [s["position_steps"] for s in record["snaps"]] == [END - 2 * k for k in range(FRAMES)]
     moved = json.loads((Path(nearer.output_dir) / "scan.json").read_text())["sweep"]

@@ -82,6 +82,8 @@ class ScanCanceled(ScanAborted):
 
 
 _key = stamps.to_ns  # an image stamp as the key of its acknowledgement
+# after a sweep's last frame has its points, how long frames still without theirs are waited for [s]
+SWEEP_POINTS_GRACE_S = 0.2
 # how long a new scan waits for the driver's and the camera's services (a graph still starting) [s]
 GRAPH_WAIT_S = 20.0
 
@@ -704,10 +706,12 @@ class ScanCoordinatorNode(Node):
                 raise ScanAborted(f"move to {sweep.start} failed: {moved.message}")
             # the stop's vibration decays before the sweep's first frames, as before a stop-snap capture
             self._sleep(goal_handle, run.plan.settle_s - (self._since_stop_s(moved.stopped_stamp) or 0.0))
+        self._mark(run, "at_start")
         if not self._wait(lambda: self.stream.service_is_ready(), 5.0):
             raise ScanAborted(f"service {self.stream.srv_name} is not available: the camera node cannot stream "
                               "(sweep scans need free-running capture; use --mode stopsnap)")
         self._set_laser(True)
+        self._mark(run, "laser_on")
         with self._cond:
             self._exposures.clear()
         request = MoveTo.Request(position_steps=sweep.end, timeout_s=float(self.move_timeout_s),
@@ -726,7 +730,8 @@ class ScanCoordinatorNode(Node):
                 raise ScanAborted(f"stream start failed: {started.message}")
             first = _key(started.first_stamp)
             period_s = float(started.frame_period_s) or 1.0 / sweep.frame_rate_hz
-            run.stream = {"frame_period_s": period_s, "exposure_s": float(started.exposure_s)}
+            run.stream.update(frame_period_s=period_s, exposure_s=float(started.exposure_s))
+            self._mark(run, "stream_started")
             self._event(ScanEvent.SWEEP_START, run.scan_id, run.folder, image_stamp=started.first_stamp,
                         expected_snaps=sweep.frames_expected, position_steps=sweep.start)
             self._await_sweep(goal_handle, run, move, first, period_s)
@@ -758,18 +763,26 @@ class ScanCoordinatorNode(Node):
                 self._laser_off_safely()
             else:
                 self._set_laser(False)
+                self._mark(run, "laser_off")
                 if run.plan.texture:
                     # the laser-off pair once the carriage has stopped: a continuous sweep has no laser-off
                     # frame, and here the capture overlaps the matcher's work on the last frames instead
                     # of delaying the sweep's start
                     response = self._capture(lit=False)
                     self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
+                    self._mark(run, "texture")
             if first is not None and not self.shutting_down:
                 self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s))
+                self._mark(run, "points")
         except ScanAborted as exc:
             if not aborted:
                 raise
             self.get_logger().error(f"sweep end: {exc}")
+
+    @staticmethod
+    def _mark(run: ScanRun, name: str) -> None:
+        """A sweep's timeline in scan.json (``sweep.timeline_s``): seconds from the goal to each stage's end."""
+        run.stream.setdefault("timeline_s", {})[name] = round(time.monotonic() - run.started, 4)
 
     def _published(self, first: int) -> list[int]:
         """Stamps of the stream's pairs received so far (from its first pair on), in order."""
@@ -794,7 +807,10 @@ class ScanCoordinatorNode(Node):
                 self.guard.due("stream", now + stall_s, "stream: no frame from the camera")
             if move.done():
                 self.guard.answered("sweep")  # the carriage stopped; the stream's frames keep the laser's use alive
+                if "motion_ended" not in run.stream.get("timeline_s", {}):
+                    self._mark(run, "motion_ended")
                 if published >= sweep.frames_expected:
+                    self._mark(run, "frames_published")
                     return
             if now - last_new > stall_s + float(self.laser_pause_s):
                 raise ScanAborted(f"stream: no frame from {self.stream.srv_name} for {now - last_new:.1f} s "
@@ -841,6 +857,7 @@ class ScanCoordinatorNode(Node):
                               camera_frames_dropped=int(stopped.frames_dropped))
         self._event(ScanEvent.SWEEP_END, run.scan_id, run.folder, image_stamp=last,
                     snaps_captured=len(keys), expected_snaps=sweep.frames_expected)
+        self._mark(run, "stream_stopped")
         with self._cond:
             arrivals = [self._exposures[k] for k in keys]
         if keys:
@@ -865,7 +882,11 @@ class ScanCoordinatorNode(Node):
     def _await_sweep_points(self, run: ScanRun, timeout_s: float) -> None:
         """The matcher's points of every published frame (or ``timeout_s``); frames without them are dropped."""
         keys = run.frame_keys
-        self._wait(lambda: all(k in self._acks for k in keys), timeout_s)
+        # The matcher publishes a sweep's points in frame order: once the last frame's are in, a frame still
+        # without points gets none before the scan's end releases what it holds back (FINISHED, after this
+        # wait); so waiting longer than a short grace for stragglers only delays the scan.
+        self._wait(lambda: all(k in self._acks for k in keys) or (bool(keys) and keys[-1] in self._acks), timeout_s)
+        self._wait(lambda: all(k in self._acks for k in keys), min(timeout_s, SWEEP_POINTS_GRACE_S))
         processed = []
         for snap, key in zip(run.captured, keys):
             ack = self._acks.pop(key, None)
