@@ -554,6 +554,7 @@ SWEEP_NOTES = (
     "many lines on the face as the default stop-snap scan), sweep_lines_on_face the fewer of their lines on the face "
     "(same rule). Each wall time is the action's: laser on, stream start, the motion, the stream's end, laser off, "
     "the texture pair (taken after the sweep, carriage stopped), the last frames' points, the cloud. "
+    "sweep_lines the fewer frames with the matcher's points of the two, "
     "sweep_frames_dropped_pct (slots without a published pair + pairs the matcher gave no points for, scan.json) and "
     "sweep_live_rms_mm (the cloud's RMS distance to the true head) of the face sweeps (the larger); "
     "sweep_camera_lag_s how late the camera delivered the face sweeps' last pair after its exposure ended (the "
