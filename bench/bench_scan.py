@@ -2,8 +2,9 @@
 
     make bench-scan   ->  bench/results/scan.json
     .venv/bin/python bench/bench_scan.py --only view,two_host   (only parts 3 and 4, merged into scan.json)
-    .venv/bin/python bench/bench_scan.py --only sweep           (only part 5, merged into scan.json)
-    .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 5's accuracy figures, no ROS)
+    .venv/bin/python bench/bench_scan.py --only sweep           (only part 6, merged into scan.json)
+    .venv/bin/python bench/bench_scan.py --only sweep_live      (only part 6's live sweeps, no accuracy study)
+    .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 6's accuracy figures, no ROS)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -29,8 +30,10 @@
 5. Settle (`--only settle`): full scans with scan_coordinator's settle fixed and adaptive, same graph and
    scene: stopsnap_adaptive_settle_scan_s beside stopsnap_fixed_settle_scan_s, and the clouds' RMS distance
    to the true surface (stopsnap_adaptive_rms_over_fixed), so that speed is not bought with error.
-6. Sweep (`lsu scan --mode sweep`): a live sweep 0..470 at 60 steps/s with 30 fps frame pairs on the sim
-   graph (synthetic head 7): sweep_scan_s (action wall time), sweep_lines, sweep_frames_dropped_pct. Then
+6. Sweep (`lsu scan --mode sweep`) on the sim graph (synthetic head 7), 60 steps/s, 30 fps frame pairs: the
+   default stop-snap scan's lines on the face (stopsnap_lines_on_face) and their range of carriage positions,
+   sweeps over that range (sweep_scan_s: action wall time, sweep_lines_on_face, sweep_frames_dropped_pct) and
+   over the whole track (sweep_full_track_scan_s). Then
    the same head rendered and reconstructed without ROS (`lsu_accuracy.sweep_sim`), same scene and
    physics: a stop-snap scan 0..470 step 2 (settle 0.1 s after the emulator's post-stop vibration) and
    sweeps at 60 steps/s, 30 fps, synchronised and with the right camera 50 ms late (+-5 ms jitter);
@@ -530,15 +533,35 @@ def settle_figures(tmp: Path) -> dict:
 
 
 SWEEP_RATE, SWEEP_FPS, SWEEP_OFFSET_S, SWEEP_JITTER_S = 60.0, 30.0, 0.050, 0.005
+# a line lands on the face when at least this many of its points lie within ON_FACE_MM of the true head
+ON_FACE_POINTS, ON_FACE_MM = 20, 1.0
+FACE_MARGIN_STEPS = 4  # added at each end of the stop-snap scan's range of lines on the face (2 lines at 2 steps)
+# the face sweeps' rate: 5 % more frames over the range than stop-snap's 2 steps per line, so that a frame or
+# two lost on a loaded host still leaves at least as many lines on the face (60 / 1.05 steps/s)
+FACE_SWEEP_RATE = round(SWEEP_RATE / 1.05, 1)
 SWEEP_NOTES = (
-    f"sweep: live `lsu scan --mode sweep` 0..470 at {SWEEP_RATE:g} steps/s, {SWEEP_FPS:g} fps on lsu launch sim (head 7, "
-    "no bag, texture on; the cameras free-run, /lsu/stereo/stream): sweep_scan_s is the action's wall time (texture "
-    "pair + move to the start + the sweep + the stream's end + the last frames' points), sweep_lines the frames "
-    "with points, sweep_frames_dropped_pct the frame slots without a published pair plus the pairs the matcher "
-    "gave no points for (scan.json, counted from stamps), sweep_live_rms_mm the live cloud's RMS distance to the "
-    "true head; sweep_camera_lag_s how late the camera delivered its last pair after that pair's exposure ended "
-    "(the simulated rig renders slower than 30 fps on a small host), sweep_scan_minus_render_lag_s the wall time "
-    "less that lag (what a real camera at 30 fps would give; the render-bound sweep_scan_s is the figure). Accuracy without ROS (lsu_accuracy.sweep_sim, head 7 at 300 mm, calibration "
+    f"sweep: live on lsu launch sim (head 7 at 300 mm, no bag, texture on; the cameras free-run, /lsu/stereo/stream, "
+    f"{SWEEP_FPS:g} fps, {SWEEP_RATE:g} steps/s), in one graph after a warm-up sweep: the default stop-snap scan 0..470 "
+    f"step 2; stopsnap_lines_on_face = its snaps with at least {ON_FACE_POINTS} points within {ON_FACE_MM:g} mm of the "
+    "true head surface, at carriage positions sweep_face_start_steps..sweep_face_end_steps (the first and last such "
+    f"snap, widened by {FACE_MARGIN_STEPS} steps at each end). Then the full track as a sweep (it starts at 470, where "
+    "the stop-snap scan left the carriage, and runs back to 0: no move): sweep_full_track_scan_s (236 frames). Then "
+    f"three sweeps over the face range at {FACE_SWEEP_RATE:g} steps/s (5 % more frames than stop-snap's 2 steps per "
+    "line over the range, so that a frame lost on a loaded host still leaves as many lines on the face): the first from "
+    "0 (a move to the range's nearer end, then forward): "
+    "sweep_face_with_move_scan_s; then back (reverse) and forth (forward), each starting where the carriage stands: "
+    "sweep_scan_s is the mean of those two action wall times (the goal's figure: a sweep over the face with at least as "
+    "many lines on the face as the default stop-snap scan), sweep_lines_on_face the fewer of their lines on the face "
+    "(same rule). Each wall time is the action's: laser on, stream start, the motion, the stream's end, laser off, "
+    "the texture pair (taken after the sweep, carriage stopped), the last frames' points, the cloud. "
+    "sweep_lines the fewer frames with the matcher's points of the two, "
+    "sweep_frames_dropped_pct (slots without a published pair + pairs the matcher gave no points for, scan.json) and "
+    "sweep_live_rms_mm (the cloud's RMS distance to the true head) of the face sweeps (the larger); "
+    "sweep_camera_lag_s how late the camera delivered the face sweeps' last pair after its exposure ended (the "
+    "simulated rig renders slower than 30 fps on a small host; the larger of the two), sweep_scan_minus_render_lag_s "
+    "the mean of each face sweep's wall time less its lag (what a real camera at 30 fps would give), "
+    "sweep_face_motion_s the mean time from the stream's start to the end of the motion (scan.json "
+    "sweep.timeline_s); _full_track the same for the full-track sweep (60 steps/s). Accuracy without ROS (lsu_accuracy.sweep_sim, head 7 at 300 mm, calibration "
     "config/calibration/sim with its laser.yaml): stop-snap 0..470 step 2 with the emulator's vibration 0.1 s "
     f"after each stop vs sweeps at {SWEEP_RATE:g} steps/s, {SWEEP_FPS:g} fps (sheet moving during each 20 ms exposure), "
     f"synchronised and with the right camera {1000 * SWEEP_OFFSET_S:g} ms late (jitter {1000 * SWEEP_JITTER_S:g} ms "
@@ -556,37 +579,109 @@ SWEEP_UNITS = {"sweep_scan_s": "s", "sweep_lines": "lines", "sweep_frames_droppe
                "sweep_rms_over_stopsnap_checked": "x", "sweep_rms_over_stopsnap_checked_50ms": "x",
                "sweep_50ms_per_frame_rms_mm": "mm", "sweep_rms_over_stopsnap_checked_50ms_per_frame": "x",
                "sweep_live_rms_mm": "mm", "sweep_camera_lag_s": "s", "sweep_scan_minus_render_lag_s": "s",
-               "sweep_frames_not_published": "frames", "sweep_frames_not_processed": "frames"}
+               "sweep_frames_not_published": "frames", "sweep_frames_not_processed": "frames",
+               "sweep_lines_on_face": "lines", "stopsnap_lines_on_face": "lines", "sweep_face_start_steps": "steps",
+               "sweep_face_end_steps": "steps", "sweep_face_frames": "frames", "sweep_face_with_move_scan_s": "s",
+               "sweep_scan_s_reverse": "s", "sweep_scan_s_forward": "s", "sweep_full_track_scan_s": "s",
+               "sweep_full_track_lines_on_face": "lines", "sweep_full_track_frames": "frames",
+               "sweep_full_track_camera_lag_s": "s", "sweep_full_track_minus_render_lag_s": "s",
+               "sweep_full_track_frames_dropped_pct": "%", "stopsnap_face_scan_s": "s", "sweep_face_motion_s": "s",
+               "sweep_face_rate_steps_s": "steps/s"}
+
+
+def lines_on_face(folder: Path, scene: str = "head:7") -> dict[int, int]:
+    """A scan's lines (snaps or sweep frames) that land on the face: carriage position [steps] -> points on it.
+
+    A line counts when at least ON_FACE_POINTS of its points lie within ON_FACE_MM of the true head surface
+    (the sim's scene: it holds the head only, so a line off the head gives no points or a few stray ones).
+    """
+    import numpy as np
+
+    from lsu_accuracy.accuracy import surface_distances_m
+    from lsu_bags.ply import read_ply
+    from lsu_cameras.sim import build_scene, load_rig
+
+    record = json.loads((folder / "scan.json").read_text())
+    position = {int(s["index"]): int(s["position_steps"]) for s in record["snaps"]}
+    columns, _faces = read_ply(folder / "cloud.ply")
+    xyz = np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
+    near = surface_distances_m(build_scene(scene, load_rig()), xyz) * 1000.0 <= ON_FACE_MM
+    out = {}
+    for index in np.unique(columns["snap"]):
+        count = int(np.count_nonzero(near[columns["snap"] == index]))
+        if count >= ON_FACE_POINTS:
+            out[position[int(index)]] = count
+    return out
 
 
 def sweep_live(tmp: Path) -> dict:
-    """Part 6, live: one sweep over the head on the sim graph; wall time, frame accounting, the cloud's RMS."""
+    """Part 6, live: the default stop-snap scan's lines on the face, then sweeps over that range and the whole track."""
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
     from lsu_tools.demo import accuracy_against_scene
 
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    runs: dict = {}
     try:
         graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
         graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
         with LsuScanner(wait_s=60) as scanner:
             scanner.scan(start=200, end=230, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # warm-up
-            result = scanner.scan(start=0, end=470, mode="sweep", sweep_rate_steps_s=SWEEP_RATE,
-                                  frame_rate_hz=SWEEP_FPS)
+
+            def scan(name: str, **goal) -> Path:
+                result = scanner.scan(**goal)
+                if not result.success:
+                    raise RuntimeError(f"the {name} scan failed: {result.status}")
+                runs[name] = result
+                return Path(result.output_dir)
+
+            face = lines_on_face(scan("stopsnap", start=0, end=470, step=2, settle_s=0.1))
+            if not face:
+                raise RuntimeError("the stop-snap scan has no line on the face")
+            lo, hi = max(0, min(face) - FACE_MARGIN_STEPS), min(470, max(face) + FACE_MARGIN_STEPS)
+            sweep = {"mode": "sweep", "sweep_rate_steps_s": FACE_SWEEP_RATE, "frame_rate_hz": SWEEP_FPS}
+            # the stop-snap scan ended at 470: the full track runs back from there
+            scan("full_track", start=0, end=470, **{**sweep, "sweep_rate_steps_s": SWEEP_RATE})
+            scan("face_with_move", start=lo, end=hi, **sweep)  # from 0: to the nearer end (lo), then up
+            scan("face_reverse", start=lo, end=hi, **sweep)    # from hi, where the last one ended: back down
+            scan("face_forward", start=lo, end=hi, **sweep)    # from lo: up
     finally:
         graph.interrupt(timeout_s=20)
         graph.kill()
-    if not result.success:
-        raise RuntimeError(f"the sweep scan failed: {result.status}")
-    folder = Path(result.output_dir)
-    sweep = json.loads((folder / "scan.json").read_text())["sweep"]
-    lag = float(sweep.get("camera_lag_s", 0.0))
-    return {"sweep_scan_s": result.seconds, "sweep_lines": sweep["frames_processed"], "sweep_points": result.points,
-            "sweep_frames_dropped_pct": sweep["frames_dropped_pct"],
-            "sweep_frames_not_published": sweep["frames_not_published"],
-            "sweep_frames_not_processed": sweep["frames_not_processed"],
-            "sweep_live_rms_mm": accuracy_against_scene(folder / "cloud.ply", "head:7")["rms_mm"],
-            "sweep_camera_lag_s": lag, "sweep_scan_minus_render_lag_s": result.seconds - max(0.0, lag)}
+    records = {name: json.loads((Path(r.output_dir) / "scan.json").read_text()) for name, r in runs.items()}
+    sweeps = {name: rec["sweep"] for name, rec in records.items() if "sweep" in rec and rec["sweep"]}
+    directions = {name: sweeps[name]["direction"] for name in ("full_track", "face_reverse", "face_forward")}
+    if directions != {"full_track": "reverse", "face_reverse": "reverse", "face_forward": "forward"}:
+        raise RuntimeError(f"the sweeps did not start where the carriage stood: {directions}")
+    on_face = {name: lines_on_face(Path(runs[name].output_dir)) for name in ("full_track", "face_reverse", "face_forward")}
+    faces = ("face_reverse", "face_forward")
+    wall = sum(runs[n].seconds for n in faces) / 2
+    lags = {n: max(0.0, float(sweeps[n].get("camera_lag_s", 0.0))) for n in faces}
+    timeline = {n: sweeps[n]["timeline_s"] for n in faces}
+    motion = sum(t["motion_ended"] - t["stream_started"] for t in timeline.values()) / 2
+    full_lag = float(sweeps["full_track"].get("camera_lag_s", 0.0))
+    rms = max(accuracy_against_scene(Path(runs[n].output_dir) / "cloud.ply", "head:7")["rms_mm"] for n in faces)
+    return {"sweep_scan_s": wall, "sweep_scan_s_reverse": runs["face_reverse"].seconds,
+            "sweep_scan_s_forward": runs["face_forward"].seconds,
+            "sweep_face_with_move_scan_s": runs["face_with_move"].seconds,
+            "sweep_lines_on_face": min(len(on_face[n]) for n in faces), "stopsnap_lines_on_face": len(face),
+            "stopsnap_face_scan_s": runs["stopsnap"].seconds,
+            "sweep_face_start_steps": lo, "sweep_face_end_steps": hi,
+            "sweep_face_frames": min(sweeps[n]["frames_expected"] for n in faces),
+            "sweep_lines": min(sweeps[n]["frames_processed"] for n in faces),
+            "sweep_points": min(runs[n].points for n in faces),
+            "sweep_frames_dropped_pct": max(sweeps[n]["frames_dropped_pct"] for n in faces),
+            "sweep_frames_not_published": max(sweeps[n]["frames_not_published"] for n in faces),
+            "sweep_frames_not_processed": max(sweeps[n]["frames_not_processed"] for n in faces),
+            "sweep_live_rms_mm": rms, "sweep_camera_lag_s": max(lags.values()),
+            "sweep_scan_minus_render_lag_s": sum(runs[n].seconds - lags[n] for n in faces) / 2,
+            "sweep_face_motion_s": motion, "sweep_face_rate_steps_s": FACE_SWEEP_RATE,
+            "sweep_full_track_scan_s": runs["full_track"].seconds,
+            "sweep_full_track_frames": sweeps["full_track"]["frames_processed"],
+            "sweep_full_track_lines_on_face": len(on_face["full_track"]),
+            "sweep_full_track_frames_dropped_pct": sweeps["full_track"]["frames_dropped_pct"],
+            "sweep_full_track_camera_lag_s": full_lag,
+            "sweep_full_track_minus_render_lag_s": runs["full_track"].seconds - max(0.0, full_lag)}
 
 
 def sweep_accuracy() -> dict:
@@ -623,9 +718,9 @@ def sweep_accuracy() -> dict:
 
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the replay, live-view and/or two-host figures and merge them into the existing scan.json."""
-    unknown = parts - {"replay", "view", "two_host", "settle", "sweep", "sweep_accuracy"}
+    unknown = parts - {"replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy"}
     if unknown:
-        raise SystemExit("--only takes replay, view, two_host, settle, sweep, sweep_accuracy (comma-separated); "
+        raise SystemExit("--only takes replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
@@ -645,7 +740,7 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
                 figures.update(settle_figures(tmp))
-            if "sweep" in parts:
+            if parts & {"sweep", "sweep_live"}:
                 figures.update(sweep_live(tmp))
             if parts & {"sweep", "sweep_accuracy"}:
                 figures.update(sweep_accuracy())
@@ -678,7 +773,7 @@ def only(parts: set, bag: Path | None = None) -> int:
             f" {VIEW_NOTES} [{', '.join(sorted(view_parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
             f"`bench_scan.py --only {','.join(sorted(view_parts))}`, load average {os.getloadavg()[0]:.1f} on "
             f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
-        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else kept_settle)
+        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_live", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else kept_settle)
     if parts:
         write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=notes)
     if failure is not None:

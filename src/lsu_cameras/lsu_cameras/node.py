@@ -22,7 +22,9 @@ refused while a stream runs (the stream's own frames are the pairs to use).
 
 from __future__ import annotations
 
+import contextlib
 import math
+import queue
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,6 +109,13 @@ PARAMETERS: dict[str, Param] = {
 
 MAX_FRAME_RATE_HZ = 1000.0
 START_PAST_LIMIT_S = 1.0  # a stream start further in the past is refused (clock mix-up)
+# rendered pairs waiting for the publishing thread (a clocked stream): the render of the next pair overlaps
+# the wait for the readers of this one
+RENDER_AHEAD = 2
+# a simulated pair of a stream is rendered this long after its exposures ended [s]: the emulator publishes its
+# exact samples of a motion's start or stop from its executor, on a busy host tens of ms after they happened,
+# and a pair rendered before they are in shows the carriage where it was not
+TRUTH_DELAY_S = 0.1
 TRUTH_DEPTH = 64          # sim/truth samples held by DDS between two reads (50 Hz x > 1 s of rendering)
 
 
@@ -584,25 +593,64 @@ class StereoCameraNode(Node):
                               f"lower rate (every pair up to here was published)")
 
     def _run_clocked(self, stream: _Stream, source: StereoSource) -> None:
-        """Frame k exposed from t_k = t0 + k * period, published once it can exist; never a slot skipped."""
-        ready_ns = stamps.seconds_to_ns(source.ready_after_s)
-        index = 0
-        while not stream.frames or index < stream.frames:
-            t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)
+        """Frame k exposed from t_k = t0 + k * period, published once it can exist; never a slot skipped.
+
+        Two stages: a render thread makes each pair once its slot's time has come (`_render_clocked`), and
+        this thread publishes them in order and waits for the readers' acknowledgements meanwhile. Done one
+        after the other, a render (~30 ms of CPU for a simulated pair) plus the wait for the readers took
+        longer than a 30 fps period and the stream fell behind; the pairs themselves are the same (their
+        content is fixed by the slot's stamp, index and the carriage truth then).
+        """
+        rendered: queue.Queue[tuple[int, int, StereoPair] | BaseException | None] = queue.Queue(maxsize=RENDER_AHEAD)
+        quit_rendering = threading.Event()
+        renderer = threading.Thread(target=self._render_clocked, args=(stream, source, rendered, quit_rendering),
+                                    name="lsu-camera-render", daemon=True)
+        renderer.start()
+        try:
             while True:
-                with self._stream_lock:
-                    stop_at = stream.stop_at_ns
-                if stop_at is not None and t_ns >= stop_at:
+                item = rendered.get()
+                if item is None:
                     return
-                wait_ns = t_ns + ready_ns - self._now_ns()
-                if wait_ns <= 0:
-                    break
-                stream.wake.wait(stamps.ns_to_seconds(wait_ns))
-                stream.wake.clear()
-            with self._lock:
-                pair = source.pair_at(t_ns, index)
-            self._stream_publish(stream, pair, t_ns, index)
-            index += 1
+                if isinstance(item, BaseException):
+                    raise item
+                index, t_ns, pair = item
+                self._stream_publish(stream, pair, t_ns, index)
+        finally:
+            quit_rendering.set()
+            while renderer.is_alive():  # it may be blocked on a full queue
+                with contextlib.suppress(queue.Empty):
+                    rendered.get_nowait()
+                renderer.join(timeout=0.05)
+
+    def _render_clocked(self, stream: _Stream, source: StereoSource,
+                        rendered: queue.Queue[tuple[int, int, StereoPair] | BaseException | None],
+                        quit_rendering: threading.Event) -> None:
+        """The render stage of `_run_clocked`: (index, stamp, pair) per slot in order, then None (or the error)."""
+        ready_ns = stamps.seconds_to_ns(source.ready_after_s)
+        if isinstance(source, SimSource):
+            ready_ns += stamps.seconds_to_ns(TRUTH_DELAY_S)
+        index = 0
+        try:
+            while (not stream.frames or index < stream.frames) and not quit_rendering.is_set():
+                t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)
+                while True:
+                    with self._stream_lock:
+                        stop_at = stream.stop_at_ns
+                    if (stop_at is not None and t_ns >= stop_at) or quit_rendering.is_set():
+                        rendered.put(None)
+                        return
+                    wait_ns = t_ns + ready_ns - self._now_ns()
+                    if wait_ns <= 0:
+                        break
+                    stream.wake.wait(stamps.ns_to_seconds(wait_ns))
+                    stream.wake.clear()
+                with self._lock:
+                    pair = source.pair_at(t_ns, index)
+                rendered.put((index, t_ns, pair))
+                index += 1
+            rendered.put(None)
+        except BaseException as exc:  # noqa: BLE001 - handed to the publishing thread, which reports it
+            rendered.put(exc)
 
     def _run_free(self, stream: _Stream, source: StereoSource) -> None:
         """Pairs at the devices' rate, stamped from their buffers; missing slots show as stamp gaps."""

@@ -40,10 +40,10 @@ def true_sheet(geometry) -> LaserSheet:
                       rejected=0, positions=(0, int(geometry.track_steps)))
 
 
-def driver_track(duration_s: float, rate_hz: float = 20.0, start: float = 0.0) -> CarriageTrack:
+def driver_track(duration_s: float, rate_hz: float = 20.0, start: float = 0.0, velocity: float = RATE) -> CarriageTrack:
     """What the driver publishes during a sweep: the integer step counter every 1/rate_hz s, and the stop."""
     stamps = np.r_[np.arange(0.0, duration_s, 1.0 / rate_hz), duration_s]
-    return CarriageTrack(stamps, np.rint(start + RATE * stamps))
+    return CarriageTrack(stamps, np.rint(start + velocity * stamps))
 
 
 def lines(image: AnyArray) -> LineArrays:
@@ -113,13 +113,15 @@ def test_moving_line_is_the_sheet_at_mid_exposure(rig_model):
     assert off_mid < 0.1 * off_start
 
 
-def render_sweep(geometry, objects, offset_s: float, jitter_s: float, frames, seed: int = 1):
+def render_sweep(geometry, objects, offset_s: float, jitter_s: float, frames, seed: int = 1, start: float = 0.0,
+                 velocity: float = RATE):
+    """Frames ``frames`` of a sweep from ``start`` at ``velocity`` steps/s (negative: towards 0), 30 fps."""
     rig = SimulatedRig(geometry, objects, seed=seed)
     rig.set_capture_timing(offset_s, jitter_s)
     out = []
     for index in frames:
         t = index / 30.0
-        frame = rig.render(CarriageState(0.0, True, velocity_steps_per_s=RATE, position_time_s=0.0),
+        frame = rig.render(CarriageState(start, True, velocity_steps_per_s=velocity, position_time_s=0.0),
                            capture_time_s=t, seed=seed + index)
         out.append(SweepFrame(index, lines(frame.left), lines(frame.right), float(frame.exposure_start_s[0]),
                               float(frame.exposure_start_s[1]), geometry.sensor.exposure_s))
@@ -302,3 +304,62 @@ def test_cross_frame_interpolation_puts_the_left_line_on_the_sheet_and_rejects_a
     # two exposures): its crossings are tens of pixels away, no point is interpolated across it
     edge = reconstruct_sweep(model, sheet, track, [frame(0, 248.0, 249.0), frame(1, 250.0, 251.0, right_z=0.27)])[1]
     assert len(edge.points) == 0 and edge.stats["cross_rejected_jump"] > 100
+
+
+# ---------------------------------------------------------------- the reverse direction (end -> start)
+REVERSE_START = 470.0  # a sweep back from the end of the track, e.g. after a scan that ended there
+
+
+def test_a_reverse_carriage_track_interpolates_and_extrapolates_downwards():
+    track = driver_track(4.0, start=REVERSE_START, velocity=-RATE)
+    for start in (0.013, 1.2345, 3.9):
+        mid = exposure_mid_s(start, 0.02)
+        assert abs(float(track.position_at(mid)) - (REVERSE_START - RATE * mid)) <= 0.5
+    assert float(track.position_at(4.5)) == REVERSE_START - 240.0  # stopped at the end of the motion
+    assert float(track.position_at(-0.05)) == pytest.approx(REVERSE_START + 3.0)  # the rate continued backwards
+    running = CarriageTrack(track.stamps_s[:-1], track.positions_steps[:-1], moving=np.ones(len(track.stamps_s) - 1))
+    assert float(running.position_at(4.0)) == pytest.approx(REVERSE_START - 240.0, abs=0.6)
+
+
+def test_reverse_cross_frame_interpolation_puts_the_left_line_on_the_sheet(rig_model):
+    """Analytic lines on a plane, carriage running down: the right lines at 251 and 249, the left at 250."""
+    geometry, model = rig_model
+    sheet = true_sheet(geometry)
+    track = CarriageTrack(np.array([0.0, 10.0]), np.array([REVERSE_START, REVERSE_START - 10.0 * RATE]))
+    exposure = 0.02
+
+    def frame(index: int, p_left: float, p_right: float) -> SweepFrame:
+        t_left, t_right = (REVERSE_START - p_left) / RATE, (REVERSE_START - p_right) / RATE
+        return SweepFrame(index, _plane_line(model, sheet, "left", p_left, 0.3),
+                          _plane_line(model, sheet, "right", p_right, 0.3),
+                          t_left - exposure / 2, t_right - exposure / 2, exposure)
+
+    out = reconstruct_sweep(model, sheet, track, [frame(0, 252.0, 251.0), frame(1, 250.0, 249.0)])
+    assert [r.positions_steps[0] for r in out] == pytest.approx([252.0, 250.0])
+    # the second left line (250) lies between the right lines exposed before (251) and after (249) it
+    second = out[1]
+    assert np.all(second.source == SOURCE_CROSS_STEREO) and len(second.points) > 100
+    xyz = second.points.xyz
+    assert np.max(np.abs(xyz[:, 2] - 0.3)) * 1000.0 < 0.005
+    assert np.max(np.abs(sheet.distance_m(xyz, np.full(len(xyz), 250.0)))) * 1000.0 < 0.005
+
+
+def test_a_reverse_50ms_sweep_lies_on_the_rendered_head_like_a_forward_one(rig_model):
+    """Carriage 470 -> 0 at 60 steps/s over the head (frames at 280..250 steps), right camera 50 ms late:
+    each left line matched across frames lands on the rendered head as in the forward sweep."""
+    geometry, model = rig_model
+    objects = build_scene("head:7", geometry)
+    frames = render_sweep(geometry, objects, offset_s=0.05, jitter_s=0.005, frames=range(95, 111), seed=7,
+                          start=REVERSE_START, velocity=-RATE)
+    sheet, track = true_sheet(geometry), driver_track(7.9, start=REVERSE_START, velocity=-RATE)
+    results = reconstruct_sweep(model, sheet, track, frames)
+    assert [r.points.snap[0] for r in results if len(r.points)] == [f.index for f in frames if len(f.left)]
+    # each frame placed where the carriage was at its left camera's mid-exposure (the driver's integer counter
+    # at 20 Hz: within half a step), decreasing frame by frame
+    lefts = np.array([r.positions_steps[0] for r in results])
+    truth = np.array([REVERSE_START - RATE * exposure_mid_s(f.left_start_s, f.exposure_s) for f in frames])
+    assert np.max(np.abs(lefts - truth)) <= 0.5 and np.all(np.diff(lefts) < 0)
+    cross = results[2:]
+    assert all(np.all(r.source == SOURCE_CROSS_STEREO) and len(r.points) > 150 for r in cross)
+    err = np.concatenate([surface_distance_mm(objects, r.points.xyz) for r in cross])
+    assert float(np.sqrt(np.mean(err ** 2))) < 0.17

@@ -4,11 +4,13 @@ Stop-snap: laser off -> texture pair -> laser on -> for each position: move, set
 acknowledgement of the previous snap (its per-snap `points`; processed during this move and
 settle), capture, SNAP event -> last acknowledgement -> laser off -> FINISHED -> scan cloud on disk.
 
-Sweep: laser off -> texture pair -> move to the start -> laser on -> one move to the end at the
-sweep rate and the cameras' free-running stream (``stereo/stream``) -> SWEEP_START -> the motion's
-and the stream's end -> stream stop -> SWEEP_END -> laser off -> the matcher's points of every
-published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped are
-counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
+Sweep: laser off -> (a move to the nearer end of the range, unless the carriage stands at one: the
+sweep runs from that end to the other, in either direction) -> laser on -> one move to the other
+end at the sweep rate and the cameras' free-running stream (``stereo/stream``) -> SWEEP_START -> the
+motion's and the stream's end -> stream stop -> SWEEP_END -> laser off -> texture pair (the
+carriage stands still; the matcher meanwhile processes the last frames) -> the matcher's points of
+every published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped
+are counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
@@ -62,7 +64,7 @@ from .scan_plan import (
     plan_positions,
 )
 from .settle import DEFAULT_TOLERANCE_PX, SETTLE_MODES, SettleTrace, profile_from_line, settle_from_images
-from .sweep_plan import FrameCount, SweepPlan, count_frames, plan_sweep, scan_mode
+from .sweep_plan import FrameCount, SweepPlan, count_frames, oriented, plan_sweep, scan_mode
 
 EVENTS_QOS = qos.EVENTS
 LATCHED = qos.LATCHED
@@ -80,6 +82,8 @@ class ScanCanceled(ScanAborted):
 
 
 _key = stamps.to_ns  # an image stamp as the key of its acknowledgement
+# after a sweep's last frame has its points, how long frames still without theirs are waited for [s]
+SWEEP_POINTS_GRACE_S = 0.2
 # how long a new scan waits for the driver's and the camera's services (a graph still starting) [s]
 GRAPH_WAIT_S = 20.0
 
@@ -461,9 +465,15 @@ class ScanCoordinatorNode(Node):
         if isinstance(run, Scan.Result):
             return run  # refused before anything moved
         recorder = self._start_bag_or_warn(run) if goal_handle.request.record_bag else None
-        self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
-                               f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
-                               f"{run.plan.settle_s:g} s -> {run.folder}")
+        if run.sweep is None:
+            self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
+                                   f"{run.plan.positions[-1]} step {goal_handle.request.step_steps}, settle "
+                                   f"{run.plan.settle_s:g} s -> {run.folder}")
+        else:
+            sweep = run.sweep
+            self.get_logger().info(f"scan {run.scan_id}: sweep {sweep.start}..{sweep.end} ({sweep.direction}) at "
+                                   f"{sweep.rate_steps_s:g} steps/s, {sweep.frames_expected} frames at "
+                                   f"{sweep.frame_rate_hz:g} fps -> {run.folder}")
         self._event(ScanEvent.STARTED, run.scan_id, run.folder, expected_snaps=run.record.snaps_expected)
         cloud_serial_before = self._cloud_serial
         with self._cond:
@@ -523,8 +533,9 @@ class ScanCoordinatorNode(Node):
                                       goal.settle_s, goal.texture)
                 sweep = None
                 if scan_mode(goal.mode) == "sweep":
-                    sweep = plan_sweep(goal.start_steps, goal.end_steps, state.track_steps,
-                                       float(goal.sweep_rate_steps_s), float(goal.frame_rate_hz))
+                    sweep = oriented(plan_sweep(goal.start_steps, goal.end_steps, state.track_steps,
+                                                float(goal.sweep_rate_steps_s), float(goal.frame_rate_hz)),
+                                     float(state.position_steps))
             except ScanGoalError as exc:
                 raise ScanAborted(f"bad goal: {exc}") from None
         except ScanAborted as exc:
@@ -675,17 +686,16 @@ class ScanCoordinatorNode(Node):
         return response, trace, marks["probed"], marks["acked"]
 
     def _sweep_loop(self, goal_handle: Any, run: ScanRun) -> None:
-        """Texture pair, move to the start, then the sweep: one move at the sweep rate while the cameras stream.
+        """Move to the sweep's start if needed, then the sweep: one move at the sweep rate while the cameras
+        stream; the texture pair after it (`_end_sweep`).
 
-        Raises ScanAborted / ScanCanceled (the carriage and the stream stopped first); ``run.captured``
-        holds every frame the stream published, acknowledged or not.
+        ``run.sweep`` is oriented (`sweep_plan.oriented`): its start is the end of the range the carriage
+        stands at or nearer to. Raises ScanAborted / ScanCanceled (the carriage and the stream stopped
+        first); ``run.captured`` holds every frame the stream published, acknowledged or not.
         """
         sweep, state = run.sweep, run.start_state
         assert sweep is not None
         self._set_laser(False)
-        if run.plan.texture:
-            response = self._capture(lit=False)
-            self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
         here = int(state.position_steps)
         if here != sweep.start:
             self._feedback(goal_handle, "moving", 0, sweep.frames_expected, sweep.start, 0, [])
@@ -696,10 +706,12 @@ class ScanCoordinatorNode(Node):
                 raise ScanAborted(f"move to {sweep.start} failed: {moved.message}")
             # the stop's vibration decays before the sweep's first frames, as before a stop-snap capture
             self._sleep(goal_handle, run.plan.settle_s - (self._since_stop_s(moved.stopped_stamp) or 0.0))
+        self._mark(run, "at_start")
         if not self._wait(lambda: self.stream.service_is_ready(), 5.0):
             raise ScanAborted(f"service {self.stream.srv_name} is not available: the camera node cannot stream "
                               "(sweep scans need free-running capture; use --mode stopsnap)")
         self._set_laser(True)
+        self._mark(run, "laser_on")
         with self._cond:
             self._exposures.clear()
         request = MoveTo.Request(position_steps=sweep.end, timeout_s=float(self.move_timeout_s),
@@ -718,7 +730,8 @@ class ScanCoordinatorNode(Node):
                 raise ScanAborted(f"stream start failed: {started.message}")
             first = _key(started.first_stamp)
             period_s = float(started.frame_period_s) or 1.0 / sweep.frame_rate_hz
-            run.stream = {"frame_period_s": period_s, "exposure_s": float(started.exposure_s)}
+            run.stream.update(frame_period_s=period_s, exposure_s=float(started.exposure_s))
+            self._mark(run, "stream_started")
             self._event(ScanEvent.SWEEP_START, run.scan_id, run.folder, image_stamp=started.first_stamp,
                         expected_snaps=sweep.frames_expected, position_steps=sweep.start)
             self._await_sweep(goal_handle, run, move, first, period_s)
@@ -735,7 +748,8 @@ class ScanCoordinatorNode(Node):
                        run.points_total, [1.0 / sweep.frame_rate_hz])
 
     def _end_sweep(self, run: ScanRun, first: int | None, aborted: bool) -> None:
-        """Stream stop and SWEEP_END, laser off, then the matcher's points of the frames published.
+        """Stream stop and SWEEP_END, laser off, the texture pair (not after an abort), then the matcher's
+        points of the frames published.
 
         On an abort the points are awaited only briefly (the frames so far stay in the cloud) and
         nothing here replaces the abort's reason.
@@ -749,12 +763,26 @@ class ScanCoordinatorNode(Node):
                 self._laser_off_safely()
             else:
                 self._set_laser(False)
+                self._mark(run, "laser_off")
+                if run.plan.texture:
+                    # the laser-off pair once the carriage has stopped: a continuous sweep has no laser-off
+                    # frame, and here the capture overlaps the matcher's work on the last frames instead
+                    # of delaying the sweep's start
+                    response = self._capture(lit=False)
+                    self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
+                    self._mark(run, "texture")
             if first is not None and not self.shutting_down:
                 self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s))
+                self._mark(run, "points")
         except ScanAborted as exc:
             if not aborted:
                 raise
             self.get_logger().error(f"sweep end: {exc}")
+
+    @staticmethod
+    def _mark(run: ScanRun, name: str) -> None:
+        """A sweep's timeline in scan.json (``sweep.timeline_s``): seconds from the goal to each stage's end."""
+        run.stream.setdefault("timeline_s", {})[name] = round(time.monotonic() - run.started, 4)
 
     def _published(self, first: int) -> list[int]:
         """Stamps of the stream's pairs received so far (from its first pair on), in order."""
@@ -779,7 +807,10 @@ class ScanCoordinatorNode(Node):
                 self.guard.due("stream", now + stall_s, "stream: no frame from the camera")
             if move.done():
                 self.guard.answered("sweep")  # the carriage stopped; the stream's frames keep the laser's use alive
+                if "motion_ended" not in run.stream.get("timeline_s", {}):
+                    self._mark(run, "motion_ended")
                 if published >= sweep.frames_expected:
+                    self._mark(run, "frames_published")
                     return
             if now - last_new > stall_s + float(self.laser_pause_s):
                 raise ScanAborted(f"stream: no frame from {self.stream.srv_name} for {now - last_new:.1f} s "
@@ -826,6 +857,7 @@ class ScanCoordinatorNode(Node):
                               camera_frames_dropped=int(stopped.frames_dropped))
         self._event(ScanEvent.SWEEP_END, run.scan_id, run.folder, image_stamp=last,
                     snaps_captured=len(keys), expected_snaps=sweep.frames_expected)
+        self._mark(run, "stream_stopped")
         with self._cond:
             arrivals = [self._exposures[k] for k in keys]
         if keys:
@@ -850,7 +882,11 @@ class ScanCoordinatorNode(Node):
     def _await_sweep_points(self, run: ScanRun, timeout_s: float) -> None:
         """The matcher's points of every published frame (or ``timeout_s``); frames without them are dropped."""
         keys = run.frame_keys
-        self._wait(lambda: all(k in self._acks for k in keys), timeout_s)
+        # The matcher publishes a sweep's points in frame order: once the last frame's are in, a frame still
+        # without points gets none before the scan's end releases what it holds back (FINISHED, after this
+        # wait); so waiting longer than a short grace for stragglers only delays the scan.
+        self._wait(lambda: all(k in self._acks for k in keys) or (bool(keys) and keys[-1] in self._acks), timeout_s)
+        self._wait(lambda: all(k in self._acks for k in keys), min(timeout_s, SWEEP_POINTS_GRACE_S))
         processed = []
         for snap, key in zip(run.captured, keys):
             ack = self._acks.pop(key, None)

@@ -186,7 +186,8 @@ class LsuScanner:
         """Send a scan goal and return at once (see `is_task_complete`).
 
         ``mode``: "stopsnap" (``step``, ``settle_s``) or "sweep" (``sweep_rate_steps_s`` <= 180, frames at
-        ``frame_rate_hz``); the coordinator refuses a bad goal with the reason in the result's status.
+        ``frame_rate_hz``; over ``start``..``end`` from the end the carriage stands at or is nearer to, in
+        either direction); the coordinator refuses a bad goal with the reason in the result's status.
         """
         if not self._action.wait_for_server(timeout_sec=self.wait_s):
             raise ScannerError("the /lsu/scan action server (scan_coordinator) is not available; is the graph "
@@ -285,7 +286,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--mode", choices=("stopsnap", "sweep"), default="stopsnap",
                    help="stopsnap: move, settle, capture per position (default); sweep: one constant-rate move "
                         "with frames at --fps")
-    p.add_argument("--start", type=int, default=0, help="first position [steps] (default 0)")
+    p.add_argument("--start", type=int, default=0, help="first position [steps] (default 0); a sweep runs over --start..--end from "
+                   "whichever end the carriage stands at or is nearer to")
     p.add_argument("--end", type=int, default=470, help="last position [steps] (default 470)")
     p.add_argument("--step", type=int, default=2, help="spacing [steps] (default 2)")
     p.add_argument("--settle", type=float, default=0.1, help="wait after each stop [s] (default 0.1)")

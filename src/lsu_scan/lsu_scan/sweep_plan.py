@@ -40,6 +40,11 @@ class SweepPlan:
     frame_rate_hz: float
 
     @property
+    def direction(self) -> str:
+        """"forward" (towards higher positions) or "reverse"."""
+        return "forward" if self.end >= self.start else "reverse"
+
+    @property
     def duration_s(self) -> float:
         """Carriage time of the sweep [s]."""
         return abs(self.end - self.start) / self.rate_steps_s
@@ -58,7 +63,8 @@ class SweepPlan:
     def record(self, frames: FrameCount | None) -> dict[str, object]:
         """The scan.json ``sweep`` entry (``frames``: None when the stream never started)."""
         out: dict[str, object] = {
-            "start_steps": self.start, "end_steps": self.end, "rate_steps_s": self.rate_steps_s,
+            "start_steps": self.start, "end_steps": self.end, "direction": self.direction,
+            "rate_steps_s": self.rate_steps_s,
             "frame_rate_hz": self.frame_rate_hz, "duration_s": round(self.duration_s, 4),
             "frames_expected": self.frames_expected}
         frames = frames or FrameCount(self.frames_expected, 0, 0, 0)
@@ -114,6 +120,19 @@ def count_frames(first_ns: int, period_ns: int, slots: int, published: Iterable[
     pub = slot_of(published)
     done = slot_of(processed) & pub
     return FrameCount(slots, len(pub), len(done), int(camera_dropped))
+
+
+def oriented(plan: SweepPlan, here_steps: float) -> SweepPlan:
+    """The sweep over the same range that wastes no move from ``here_steps`` (where the carriage stands).
+
+    A sweep gives the same frames in either direction, so it starts at whichever end of the range
+    the carriage is nearer: where it stands when that is an end (e.g. after the previous scan, which
+    ended at one), else after a move to the nearer end; on a tie the goal's own start.
+    """
+    to_start, to_end = abs(here_steps - plan.start), abs(here_steps - plan.end)
+    if to_end < to_start:
+        return SweepPlan(plan.end, plan.start, plan.rate_steps_s, plan.frame_rate_hz)
+    return plan
 
 
 def plan_sweep(start: int, end: int, track_steps: int, rate_steps_s: float, frame_rate_hz: float) -> SweepPlan:

@@ -3,7 +3,7 @@
 import pytest
 
 from lsu_scan.scan_plan import ScanGoalError
-from lsu_scan.sweep_plan import count_frames, plan_sweep, scan_mode
+from lsu_scan.sweep_plan import count_frames, oriented, plan_sweep, scan_mode
 
 
 def test_mode_defaults_to_stopsnap_and_names_the_choices():
@@ -54,3 +54,30 @@ def test_position_at_follows_the_commanded_rate_both_ways_and_holds_at_the_end()
     assert [up.position_at(t) for t in (0.0, 0.5, 5.0, 9.0)] == [100, 130, 400, 400]
     down = plan_sweep(400, 100, 470, 60.0, 30.0)
     assert [down.position_at(t) for t in (0.0, 0.5, 5.0, 9.0)] == [400, 370, 100, 100]
+
+
+@pytest.mark.parametrize("here,start,end", [
+    (470, 470, 150),   # at the goal's end (the previous scan ended there): back from there, no move
+    (150, 150, 470),   # at the goal's start: as asked
+    (300, 150, 470),   # between, nearer the start
+    (320, 470, 150),   # between, nearer the end: a move there, then the sweep back
+    (0, 150, 470),     # outside the range, before it
+    (460, 470, 150),   # outside the range, past it
+    (310, 150, 470),   # half way: as asked
+])
+def test_a_sweep_starts_at_the_end_of_its_range_the_carriage_stands_at_or_is_nearer_to(here, start, end):
+    plan = oriented(plan_sweep(150, 470, 470, 60.0, 30.0), here)
+    assert (plan.start, plan.end) == (start, end)
+    assert plan.direction == ("forward" if end > start else "reverse")
+    # the same range, rate and frames either way
+    assert plan.frames_expected == 161 and plan.duration_s == pytest.approx(320 / 60.0)
+    assert plan.record(None)["direction"] == plan.direction
+
+
+def test_a_reverse_sweeps_frames_are_counted_and_placed_like_a_forward_ones():
+    down = oriented(plan_sweep(100, 400, 470, 60.0, 30.0), 470)
+    assert (down.start, down.end, down.frames_expected) == (400, 100, 151)
+    assert [down.position_at(k / 30.0) for k in (0, 1, 150)] == [400, 398, 100]
+    first, period = 1_000_000_000, 33_333_333
+    stamps = [first + k * period for k in range(down.frames_expected)]
+    assert count_frames(first, period, down.frames_expected, stamps, stamps).dropped == 0
