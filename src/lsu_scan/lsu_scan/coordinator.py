@@ -818,8 +818,9 @@ class ScanCoordinatorNode(Node):
             if not move.done() and now > move_deadline:
                 raise ScanAborted(f"sweep to {sweep.end}: no answer from {self.move.srv_name}")
             if now >= next_feedback:
+                points_so_far = sum(ack[0] for key, ack in list(self._acks.items()) if key >= first)
                 self._feedback(goal_handle, "sweeping", published, sweep.frames_expected,
-                               sweep.position_at(published * period_s), run.points_total, [period_s])
+                               sweep.position_at(published * period_s), points_so_far, [period_s])
                 next_feedback = now + 0.2
             self._guard_laser()
             self._io_executor.spin_once(timeout_sec=0.01)
