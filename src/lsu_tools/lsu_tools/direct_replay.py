@@ -153,7 +153,9 @@ class DirectReplay:
         from sensor_msgs.msg import CameraInfo
 
         from lsu_bags.bags import BagError
+        from lsu_extract.node import line_fields, result_to_msg
         from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
+        from lsu_reconstruct.matching import LineArrays
 
         topics = bag_topics(bag)
         images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
@@ -185,12 +187,15 @@ class DirectReplay:
                 stats.images += 1
                 if side == "left":
                     self._left_images.append(m.data)  # the texture is looked for among these
-                line = extractor.line_of(side, m.data)
-                if line is not None:
+                extracted = extractor.extract_of(side, m.data)
+                if extracted is not None:
+                    # the arrays go to the matcher as they are: a LaserLine message only for subscribers
+                    header, result = extracted
                     if publishers[side].get_subscription_count():
-                        publishers[side].publish(line)
-                    lines_of[stamps.to_ns(line.header.stamp)] += 1
-                    matcher.on_line(side, line)
+                        publishers[side].publish(result_to_msg(result, header))
+                    lines_of[stamps.to_ns(header.stamp)] += 1
+                    matcher.on_line_arrays(side, header, LineArrays(**line_fields(result), image_width=result.image_width,
+                                                                    image_height=result.image_height))
             elif m.topic in lines:
                 line = deserialize_message(m.data, LaserLine)
                 lines_of[stamps.to_ns(line.header.stamp)] += 1
