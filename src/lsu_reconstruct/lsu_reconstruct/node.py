@@ -549,7 +549,7 @@ class StereoMatcherNode(Node):
                                           f"{scan.texture_key / 1e9:.3f}) never came; the cloud stays uncoloured")
             return
         try:
-            scan.texture = image_to_array(deserialize_message(raw, Image))
+            scan.texture = image_to_array(deserialize_message(bytes(raw), Image))  # a buffer view is copied once
         except ValueError as exc:
             self._error(str(exc))
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from lsu_bags.bags import bag_topics, read_messages
+from lsu_bags.bags import bag_topics, read_message_views
 from lsu_common import stamps
 
 __all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
@@ -177,7 +177,9 @@ class DirectReplay:
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"read_s": 0.0}
-        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *sweep_inputs, *calibration]), reading)
+        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views)
+        messages = _prefetched(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
+                               reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
         next_spin = t0 + SPIN_EVERY_S
@@ -197,11 +199,11 @@ class DirectReplay:
                     matcher.on_line_arrays(side, header, LineArrays(**line_fields(result), image_width=result.image_width,
                                                                     image_height=result.image_height))
             elif m.topic in lines:
-                line = deserialize_message(m.data, LaserLine)
+                line = deserialize_message(bytes(m.data), LaserLine)
                 lines_of[stamps.to_ns(line.header.stamp)] += 1
                 matcher.on_line(lines[m.topic], line)
             elif m.topic in events:
-                event = deserialize_message(m.data, ScanEvent)
+                event = deserialize_message(bytes(m.data), ScanEvent)
                 stats.events += 1
                 if event.type == ScanEvent.SNAP:
                     stats.snap_events += 1
@@ -212,13 +214,13 @@ class DirectReplay:
                 extractor.on_event(event)
                 matcher.on_event(event)
             elif m.topic.endswith("stereo/exposure"):
-                matcher.on_exposure(deserialize_message(m.data, StereoExposure))
+                matcher.on_exposure(deserialize_message(bytes(m.data), StereoExposure))
             elif m.topic.endswith("driver/carriage"):
-                matcher.on_carriage(deserialize_message(m.data, CarriagePosition))
+                matcher.on_carriage(deserialize_message(bytes(m.data), CarriagePosition))
             elif m.topic.endswith("extrinsics"):
-                matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
+                matcher.on_extrinsics(deserialize_message(bytes(m.data), StereoExtrinsics))
             elif (side := _side(m.topic, "camera_info")) is not None:
-                matcher.on_info(side, deserialize_message(m.data, CameraInfo))
+                matcher.on_info(side, deserialize_message(bytes(m.data), CameraInfo))
             if time.monotonic() >= next_spin:
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
