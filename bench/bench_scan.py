@@ -266,7 +266,7 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
 
     import numpy as np
 
-    from lsu_bags.bags import read_messages
+    from lsu_bags.bags import read_message_views, read_messages
     from lsu_extract.extractor import ExtractorParams, extract_laser_line
     from lsu_extract.image import decode_image, parse_image_cdr
     from lsu_reconstruct.matching import LineArrays, MatchParams
@@ -302,9 +302,11 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
         c0 = time.process_time()
         points = one_pass()
         cpu.append(time.process_time() - c0)
-    # what reading the bag alone costs (decompression included): the part of a replay no message path can save
+    # what reading the bag alone costs the way the direct replay reads it (views of the mapped file where it
+    # is an uncompressed MCAP, else rosbags with decompression): the part no message path can save
     c0 = time.process_time()
-    for _ in read_messages(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
+    for _ in read_message_views(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw",
+                                      "/lsu/stereo/right/image_raw"]):
         pass
     read_s = time.process_time() - c0
     return {"snaps": len(pairs), "cpu_s": sorted(cpu)[len(cpu) // 2], "points": points, "read_cpu_s": read_s}
@@ -407,9 +409,13 @@ REPLAY_NOTES = (
     "live), from the first message read to the scan cloud published (bag reading and decompression "
     "included), CPU of the whole process (all threads); median of 3 runs, min and max beside it; "
     "replay_cpu_over_compute = replay_cpu_ms_per_snap / replay_compute_ms_per_snap, replay_lost: "
-    "frames unreadable + lines unpaired. replay_read_ms_per_snap: CPU per snap of reading the bag alone "
-    "(rosbags; scan bags are recorded uncompressed; same run), which the direct replay does "
-    "in a second thread; replay_cpu_over_compute_and_read = replay CPU / (compute + read); "
+    "frames unreadable + lines unpaired. The direct replay hands the extractor's arrays to the matcher "
+    "without LaserLine messages (one is built only for a subscriber of the lines) and reads an "
+    "uncompressed bag as views of the mapped file (lsu_bags.bags.read_message_views), so the images reach "
+    "the extractor without a copy. replay_read_ms_per_snap: CPU per snap of reading the bag alone that way "
+    "(scan bags are recorded uncompressed; same run; the pages of the images are then read by the "
+    "extraction), which the direct replay does in a second thread; replay_cpu_over_compute_and_read = "
+    "replay CPU / (compute + read); "
     "replay_processing_cpu_over_compute: the replay's CPU without its bag-reading thread's (thread CPU "
     "clock) over compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
     "by the benchmark. replay_dds_*: the message path (`lsu run replay --executor "

@@ -1,8 +1,10 @@
 """`lsu run replay BAG`: a recorded scan processed by the extractor and matcher in this process, handed over directly.
 
 The bag's image pairs and scan events go straight from the bag reader to the ``laser_extractor``
-node's extraction and its lines straight to the ``stereo_matcher``'s pairing (no DDS, no
-(de)serialisation of images or lines between them); the nodes are the ones of the launch file,
+node's extraction and its lines, as arrays, straight to the ``stereo_matcher``'s pairing (no DDS, no
+(de)serialisation of images or lines between them, no LaserLine message unless someone subscribes
+to the lines; an uncompressed bag's images are read in place from the mapped file, not copied:
+`lsu_bags.bags.read_message_views`); the nodes are the ones of the launch file,
 with its parameters, and they still publish what they publish live (``stereo/*/laser_line``
 while someone subscribes, ``points`` per snap, ``scan/cloud``, ``/diagnostics``), so
 subscribers see the same outputs. Their input subscriptions are removed: nothing arrives twice.
