@@ -24,7 +24,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -139,7 +138,6 @@ class DirectReplay:
         for sub in list(self.matcher.input_subscriptions):
             self.matcher.destroy_subscription(sub)
         self._left_images: collections.deque[Any] = collections.deque(maxlen=IMAGES_KEPT)
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lsu-extract")  # see run()
         self.matcher.take_left_images = self._take_left_images
 
     def _take_left_images(self) -> list[Any]:
@@ -185,48 +183,23 @@ class DirectReplay:
         messages = _prefetched(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
                                reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
-
-        def hand_over(side: str, extracted: Any) -> None:
-            if extracted is None:
-                return
-            # the arrays go to the matcher as they are: a LaserLine message only for subscribers
-            header, result = extracted
-            if publishers[side].get_subscription_count():
-                publishers[side].publish(result_to_msg(result, header))
-            lines_of[stamps.to_ns(header.stamp)] += 1
-            matcher.on_line_arrays(side, header, LineArrays(**line_fields(result), image_width=result.image_width,
-                                                            image_height=result.image_height))
-
-        # The two images of a pair are extracted at once: the first in the worker thread, the second in this
-        # one (OpenCV and numpy's larger calls release the GIL, so the second core helps). Everything else
-        # happens in recorded order: the first image's line is handed over before the second's, and before
-        # any other message is looked at (an event may change the extractor's laser-off frames).
-        pending: tuple[str, Future[Any]] | None = None
-
-        def settle() -> None:
-            nonlocal pending
-            if pending is not None:
-                side, future = pending
-                pending = None
-                hand_over(side, future.result())
-
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
         next_spin = t0 + SPIN_EVERY_S
         for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
-            if side is None:
-                settle()
             if side is not None:
                 stats.images += 1
                 if side == "left":
                     self._left_images.append(m.data)  # the texture is looked for among these
-                if pending is not None and pending[0] != side:  # the pair's second image: both extract at once
-                    extracted = extractor.extract_of(side, m.data)
-                    settle()
-                    hand_over(side, extracted)
-                else:
-                    settle()
-                    pending = (side, self._worker.submit(extractor.extract_of, side, m.data))
+                extracted = extractor.extract_of(side, m.data)
+                if extracted is not None:
+                    # the arrays go to the matcher as they are: a LaserLine message only for subscribers
+                    header, result = extracted
+                    if publishers[side].get_subscription_count():
+                        publishers[side].publish(result_to_msg(result, header))
+                    lines_of[stamps.to_ns(header.stamp)] += 1
+                    matcher.on_line_arrays(side, header, LineArrays(**line_fields(result), image_width=result.image_width,
+                                                                    image_height=result.image_height))
             elif m.topic in lines:
                 line = deserialize_message(bytes(m.data), LaserLine)
                 lines_of[stamps.to_ns(line.header.stamp)] += 1
@@ -253,7 +226,6 @@ class DirectReplay:
             if time.monotonic() >= next_spin:
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
-        settle()
         matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
         stats.seconds = time.monotonic() - t0
         stats.cpu_s = time.process_time() - cpu0
