@@ -269,7 +269,7 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
 
     import numpy as np
 
-    from lsu_bags.bags import read_messages
+    from lsu_bags.bags import read_message_views, read_messages
     from lsu_extract.extractor import ExtractorParams, extract_laser_line
     from lsu_extract.image import decode_image, parse_image_cdr
     from lsu_reconstruct.matching import LineArrays, MatchParams
@@ -299,18 +299,22 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
             points += len(reconstruct_snap(model, line(left), line(right), match))
         return points
 
-    one_pass()
-    cpu = []
-    for _ in range(passes):
+    def timed_pass() -> float:
         c0 = time.process_time()
-        points = one_pass()
-        cpu.append(time.process_time() - c0)
-    # what reading the bag alone costs (decompression included): the part of a replay no message path can save
+        one_pass()
+        return time.process_time() - c0
+
+    points = one_pass()
+    cpu = [timed_pass() for _ in range(passes)]
+    # what reading the bag alone costs the way the direct replay reads it (views of the mapped file where it
+    # is an uncompressed MCAP, else rosbags with decompression): the part no message path can save
     c0 = time.process_time()
-    for _ in read_messages(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
+    for _ in read_message_views(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw",
+                                      "/lsu/stereo/right/image_raw"]):
         pass
     read_s = time.process_time() - c0
-    return {"snaps": len(pairs), "cpu_s": sorted(cpu)[len(cpu) // 2], "points": points, "read_cpu_s": read_s}
+    return {"snaps": len(pairs), "cpu_s": sorted(cpu)[len(cpu) // 2], "points": points, "read_cpu_s": read_s,
+            "timed_pass": timed_pass}
 
 
 def replay_direct(bag: Path) -> dict:
@@ -366,22 +370,39 @@ def compression_cost(bag: Path, snaps: int) -> dict:
 
 def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAYS) -> dict:
     """replay_cpu_over_compute and replay_snaps_per_s (direct replay), beside the message path's (dds)."""
-    reference = compute_reference(bag)
-    compute_ms = 1000 * reference["cpu_s"] / max(1, reference["snaps"])
-    direct = sorted((replay_direct(bag) for _ in range(direct_runs)), key=lambda r: r["snaps"] / r["seconds"])
-    rep = direct[len(direct) // 2]
+    # The host is shared: the CPU a fixed piece of work takes drifts with the other core's load (cache,
+    # memory bandwidth). So each replay run is paired with a reference pass right before and right after
+    # it (passes and runs alternate), and its ratio taken against their mean.
+    reference = compute_reference(bag, passes=1)
+    snaps = max(1, reference["snaps"])
+    passes = [reference["cpu_s"]]
+    direct = []
+    for _ in range(direct_runs):
+        run = replay_direct(bag)
+        passes.append(reference["timed_pass"]())
+        run["ratio"] = (run["cpu_s"] / max(1, run["snaps"])) / ((passes[-2] + passes[-1]) / 2 / snaps)
+        direct.append(run)
+    compute_ms = 1000 * sorted(passes)[len(passes) // 2] / snaps
+
+    def median(values: list[float]) -> float:
+        return sorted(values)[len(values) // 2]
+
+    by_speed = sorted(direct, key=lambda r: r["snaps"] / r["seconds"])
+    rep = by_speed[len(by_speed) // 2]
     figures = {"replay_compute_ms_per_snap": compute_ms,
                "replay_snaps_per_s": rep["snaps"] / rep["seconds"],
-               "replay_snaps_per_s_min": direct[0]["snaps"] / direct[0]["seconds"],
-               "replay_snaps_per_s_max": direct[-1]["snaps"] / direct[-1]["seconds"],
-               "replay_cpu_ms_per_snap": 1000 * rep["cpu_s"] / max(1, rep["snaps"]),
-               "replay_snaps": rep["snaps"], "replay_lost": max(r["lost"] for r in direct)}
-    figures["replay_cpu_over_compute"] = figures["replay_cpu_ms_per_snap"] / compute_ms
+               "replay_snaps_per_s_min": by_speed[0]["snaps"] / by_speed[0]["seconds"],
+               "replay_snaps_per_s_max": by_speed[-1]["snaps"] / by_speed[-1]["seconds"],
+               "replay_cpu_ms_per_snap": median([1000 * r["cpu_s"] / max(1, r["snaps"]) for r in direct]),
+               "replay_snaps": rep["snaps"], "replay_lost": max(r["lost"] for r in direct),
+               "replay_cpu_over_compute": median([r["ratio"] for r in direct]),
+               "replay_cpu_over_compute_min": min(r["ratio"] for r in direct),
+               "replay_cpu_over_compute_max": max(r["ratio"] for r in direct)}
     read_ms = 1000 * reference["read_cpu_s"] / max(1, reference["snaps"])
     figures["replay_read_ms_per_snap"] = read_ms
     figures["replay_cpu_over_compute_and_read"] = figures["replay_cpu_ms_per_snap"] / (compute_ms + read_ms)
-    figures["replay_processing_cpu_over_compute"] = 1000 * (rep["cpu_s"] - rep["read_cpu_s"]) / max(1, rep["snaps"]) \
-        / compute_ms
+    figures["replay_processing_cpu_over_compute"] = median(
+        [r["ratio"] * (r["cpu_s"] - r["read_cpu_s"]) / r["cpu_s"] for r in direct])
     figures.update(compression_cost(bag, reference["snaps"]))
     if dds_runs:
         dds = sorted((replay(bag) for _ in range(dds_runs)), key=lambda r: r["snaps"] / r["seconds"])
@@ -395,7 +416,8 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
 
 REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps/s", "replay_snaps_per_s_min": "snaps/s",
                 "replay_snaps_per_s_max": "snaps/s", "replay_cpu_ms_per_snap": "ms", "replay_snaps": "snaps",
-                "replay_lost": "frames+lines", "replay_cpu_over_compute": "x", "replay_dds_snaps_per_s": "snaps/s",
+                "replay_lost": "frames+lines", "replay_cpu_over_compute": "x", "replay_cpu_over_compute_min": "x",
+                "replay_cpu_over_compute_max": "x", "replay_dds_snaps_per_s": "snaps/s",
                 "replay_dds_cpu_ms_per_snap": "ms", "replay_dds_snaps": "snaps", "bag_snaps_missing_images": "snaps",
                 "replay_dds_cpu_over_compute": "x", "replay_read_ms_per_snap": "ms",
                 "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x",
@@ -404,17 +426,24 @@ REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
     "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
     "no ROS (images read from their CDR buffers, two extractions and matching + triangulation with the "
-    "replay launch file's parameters; median of 3 passes). replay_snaps_per_s / replay_cpu_ms_per_snap: "
+    "replay launch file's parameters; median of 4 passes, one before and one after each replay run). "
+    "replay_snaps_per_s / replay_cpu_ms_per_snap: "
     "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "
     "matcher nodes in one process, which publish lines (to subscribers), points and the scan cloud as "
     "live), from the first message read to the scan cloud published (bag reading and decompression "
     "included), CPU of the whole process (all threads); median of 3 runs, min and max beside it; "
-    "replay_cpu_over_compute = replay_cpu_ms_per_snap / replay_compute_ms_per_snap, replay_lost: "
-    "frames unreadable + lines unpaired. replay_read_ms_per_snap: CPU per snap of reading the bag alone "
-    "(rosbags; scan bags are recorded uncompressed; same run), which the direct replay does "
-    "in a second thread; replay_cpu_over_compute_and_read = replay CPU / (compute + read); "
+    "replay_cpu_over_compute: each run's CPU per snap over the mean of the reference passes right before "
+    "and after it (the host's load changes the CPU a fixed work takes), median of the 3 runs (min, max "
+    "beside it); replay_lost: "
+    "frames unreadable + lines unpaired. The direct replay hands the extractor's arrays to the matcher "
+    "without LaserLine messages (one is built only for a subscriber of the lines) and reads an "
+    "uncompressed bag as views of the mapped file (lsu_bags.bags.read_message_views), so the images reach "
+    "the extractor without a copy. replay_read_ms_per_snap: CPU per snap of reading the bag alone that way "
+    "(scan bags are recorded uncompressed; same run; the pages of the images are then read by the "
+    "extraction), which the direct replay does in a second thread; replay_cpu_over_compute_and_read = "
+    "replay CPU / (compute + read); "
     "replay_processing_cpu_over_compute: the replay's CPU without its bag-reading thread's (thread CPU "
-    "clock) over compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
+    "clock) over compute, paired like replay_cpu_over_compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
     "by the benchmark. replay_dds_*: the message path (`lsu run replay --executor "
     "single`, the bag's raw CDR published into it closed-loop with at most 4 snaps awaiting their "
     "/lsu/points, below the image queue depth 5), CPU of that process only (median of 3 runs, each in a "

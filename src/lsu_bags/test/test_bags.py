@@ -84,6 +84,39 @@ def test_written_bag_reads_back_bytes_times_and_fields(tmp_path, storage, compre
     assert decoded[4].rows_ambiguous == 4
 
 
+@pytest.mark.parametrize("storage,compress", STORAGE_CASES)
+def test_message_views_are_the_messages_and_map_an_uncompressed_mcap(tmp_path, storage, compress):
+    """read_message_views gives read_messages' messages in its order (two topics, equal and out-of-order
+    receive times); from an uncompressed MCAP file as views of the file, without a copy."""
+    path = tmp_path / "bag"
+    with bags.BagWriter(path, storage, compress=compress) as bag:
+        for side in ("left", "right"):
+            bag.add_topic(f"/lsu/stereo/{side}/laser_line", "lsu_interfaces/msg/LaserLine",
+                          [bags.make_qos("reliable", "volatile")])
+        for i, t in enumerate([5, 3, 3, 9, 1, 9, 9, 2]):
+            bag.write(f"/lsu/stereo/{('left', 'right')[i % 2]}/laser_line", 1_795_000_000_000_000_000 + t,
+                      serialized(laser_line(i)))
+    for topics in (None, ["/lsu/stereo/right/laser_line"]):
+        expected = [(m.topic, m.msgtype, m.timestamp_ns, m.data) for m in bags.read_messages(path, topics)]
+        views = list(bags.read_message_views(path, topics))
+        assert [(m.topic, m.msgtype, m.timestamp_ns, bytes(m.data)) for m in views] == expected
+        assert len(expected) == (8 if topics is None else 4)
+        assert all(isinstance(m.data, memoryview) and m.data.readonly for m in views) == (
+            storage == "mcap" and not compress)
+    with pytest.raises(BagError, match="has no topic /lsu/points"):
+        list(bags.read_message_views(path, ["/lsu/points"]))
+
+
+def test_message_views_of_a_truncated_mcap_name_the_file(tmp_path):
+    path = tmp_path / "bag"
+    write_laser_bag(path, "mcap", compress=False, n=400)
+    data_file = path / "bag.mcap"
+    data_file.write_bytes(data_file.read_bytes()[: data_file.stat().st_size // 2])
+    with pytest.raises(BagError) as caught:
+        list(bags.read_message_views(path))
+    assert str(data_file) in str(caught.value) and "truncated or corrupt" in str(caught.value)
+
+
 @pytest.mark.parametrize("storage", bags.STORAGES)
 def test_metadata_is_standard_rosbag2(tmp_path, storage):
     path = tmp_path / "bag"

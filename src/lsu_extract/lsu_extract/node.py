@@ -31,7 +31,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from lsu_common import diagnostics, qos, stamps
-from lsu_common.arrays import AnyArray
+from lsu_common.arrays import AnyArray, Float32Array
 from lsu_common.node import main_of
 from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
@@ -68,20 +68,28 @@ _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
 }
 
 
+LINE_FIELDS = ("u", "v", "peak", "width", "quality")
+
+
+def line_fields(result: LaserLineResult) -> dict[str, Float32Array]:
+    """The per-row arrays a LaserLine carries (`LINE_FIELDS`), float32: rows with any non-finite value left
+    out, quality clipped to 0..1. What a subscriber of the line gets, for callers that hand the arrays on."""
+    values = [result.u, result.v, result.peak, result.width, result.quality]
+    finite = np.isfinite(values[0])
+    for column in values[1:]:
+        finite &= np.isfinite(column)
+    if not finite.all():
+        values = [column[finite] for column in values]
+    values[4] = np.clip(values[4], 0.0, 1.0)
+    return {name: np.ascontiguousarray(column, dtype=np.float32) for name, column in zip(LINE_FIELDS, values)}
+
+
 def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
     """A `LaserLineResult` as a LaserLine message; rows with any non-finite value are left out."""
-    finite = np.ones(len(result), bool)
-    for values in (result.u, result.v, result.peak, result.width, result.quality):
-        finite &= np.isfinite(values)
-
-    def f32(values: AnyArray) -> array.array[float]:
-        return array.array("f", np.ascontiguousarray(values[finite], dtype=np.float32).tobytes())
-
+    fields = {name: array.array("f", column.tobytes()) for name, column in line_fields(result).items()}
     return LaserLine(header=header, image_width=result.image_width, image_height=result.image_height,
-                     method=result.method, u=f32(result.u), v=f32(result.v), peak=f32(result.peak),
-                     width=f32(result.width), quality=f32(np.clip(result.quality, 0.0, 1.0)),
-                     rows_searched=result.rows_searched, rows_ambiguous=result.rows_ambiguous,
-                     rows_saturated=result.rows_saturated)
+                     method=result.method, rows_searched=result.rows_searched, rows_ambiguous=result.rows_ambiguous,
+                     rows_saturated=result.rows_saturated, **fields)
 
 
 class LaserExtractorNode(Node):
@@ -153,8 +161,15 @@ class LaserExtractorNode(Node):
     def line_of(self, side: str, raw: Any) -> LaserLine | None:
         """The laser line of one serialized sensor_msgs/Image (any buffer: bytes, memoryview), not published.
 
-        None for a frame that cannot be read (reported on /diagnostics, counted as dropped). A
-        direct replay calls this with the bag's buffers and hands the line on itself.
+        None for a frame that cannot be read (reported on /diagnostics, counted as dropped).
+        """
+        extracted = self.extract_of(side, raw)
+        return None if extracted is None else result_to_msg(extracted[1], extracted[0])
+
+    def extract_of(self, side: str, raw: Any) -> tuple[Header, LaserLineResult] | None:
+        """`line_of` before the message is built: the image's header and the extraction's result.
+
+        A direct replay calls this with the bag's buffers and hands the arrays on itself (`line_fields`).
         """
         try:
             msg = parse_image_cdr(raw)
@@ -189,7 +204,7 @@ class LaserExtractorNode(Node):
         header = Header(stamp=Time(sec=msg.sec, nanosec=msg.nanosec), frame_id=msg.frame_id)
         if side in self._reported:
             self._report(side, DiagnosticStatus.OK, f"{side} camera: extracting again")
-        return result_to_msg(result, header)
+        return header, result
 
     def on_event(self, msg: ScanEvent) -> None:
         """STARTED, FINISHED, ABORTED: forget the laser-off pair; TEXTURE: take the pair it names."""

@@ -25,6 +25,8 @@ from .detectors import clamp as _clamp
 _CONTINUITY_PASSES = 4
 _SECOND_PEAK_RATIO = 0.25  # a second peak this strong is worth checking against the neighbours
 BLANK = np.float32(-1.0e9)  # below any float signal (masks a peak out), finite so no arithmetic on it can give NaN
+# the same for the integer signals: the clipped one (0..255) and the exact one (-255..255)
+_BLANK_OF = {np.dtype(np.uint8): 0, np.dtype(np.int16): np.iinfo(np.int16).min}
 
 
 @dataclass(frozen=True)
@@ -56,7 +58,7 @@ def row_starts(rows: int, width: int) -> AnyArray:
 
 def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
                    min_contrast: float = 0.0, strong_only: bool = False) -> RowCandidates:
-    """Top-two peaks of each full row of the laser signal (n, W): float32, or uint8 clipped at 0.
+    """Top-two peaks of each full row of the laser signal (n, W): int16 or float32, or uint8 clipped at 0.
 
     The background of a row is its mean signal: the laser covers a few pixels of hundreds,
     so the mean is the ambient/texture level (cheaper than a median, and the bias is small).
@@ -71,9 +73,9 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     if n == 0:
         none = np.zeros(0, np.int64)
         return RowCandidates(np.asarray(rows), none, none, np.zeros(0, np.float32), np.zeros(0, np.float32))
-    if signal_rows.dtype != np.uint8:
+    if signal_rows.dtype not in (np.uint8, np.int16):
         signal_rows = np.ascontiguousarray(signal_rows, dtype=np.float32)
-    blank = 0 if signal_rows.dtype == np.uint8 else BLANK  # below every value of the signal
+    blank = _BLANK_OF.get(signal_rows.dtype, BLANK)  # below every value of the signal
     first = signal_rows.argmax(axis=1)
     background = cv2.reduce(signal_rows, 1, cv2.REDUCE_AVG, dtype=cv2.CV_32F).ravel()
     starts = row_starts(n, w)
@@ -189,6 +191,8 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
             all_cols = np.concatenate([ref_cols, column[known]])[order]
         else:  # c.rows is ascending: so are its resolved rows
             all_rows, all_cols = c.rows[known], column[known]
+            if not all_rows.size:  # no reference at all: no open row can be resolved
+                break
         ref = nearest_reference(c.rows[open_idx], all_rows, all_cols, max_gap_rows)
         first, second = c.first[open_idx], c.second[open_idx]
         near_first = np.abs(first - ref) <= window_px  # False where ref is NaN

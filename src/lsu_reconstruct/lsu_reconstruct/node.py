@@ -146,6 +146,23 @@ def parameter_table() -> dict[str, Param]:
     }
 
 
+class _Line:
+    """One side's laser line: its header and its arrays, converted from the message when first read
+    (a malformed message is then reported where the pair is reconstructed)."""
+
+    __slots__ = ("header", "_arrays", "_msg")
+
+    def __init__(self, header: Header, arrays: LineArrays | None = None, msg: LaserLine | None = None) -> None:
+        self.header, self._arrays, self._msg = header, arrays, msg
+
+    @property
+    def arrays(self) -> LineArrays:
+        if self._arrays is None:
+            assert self._msg is not None
+            self._arrays = line_from_msg(self._msg)
+        return self._arrays
+
+
 @dataclass
 class _Scan:
     scan_id: str
@@ -171,8 +188,8 @@ class StereoMatcherNode(Node):
         self.model: StereoModel | None = None
         self.calibration_error = ""
         self._use_params(self._match_params())
-        self.left: OrderedDict[int, LaserLine] = OrderedDict()
-        self.right: OrderedDict[int, LaserLine] = OrderedDict()
+        self.left: OrderedDict[int, _Line] = OrderedDict()
+        self.right: OrderedDict[int, _Line] = OrderedDict()
         self.unmatched = {"left": 0, "right": 0}
         self.pairs = 0
         self.points_last = 0
@@ -182,7 +199,7 @@ class StereoMatcherNode(Node):
         self.scan: _Scan | None = None
         self.snap_of_stamp: dict[int, int] = {}
         # pairs whose SNAP (or SWEEP_START) event is not in yet: their lines, reconstructed once it is
-        self.waiting: OrderedDict[int, tuple[LaserLine, LaserLine]] = OrderedDict()
+        self.waiting: OrderedDict[int, tuple[_Line, _Line]] = OrderedDict()
         self.sweep: LiveSweep | None = None
         self.sweep_points: SweepPoints | None = None  # the running sweep's frames to points (with a calibration)
         self.sweep_stats: dict[str, int] = {}
@@ -329,27 +346,34 @@ class StereoMatcherNode(Node):
     # ------------------------------------------------------------------ laser lines
     def on_line(self, side: str, msg: LaserLine) -> None:
         """Buffer one side's line; when its partner (same stamp) is in, reconstruct the pair."""
-        key = _stamp_key(msg.header.stamp)
+        self._on_line(side, _Line(msg.header, msg=msg))
+
+    def on_line_arrays(self, side: str, header: Header, arrays: LineArrays) -> None:
+        """`on_line` of a line already in arrays (a direct replay hands the extractor's over without a message)."""
+        self._on_line(side, _Line(header, arrays))
+
+    def _on_line(self, side: str, line: _Line) -> None:
+        key = _stamp_key(line.header.stamp)
         other = self.right if side == "left" else self.left
         mine = self.left if side == "left" else self.right
         if key in other:
             partner = other.pop(key)
-            left, right = (msg, partner) if side == "left" else (partner, msg)
+            left, right = (line, partner) if side == "left" else (partner, line)
             self.pairs += 1
             self.process_pair(key, left, right)
             return
-        mine[key] = msg
+        mine[key] = line
         while len(mine) > int(self.get_parameter("pair_buffer").value):
             mine.popitem(last=False)
             self.unmatched[side] += 1
 
-    def process_pair(self, key: int, left: LaserLine, right: LaserLine) -> None:
+    def process_pair(self, key: int, left: _Line, right: _Line) -> None:
         """Reconstruct one stereo pair and route it to ``points`` and the running scan."""
         if self.model is None:
             self._error(f"laser lines arrive but there is no calibration: {self.calibration_error}")
             return
         if self.sweep is not None and self.sweep.is_frame(key):
-            self.sweep.add_pair(key, line_from_msg(left), line_from_msg(right))
+            self.sweep.add_pair(key, left.arrays, right.arrays)
             self._sweep_progress()
             return
         if self.scan is not None and not self.scan.published:
@@ -366,17 +390,17 @@ class StereoMatcherNode(Node):
             self._publish_points(snap, self.free_snap, left.header)
             self.free_snap += 1
 
-    def _reconstruct(self, key: int, left: LaserLine, right: LaserLine) -> SnapPoints | None:
+    def _reconstruct(self, key: int, left: _Line, right: _Line) -> SnapPoints | None:
         assert self.model is not None
         try:
-            snap = reconstruct_snap(self.model, line_from_msg(left), line_from_msg(right), self.params)
+            snap = reconstruct_snap(self.model, left.arrays, right.arrays, self.params)
         except (CalibrationError, ValueError) as exc:
             self._error(f"cannot reconstruct the pair stamped {key / 1e9:.3f}: {exc}")
             return None
         self.points_last = len(snap)
         return snap
 
-    def _snap_of_pair(self, key: int, left: LaserLine, right: LaserLine, index: int) -> None:
+    def _snap_of_pair(self, key: int, left: _Line, right: _Line, index: int) -> None:
         snap = self._reconstruct(key, left, right)
         if snap is not None:
             self._file_snap(index, snap, left.header)
@@ -415,7 +439,7 @@ class StereoMatcherNode(Node):
             sweep.add_exposure(key, exposure)
         for key in [k for k in self.waiting if sweep.is_frame(k)]:
             left, right = self.waiting.pop(key)
-            sweep.add_pair(key, line_from_msg(left), line_from_msg(right))
+            sweep.add_pair(key, left.arrays, right.arrays)
         if self.sheet is None:
             self.get_logger().warning(f"sweep: {self.sheet_note}; its frames are matched stereo only")
         self.get_logger().info(f"sweep: {msg.expected_snaps} frames from the pair stamped {first / 1e9:.3f}")
@@ -526,7 +550,7 @@ class StereoMatcherNode(Node):
                                           f"{scan.texture_key / 1e9:.3f}) never came; the cloud stays uncoloured")
             return
         try:
-            scan.texture = image_to_array(deserialize_message(raw, Image))
+            scan.texture = image_to_array(deserialize_message(bytes(raw), Image))  # a buffer view is copied once
         except ValueError as exc:
             self._error(str(exc))
 

@@ -1,8 +1,10 @@
 """`lsu run replay BAG`: a recorded scan processed by the extractor and matcher in this process, handed over directly.
 
 The bag's image pairs and scan events go straight from the bag reader to the ``laser_extractor``
-node's extraction and its lines straight to the ``stereo_matcher``'s pairing (no DDS, no
-(de)serialisation of images or lines between them); the nodes are the ones of the launch file,
+node's extraction and its lines, as arrays, straight to the ``stereo_matcher``'s pairing (no DDS, no
+(de)serialisation of images or lines between them, no LaserLine message unless someone subscribes
+to the lines; an uncompressed bag's images are read in place from the mapped file, not copied:
+`lsu_bags.bags.read_message_views`); the nodes are the ones of the launch file,
 with its parameters, and they still publish what they publish live (``stereo/*/laser_line``
 while someone subscribes, ``points`` per snap, ``scan/cloud``, ``/diagnostics``), so
 subscribers see the same outputs. Their input subscriptions are removed: nothing arrives twice.
@@ -26,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from lsu_bags.bags import bag_topics, read_messages
+from lsu_bags.bags import bag_topics, read_message_views
 from lsu_common import stamps
 
 __all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
@@ -153,7 +155,9 @@ class DirectReplay:
         from sensor_msgs.msg import CameraInfo
 
         from lsu_bags.bags import BagError
+        from lsu_extract.node import line_fields, result_to_msg
         from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
+        from lsu_reconstruct.matching import LineArrays
 
         topics = bag_topics(bag)
         images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
@@ -175,7 +179,9 @@ class DirectReplay:
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"read_s": 0.0}
-        messages = _prefetched(read_messages(bag, [*images, *lines, *events, *sweep_inputs, *calibration]), reading)
+        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views)
+        messages = _prefetched(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
+                               reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
         t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
         next_spin = t0 + SPIN_EVERY_S
@@ -185,18 +191,21 @@ class DirectReplay:
                 stats.images += 1
                 if side == "left":
                     self._left_images.append(m.data)  # the texture is looked for among these
-                line = extractor.line_of(side, m.data)
-                if line is not None:
+                extracted = extractor.extract_of(side, m.data)
+                if extracted is not None:
+                    # the arrays go to the matcher as they are: a LaserLine message only for subscribers
+                    header, result = extracted
                     if publishers[side].get_subscription_count():
-                        publishers[side].publish(line)
-                    lines_of[stamps.to_ns(line.header.stamp)] += 1
-                    matcher.on_line(side, line)
+                        publishers[side].publish(result_to_msg(result, header))
+                    lines_of[stamps.to_ns(header.stamp)] += 1
+                    matcher.on_line_arrays(side, header, LineArrays(**line_fields(result), image_width=result.image_width,
+                                                                    image_height=result.image_height))
             elif m.topic in lines:
-                line = deserialize_message(m.data, LaserLine)
+                line = deserialize_message(bytes(m.data), LaserLine)
                 lines_of[stamps.to_ns(line.header.stamp)] += 1
                 matcher.on_line(lines[m.topic], line)
             elif m.topic in events:
-                event = deserialize_message(m.data, ScanEvent)
+                event = deserialize_message(bytes(m.data), ScanEvent)
                 stats.events += 1
                 if event.type == ScanEvent.SNAP:
                     stats.snap_events += 1
@@ -207,13 +216,13 @@ class DirectReplay:
                 extractor.on_event(event)
                 matcher.on_event(event)
             elif m.topic.endswith("stereo/exposure"):
-                matcher.on_exposure(deserialize_message(m.data, StereoExposure))
+                matcher.on_exposure(deserialize_message(bytes(m.data), StereoExposure))
             elif m.topic.endswith("driver/carriage"):
-                matcher.on_carriage(deserialize_message(m.data, CarriagePosition))
+                matcher.on_carriage(deserialize_message(bytes(m.data), CarriagePosition))
             elif m.topic.endswith("extrinsics"):
-                matcher.on_extrinsics(deserialize_message(m.data, StereoExtrinsics))
+                matcher.on_extrinsics(deserialize_message(bytes(m.data), StereoExtrinsics))
             elif (side := _side(m.topic, "camera_info")) is not None:
-                matcher.on_info(side, deserialize_message(m.data, CameraInfo))
+                matcher.on_info(side, deserialize_message(bytes(m.data), CameraInfo))
             if time.monotonic() >= next_spin:
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
