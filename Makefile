@@ -18,7 +18,7 @@ help:
 	@echo "make setup   - create .venv, install pinned ROS 2 Jazzy wheels, build lsu_interfaces (idempotent)"
 	@echo "make demo    - set up if needed, run the LSU graph on the emulated unit and show what it does"
 	@echo "make lint    - ruff check, then mypy over every package under src/ (settings: pyproject.toml)"
-	@echo "make test    - set up if needed, run the whole test suite (2 workers with lint beside them, then the serial tests)"
+	@echo "make test    - set up if needed, lint, run the whole test suite (2 workers, then the serial tests)"
 	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
 	@echo "make bench   - run the benchmarks, JSON in bench/results/ and a table in bench/results/SUMMARY.md"
 	@echo "make lock    - re-resolve requirements.in into requirements.lock"
@@ -41,19 +41,12 @@ lint: setup
 #     with slow tests are handed out first, see lsu_testing.plugin),
 #  2. the tests marked serial and the fault-injection tests, alone in one process.
 # Exit status 5 (no test selected) of one part is no failure: PYTEST_ARGS may name tests of one part only.
-# `make lint` runs beside part 1 (its output in log/lint.txt, printed when part 1 ends; a lint failure
-# fails make test after part 2): mypy's cold start takes a core for half a minute that part 1's
-# workers, waiting on processes and DDS much of the time, leave partly idle.
 PYTEST_WORKERS ?= 2
-test: setup
-	cd $(ROOT) && mkdir -p log && par=0 && ser=0 && lint=0; \
-	{ $(VENV)/bin/ruff check && $(VENV)/bin/mypy; } > log/lint.txt 2>&1 & lint_pid=$$!; \
+test: lint
+	cd $(ROOT) && par=0 && ser=0; \
 	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not serial and not fault" $(PYTEST_ARGS) \
 		|| par=$$?; \
-	wait $$lint_pid || lint=$$?; \
-	echo "---- make lint (ran beside the parallel part): exit $$lint"; cat log/lint.txt; \
 	$(VENV)/bin/python -m pytest -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
-	if [ $$lint != 0 ]; then echo "make test: lint failed (see 'make lint' above)"; exit $$lint; fi; \
 	if [ $$par = 5 ] && [ $$ser = 5 ]; then exit 5; fi; \
 	for rc in $$par $$ser; do [ $$rc = 0 ] || [ $$rc = 5 ] || exit $$rc; done
 
