@@ -37,13 +37,14 @@ lint: setup
 
 # The suite in two parts, each with its own summary; it fails if either part failed:
 #  1. all but the timing-sensitive tests on PYTEST_WORKERS pytest-xdist workers (each worker claims its
-#     own ROS domain; a test module stays on one worker, so its module fixtures are built once),
+#     own ROS domain; a test module stays on one worker, so its module fixtures are built once; modules
+#     with slow tests are handed out first, see lsu_testing.plugin),
 #  2. the tests marked serial and the fault-injection tests, alone in one process.
 # Exit status 5 (no test selected) of one part is no failure: PYTEST_ARGS may name tests of one part only.
 PYTEST_WORKERS ?= 2
 test: lint
 	cd $(ROOT) && par=0 && ser=0; \
-	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile -m "not serial and not fault" $(PYTEST_ARGS) \
+	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not serial and not fault" $(PYTEST_ARGS) \
 		|| par=$$?; \
 	$(VENV)/bin/python -m pytest -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
 	if [ $$par = 5 ] && [ $$ser = 5 ]; then exit 5; fi; \

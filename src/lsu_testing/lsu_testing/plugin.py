@@ -50,6 +50,20 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist, modules with a ``slow`` test run first (each keeps its own order).
+
+    `make test` runs `--dist loadfile --no-loadscope-reorder`, which hands out modules in collection
+    order (xdist's default order, most tests first, put the long process-starting modules of one or
+    two tests last, where one worker ran them while the other idled). Long modules first keeps both
+    workers busy to the end. Outside xdist the order is left alone."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    slow_modules = {item.nodeid.split("::", 1)[0] for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.nodeid.split("::", 1)[0] not in slow_modules)  # stable sort
+
+
 _FAULTS: dict[str, dict[str, Any]] = {}  # test id -> its fault record
 
 
