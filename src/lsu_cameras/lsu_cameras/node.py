@@ -22,10 +22,9 @@ refused while a stream runs (the stream's own frames are the pairs to use).
 
 from __future__ import annotations
 
-import contextlib
 import math
-import queue
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -41,6 +40,7 @@ from lsu_common import diagnostics, qos, stamps
 from lsu_common.images import bgr_to_msg
 from lsu_common.node import main_of
 from lsu_common.params import Param, declare_parameters
+from lsu_common.read_ahead import read_ahead
 from lsu_interfaces.msg import SimTruth, StereoExposure, StereoExtrinsics
 from lsu_interfaces.srv import CaptureStereo, StreamStereo
 from tf2_msgs.msg import TFMessage
@@ -595,62 +595,37 @@ class StereoCameraNode(Node):
     def _run_clocked(self, stream: _Stream, source: StereoSource) -> None:
         """Frame k exposed from t_k = t0 + k * period, published once it can exist; never a slot skipped.
 
-        Two stages: a render thread makes each pair once its slot's time has come (`_render_clocked`), and
-        this thread publishes them in order and waits for the readers' acknowledgements meanwhile. Done one
-        after the other, a render (~30 ms of CPU for a simulated pair) plus the wait for the readers took
+        Two stages: a render thread makes each pair once its slot's time has come (`_clocked_pairs`, through
+        `read_ahead`), and this thread publishes them in order and waits for the readers' acknowledgements
+        meanwhile. Done one after the other, a render (~30 ms of CPU for a simulated pair) plus the wait for the readers took
         longer than a 30 fps period and the stream fell behind; the pairs themselves are the same (their
         content is fixed by the slot's stamp, index and the carriage truth then).
         """
-        rendered: queue.Queue[tuple[int, int, StereoPair] | BaseException | None] = queue.Queue(maxsize=RENDER_AHEAD)
-        quit_rendering = threading.Event()
-        renderer = threading.Thread(target=self._render_clocked, args=(stream, source, rendered, quit_rendering),
-                                    name="lsu-camera-render", daemon=True)
-        renderer.start()
-        try:
-            while True:
-                item = rendered.get()
-                if item is None:
-                    return
-                if isinstance(item, BaseException):
-                    raise item
-                index, t_ns, pair = item
-                self._stream_publish(stream, pair, t_ns, index)
-        finally:
-            quit_rendering.set()
-            while renderer.is_alive():  # it may be blocked on a full queue
-                with contextlib.suppress(queue.Empty):
-                    rendered.get_nowait()
-                renderer.join(timeout=0.05)
+        for index, t_ns, pair in read_ahead(self._clocked_pairs(stream, source), RENDER_AHEAD, "lsu-camera-render"):
+            self._stream_publish(stream, pair, t_ns, index)
 
-    def _render_clocked(self, stream: _Stream, source: StereoSource,
-                        rendered: queue.Queue[tuple[int, int, StereoPair] | BaseException | None],
-                        quit_rendering: threading.Event) -> None:
-        """The render stage of `_run_clocked`: (index, stamp, pair) per slot in order, then None (or the error)."""
+    def _clocked_pairs(self, stream: _Stream, source: StereoSource) -> Iterator[tuple[int, int, StereoPair]]:
+        """The render stage of `_run_clocked`: (index, stamp, pair) per slot in order, each once its time has come."""
         ready_ns = stamps.seconds_to_ns(source.ready_after_s)
         if isinstance(source, SimSource):
             ready_ns += stamps.seconds_to_ns(TRUTH_DELAY_S)
         index = 0
-        try:
-            while (not stream.frames or index < stream.frames) and not quit_rendering.is_set():
-                t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)
-                while True:
-                    with self._stream_lock:
-                        stop_at = stream.stop_at_ns
-                    if (stop_at is not None and t_ns >= stop_at) or quit_rendering.is_set():
-                        rendered.put(None)
-                        return
-                    wait_ns = t_ns + ready_ns - self._now_ns()
-                    if wait_ns <= 0:
-                        break
-                    stream.wake.wait(stamps.ns_to_seconds(wait_ns))
-                    stream.wake.clear()
-                with self._lock:
-                    pair = source.pair_at(t_ns, index)
-                rendered.put((index, t_ns, pair))
-                index += 1
-            rendered.put(None)
-        except BaseException as exc:  # noqa: BLE001 - handed to the publishing thread, which reports it
-            rendered.put(exc)
+        while not stream.frames or index < stream.frames:
+            t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)
+            while True:
+                with self._stream_lock:
+                    stop_at = stream.stop_at_ns
+                if stop_at is not None and t_ns >= stop_at:
+                    return
+                wait_ns = t_ns + ready_ns - self._now_ns()
+                if wait_ns <= 0:
+                    break
+                stream.wake.wait(stamps.ns_to_seconds(wait_ns))
+                stream.wake.clear()
+            with self._lock:
+                pair = source.pair_at(t_ns, index)
+            yield index, t_ns, pair
+            index += 1
 
     def _run_free(self, stream: _Stream, source: StereoSource) -> None:
         """Pairs at the devices' rate, stamped from their buffers; missing slots show as stamp gaps."""

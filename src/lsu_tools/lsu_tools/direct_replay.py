@@ -19,17 +19,16 @@ from __future__ import annotations
 
 import collections
 import itertools
-import queue
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
 from lsu_bags.bags import bag_topics, read_message_views
 from lsu_common import stamps
+from lsu_common.read_ahead import read_ahead
 
 __all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
 
@@ -71,47 +70,6 @@ def _side(topic: str, suffix: str) -> str | None:
         if topic.endswith(f"stereo/{side}/{suffix}"):
             return side
     return None
-
-
-def _prefetched(messages: Iterator[Any], cpu: dict[str, float], depth: int = PREFETCH) -> Iterator[Any]:
-    """``messages`` read ahead by a thread: the bag's reading (and a compressed bag's zstd decompression,
-    which releases the GIL) runs on the other core while this one extracts and matches. Exceptions come
-    out where they occurred; ``cpu["read_s"]`` is the reading thread's CPU time so far."""
-    box: queue.Queue[Any] = queue.Queue(maxsize=depth)
-    done = object()
-    stop = threading.Event()
-
-    def read() -> None:
-        t0 = time.thread_time()
-        try:
-            for m in messages:
-                while not stop.is_set():
-                    try:
-                        box.put(m, timeout=0.1)
-                        cpu["read_s"] = time.thread_time() - t0
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            cpu["read_s"] = time.thread_time() - t0
-            box.put(done)
-        except BaseException as exc:  # handed to the consumer, which raises it
-            box.put(exc)
-
-    reader = threading.Thread(target=read, name="bag-reader", daemon=True)
-    reader.start()
-    try:
-        while True:
-            item = box.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        reader.join(timeout=5.0)
 
 
 class DirectReplay:
@@ -178,12 +136,14 @@ class DirectReplay:
         stats = ReplayStats()
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
-        reading: dict[str, float] = {"read_s": 0.0}
-        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views)
-        messages = _prefetched(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
-                               reading)
+        reading: dict[str, float] = {"producer_s": 0.0}
+        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views);
+        # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on the
+        # other core while this one extracts and matches
+        messages = read_ahead(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
+                              PREFETCH, "bag-reader", reading)
         first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
-        t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["read_s"]
+        t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
         next_spin = t0 + SPIN_EVERY_S
         for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
@@ -229,7 +189,7 @@ class DirectReplay:
         matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
         stats.seconds = time.monotonic() - t0
         stats.cpu_s = time.process_time() - cpu0
-        stats.read_cpu_s = reading["read_s"] - read0
+        stats.read_cpu_s = reading["producer_s"] - read0
         stats.pairs = matcher.pairs - pairs_before
         stats.frames_dropped = sum(extractor.dropped.values())
         stats.lines_unpaired = sum(matcher.unmatched.values()) + len(matcher.left) + len(matcher.right)
