@@ -45,6 +45,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import struct
 import subprocess
 import sys
@@ -662,6 +663,11 @@ def sweep_live(tmp: Path) -> dict:
                 if not result.success:
                     raise RuntimeError(f"the {name} scan failed: {result.status}")
                 runs[name] = result
+                # each scan is timed from an idle graph, as a person sitting for one scan finds it: the face
+                # processor meshes and identifies the previous cloud (~5-7 s of CPU for a sweep's) after the
+                # scan's result, and would otherwise compete with the next scan's camera on the 2 cores
+                graph.wait_for_line(rf"\[face_processor\].*scan {re.escape(Path(result.output_dir).name)}: \d+ points",
+                                    timeout_s=120)
                 return Path(result.output_dir)
 
             face = lines_on_face(scan("stopsnap", start=0, end=470, step=2, settle_s=0.1))
