@@ -824,8 +824,8 @@ class ScanCoordinatorNode(Node):
                 next_feedback = now + 0.2
             self._guard_laser()
             # a frame's exposure or points wake this wait at once; the timeout bounds how late a cancel, a
-            # stall or the laser guard is seen (goals of 0.5 s and more), and each wake-up costs a wait-set
-            # rebuild: at 0.01 s those were ~5 ms of CPU per frame of a 30 fps sweep
+            # stall or the laser guard is seen (goals of 0.5 s and more); each wake-up costs a wait-set
+            # rebuild, CPU the camera and the extractor need during a sweep
             self._io_executor.spin_once(timeout_sec=0.05)
 
     def _stop_carriage(self, move: Any) -> None:
