@@ -90,8 +90,7 @@ def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
                                                 "bridge_cpu_s": _cpu_s(view_pid) - cpu0}
                 full_scan("after_bridge", False)
     finally:
-        graph.interrupt(timeout_s=30)
-        graph.kill()
+        graph.stop(timeout_s=30)
     return runs
 
 
@@ -112,8 +111,7 @@ def watching_client():
             time.sleep(1.0)  # the bridge subscribes on its next poll
             yield client, view.process.pid
     finally:
-        view.interrupt(timeout_s=20)
-        view.kill()
+        view.stop(timeout_s=20)
 
 
 #: a capture may take longer than the default 1 s abort limit when a loaded host moves 1.8 MB over UDP;
@@ -242,8 +240,7 @@ def replay(bag: Path, window: int = 4) -> dict:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-        graph.interrupt(timeout_s=20)
-        graph.kill()
+        graph.stop(timeout_s=20)
     return {"snaps": done, "seconds": seconds, "cpu_s": cpu, "missing_in_bag": missing}
 
 
@@ -547,8 +544,7 @@ def settle_figures(tmp: Path) -> dict:
                 runs[mode].append({"range": f"{start}..{end} step {step}", "seconds": result.seconds, "captures": sum(captures) / max(1, len(captures)),
                                    "rms_mm": accuracy_against_scene(folder / "cloud.ply", "head:7")["rms_mm"]})
     finally:
-        graph.interrupt(timeout_s=30)
-        graph.kill()
+        graph.stop(timeout_s=30)
 
     def mean(mode: str, key: str) -> float:
         return sum(r[key] for r in runs[mode]) / len(runs[mode])
@@ -681,8 +677,7 @@ def sweep_live(tmp: Path) -> dict:
             scan("face_reverse", start=lo, end=hi, **sweep)    # from hi, where the last one ended: back down
             scan("face_forward", start=lo, end=hi, **sweep)    # from lo: up
     finally:
-        graph.interrupt(timeout_s=20)
-        graph.kill()
+        graph.stop(timeout_s=20)
     records = {name: json.loads((Path(r.output_dir) / "scan.json").read_text()) for name, r in runs.items()}
     sweeps = {name: rec["sweep"] for name, rec in records.items() if "sweep" in rec and rec["sweep"]}
     directions = {name: sweeps[name]["direction"] for name in ("full_track", "face_reverse", "face_forward")}

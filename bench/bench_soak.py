@@ -70,8 +70,7 @@ def soak(tmp: Path) -> dict[str, dict[str, list[float]]]:
                     f"{n} {s['rss_mb'][-1]:.0f} MB/{s['fds'][-1]:.0f} fd" for n, s in sorted(samples.items())),
                     flush=True)
     finally:
-        graph.interrupt(timeout_s=30)
-        graph.kill()
+        graph.stop(timeout_s=30)
     return samples
 
 

@@ -99,7 +99,4 @@ def test_signal_to_the_launcher_mid_scan(sig, tmp_path, fault_report):
             scanner.close()
         for proc in (graph, unit):
             if proc is not None:
-                try:
-                    proc.interrupt(timeout_s=15)
-                finally:
-                    proc.kill()
+                proc.stop(timeout_s=15)

@@ -35,8 +35,7 @@ def graph(tmp_path_factory):
         yield {"proc": proc, "scanner": scanner, "control": port + ".ctl", "out": tmp / "scans"}
         scanner.close()
     finally:
-        proc.interrupt(timeout_s=15)
-        proc.kill()
+        proc.stop(timeout_s=15)
 
 
 def laser_on(g) -> bool:

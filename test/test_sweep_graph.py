@@ -121,8 +121,7 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
             canceled = scanner.get_result(timeout_s=60)
             ros_node.spin_until(lambda: False, 1.0)
     finally:
-        graph.interrupt(timeout_s=15)
-        graph.kill()
+        graph.stop(timeout_s=15)
     assert result.success, result.status + graph.output[-3000:]
     record = json.loads((Path(result.output_dir) / "scan.json").read_text())
     sweep = record["sweep"]
@@ -209,6 +208,5 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
         assert play.returncode == 0, play.stdout + play.stderr
         assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay_graph.output[-3000:]
     finally:
-        replay_graph.interrupt(timeout_s=15)
-        replay_graph.kill()
+        replay_graph.stop(timeout_s=15)
     same_frames(clouds[0], recorded[0])

@@ -55,8 +55,7 @@ def test_a_sweep_runs_back_from_the_end_it_stands_at_and_otherwise_from_the_near
                                   output_dir=str(tmp_path / "scans"))
             after_nearer = scanner.state().position_steps
     finally:
-        graph.interrupt(timeout_s=15)
-        graph.kill()
+        graph.stop(timeout_s=15)
     assert back.success, back.status + graph.output[-3000:]
     assert nearer.success, nearer.status + graph.output[-3000:]
     assert after_back == START and after_nearer == START

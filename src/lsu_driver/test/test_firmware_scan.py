@@ -36,5 +36,4 @@ def test_scan_of_six_snaps_on_the_firmware(firmware_build, tmp_path):
     finally:
         if scanner is not None:
             scanner.close()
-        proc.interrupt(timeout_s=15)
-        proc.kill()
+        proc.stop(timeout_s=15)

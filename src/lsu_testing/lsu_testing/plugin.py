@@ -270,13 +270,7 @@ def launch() -> Iterator[Callable[..., LaunchedProcess]]:
 
     yield start
     for proc in started:
-        try:
-            if proc.process.poll() is None:
-                proc.interrupt(timeout_s=8.0)
-        except subprocess.TimeoutExpired:
-            pass
-        finally:
-            proc.kill()
+        proc.stop(timeout_s=8.0)
 
 
 @pytest.fixture

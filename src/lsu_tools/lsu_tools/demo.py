@@ -97,8 +97,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         finally:
             if scanner is not None:
                 scanner.close()
-            code = graph.interrupt(timeout_s=20)
-            graph.kill()
+            code = graph.stop(timeout_s=20)
             (Path(tmp) / "graph.log").write_text(graph.output)
             claim.release()
     folder = Path(result.output_dir)

@@ -104,6 +104,19 @@ class LaunchedProcess:
         finally:
             self._reader.join(timeout=2.0)
 
+    def stop(self, timeout_s: float = 10.0) -> int | None:
+        """SIGINT, then (not ended within ``timeout_s``) SIGKILL of the group: the exit code, None when killed.
+
+        The teardown of every caller: an `interrupt` that times out raises, and a ``kill()`` after it in the
+        same ``finally`` would never run, leaving the graph behind.
+        """
+        try:
+            return self.interrupt(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+        finally:
+            self.kill()  # a no-op once the process has ended
+
     def kill(self) -> None:
         """SIGKILL the process group (teardown of last resort)."""
         if self.process.poll() is None:

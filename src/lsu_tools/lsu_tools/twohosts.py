@@ -156,9 +156,4 @@ def split_scan(out: Path, hosts: TwoHosts | None, groups: Sequence[str] = ("rig"
         return Path(match.group(1))
     finally:
         for proc in reversed(started):
-            try:
-                proc.interrupt(timeout_s=15)
-            except subprocess.TimeoutExpired:
-                pass
-            finally:
-                proc.kill()
+            proc.stop(timeout_s=15)
