@@ -85,6 +85,9 @@ class LiveSweep:
     carriage: list[tuple[float, float, bool]] = field(default_factory=list)  # (stamp s, position, moving)
     done: set[int] = field(default_factory=set)       # frames handed out by `ready` / `finish`
     counts: dict[str, int] = field(default_factory=lambda: {"no_position": 0, "no_exposure": 0})
+    # the samples and track as of the key (first_key, start_position, len(carriage)): `ready` runs at every
+    # line, the carriage samples change at 20 Hz; `carriage` is only ever appended to (`add_carriage`)
+    _track_cache: tuple[tuple, list, CarriageTrack | None] | None = field(default=None, repr=False, compare=False)
 
     def is_frame(self, key: int) -> bool:
         """The pair stamped ``key`` belongs to this sweep."""
@@ -108,10 +111,21 @@ class LiveSweep:
             del self.pairs[key]
 
     # ------------------------------------------------------------------ the carriage track
+    def _cached(self) -> tuple[list[tuple[float, float, bool]], CarriageTrack | None]:
+        key = (self.first_key, self.start_position, len(self.carriage))
+        if self._track_cache is None or self._track_cache[0] != key:
+            since = stamps.ns_to_seconds(self.first_key) - CARRIAGE_LOOKBACK_S
+            seed = [] if self.start_position is None else [(since, float(self.start_position), False)]
+            samples = sorted(seed + [s for s in self.carriage if s[0] > since])
+            track = None
+            if len({s[0] for s in samples}) >= 2:
+                arr = np.asarray([(t, p) for t, p, _m in samples], dtype=np.float64)
+                track = CarriageTrack(arr[:, 0], arr[:, 1], np.asarray([m for _t, _p, m in samples], dtype=bool))
+            self._track_cache = (key, samples, track)
+        return self._track_cache[1], self._track_cache[2]
+
     def _samples(self) -> list[tuple[float, float, bool]]:
-        since = stamps.ns_to_seconds(self.first_key) - CARRIAGE_LOOKBACK_S
-        seed = [] if self.start_position is None else [(since, float(self.start_position), False)]
-        return sorted(seed + [s for s in self.carriage if s[0] > since])
+        return self._cached()[0]
 
     def track_end_s(self) -> float | None:
         """Stamp of the sweep motion's final stop, None while it runs.
@@ -128,11 +142,7 @@ class LiveSweep:
 
     def track(self) -> CarriageTrack | None:
         """The sweep's carriage track so far (None with fewer than 2 samples)."""
-        samples = self._samples()
-        if len({s[0] for s in samples}) < 2:
-            return None
-        arr = np.asarray([(t, p) for t, p, _m in samples], dtype=np.float64)
-        return CarriageTrack(arr[:, 0], arr[:, 1], np.asarray([m for _t, _p, m in samples], dtype=bool))
+        return self._cached()[1]
 
     # ------------------------------------------------------------------ frames out
     def _frame(self, key: int, exposure: Exposure) -> SweepFrame:
