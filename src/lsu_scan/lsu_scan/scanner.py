@@ -239,11 +239,11 @@ class LsuScanner:
         return self.get_result()
 
 
-def _progress(fb: Any) -> None:
+def _progress(fb: Any, unit: str = "snap") -> None:
     total = max(1, fb.snaps_total)
     done = min(fb.snap_index, total)
     bar = "#" * int(30 * done / total)
-    sys.stderr.write(f"\r[{bar:<30}] snap {done}/{total} pos {fb.position_steps:4d} points {fb.points_so_far:8,d} "
+    sys.stderr.write(f"\r[{bar:<30}] {unit} {done}/{total} pos {fb.position_steps:4d} points {fb.points_so_far:8,d} "
                      f"ETA {fb.eta_s:5.1f} s ({fb.stage})   ")
     sys.stderr.flush()
 
@@ -262,7 +262,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
             while not scanner.is_task_complete():
                 fb = scanner.get_feedback()
                 if fb is not None and fb is not shown:
-                    _progress(fb)
+                    _progress(fb, "snap" if args.mode == "stopsnap" else "frame")
                     shown = fb
                 time.sleep(0.1)
         except KeyboardInterrupt:
@@ -273,7 +273,7 @@ def cmd_scan(args: argparse.Namespace) -> int:
         scanner.close()
     sys.stderr.write("\n")
     print(result.status)
-    print(f"scan {result.scan_id}: {result.snaps} snaps, {result.points} points, {result.seconds:.1f} s")
+    print(f"scan {result.scan_id}: {result.snaps} {'snaps' if args.mode == 'stopsnap' else 'frames'}, {result.points} points, {result.seconds:.1f} s")
     print(f"files in {result.output_dir}:")
     for path in result.files:
         print(f"  {path}")

@@ -68,11 +68,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
             print(f"[demo] graph up and carriage homed after {time.monotonic() - t0:.1f} s; scanning "
                   f"{args.start}..{args.end} {how}, recording a bag")
             last = [-1]
+            unit = "snap" if args.mode == "stopsnap" else "frame"
 
             def progress(fb) -> None:
                 if fb.snap_index // 25 != last[0]:
                     last[0] = fb.snap_index // 25
-                    print(f"[demo]   snap {fb.snap_index}/{fb.snaps_total} at {fb.position_steps} steps, "
+                    print(f"[demo]   {unit} {fb.snap_index}/{fb.snaps_total} at {fb.position_steps} steps, "
                           f"{fb.points_so_far} points, ETA {fb.eta_s:.0f} s", flush=True)
 
             result = scanner.scan(feedback=progress, start=args.start, end=args.end, step=args.step,
