@@ -128,6 +128,18 @@ def test_laser_off_shows_no_line_and_noise_is_seeded(plane_rig):
     assert off.left.dtype == np.uint8 and off.left.shape == (480, 640, 3)
 
 
+def test_serial_and_parallel_renders_give_the_same_images():
+    # each view has its own generator, so the images do not depend on the threads they were rendered on
+    geometry = load_rig()
+    rig = SimulatedRig(geometry, build_scene("head:7", geometry), seed=2)
+    moving = CarriageState(180.0, velocity_steps_per_s=180.0, position_time_s=1.0)
+    for state, t in ((moving, 1.004), (CarriageState(260.0), None)):
+        a = rig.render(state, capture_time_s=t, seed=9, parallel=True)
+        b = rig.render(state, capture_time_s=t, seed=9, parallel=False)
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+        assert a.left[:, :, 2].max() > 150  # the line is there
+
+
 def test_bright_laser_saturates_at_255():
     geometry = load_rig()
     geometry.laser.power = 5.0
