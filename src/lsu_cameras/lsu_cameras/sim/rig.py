@@ -640,14 +640,10 @@ class SimulatedRig:
             term = cv2.GaussianBlur(term, (0, 0), sensor.psf_sigma_px)
         term += base[r0:r1, c0:c1]
         bloom(term, sensor.blooming)
-        out = np.empty((H, W, 3), np.uint8)
+        # the whole image from the cached base (one contiguous pass is cheaper than the bands around the
+        # rectangle), then the rectangle
+        out = self._quantise(base, view.sigma255, noise, sign)
         out[r0:r1, c0:c1] = self._quantise(term, self._noise_sigma255(term), noise[r0:r1, c0:c1], sign)
-        # the rest from the cached base, in the bands around the rectangle (elementwise: the same numbers
-        # as quantising the whole image)
-        for rs, cs in ((slice(0, r0), slice(0, W)), (slice(r1, H), slice(0, W)),
-                       (slice(r0, r1), slice(0, c0)), (slice(r0, r1), slice(c1, W))):
-            if rs.start < rs.stop and cs.start < cs.stop:
-                out[rs, cs] = self._quantise(base[rs, cs], view.sigma255[rs, cs], noise[rs, cs], sign)
         return out
 
     def _sheet_frame(self, position_steps: float) -> tuple[AnyArray, AnyArray, AnyArray]:
