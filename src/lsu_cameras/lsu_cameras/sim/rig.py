@@ -462,7 +462,7 @@ class SimulatedRig:
         if any_skin or not self.reference:
             # the skin band is wide for the kernel's tail: drop pixels it leaves below 1e-3 of the peak
             # (< 0.2 DN at full power) before the shadow rays, the costly part
-            keep = profile > 1e-3
+            keep = np.flatnonzero(profile > 1e-3)
             idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
             red_albedo = red_albedo[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
