@@ -159,6 +159,7 @@ def bench_capture() -> list:
 
 
 def main() -> int:
+    load_at_start = os.getloadavg()[0]
     geometry = load_rig()
     render_cpu = bench_render_cpu(geometry)
     render = bench_render(geometry)
@@ -197,7 +198,8 @@ def main() -> int:
              "14 seeded random 9x6/20 mm board poses rendered by the sim, OpenCV calibrateCamera (k3 fixed) + "
              "stereoCalibrate; errors vs the rig's true geometry (focal = worst of fx, fy of both cameras). "
              "Capture round trip: CaptureStereo (publish=true, head scene) through an in-process "
-             "MultiThreadedExecutor, client and node in one process.")
+             "MultiThreadedExecutor, client and node in one process. Host load average "
+             f"{load_at_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2 cores, shared).")
     write_result("cameras", figures, units, notes)
     return 0
 
