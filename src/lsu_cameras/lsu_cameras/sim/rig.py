@@ -29,6 +29,7 @@ The truth describes the sheet at the carriage's rest position: vibration is an e
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -179,14 +180,17 @@ class _View:
     sigma2: AnyArray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
     reach: AnyArray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
     reach_max: float = 0.0
-    pn_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # pixels that hit, by n . P
-    pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
-    reach_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))        # their reach
+    # the band table: the pixels that hit, by their n . P's bin (`PN_BIN_M`, ascending) and within a bin by
+    # pixel index, so a capture's candidates are a contiguous run of it and come row by row along the line
+    band_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # their pixel indices
+    band_bin: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))    # floor(n . P / PN_BIN_M)
+    band_pn: AnyArray = field(default_factory=lambda: np.zeros(0))               # their n . P
+    band_reach: AnyArray = field(default_factory=lambda: np.zeros(0))            # their reach
     band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 8)))      # their sigma2, P, N, red albedo
     # their constants that do not change with the sheet's offset, one row each: the skin kernel's `KernelScale`
     # (sigma, b, sigma / b, (sigma / b)^2 / 2, sigma sqrt 2), 1 / sqrt(2 sigma2) and the normal's n . N
     band_consts: AnyArray = field(default_factory=lambda: np.zeros((7, 0)))
-    skin_sorted: AnyArray = field(default_factory=lambda: np.zeros(0, bool))   # their skin flag
+    band_skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))     # their skin flag
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
     # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
@@ -221,6 +225,11 @@ def _footprints(points: AnyArray, ok: AnyArray, depth: AnyArray, axis: int) -> A
 
 
 _RAY_CACHE: dict[bytes, AnyArray] = {}
+
+# Bin width of n . P in the band table [m], about a pixel's footprint at the subject distance: the pixels
+# of a bin lie on a thin strip along the line, and in pixel order their shadow rays are coherent (Embree
+# traverses consecutive rays through the same nodes: ~15 % less time than in n . P order)
+PN_BIN_M = 0.5e-3
 
 
 def _grid_rays(camera: CameraModel) -> AnyArray:
@@ -360,15 +369,18 @@ class SimulatedRig:
         view.pn = np.where(hit, points @ n, np.nan)
         view.sigma2 = sigma2
         view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
-        view.pn_order = np.flatnonzero(hit)[np.argsort(view.pn[hit], kind="stable")]
-        view.pn_sorted = view.pn[view.pn_order]
-        view.reach_sorted = reach[view.pn_order]
+        hit_idx = np.flatnonzero(hit)
+        bins = np.floor(view.pn[hit_idx] / PN_BIN_M).astype(np.int64)
+        order = np.argsort(bins, kind="stable")  # stable: by pixel index within a bin
+        view.band_order, view.band_bin = hit_idx[order], bins[order]
+        view.band_pn = view.pn[view.band_order]
+        view.band_reach = reach[view.band_order]
         # what the laser term reads of a band's pixels, in the same order: one row gather per capture
-        view.band_rows = np.column_stack([sigma2[view.pn_order], points[view.pn_order], normals[view.pn_order],
-                                          albedo[view.pn_order, 2]])
-        view.skin_sorted = skin[view.pn_order]
+        view.band_rows = np.column_stack([sigma2[view.band_order], points[view.band_order], normals[view.band_order],
+                                          albedo[view.band_order, 2]])
+        view.band_skin = skin[view.band_order]
         # the sheet keeps its orientation (n fixed by the geometry): what depends on n . N alone is fixed per pixel
-        order_nN = n_dot_normal[view.pn_order]
+        order_nN = n_dot_normal[view.band_order]
         scale = KernelScale.of(view.band_rows[:, 0], self._skin_width(order_nN))
         view.band_consts = np.stack([scale.sigma, scale.b, scale.rb, scale.h, scale.sigma_sqrt2,
                                      1.0 / np.sqrt(2.0 * view.band_rows[:, 0]), order_nN])
@@ -412,22 +424,24 @@ class SimulatedRig:
         use_box = box_m is not None and not self.reference and box_m[1] - box_m[0] > 1e-3 * sheet
         lo, hi = (float(box_m[0]), float(box_m[1])) if use_box and box_m is not None else \
             (float(offsets_m.min()), float(offsets_m.max()))
-        # candidates from the pixels sorted by n . P (at most the largest reach away), then each pixel's own reach
-        a, b = np.searchsorted(view.pn_sorted, [lo - view.reach_max, hi + view.reach_max])
-        pn, reach = view.pn_sorted[a:b], view.reach_sorted[a:b]
+        # candidates: the band table's run of bins within the largest reach (floor is monotone, so every pixel
+        # with lo - reach_max < n . P < hi + reach_max is in it), then each pixel's own reach
+        a = int(np.searchsorted(view.band_bin, math.floor((lo - view.reach_max) / PN_BIN_M), side="left"))
+        b = int(np.searchsorted(view.band_bin, math.floor((hi + view.reach_max) / PN_BIN_M), side="right"))
+        pn, reach = view.band_pn[a:b], view.band_reach[a:b]
         sel = a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
-        idx = view.pn_order[sel]      # pixel indices (in the order of n . P: every step below is per pixel)
+        idx = view.band_order[sel]    # pixel indices (every step below is per pixel: their order does not matter)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
         rows = view.band_rows[sel]
         s2, pts, normals, red_albedo = rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7]
-        pn = view.pn_sorted[sel]
+        pn = view.band_pn[sel]
         to_laser = origin - pts
         sq = to_laser * to_laser
         dist = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])     # = np.linalg.norm(to_laser, axis=1), in fewer passes
         cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
         incidence = np.clip(cos_i, 0.0, None)
-        on_skin = view.skin_sorted[sel]
+        on_skin = view.band_skin[sel]
         # the skin and the other pixels (a slice when the band is all one or the other: no copies)
         skin: slice | AnyArray = slice(None) if on_skin.all() else np.flatnonzero(on_skin)
         other: slice | AnyArray | None = None if on_skin.all() else (slice(None) if not on_skin.any()
