@@ -649,7 +649,7 @@ class SimulatedRig:
         r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, H)
         c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, W)
         term = np.zeros((r1 - r0, c1 - c0, 3), np.float32)
-        term[rows - r0, cols - c0] = value
+        term.reshape(-1, 3)[(rows - r0) * (c1 - c0) + (cols - c0)] = value   # one flat index: cheaper than two
         if sensor.psf_sigma_px > 0:
             term = cv2.GaussianBlur(term, (0, 0), sensor.psf_sigma_px)
         term += base[r0:r1, c0:c1]
