@@ -407,6 +407,18 @@ class SimulatedRig:
         cast = self._cast(origin, to / dist[:, None])
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
 
+    @staticmethod
+    def _band_candidates(view: _View, lo: float, hi: float) -> AnyArray:
+        """Rows of the view's band table whose pixel's n . P is within its reach of [lo, hi] (ascending).
+
+        The table's run of bins within the largest reach (floor is monotone, so every pixel with
+        lo - reach_max < n . P < hi + reach_max is in it), then each pixel's own reach.
+        """
+        a = int(np.searchsorted(view.band_bin, math.floor((lo - view.reach_max) / PN_BIN_M), side="left"))
+        b = int(np.searchsorted(view.band_bin, math.floor((hi + view.reach_max) / PN_BIN_M), side="right"))
+        pn, reach = view.band_pn[a:b], view.band_reach[a:b]
+        return a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
+
     def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray,
                         box_m: tuple[float, float] | None = None):
         """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``.
@@ -424,12 +436,7 @@ class SimulatedRig:
         use_box = box_m is not None and not self.reference and box_m[1] - box_m[0] > 1e-3 * sheet
         lo, hi = (float(box_m[0]), float(box_m[1])) if use_box and box_m is not None else \
             (float(offsets_m.min()), float(offsets_m.max()))
-        # candidates: the band table's run of bins within the largest reach (floor is monotone, so every pixel
-        # with lo - reach_max < n . P < hi + reach_max is in it), then each pixel's own reach
-        a = int(np.searchsorted(view.band_bin, math.floor((lo - view.reach_max) / PN_BIN_M), side="left"))
-        b = int(np.searchsorted(view.band_bin, math.floor((hi + view.reach_max) / PN_BIN_M), side="right"))
-        pn, reach = view.band_pn[a:b], view.band_reach[a:b]
-        sel = a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
+        sel = self._band_candidates(view, lo, hi)
         idx = view.band_order[sel]    # pixel indices (every step below is per pixel: their order does not matter)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
