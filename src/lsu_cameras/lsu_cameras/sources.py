@@ -317,8 +317,8 @@ class SimSource(StereoSource):
         seeded by the sim seed and ``index`` (`frame_seed`).
 
         Rendered on the calling thread only: a stream renders on its own thread beside the publishing
-        one and the rest of the graph, where the rig's second render thread costs CPU (~15-20 % per pair)
-        and gains no frames; a single capture (`grab_pair`) keeps the rig's default for its latency.
+        one and the rest of the graph, where the rig's second render thread costs CPU and gains no frames;
+        a single capture (`grab_pair`) keeps the rig's default for its latency.
         """
         return self._pair(stamp_ns, frame_seed(self.seed, index), parallel=False)
 

@@ -256,8 +256,9 @@ class SimulatedRig:
         # (see `render`), the reference is what it is tested and benchmarked against
         self.reference = reference
         # parallel: the two views on two threads (numpy, OpenCV and the ray casts release the GIL in the
-        # per-pixel work): less wall time per pair, ~15-20 % more CPU; a caller that keeps both cores busy
-        # otherwise (a camera stream beside the rest of the graph) renders serially
+        # per-pixel work): less wall time per pair, more CPU (hand-offs, the views competing for the caches);
+        # a caller that keeps both cores busy otherwise (a camera stream beside the rest of the graph)
+        # renders serially
         self.parallel = parallel
         self.rng = np.random.default_rng(seed)
         # one generator per camera, so the two views' images do not depend on the thread they render
@@ -355,7 +356,7 @@ class SimulatedRig:
         for gid, obj in enumerate(self.objects):
             if obj.material == "skin":
                 skin |= geom == gid
-        # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_kernel`) and its
+        # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_width`) and its
         # centre shift (at most |n . N| / (n_skin (mu_a + mu_s'))) reach further from the sheet
         n_dot_normal = normals @ g.laser_normal
         nN = np.abs(n_dot_normal)
@@ -379,7 +380,8 @@ class SimulatedRig:
         view.band_rows = np.column_stack([sigma2[view.band_order], points[view.band_order], normals[view.band_order],
                                           albedo[view.band_order, 2]])
         view.band_skin = skin[view.band_order]
-        # the sheet keeps its orientation (n fixed by the geometry): what depends on n . N alone is fixed per pixel
+        # the sheet keeps its orientation (n and the skin model are the geometry's, as for every cache here):
+        # what depends on n . N alone is fixed per pixel
         order_nN = n_dot_normal[view.band_order]
         scale = KernelScale.of(view.band_rows[:, 0], self._skin_width(order_nN))
         view.band_consts = np.stack([scale.sigma, scale.b, scale.rb, scale.h, scale.sigma_sqrt2,
