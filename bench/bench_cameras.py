@@ -4,9 +4,11 @@ Figures (ARCHITECTURE.md): render_pair_ms_median, capture_roundtrip_ms_median, c
 calib_baseline_err_pct, calib_rotation_err_deg (+ extras). The render is timed with the rig's
 physics (speckle, skin, blooming) and, interleaved in the same run, without it
 (``render_pair_no_physics_ms_median``, ``render_physics_over_no_physics``). The render's CPU per pair
-(process time, both camera threads) of the head, moving at the fastest sweep rate and settled, beside
-the reference render's (``SimulatedRig(reference=True)``) in interleaved blocks of the same run:
-sim_render_cpu_ms_{moving,settled}, sim_render_cpu_over_reference_{moving,settled}.
+(process time) of the head, moving at the fastest sweep rate and settled, with both views on one thread
+as the camera stream renders them, beside the reference render's (``SimulatedRig(reference=True)``, also
+on one thread) and the two-thread render's (a single capture's) in interleaved blocks of the same run:
+sim_render_cpu_ms_{moving,settled}, sim_render_cpu_over_reference_{moving,settled},
+sim_render_parallel_cpu_ms_{moving,settled}, sim_render_parallel_cpu_over_serial_{moving,settled}.
 Writes bench/results/cameras.json.
 """
 
@@ -69,9 +71,12 @@ def _cpu_ms(fn, count: int) -> float:
 
 
 def bench_render_cpu(geometry, blocks: int = 5, per_block: int = 6) -> dict:
-    """CPU per pair of the render and of the reference render (head 7, moving at 180 steps/s and settled)."""
+    """CPU per pair of the render (one thread, two threads) and of the reference render (one thread), head 7
+    moving at 180 steps/s and settled."""
     objects = build_scene("head:7", geometry)
-    rigs = {False: SimulatedRig(geometry, objects, seed=1), True: SimulatedRig(geometry, objects, seed=1, reference=True)}
+    rigs = {"serial": SimulatedRig(geometry, objects, seed=1, parallel=False),
+            "parallel": SimulatedRig(geometry, objects, seed=1, parallel=True),
+            "reference": SimulatedRig(geometry, objects, seed=1, reference=True, parallel=False)}
 
     def moving(rig):
         return lambda i: rig.render(CarriageState(120.0 + 7 * i, velocity_steps_per_s=180.0, position_time_s=0.0),
@@ -84,15 +89,17 @@ def bench_render_cpu(geometry, blocks: int = 5, per_block: int = 6) -> dict:
     for name, make in (("moving", moving), ("settled", settled)):
         for rig in rigs.values():
             make(rig)(0)  # warm-up: caches, the noise bank, the thread pool
-        for _ in range(blocks):  # interleaved: a loaded host slows both alike
-            for reference, rig in rigs.items():
-                out.setdefault((name, reference), []).append(_cpu_ms(make(rig), per_block))
+        for _ in range(blocks):  # interleaved: a loaded host slows all alike
+            for kind, rig in rigs.items():
+                out.setdefault((name, kind), []).append(_cpu_ms(make(rig), per_block))
     figures = {}
     for name in ("moving", "settled"):
-        fast, ref = median(out[(name, False)]), median(out[(name, True)])
+        fast, ref, par = (median(out[(name, kind)]) for kind in ("serial", "reference", "parallel"))
         figures[f"sim_render_cpu_ms_{name}"] = fast
         figures[f"sim_render_reference_cpu_ms_{name}"] = ref
         figures[f"sim_render_cpu_over_reference_{name}"] = fast / ref
+        figures[f"sim_render_parallel_cpu_ms_{name}"] = par
+        figures[f"sim_render_parallel_cpu_over_serial_{name}"] = par / fast
     return figures
 
 
@@ -152,6 +159,7 @@ def bench_capture() -> list:
 
 
 def main() -> int:
+    load_at_start = os.getloadavg()[0]
     geometry = load_rig()
     render_cpu = bench_render_cpu(geometry)
     render = bench_render(geometry)
@@ -174,21 +182,24 @@ def main() -> int:
     units = {k: "ms" for k in figures if k.endswith("_ms_median") or k.endswith("_ms_p99")}
     units["render_physics_over_no_physics"] = "ratio"
     units.update({k: "ms" for k in render_cpu if "_cpu_ms_" in k})
-    units.update({k: "ratio" for k in render_cpu if "_over_reference_" in k})
+    units.update({k: "ratio" for k in render_cpu if "_over_" in k})
     units.update({"calib_focal_err_pct": "%", "calib_baseline_err_pct": "%", "calib_rotation_err_deg": "deg",
                   "calib_principal_err_px": "px", "calib_stereo_rms_px": "px", "calib_views": "views"})
     notes = ("Simulated rig (config/sim_rig.yaml), 640x480 stereo pair: render = laser term (speckle; skin "
              "scattering on the head) + blur + blooming + noise + quantisation on cached ray casts (head scene ~130k "
              "triangles), one position per call; no_physics = the same scene with speckle contrast 0, blooming 0 and "
              "surface material, timed in interleaved blocks in the same run. sim_render_cpu_ms_moving/settled: "
-             "CPU per pair (process time, both camera threads) of head 7, moving at 180 steps/s (the fastest "
-             "sweep, 8 sub-exposures in the reference) and settled; the reference render (reference=True: "
-             "every sub-exposure, fresh noise over the whole image, every sensor step on the full image) in "
-             "interleaved blocks of the same run, medians of 5 blocks of 6 pairs. Calibration: "
+             "CPU per pair (process time) of head 7, moving at 180 steps/s (the fastest sweep, 8 sub-exposures "
+             "in the reference) and settled, both views on one thread (parallel=False, as the camera stream "
+             "renders); the reference render (reference=True: every sub-exposure, fresh noise over the whole "
+             "image, every sensor step on the full image; also on one thread) and the two-thread render "
+             "(parallel=True, a single capture's default; sim_render_parallel_cpu_*) in interleaved blocks of "
+             "the same run, medians of 5 blocks of 6 pairs. Calibration: "
              "14 seeded random 9x6/20 mm board poses rendered by the sim, OpenCV calibrateCamera (k3 fixed) + "
              "stereoCalibrate; errors vs the rig's true geometry (focal = worst of fx, fy of both cameras). "
              "Capture round trip: CaptureStereo (publish=true, head scene) through an in-process "
-             "MultiThreadedExecutor, client and node in one process.")
+             "MultiThreadedExecutor, client and node in one process. Host load average "
+             f"{load_at_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (2 cores, shared).")
     write_result("cameras", figures, units, notes)
     return 0
 

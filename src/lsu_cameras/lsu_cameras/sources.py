@@ -303,19 +303,24 @@ class SimSource(StereoSource):
         # the later camera's exposure end (jitter: 3 sigma), as a real frame would arrive
         return max(sensor.capture_offset_s, 0.0) + 3.0 * sensor.capture_jitter_s + sensor.exposure_s
 
-    def _pair(self, t_ns: int, seed: int | None) -> StereoPair:
+    def _pair(self, t_ns: int, seed: int | None, parallel: bool | None = None) -> StereoPair:
         t = ns_to_seconds(t_ns)
         # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
         # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
-        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed)
+        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed, parallel=parallel)
         left_start, right_start = frame.exposure_start_s
         assert left_start is not None and right_start is not None  # a capture time gives both starts
         return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
 
     def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
         """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
-        seeded by the sim seed and ``index`` (`frame_seed`)."""
-        return self._pair(stamp_ns, frame_seed(self.seed, index))
+        seeded by the sim seed and ``index`` (`frame_seed`).
+
+        Rendered on the calling thread only: a stream renders on its own thread beside the publishing
+        one and the rest of the graph, where the rig's second render thread costs CPU and gains no frames;
+        a single capture (`grab_pair`) keeps the rig's default for its latency.
+        """
+        return self._pair(stamp_ns, frame_seed(self.seed, index), parallel=False)
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         started = time.monotonic()

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from scipy.special import erf
 
 from lsu_cameras.paths import config_dir
 from lsu_cameras.sim import (
@@ -19,6 +20,7 @@ from lsu_cameras.sim import (
 )
 from lsu_cameras.sim.physics import (
     BAYER_PATTERNS,
+    ERF_ONE,
     bloom,
     demosaic,
     mosaic,
@@ -26,6 +28,7 @@ from lsu_cameras.sim.physics import (
     skin_profile_box,
     skin_profile_tails,
     speckle_tiles,
+    surface_profile_box,
 )
 from lsu_cameras.sim.scenes import SceneError, uniform_albedo
 
@@ -85,6 +88,23 @@ def test_closed_form_exposure_average_and_kernel_tails_equal_the_sampled_profile
     assert np.max(np.abs(box - sampled)) < 1e-6 * sampled.max()
     exact = skin_profile(d, s2, sheet, width, shift, 0.9)
     assert np.max(np.abs(skin_profile_tails(d, s2, sheet, width, shift, 0.9) - exact)) < 1e-8 * exact.max()
+
+
+def test_box_profile_skips_erf_only_where_it_is_exactly_one():
+    # the closed-form box average leaves out intervals entirely beyond +-ERF_ONE: that needs erf(x) == 1.0
+    # exactly there (a library that rounds it below 1 would change the images, so this fails instead)
+    x = np.linspace(ERF_ONE, 40.0, 400001)
+    assert np.all(erf(x) == 1.0) and np.all(erf(-x) == -1.0)
+    # and the profile equals the plain formula (both erf evaluated) bit for bit, far and near the sheet
+    rng = np.random.default_rng(4)
+    sheet = 0.001 / 2.3548
+    s2 = sheet ** 2 + rng.uniform(0.0, 4.0, 20000) * sheet ** 2
+    d_lo = rng.uniform(-0.02, 0.02, 20000)
+    d_hi = d_lo + rng.uniform(1e-5, 2e-3, 20000)
+    r = 1.0 / np.sqrt(2.0 * s2)
+    plain = (erf(d_hi * r) - erf(d_lo * r)) * (sheet * np.sqrt(0.5 * np.pi) / (d_hi - d_lo))
+    assert np.array_equal(surface_profile_box(d_lo, d_hi, s2, sheet), plain)
+    assert np.count_nonzero(plain == 0.0) > 1000 and np.count_nonzero(plain > 0.1) > 100
 
 
 def test_speckle_tiles_are_seeded_and_independent_between_cameras():

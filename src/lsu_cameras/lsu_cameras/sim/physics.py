@@ -134,47 +134,74 @@ class SpeckleField:
         return s
 
 
+_SQRT2 = math.sqrt(2.0)
+
+
 def _exp_erfc(z: AnyArray, a: AnyArray, g: AnyArray) -> AnyArray:
     """``exp(a) erfc(z)`` where ``a = z^2 + log g``, without overflow.
 
     ``exp(a) erfc(z) = g erfcx(z)`` for z >= 0 and ``2 exp(a) - g erfcx(-z)`` for z < 0 (where ``a``
-    stays moderate in every use here).
+    stays moderate in every use here); the exponential is evaluated only where z < 0.
     """
-    e = erfcx(np.abs(z))
-    with np.errstate(over="ignore"):
-        return np.where(z >= 0, g * e, 2.0 * np.exp(np.minimum(a, 700.0)) - g * e)
+    out = g * erfcx(np.abs(z))
+    neg = z < 0
+    ea = np.minimum(a, 700.0)
+    np.exp(ea, out=ea, where=neg)
+    return np.where(neg, 2.0 * ea - out, out)
 
 
-def _emg_two_sided(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
-    """Density of a Gaussian (sigma) convolved with a two-sided exponential exp(-|x|/b) / (2 b).
+@dataclass(frozen=True)
+class KernelScale:
+    """Per-point constants of the Gaussian (``sigma``) + two-sided exponential (``b``) kernel.
 
-    Each side is an exponentially modified Gaussian; written with erfcx so no term overflows:
-    ``exp(s^2/2b^2 -+ x/b) erfc(z)`` with ``z = (s/b -+ x/s)/sqrt 2`` equals ``exp(-x^2/2s^2) erfcx(z)``
-    for z >= 0 and ``2 exp(s^2/2b^2 -+ x/b) - exp(-x^2/2s^2) erfcx(-z)`` for z < 0.
+    They do not depend on the sheet's offset, so a renderer computes them once per pixel; every
+    function below that takes them gives the same numbers as computing them on the spot.
     """
-    g = np.exp(-0.5 * (x / sigma) ** 2)
-    total = np.zeros_like(x)
-    for sign in (1.0, -1.0):
-        z = (sigma / b - sign * x / sigma) / math.sqrt(2.0)
-        a = 0.5 * (sigma / b) ** 2 - sign * x / b
-        total += _exp_erfc(z, a, g)
-    return total / (4.0 * b)
+
+    sigma: AnyArray          # sqrt(s2)
+    b: AnyArray              # the exponential's scale (>= 1e-9)
+    rb: AnyArray             # sigma / b
+    h: AnyArray              # (sigma / b)^2 / 2
+    sigma_sqrt2: AnyArray    # sigma sqrt 2
+
+    @classmethod
+    def of(cls, s2: AnyArray, width_d: AnyArray) -> KernelScale:
+        """From the pixel-integrated sheet variance and the kernel's length (clamped to >= 1e-9)."""
+        sigma = np.sqrt(s2)
+        b = np.maximum(width_d, 1e-9)
+        rb = sigma / b
+        return cls(sigma, b, rb, 0.5 * rb ** 2, sigma * _SQRT2)
+
+    def take(self, sel: AnyArray) -> KernelScale:
+        """The constants of the points ``sel`` (an index or mask)."""
+        return KernelScale(self.sigma[sel], self.b[sel], self.rb[sel], self.h[sel], self.sigma_sqrt2[sel])
 
 
-def _emg_two_sided_cdf(x: AnyArray, sigma: AnyArray, b: AnyArray) -> AnyArray:
-    """Distribution function of `_emg_two_sided` (Gaussian ``sigma`` + two-sided exponential ``b``).
+def _emg_two_sided(xs: AnyArray, xb: AnyArray, k: KernelScale) -> AnyArray:
+    """Density of a Gaussian (sigma) convolved with a two-sided exponential exp(-|x|/b) / (2 b), at x.
+
+    ``xs = x / sigma``, ``xb = x / b``. Each side is an exponentially modified Gaussian; written with erfcx
+    so no term overflows: ``exp(s^2/2b^2 -+ x/b) erfc(z)`` with ``z = (s/b -+ x/s)/sqrt 2`` equals
+    ``exp(-x^2/2s^2) erfcx(z)`` for z >= 0 and ``2 exp(s^2/2b^2 -+ x/b) - exp(-x^2/2s^2) erfcx(-z)`` for z < 0.
+    """
+    g = np.exp(-0.5 * xs ** 2)
+    total = _exp_erfc((k.rb - xs) / _SQRT2, k.h - xb, g)
+    total += _exp_erfc((k.rb + xs) / _SQRT2, k.h + xb, g)
+    return total / (4.0 * k.b)
+
+
+def _emg_two_sided_cdf(xs: AnyArray, xb: AnyArray, xq: AnyArray, k: KernelScale) -> AnyArray:
+    """Distribution function of `_emg_two_sided` at x (``xs = x / sigma``, ``xb = x / b``, ``xq = x / (sigma sqrt 2)``).
 
     Half of the kernel is ``+E``, half ``-E`` with E exponential (rate 1/b); for a Gaussian plus
     ``+-E``: ``Phi(x/s) -+ exp(s^2/2b^2 -+ x/b) Phi(+-x/s - s/b)`` (the exponentially modified Gaussian's
     distribution function), so ``F = Phi(x/s) - exp(a1) erfc(z1) / 4 + exp(a2) erfc(z2) / 4`` with the
     ``z``, ``a`` of `_emg_two_sided`; each product through `_exp_erfc`.
     """
-    g = np.exp(-0.5 * (x / sigma) ** 2)
-    total = 0.5 * erfc(-x / (sigma * math.sqrt(2.0)))
-    for sign in (1.0, -1.0):
-        z = (sigma / b - sign * x / sigma) / math.sqrt(2.0)
-        a = 0.5 * (sigma / b) ** 2 - sign * x / b
-        total += (-0.25 * sign) * _exp_erfc(z, a, g)
+    g = np.exp(-0.5 * xs ** 2)
+    total = 0.5 * erfc(-xq)
+    total += -0.25 * _exp_erfc((k.rb - xs) / _SQRT2, k.h - xb, g)
+    total += 0.25 * _exp_erfc((k.rb + xs) / _SQRT2, k.h + xb, g)
     return total
 
 
@@ -187,22 +214,37 @@ def skin_profile(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyAr
     ``exp(-d^2/2 s2) * sheet_sigma / sqrt(s2)`` (integral ``sheet_sigma sqrt(2 pi)``); the remitted
     part has the same integral.
     """
-    sigma = np.sqrt(s2)
-    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / sigma)
-    b = np.maximum(width_d, 1e-9)
-    remitted = _emg_two_sided(d - shift_d, sigma, b) * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
+    k = KernelScale.of(s2, width_d)
+    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / k.sigma)
+    u = d - shift_d
+    remitted = _emg_two_sided(u / k.sigma, u / k.b, k) * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
     return (1.0 - fraction) * surface + fraction * remitted
 
 
-def surface_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float) -> AnyArray:
+def surface_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float,
+                        r: AnyArray | None = None) -> AnyArray:
     """The surface profile ``exp(-d^2/2 s2) sheet_sigma / sqrt(s2)`` averaged over d uniform in [d_lo, d_hi].
 
     A sheet moving at a constant rate during the exposure sweeps its offset uniformly over an
     interval: the exposure is this box average (closed form, erf), not a sum of sub-exposures.
     ``d_hi - d_lo`` must be > 0 (a few percent of ``sqrt(s2)`` or more keeps the difference exact).
+    ``r``: ``1 / sqrt(2 s2)`` when the caller has it.
     """
-    r = 1.0 / np.sqrt(2.0 * s2)
-    return (erf(d_hi * r) - erf(d_lo * r)) * (sheet_sigma_m * math.sqrt(0.5 * math.pi) / (d_hi - d_lo))
+    if r is None:
+        r = 1.0 / np.sqrt(2.0 * s2)
+    x_lo, x_hi = d_lo * r, d_hi * r
+    # erf is exactly +-1 beyond ERF_ONE (float64), so an interval entirely beyond it on one side has
+    # difference 0: erf is evaluated only on the others (most of a skin line's wide band)
+    # (gathered, not through the ufunc's where=: scipy's special ufuncs corrupt memory with it, scipy PR 25127)
+    near = np.flatnonzero((x_lo < ERF_ONE) & (x_hi > -ERF_ONE))
+    diff = np.zeros_like(x_lo)
+    diff[near] = erf(x_hi[near]) - erf(x_lo[near])
+    return diff * (sheet_sigma_m * math.sqrt(0.5 * math.pi) / (d_hi - d_lo))
+
+
+# scipy's float64 erf(x) is exactly 1.0 for x >= 6 (1 - erf(6) = 2.2e-17 is below half an ulp of 1);
+# test_sim_physics checks it on a grid, so a library that rounds differently fails a test, not the images
+ERF_ONE = 6.0
 
 
 # Beyond TAIL_Z standard deviations past the kernel's own scale (x / sigma - sigma / b >= TAIL_Z) one
@@ -213,49 +255,60 @@ def surface_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigm
 TAIL_Z = 6.0
 
 
-def _kernel_tails(u_lo: AnyArray, u_hi: AnyArray, sigma: AnyArray, b: AnyArray) -> tuple[AnyArray, AnyArray]:
-    """Masks of the points whose whole interval [u_lo, u_hi] is in the right / left exponential tail."""
-    r = sigma / b
-    return u_lo / sigma - r >= TAIL_Z, -u_hi / sigma - r >= TAIL_Z
+def _scale_of(s2: AnyArray, width_d: AnyArray | None, scale: KernelScale | None) -> KernelScale:
+    """The caller's `KernelScale`, or the one of ``s2`` and ``width_d``."""
+    if scale is not None:
+        return scale
+    if width_d is None:
+        raise ValueError("the skin profile needs the kernel's length width_d (or its KernelScale)")
+    return KernelScale.of(s2, width_d)
 
 
-def skin_profile_tails(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray, shift_d: AnyArray,
-                       fraction: float) -> AnyArray:
-    """`skin_profile` with the remitted part's exponential tails in their closed form (within 1.5e-8, `TAIL_Z`)."""
-    sigma = np.sqrt(s2)
-    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / sigma)
-    b = np.maximum(width_d, 1e-9)
+def skin_profile_tails(d: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray | None, shift_d: AnyArray,
+                       fraction: float, scale: KernelScale | None = None) -> AnyArray:
+    """`skin_profile` with the remitted part's exponential tails in their closed form (within 1.5e-8, `TAIL_Z`).
+
+    ``scale``: the points' `KernelScale` when the caller has it (then ``width_d`` is not read).
+    """
+    k = _scale_of(s2, width_d, scale)
+    surface = np.exp(-0.5 * d * d / s2) * (sheet_sigma_m / k.sigma)
     u = d - shift_d
-    right, left = _kernel_tails(u, u, sigma, b)
-    core = ~(right | left)
+    us, ub = u / k.sigma, u / k.b
+    right, left = us - k.rb >= TAIL_Z, -us - k.rb >= TAIL_Z
+    tail = right | left
     density = np.empty_like(u)
-    density[core] = _emg_two_sided(u[core], sigma[core], b[core])
-    for side, sign in ((right, -1.0), (left, 1.0)):
-        bs = b[side]
-        density[side] = np.exp(0.5 * (sigma[side] / bs) ** 2 + sign * u[side] / bs) / (2.0 * bs)
+    core = ~tail
+    density[core] = _emg_two_sided(us[core], ub[core], k.take(core))
+    # the tail's exponential exp(sigma^2/2b^2 - |u|/b) / (2 b)
+    bt = k.b[tail]
+    density[tail] = np.exp(k.h[tail] + np.where(right[tail], -ub[tail], ub[tail])) / (2.0 * bt)
     return (1.0 - fraction) * surface + fraction * density * (sheet_sigma_m * math.sqrt(2.0 * math.pi))
 
 
-def skin_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray,
-                     shift_d: AnyArray, fraction: float) -> AnyArray:
+def skin_profile_box(d_lo: AnyArray, d_hi: AnyArray, s2: AnyArray, sheet_sigma_m: float, width_d: AnyArray | None,
+                     shift_d: AnyArray, fraction: float, scale: KernelScale | None = None,
+                     r: AnyArray | None = None) -> AnyArray:
     """`skin_profile` averaged over d uniform in [d_lo, d_hi]: distribution-function differences (closed form).
 
     In the exponential tails (`TAIL_Z`) the difference is ``exp(sigma^2/2b^2 - |u_near|/b)
     (1 - exp(-(d_hi - d_lo)/b)) / 2`` with ``u_near`` the interval's end nearer the line.
+    ``scale``, ``r``: the points' `KernelScale` and ``1 / sqrt(2 s2)`` when the caller has them.
     """
-    surface = surface_profile_box(d_lo, d_hi, s2, sheet_sigma_m)
-    sigma = np.sqrt(s2)
-    b = np.maximum(width_d, 1e-9)
+    surface = surface_profile_box(d_lo, d_hi, s2, sheet_sigma_m, r)
+    k = _scale_of(s2, width_d, scale)
     u_lo, u_hi = d_lo - shift_d, d_hi - shift_d
-    right, left = _kernel_tails(u_lo, u_hi, sigma, b)
-    core = ~(right | left)
+    lo_s, hi_s = u_lo / k.sigma, u_hi / k.sigma
+    right, left = lo_s - k.rb >= TAIL_Z, -hi_s - k.rb >= TAIL_Z
+    tail = right | left
+    core = ~tail
     mass = np.empty_like(u_lo)
-    sc, bc = sigma[core], b[core]
-    mass[core] = _emg_two_sided_cdf(u_hi[core], sc, bc) - _emg_two_sided_cdf(u_lo[core], sc, bc)
-    for side, near in ((right, -u_lo), (left, u_hi)):
-        bs = b[side]
-        mass[side] = (0.5 * np.exp(0.5 * (sigma[side] / bs) ** 2 + near[side] / bs)
-                      * -np.expm1(-(u_hi[side] - u_lo[side]) / bs))
+    kc = k.take(core)
+    ulc, uhc = u_lo[core], u_hi[core]
+    mass[core] = (_emg_two_sided_cdf(hi_s[core], uhc / kc.b, uhc / kc.sigma_sqrt2, kc)
+                  - _emg_two_sided_cdf(lo_s[core], ulc / kc.b, ulc / kc.sigma_sqrt2, kc))
+    bt, ult, uht = k.b[tail], u_lo[tail], u_hi[tail]
+    near = np.where(right[tail], -ult, uht)
+    mass[tail] = 0.5 * np.exp(k.h[tail] + near / bt) * -np.expm1(-(uht - ult) / bt)
     remitted = mass * (sheet_sigma_m * math.sqrt(2.0 * math.pi) / (d_hi - d_lo))
     return (1.0 - fraction) * surface + fraction * remitted
 

@@ -29,6 +29,7 @@ The truth describes the sheet at the carriage's rest position: vibration is an e
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -43,6 +44,7 @@ from lsu_common.arrays import AnyArray
 
 from .geometry import CameraModel, RigGeometry
 from .physics import (
+    KernelScale,
     SpeckleField,
     bloom,
     demosaic,
@@ -178,11 +180,17 @@ class _View:
     sigma2: AnyArray = field(default_factory=lambda: np.zeros(0))      # pixel-integrated sheet variance
     reach: AnyArray = field(default_factory=lambda: np.zeros(0))       # |n . P - c| beyond which the laser adds ~0
     reach_max: float = 0.0
-    pn_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # pixels that hit, by n . P
-    pn_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))           # their n . P, ascending
-    reach_sorted: AnyArray = field(default_factory=lambda: np.zeros(0))        # their reach
+    # the band table: the pixels that hit, by their n . P's bin (`PN_BIN_M`, ascending) and within a bin by
+    # pixel index, so a capture's candidates are a contiguous run of it and come row by row along the line
+    band_order: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))  # their pixel indices
+    band_bin: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))    # floor(n . P / PN_BIN_M)
+    band_pn: AnyArray = field(default_factory=lambda: np.zeros(0))               # their n . P
+    band_reach: AnyArray = field(default_factory=lambda: np.zeros(0))            # their reach
     band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 8)))      # their sigma2, P, N, red albedo
-    skin_sorted: AnyArray = field(default_factory=lambda: np.zeros(0, bool))   # their skin flag
+    # their constants that do not change with the sheet's offset, one row each: the skin kernel's `KernelScale`
+    # (sigma, b, sigma / b, (sigma / b)^2 / 2, sigma sqrt 2), 1 / sqrt(2 sigma2) and the normal's n . N
+    band_consts: AnyArray = field(default_factory=lambda: np.zeros((7, 0)))
+    band_skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))     # their skin flag
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
     # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
@@ -218,6 +226,11 @@ def _footprints(points: AnyArray, ok: AnyArray, depth: AnyArray, axis: int) -> A
 
 _RAY_CACHE: dict[bytes, AnyArray] = {}
 
+# Bin width of n . P in the band table [m], about a pixel's footprint at the subject distance: the pixels
+# of a bin lie on a thin strip along the line, and in pixel order their shadow rays are coherent (Embree
+# traverses consecutive rays through the same nodes: ~15 % less time than in n . P order)
+PN_BIN_M = 0.5e-3
+
 
 def _grid_rays(camera: CameraModel) -> AnyArray:
     """Rays of every pixel centre; cached per camera model because converged undistortion costs ~0.3 s."""
@@ -236,17 +249,25 @@ class SimulatedRig:
     """The virtual LSU: a `RigGeometry`, a scene of `SceneObject`s, and a seeded sensor noise source."""
 
     def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0,
-                 reference: bool = False) -> None:
+                 reference: bool = False, parallel: bool = True) -> None:
         self.geometry = geometry
         # reference: the plain render (every sub-exposure evaluated, fresh noise for the whole image, every
         # step on the full image); the default render gives the same images at a fraction of the CPU
         # (see `render`), the reference is what it is tested and benchmarked against
         self.reference = reference
+        # parallel: the two views on two threads (numpy, OpenCV and the ray casts release the GIL in the
+        # per-pixel work): less wall time per pair, more CPU (hand-offs, the views competing for the caches);
+        # a caller that keeps both cores busy otherwise (a camera stream beside the rest of the graph)
+        # renders serially
+        self.parallel = parallel
         self.rng = np.random.default_rng(seed)
-        # one generator per camera, so the two views can be rendered on two threads (numpy and
-        # OpenCV release the GIL in the per-pixel work) and stay reproducible from ``seed``
+        # one generator per camera, so the two views' images do not depend on the thread they render
+        # on (nor on ``parallel``) and stay reproducible from ``seed``
         self._view_rngs = self.rng.spawn(2)
         self._pool: ThreadPoolExecutor | None = None
+        # the sheet's frame along the track (`_sheet_frame`), for the geometry object it was computed of
+        self._frame_of: RigGeometry | None = None
+        self._frame: tuple[AnyArray, ...] = ()
         self._views = [_View(cam, cam.center, _grid_rays(cam)) for cam in (geometry.left, geometry.right)]
         for k, view in enumerate(self._views):
             # a bank per camera (seeded by the camera index: scene-independent, shared by every rig of
@@ -335,9 +356,10 @@ class SimulatedRig:
         for gid, obj in enumerate(self.objects):
             if obj.material == "skin":
                 skin |= geom == gid
-        # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_profile`) and its
+        # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_width`) and its
         # centre shift (at most |n . N| / (n_skin (mu_a + mu_s'))) reach further from the sheet
-        nN = np.abs(normals @ g.laser_normal)
+        n_dot_normal = normals @ g.laser_normal
+        nN = np.abs(n_dot_normal)
         reach = 5.0 * np.sqrt(sigma2) + skin * (6.0 * g.skin.diffusion_length_m * np.sqrt(np.clip(1.0 - nN * nN, 0, 1))
                                                 + g.skin.centre_shift_per_sin_t * nN / g.skin.refractive_index)
         view.hit, view.t, view.geom, view.points, view.normals = hit, t, geom, points, normals
@@ -348,25 +370,36 @@ class SimulatedRig:
         view.pn = np.where(hit, points @ n, np.nan)
         view.sigma2 = sigma2
         view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
-        view.pn_order = np.flatnonzero(hit)[np.argsort(view.pn[hit], kind="stable")]
-        view.pn_sorted = view.pn[view.pn_order]
-        view.reach_sorted = reach[view.pn_order]
+        hit_idx = np.flatnonzero(hit)
+        bins = np.floor(view.pn[hit_idx] / PN_BIN_M).astype(np.int64)
+        order = np.argsort(bins, kind="stable")  # stable: by pixel index within a bin
+        view.band_order, view.band_bin = hit_idx[order], bins[order]
+        view.band_pn = view.pn[view.band_order]
+        view.band_reach = reach[view.band_order]
         # what the laser term reads of a band's pixels, in the same order: one row gather per capture
-        view.band_rows = np.column_stack([sigma2[view.pn_order], points[view.pn_order], normals[view.pn_order],
-                                          albedo[view.pn_order, 2]])
-        view.skin_sorted = skin[view.pn_order]
+        view.band_rows = np.column_stack([sigma2[view.band_order], points[view.band_order], normals[view.band_order],
+                                          albedo[view.band_order, 2]])
+        view.band_skin = skin[view.band_order]
+        # the sheet keeps its orientation (n and the skin model are the geometry's, as for every cache here):
+        # what depends on n . N alone is fixed per pixel
+        order_nN = n_dot_normal[view.band_order]
+        scale = KernelScale.of(view.band_rows[:, 0], self._skin_width(order_nN))
+        view.band_consts = np.stack([scale.sigma, scale.b, scale.rb, scale.h, scale.sigma_sqrt2,
+                                     1.0 / np.sqrt(2.0 * view.band_rows[:, 0]), order_nN])
 
     # ------------------------------------------------------------------ laser
-    def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False) -> AnyArray:
+    def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False, dist: AnyArray | None = None) -> AnyArray:
         """True where the laser at ``origin`` reaches ``points`` unshadowed (nothing hit before 1e-5 m + 1e-5 of the way).
 
         ``any_hit``: an occlusion query (Embree's any-hit: cheaper than the closest hit) along the
         unnormalised rays, with the margin of the farthest point for all (self-hits are ~3e-8 m).
+        ``dist``: the points' distances to ``origin`` when the caller has them.
         """
         if len(points) == 0:
             return np.zeros(0, bool)
         to = points - origin
-        dist = np.linalg.norm(to, axis=1)
+        if dist is None:
+            dist = np.linalg.norm(to, axis=1)
         if any_hit:
             rays = np.empty((len(to), 6), np.float32)
             rays[:, :3] = origin
@@ -376,8 +409,20 @@ class SimulatedRig:
         cast = self._cast(origin, to / dist[:, None])
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
 
+    @staticmethod
+    def _band_candidates(view: _View, lo: float, hi: float) -> AnyArray:
+        """Rows of the view's band table whose pixel's n . P is within its reach of [lo, hi] (ascending).
+
+        The table's run of bins within the largest reach (floor is monotone, so every pixel with
+        lo - reach_max < n . P < hi + reach_max is in it), then each pixel's own reach.
+        """
+        a = int(np.searchsorted(view.band_bin, math.floor((lo - view.reach_max) / PN_BIN_M), side="left"))
+        b = int(np.searchsorted(view.band_bin, math.floor((hi + view.reach_max) / PN_BIN_M), side="right"))
+        pn, reach = view.band_pn[a:b], view.band_reach[a:b]
+        return a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
+
     def _laser_radiance(self, view: _View, offsets_m: AnyArray, origin: AnyArray,
-                        box_m: tuple[float, float] | None = None, normal: AnyArray | None = None):
+                        box_m: tuple[float, float] | None = None):
         """(indices, (M,3) radiance) of the laser term averaged over the sheet offsets ``offsets_m``.
 
         ``box_m``: the sheet's offsets at the exposure's start and end when it moves at a constant rate
@@ -385,86 +430,103 @@ class SimulatedRig:
         reference, the average is the closed-form average over that interval (`physics.surface_profile_box`,
         `physics.skin_profile_box`): one evaluation instead of one per sub-exposure, and the limit the
         sub-exposures' mean approaches (their midpoint sum of a profile that varies over ~2 sub-exposure
-        spacings differs from it by a few 1e-3 of the peak).
+        spacings differs from it by a few 1e-3 of the peak). The sheet's normal is the geometry's
+        (``laser_normal``, the one the view's caches were made with).
         """
         g = self.geometry
-        normal = g.laser_normal if normal is None else normal
         sheet = g.laser.sheet_sigma_m
         use_box = box_m is not None and not self.reference and box_m[1] - box_m[0] > 1e-3 * sheet
         lo, hi = (float(box_m[0]), float(box_m[1])) if use_box and box_m is not None else \
             (float(offsets_m.min()), float(offsets_m.max()))
-        # candidates from the pixels sorted by n . P (at most the largest reach away), then each pixel's own reach
-        a, b = np.searchsorted(view.pn_sorted, [lo - view.reach_max, hi + view.reach_max])
-        pn, reach = view.pn_sorted[a:b], view.reach_sorted[a:b]
-        sel = a + np.flatnonzero((pn > lo - reach) & (pn < hi + reach))
-        idx = view.pn_order[sel]      # pixel indices (in the order of n . P: every step below is per pixel)
+        sel = self._band_candidates(view, lo, hi)
+        idx = view.band_order[sel]    # pixel indices (every step below is per pixel: their order does not matter)
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
         rows = view.band_rows[sel]
         s2, pts, normals, red_albedo = rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7]
-        pn = view.pn_sorted[sel]
-        if use_box:
-            d: AnyArray = np.stack([pn - hi, pn - lo])       # the interval of sheet offsets d = n . P - c
-            profile = surface_profile_box(d[0], d[1], s2, sheet)
-        else:
-            d = pn[None, :] - offsets_m[:, None]
-            profile = (np.exp(-0.5 * d * d / s2) * np.sqrt(sheet ** 2 / s2)).mean(axis=0)
+        pn = view.band_pn[sel]
         to_laser = origin - pts
-        dist = np.linalg.norm(to_laser, axis=1)
+        sq = to_laser * to_laser
+        dist = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])     # = np.linalg.norm(to_laser, axis=1), in fewer passes
         cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
         incidence = np.clip(cos_i, 0.0, None)
-        on_skin = view.skin_sorted[sel]
-        if np.any(on_skin):
-            width_d, shift_d = self._skin_kernel(normals[on_skin], cos_i[on_skin], normal)
+        on_skin = view.band_skin[sel]
+        # the skin and the other pixels (a slice when the band is all one or the other: no copies)
+        skin: slice | AnyArray = slice(None) if on_skin.all() else np.flatnonzero(on_skin)
+        other: slice | AnyArray | None = None if on_skin.all() else (slice(None) if not on_skin.any()
+                                                                      else np.flatnonzero(~on_skin))
+        any_skin = bool(on_skin.any())
+        profile = np.empty(len(idx))
+        if use_box:
+            d_lo, d_hi = pn - hi, pn - lo       # the interval of sheet offsets d = n . P - c
+            if other is not None:
+                profile[other] = surface_profile_box(d_lo[other], d_hi[other], s2[other], sheet)
+        else:
+            d = pn[None, :] - offsets_m[:, None]
+            if other is not None:
+                do, so = d[:, other], s2[other]
+                profile[other] = (np.exp(-0.5 * do * do / so) * np.sqrt(sheet ** 2 / so)).mean(axis=0)
+        if any_skin:
+            consts = view.band_consts[:, sel[skin]]
+            scale = KernelScale(*consts[:5])
+            shift_d = self._skin_shift(cos_i[skin], consts[6])
+            fraction = g.skin.subsurface_fraction
             if use_box:
-                profile[on_skin] = skin_profile_box(d[0, on_skin], d[1, on_skin], s2[on_skin], sheet, width_d, shift_d,
-                                                    g.skin.subsurface_fraction)
+                profile[skin] = skin_profile_box(d_lo[skin], d_hi[skin], s2[skin], sheet, None, shift_d, fraction,
+                                                 scale, consts[5])
             else:
-                prof = np.zeros(int(on_skin.sum()))
-                # the same profile; the reference evaluates the exponential tails through the general form
-                profile_of = skin_profile if self.reference else skin_profile_tails
-                for row in d[:, on_skin]:
-                    prof += profile_of(row, s2[on_skin], sheet, width_d, shift_d, g.skin.subsurface_fraction)
-                profile[on_skin] = prof / len(d)
-        if np.any(on_skin) or not self.reference:
+                prof = np.zeros(len(shift_d))
+                for row in d[:, skin]:
+                    if self.reference:  # the same profile, the exponential tails through the general form
+                        prof += skin_profile(row, s2[skin], sheet, scale.b, shift_d, fraction)
+                    else:
+                        prof += skin_profile_tails(row, s2[skin], sheet, None, shift_d, fraction, scale)
+                profile[skin] = prof / len(d)
+        if any_skin or not self.reference:
             # the skin band is wide for the kernel's tail: drop pixels it leaves below 1e-3 of the peak
             # (< 0.2 DN at full power) before the shadow rays, the costly part
-            keep = profile > 1e-3
+            keep = np.flatnonzero(profile > 1e-3)
             idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
             red_albedo = red_albedo[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
-        power = g.laser.power * incidence * (g.subject_distance_m / dist) * self._lit(origin, pts, any_hit=not self.reference)
+        lit = self._lit(origin, pts, any_hit=not self.reference, dist=dist)
+        power = g.laser.power * incidence * (g.subject_distance_m / dist) * lit
         value = (power * profile * red_albedo)[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
 
-    def _skin_kernel(self, normals: AnyArray, cos_i: AnyArray, n: AnyArray) -> tuple[AnyArray, AnyArray]:
-        """Diffusion length and centre shift of skin pixels' remitted light, in sheet-offset units (`physics.skin_profile`).
+    def _skin_width(self, n_dot_normal: AnyArray) -> AnyArray:
+        """Diffusion length of skin pixels' remitted light in sheet-offset units, from the normals' ``n . N``.
 
         Across the line on the surface, ``n . P`` changes at ``sin psi = |n - (n.N) N|`` per metre: the
-        kernel's length and the centre shift are scaled by it to sheet-offset units. The shift points
-        along the surface away from the laser (the tangential part of the incident ray), length
-        ``sin(alpha_t) / (mu_a + mu_s')`` with ``sin(alpha_t) = sin(alpha_i) / n_skin``.
+        kernel's length (`physics.skin_profile`) is scaled by it.
+        """
+        sin_psi = np.sqrt(np.clip(1.0 - n_dot_normal * n_dot_normal, 0.0, 1.0))
+        return self.geometry.skin.diffusion_length_m * np.maximum(sin_psi, 1e-3)
+
+    def _skin_shift(self, cos_i: AnyArray, n_dot_normal: AnyArray) -> AnyArray:
+        """Centre shift of skin pixels' remitted light in sheet-offset units (`physics.skin_profile`).
+
+        The shift points along the surface away from the laser (the tangential part of the incident
+        ray), length ``sin(alpha_t) / (mu_a + mu_s')`` with ``sin(alpha_t) = sin(alpha_i) / n_skin``.
         """
         g = self.geometry
-        nN = normals @ n
-        sin_psi = np.sqrt(np.clip(1.0 - nN * nN, 0.0, 1.0))
         sin_i = np.sqrt(np.clip(1.0 - cos_i * cos_i, 0.0, 1.0))
         # incident direction u = -to_laser/|to_laser| lies in the sheet (u . n = 0), so its tangential part
         # u - (u.N) N has the sheet-normal component -(u.N)(N.n) = cos_i (N.n); per unit of it the shift is
         # shift_length / sin_i
         shift_len = g.skin.centre_shift_per_sin_t * sin_i / g.skin.refractive_index
         with np.errstate(invalid="ignore", divide="ignore"):
-            shift_d = np.where(sin_i > 1e-9, shift_len / np.maximum(sin_i, 1e-9) * np.clip(cos_i, 0.0, None) * nN, 0.0)
-        width_d = g.skin.diffusion_length_m * np.maximum(sin_psi, 1e-3)
-        return width_d, shift_d
+            return np.where(sin_i > 1e-9, shift_len / np.maximum(sin_i, 1e-9) * np.clip(cos_i, 0.0, None) * n_dot_normal,
+                            0.0)
 
     # ------------------------------------------------------------------ render
     def render(self, carriage: CarriageState | float, capture_time_s: float | None = None,
-               seed: int | None = None, with_truth: bool = False) -> StereoFrame:
+               seed: int | None = None, with_truth: bool = False, parallel: bool | None = None) -> StereoFrame:
         """Render a stereo pair exposed from ``capture_time_s`` for ``sensor.exposure_s``.
 
         ``carriage`` is a `CarriageState` or a plain position in steps (laser on, settled).
         ``seed`` fixes the sensor noise of this pair (default: the rig's own generator).
+        ``parallel``: the two views on two threads (default: the rig's ``parallel``); the images are the same.
 
         Unless the rig is the reference, the laser term of a constant-rate motion is averaged in closed
         form over the exposure (`_laser_radiance`), and the sensor works on the laser's rows and columns
@@ -485,22 +547,23 @@ class SimulatedRig:
         sheet = self._sheet_frame(state.position_steps)
         laser = [self._laser_exposure(state, t0, sheet) for t0 in starts]
 
-        def laser_term(k: int) -> tuple[AnyArray, AnyArray]:
+        def laser_term(k: int) -> tuple[AnyArray, AnyArray, AnyArray, AnyArray]:
             view = self._views[k]
             _, offsets, origin, box = laser[k]
-            idx, value = self._laser_radiance(view, offsets, origin, box, sheet[0])
+            idx, value = self._laser_radiance(view, offsets, origin, box)
             assert view.speckle is not None  # set for both views in __init__
-            speckle = view.speckle.sample(idx // g.image_size[0], idx % g.image_size[0], rngs[k])
+            rows, cols = np.divmod(idx, g.image_size[0])
+            speckle = view.speckle.sample(rows, cols, rngs[k])
             if speckle is not None:
                 value *= speckle[:, None]
-            return idx, value.astype(np.float32)
+            return idx, rows, cols, value.astype(np.float32)
 
         def expose(k: int) -> AnyArray:
             if not self.reference and sensor.bayer == "none":
                 return self._expose_fast(k, laser_term(k) if state.laser_on else None, rngs[k])
             img = self._views[k].base.copy()
             if state.laser_on:
-                idx, value = laser_term(k)
+                idx, _, _, value = laser_term(k)
                 img.reshape(-1, 3)[idx] += value
             if sensor.psf_sigma_px > 0:
                 img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
@@ -524,9 +587,12 @@ class SimulatedRig:
                 out = self._quantise(img, self._noise_sigma255(img), *noise_window(img.shape, rngs[k]))
             return demosaic(out, sensor.bayer) if sensor.bayer != "none" else out
 
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lsu-sim-render")
-        images = list(self._pool.map(expose, range(2)))
+        if self.parallel if parallel is None else parallel:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="lsu-sim-render")
+            images = list(self._pool.map(expose, range(2)))
+        else:
+            images = [expose(0), expose(1)]
         truth = self.laser_truth(state.position_steps) if with_truth and state.laser_on else None
         return StereoFrame(images[0], images[1], state.position_steps, state.laser_on, capture_time_s, laser[0][0], truth,
                            (starts[0], starts[1]), (laser[0][0], laser[1][0]))
@@ -566,7 +632,8 @@ class SimulatedRig:
         view.sigma255 = self._noise_sigma255(base)
         view.sensor_key = key
 
-    def _expose_fast(self, k: int, laser: tuple[AnyArray, AnyArray] | None, rng: np.random.Generator) -> AnyArray:
+    def _expose_fast(self, k: int, laser: tuple[AnyArray, AnyArray, AnyArray, AnyArray] | None,
+                     rng: np.random.Generator) -> AnyArray:
         """One camera's 8-bit image (no Bayer mosaic): the sensor steps on the laser's rectangle only (see `render`)."""
         view = self._views[k]
         sensor = self.geometry.sensor
@@ -578,33 +645,43 @@ class SimulatedRig:
             img = base
             if laser is not None and len(laser[0]):
                 img = view.base.copy()
-                img.reshape(-1, 3)[laser[0]] += laser[1]
+                img.reshape(-1, 3)[laser[0]] += laser[3]
                 if sensor.psf_sigma_px > 0:
                     img = cv2.GaussianBlur(img, (0, 0), sensor.psf_sigma_px)
                 bloom(img, sensor.blooming)
                 return self._quantise(img, self._noise_sigma255(img), noise, sign)
             return self._quantise(img, view.sigma255, noise, sign)
-        idx, value = laser
-        rows, cols = idx // W, idx % W
+        _, rows, cols, value = laser
         # the blur kernel's radius (OpenCV: ksize = round(8 sigma + 1) | 1) plus one row for the blooming spill;
         # the laser term is zero in the margin, so blurring the rectangle alone equals blurring the image
         margin = int(np.ceil(4.0 * sensor.psf_sigma_px)) + 2
         r0, r1 = max(int(rows.min()) - margin, 0), min(int(rows.max()) + margin + 1, H)
         c0, c1 = max(int(cols.min()) - margin, 0), min(int(cols.max()) + margin + 1, W)
         term = np.zeros((r1 - r0, c1 - c0, 3), np.float32)
-        term[rows - r0, cols - c0] = value
+        term.reshape(-1, 3)[(rows - r0) * (c1 - c0) + (cols - c0)] = value   # one flat index: cheaper than two
         if sensor.psf_sigma_px > 0:
             term = cv2.GaussianBlur(term, (0, 0), sensor.psf_sigma_px)
         term += base[r0:r1, c0:c1]
         bloom(term, sensor.blooming)
+        # the whole image from the cached base (one contiguous pass is cheaper than the bands around the
+        # rectangle), then the rectangle
         out = self._quantise(base, view.sigma255, noise, sign)
         out[r0:r1, c0:c1] = self._quantise(term, self._noise_sigma255(term), noise[r0:r1, c0:c1], sign)
         return out
 
     def _sheet_frame(self, position_steps: float) -> tuple[AnyArray, AnyArray, AnyArray]:
-        """(sheet normal n, track axis x, laser origin) at ``position_steps``: the origin moves along x."""
+        """(sheet normal n, track axis x, laser origin) at ``position_steps``: the origin moves along x.
+
+        The same numbers as ``geometry.laser_normal``, ``rig_axes[0]``, ``laser_origin``, with the axes
+        computed once per geometry object (the rig replaces, never edits, its geometry).
+        """
         g = self.geometry
-        return g.laser_normal, g.rig_axes[0], g.laser_origin(position_steps)
+        if self._frame_of is not g:
+            x, _, z = g.rig_axes
+            self._frame = (g.laser_normal, x, g.rig_center + g.laser_forward_m * z)
+            self._frame_of = g
+        n, x, start = self._frame
+        return n, x, start + (position_steps - g.center_step) * g.step_m * x
 
     def _laser_exposure(self, state: CarriageState, start_s: float | None,
                         sheet: tuple[AnyArray, AnyArray, AnyArray] | None = None):
