@@ -125,7 +125,7 @@ class LaserExtractorNode(Node):
         # them into an array.array first: ~0.4 ms per frame, a tenth of the extraction)
         self.subscriptions_ = [
             self.create_subscription(Image, f"stereo/{side}/image_raw",
-                                     lambda raw, side=side: self.on_image(side, raw), SCAN_DATA_QOS, raw=True)
+                                     lambda raw, side=side: self.on_image(side, raw), qos.FRAME_QUEUE, raw=True)
             for side in SIDES]
         self.subscriptions_.append(self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS))
 
