@@ -46,6 +46,7 @@ __all__ = ["DirectReplay", "ReplayStats", "default_workers", "run_direct_replay"
 SIDES = ("left", "right")
 SPIN_EVERY_S = 0.05  # timers and the other nodes' callbacks run at least this often during a replay
 PREFETCH = 8  # bag messages read ahead (about 4 image pairs, ~8 MB)
+PIPE_BYTES = 1 << 20  # the lines an extraction process may send ahead (`_widen`)
 WORKER_START_S = 60.0  # an extraction process that has not started by then is reported
 
 
@@ -144,6 +145,17 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
         out.close()
 
 
+def _widen(pipe: Any) -> None:
+    """Let a pipe hold ~50 lines (Linux: 1 MB, the default limit for a user): a process that runs ahead in
+    longer bursts, rather than in turns of a few lines with a wake-up between, which a loaded host delays."""
+    import fcntl
+
+    try:
+        fcntl.fcntl(pipe.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), PIPE_BYTES)
+    except OSError:
+        pass  # a smaller limit: the default size works, in shorter bursts
+
+
 class _ExtractionProcesses:
     """``count`` processes running `_extract_share` on one bag; `next` gives each image's outcome in bag order."""
 
@@ -156,6 +168,7 @@ class _ExtractionProcesses:
         t0 = time.monotonic()
         for index in range(count):
             reader, writer = context.Pipe(duplex=False)
+            _widen(reader)
             process = context.Process(
                 target=_extract_share, name=f"lsu-replay-extract-{index}", daemon=True,
                 args=(writer, str(bag), images, events, asdict(extractor.params), extractor.background, index, count))
