@@ -116,9 +116,11 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
             from lsu_interfaces.msg import ScanEvent
 
             deserialize = deserialize_message
+        messages = read_message_views(bag, [*images, *(events if deserialize is not None else [])])
+        first = next(messages, None)  # opening the bag is start-up, as for the replay's own reading
         out.send(("ready", time.process_time()))
         n = 0
-        for m in read_message_views(bag, [*images, *(events if deserialize is not None else [])]):
+        for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
             if side is None:
                 assert deserialize is not None
@@ -140,7 +142,10 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
                 out.send(("line", (msg.sec, msg.nanosec, msg.frame_id), result))
         out.send(("done", time.process_time()))
     except BaseException:  # noqa: BLE001 - handed to the replay, which raises it
-        out.send(("error", traceback.format_exc()))
+        try:
+            out.send(("error", traceback.format_exc()))
+        except OSError:
+            pass  # the replay has stopped reading (it failed or was interrupted itself)
     finally:
         out.close()
 
