@@ -32,7 +32,7 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -62,8 +62,10 @@ class ReplayStats:
     sweep_frames: int = 0       # pairs the sweeps' streams published (their SWEEP_END events)
     frames_dropped: int = 0     # images the extractor could not read
     lines_unpaired: int = 0     # lines that never found their partner (same stamp)
-    seconds: float = 0.0
-    cpu_s: float = 0.0          # the whole process, all threads
+    seconds: float = 0.0        # without the turns of the executor (`spin_s`)
+    cpu_s: float = 0.0          # the whole process, all threads (and the extraction processes), without `spin_s`'s
+    spin_s: float = 0.0         # the executor's turns during the replay: other nodes' callbacks (a face processor
+    #                             meshing the scan cloud), not the replay's work
     read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
     workers: int = 0            # extraction processes (0: extracted in this process)
     workers_start_s: float = 0.0  # their start-up (before the timed window, like the nodes' construction)
@@ -78,6 +80,7 @@ class ReplayStats:
                 f"{self.seconds:.2f} s, {rate:.0f} snaps/s, {cpu:.2f} ms CPU per snap ({read:.2f} ms of it reading "
                 f"the bag); {self.frames_dropped} frames unreadable, "
                 f"{self.lines_unpaired} lines unpaired" +
+                (f"; {self.spin_s:.2f} s of other callbacks during it not counted" if self.spin_s >= 0.005 else "") +
                 (f"; extracted in {self.workers} processes (started in {self.workers_start_s:.2f} s, their CPU "
                  "counted)" if self.workers else ""))
 
@@ -86,6 +89,17 @@ def default_workers() -> int:
     """Extraction processes of `lsu run replay BAG`: 2 beside the matching one (measured best on 2 cores: the
     matching and each half of the extraction cost about the same), none on a single core."""
     return 2 if (os.cpu_count() or 1) >= 2 else 0
+
+
+def _timed(items: Iterator[Any], cpu: dict[str, float]) -> Iterator[Any]:
+    """``items``, with the CPU time of making them added to ``cpu["producer_s"]`` (as `read_ahead` counts it)."""
+    while True:
+        c0 = time.thread_time()
+        item = next(items, None)
+        cpu["producer_s"] += time.thread_time() - c0
+        if item is None:
+            return
+        yield item
 
 
 def _side(topic: str, suffix: str) -> str | None:
@@ -289,12 +303,9 @@ class DirectReplay:
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"producer_s": 0.0}
-        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views);
-        # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on the
-        # other core while this one extracts and matches
-        messages = read_ahead(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
-                              PREFETCH, "bag-reader", reading)
-        first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
+        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views)
+        source = read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration])
+        first = next(source, None)  # the window starts at the first message: opening the bag is start-up
         pool = None
         # each process maps the file: with copies (a compressed bag) every one would decompress it all
         if workers > 0 and images and first is not None and isinstance(first.data, memoryview):
@@ -302,12 +313,20 @@ class DirectReplay:
             stats.workers, stats.workers_start_s = workers, pool.start_s
             extractor.frozen_reason = (f"a replay extracts in {workers} processes with the parameters it started "
                                        "with; set them before it (launch arguments), or replay with --workers 0")
+            # the extraction processes have the other cores, and views cost little to read: read here, with
+            # no hand-off between threads
+            messages: Iterator[Any] = _timed(source, reading)
+        else:
+            # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on
+            # the other core while this one extracts and matches
+            messages = read_ahead(source, PREFETCH, "bag-reader", reading)
         try:
             t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
-            self._replay(first, messages, pool, spin, images, lines, events, stats, lines_of)
+            spin_cpu = [0.0]
+            self._replay(first, messages, pool, spin, images, lines, events, stats, lines_of, spin_cpu)
             matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
-            stats.seconds = time.monotonic() - t0
-            stats.cpu_s = time.process_time() - cpu0 + (pool.finish() if pool is not None else 0.0)
+            stats.seconds = time.monotonic() - t0 - stats.spin_s
+            stats.cpu_s = time.process_time() - cpu0 - spin_cpu[0] + (pool.finish() if pool is not None else 0.0)
             stats.read_cpu_s = reading["producer_s"] - read0
         finally:
             if pool is not None:
@@ -320,8 +339,9 @@ class DirectReplay:
 
     def _replay(self, first: Any, messages: Any, pool: _ExtractionProcesses | None, spin: Callable[[], None],
                 images: dict[str, str], lines: dict[str, str], events: list[str], stats: ReplayStats,
-                lines_of: dict[int, int]) -> None:
-        """The loop of `run` over the bag's messages (``first`` and the rest)."""
+                lines_of: dict[int, int], spin_cpu: list[float]) -> None:
+        """The loop of `run` over the bag's messages (``first`` and the rest); the executor's turns are timed
+        (``stats.spin_s``, ``spin_cpu[0]``)."""
         from rclpy.serialization import deserialize_message
         from sensor_msgs.msg import CameraInfo
 
@@ -371,8 +391,11 @@ class DirectReplay:
             elif (side := _side(m.topic, "camera_info")) is not None:
                 matcher.on_info(side, deserialize_message(bytes(m.data), CameraInfo))
             if time.monotonic() >= next_spin:
+                t0, cpu0 = time.monotonic(), time.process_time()
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
+                stats.spin_s += next_spin - SPIN_EVERY_S - t0
+                spin_cpu[0] += time.process_time() - cpu0
 
     def scan_pending(self) -> bool:
         """A scan ended (FINISHED/ABORTED) whose cloud the matcher has not published yet (it waits for snaps)."""
