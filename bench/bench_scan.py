@@ -315,17 +315,22 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
             "timed_pass": timed_pass}
 
 
-def replay_direct(bag: Path) -> dict:
-    """`lsu run replay BAG --exit` (the default replay: bag -> extractor -> matcher in one process, no DDS between).
+REPLAY_WORKERS = 2  # `lsu run replay`'s default: extraction processes beside the one that matches
+
+
+def replay_direct(bag: Path, workers: int = REPLAY_WORKERS) -> dict:
+    """`lsu run replay BAG --exit --workers N` (the default replay: bag -> extractor -> matcher, no DDS between;
+    the extraction in N processes of its own, or in the replay's process with 0).
 
     The figures are the ones the command prints for its processing window (first message read to
-    the scan cloud published): snaps, wall seconds, CPU (whole process, all threads) per snap.
+    the scan cloud published): snaps, wall seconds, CPU (whole process, all threads, and its
+    extraction processes) per snap.
     """
     import re
 
     from lsu_testing.plugin import LaunchedProcess
 
-    graph = LaunchedProcess(["run", "replay", str(bag), "--exit"])
+    graph = LaunchedProcess(["run", "replay", str(bag), "--exit", "--workers", str(workers)])
     try:
         graph.process.wait(timeout=600)
     finally:
@@ -335,6 +340,8 @@ def replay_direct(bag: Path) -> dict:
                       r"ms of it reading the bag\); (\d+) frames unreadable, (\d+) lines unpaired", graph.output)
     if graph.process.returncode != 0 or match is None:
         raise RuntimeError(f"lsu run replay {bag} failed (exit {graph.process.returncode}): {graph.output[-3000:]}")
+    if workers and f"extracted in {workers} processes" not in graph.output:
+        raise RuntimeError(f"lsu run replay {bag} --workers {workers} extracted in one process: {graph.output[-3000:]}")
     snaps = int(match.group(1))
     return {"snaps": snaps, "seconds": float(match.group(2)), "cpu_s": float(match.group(3)) * snaps / 1000.0,
             "read_cpu_s": float(match.group(4)) * snaps / 1000.0, "lost": int(match.group(5)) + int(match.group(6))}
@@ -374,12 +381,14 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
     reference = compute_reference(bag, passes=1)
     snaps = max(1, reference["snaps"])
     passes = [reference["cpu_s"]]
-    direct = []
+    direct: list[dict] = []
+    serial: list[dict] = []  # the same replay extracting in its own process (--workers 0), alternating with it
     for _ in range(direct_runs):
-        run = replay_direct(bag)
-        passes.append(reference["timed_pass"]())
-        run["ratio"] = (run["cpu_s"] / max(1, run["snaps"])) / ((passes[-2] + passes[-1]) / 2 / snaps)
-        direct.append(run)
+        for workers, runs in ((REPLAY_WORKERS, direct), (0, serial)):
+            run = replay_direct(bag, workers)
+            passes.append(reference["timed_pass"]())
+            run["ratio"] = (run["cpu_s"] / max(1, run["snaps"])) / ((passes[-2] + passes[-1]) / 2 / snaps)
+            runs.append(run)
     compute_ms = 1000 * sorted(passes)[len(passes) // 2] / snaps
 
     def median(values: list[float]) -> float:
@@ -392,10 +401,15 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
                "replay_snaps_per_s_min": by_speed[0]["snaps"] / by_speed[0]["seconds"],
                "replay_snaps_per_s_max": by_speed[-1]["snaps"] / by_speed[-1]["seconds"],
                "replay_cpu_ms_per_snap": median([1000 * r["cpu_s"] / max(1, r["snaps"]) for r in direct]),
-               "replay_snaps": rep["snaps"], "replay_lost": max(r["lost"] for r in direct),
+               "replay_snaps": rep["snaps"], "replay_lost": max(r["lost"] for r in direct + serial),
                "replay_cpu_over_compute": median([r["ratio"] for r in direct]),
                "replay_cpu_over_compute_min": min(r["ratio"] for r in direct),
-               "replay_cpu_over_compute_max": max(r["ratio"] for r in direct)}
+               "replay_cpu_over_compute_max": max(r["ratio"] for r in direct),
+               "replay_workers": float(REPLAY_WORKERS),
+               "replay_one_process_snaps_per_s": median([r["snaps"] / r["seconds"] for r in serial]),
+               "replay_one_process_cpu_over_compute": median([r["ratio"] for r in serial]),
+               "replay_snaps_per_s_over_one_process": median([(d["snaps"] / d["seconds"]) / (o["snaps"] / o["seconds"])
+                                                              for d, o in zip(direct, serial)])}
     read_ms = 1000 * reference["read_cpu_s"] / max(1, reference["snaps"])
     figures["replay_read_ms_per_snap"] = read_ms
     figures["replay_cpu_over_compute_and_read"] = figures["replay_cpu_ms_per_snap"] / (compute_ms + read_ms)
@@ -419,7 +433,9 @@ REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps
                 "replay_dds_cpu_ms_per_snap": "ms", "replay_dds_snaps": "snaps", "bag_snaps_missing_images": "snaps",
                 "replay_dds_cpu_over_compute": "x", "replay_read_ms_per_snap": "ms",
                 "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x",
-                "replay_bag_mb_per_snap": "MB", "replay_bag_zstd_mb_per_snap": "MB", "replay_read_zstd_ms_per_snap": "ms"}
+                "replay_bag_mb_per_snap": "MB", "replay_bag_zstd_mb_per_snap": "MB", "replay_read_zstd_ms_per_snap": "ms",
+                "replay_workers": "processes", "replay_one_process_snaps_per_s": "snaps/s",
+                "replay_one_process_cpu_over_compute": "x", "replay_snaps_per_s_over_one_process": "x"}
 REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
     "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
@@ -427,12 +443,19 @@ REPLAY_NOTES = (
     "replay launch file's parameters; median of 4 passes, one before and one after each replay run). "
     "replay_snaps_per_s / replay_cpu_ms_per_snap: "
     "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "
-    "matcher nodes in one process, which publish lines (to subscribers), points and the scan cloud as "
-    "live), from the first message read to the scan cloud published (bag reading and decompression "
-    "included), CPU of the whole process (all threads); median of 3 runs, min and max beside it; "
+    "matcher nodes without DDS, which publish lines (to subscribers), points and the scan cloud as "
+    "live; the images extracted in replay_workers processes of their own, each mapping the bag and "
+    "extracting every 2nd image, while the replay's process matches), from the first message read to the "
+    "scan cloud published (bag reading included, the extraction processes' start-up not: like the "
+    "nodes' construction it comes before), CPU of the whole process (all threads) and of its extraction "
+    "processes, without the executor's turns the replay gives the launch file's other nodes (the face "
+    "processor meshing the scan cloud once it is out: seconds of work that landed inside the window or "
+    "not by chance), which the command prints apart; median of 3 runs, min and max beside it; "
     "replay_cpu_over_compute: each run's CPU per snap over the mean of the reference passes right before "
     "and after it (the host's load changes the CPU a fixed work takes), median of the 3 runs (min, max "
-    "beside it); replay_lost: "
+    "beside it); replay_one_process_*: the same with --workers 0 (everything in the replay's process), "
+    "its runs alternating with those; replay_snaps_per_s_over_one_process: the median of each pair's "
+    "ratio; replay_lost: "
     "frames unreadable + lines unpaired. The direct replay hands the extractor's arrays to the matcher "
     "without LaserLine messages (one is built only for a subscriber of the lines) and reads an "
     "uncompressed bag as views of the mapped file (lsu_bags.bags.read_message_views), so the images reach "

@@ -121,3 +121,66 @@ def test_lsu_run_replay_names_a_missing_bag(tmp_path, capsys):
     assert main(["run", "replay", str(tmp_path / "no-such-bag"), "--exit"]) == 2
     err = capsys.readouterr().err
     assert "no-such-bag" in err and "not found" in err
+
+
+def uncompressed_copy(bag: Path, out: Path) -> Path:
+    """``bag`` rewritten as one uncompressed MCAP file (as the scan coordinator records): read in place."""
+    from lsu_bags.bags import BagWriter, bag_topics
+
+    with BagWriter(out, "mcap", compress=False) as writer:
+        for topic, (msgtype, qos) in bag_topics(bag).items():
+            writer.add_topic(topic, msgtype, qos)
+        for m in read_messages(bag):
+            writer.write(m.topic, m.timestamp_ns, m.data)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("background, counts", [("none", (2, 3)), ("texture", (2,))])
+def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_replay(ros_context, tmp_path, monkeypatch,
+                                                                                    background, counts):
+    """Extraction split over processes gives every snap's points and the scan cloud of the replay in one process,
+    bit for bit (and, without a background, the points the live graph recorded); with the laser-off background
+    every process holds the same texture pair. Extractor parameter changes are refused meanwhile."""
+    from rclpy.parameter import Parameter
+
+    from lsu_tools.cli import resolve_launch_file
+    from lsu_tools.direct_replay import DirectReplay
+    from lsu_tools.launch_file import load_launch, select_nodes
+    from lsu_tools.nodes_index import resolve_executable
+    from lsu_tools.runner import build_nodes
+
+    monkeypatch.setattr("lsu_tools.direct_replay.SPIN_EVERY_S", 0.0)  # spin after every message
+    bag = uncompressed_copy(BAG, tmp_path / "bag")
+    runs = {}
+    for workers in (0, *counts):
+        description = select_nodes(load_launch(resolve_launch_file("replay"), {}, resolve_executable),
+                                   ["laser_extractor", "stereo_matcher"], [], {})
+        nodes = build_nodes(description, tmp_path, context=ros_context)
+        try:
+            replay = DirectReplay(nodes)
+            assert replay.extractor.set_parameters([Parameter("background", value=background)])[0].successful
+            published, clouds, refused = [], [], []
+            replay.matcher.points_pub.publish = published.append
+            replay.matcher.cloud_pub.publish = clouds.append
+
+            def spin() -> None:  # a parameter change while the replay runs
+                refused.append(not replay.extractor.set_parameters([Parameter("min_contrast", value=40.0)])[0].successful)
+
+            stats = replay.run(bag, spin=spin if workers else lambda: None, workers=workers)
+            assert replay.extractor.frozen_reason is None  # taken again after the replay
+        finally:
+            for node in nodes:
+                node.destroy_node()
+        assert (stats.snaps, stats.pairs, stats.frames_dropped, stats.lines_unpaired, stats.workers) == \
+            (6, 7, 0, 0, workers)
+        assert all(refused) and (len(refused) > 0) == (workers > 0)
+        assert len(published) == 6 and len(clouds) == 1
+        runs[workers] = ([(m.header.stamp.sec, m.header.stamp.nanosec, bytes(m.data)) for m in published],
+                         bytes(clouds[0].data))
+        if background == "none":
+            recorded = points_by_stamp(deserialize_ros(m) for m in read_messages(BAG, ["/lsu/points"]))
+            for key, (xyz_rep, _) in points_by_stamp(published).items():
+                assert np.max(np.abs(xyz_rep - recorded[key][0])) <= 1e-6
+    for workers in counts:
+        assert runs[workers] == runs[0]

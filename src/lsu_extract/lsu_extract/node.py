@@ -7,7 +7,7 @@ size different from the first frame of that camera, a short buffer) is dropped w
 error line per distinct problem and an ERROR status on ``/diagnostics``; the node keeps running.
 
 With ``background: texture`` it also follows ``scan/events``: the laser-off pair that a scan's
-TEXTURE event names (by stamp, among the last `FRAMES_KEPT` frames of each camera, or the next
+TEXTURE event names (by stamp, among the last `lsu_extract.frames.FRAMES_KEPT` frames of each camera, or the next
 ones) becomes the background of that scan's frames: the extractor's signal is then the
 difference from it (ambient light and red objects cancel). A new scan starts without one, and
 until the pair is in, frames are extracted without it.
@@ -16,7 +16,6 @@ until the pair is in, frames are extracted without it.
 from __future__ import annotations
 
 import array
-import collections
 import sys
 from dataclasses import fields
 from typing import Any
@@ -37,15 +36,14 @@ from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
-from .extractor import ExtractorParams, LaserLineResult, extract_laser_line, param_problems
-from .image import ImageFormatError, decode_image, parse_image_cdr
+from .extractor import ExtractorParams, LaserLineResult, param_problems
+from .frames import BACKGROUNDS, FrameExtractor
+from .image import ImageFormatError
 
 SIDES = ("left", "right")
 # scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
 SCAN_DATA_QOS = qos.SCAN_DATA
 EVENTS_QOS = qos.EVENTS
-BACKGROUNDS = ("none", "texture")
-FRAMES_KEPT = 8  # newest frames per camera kept while a TEXTURE event may still name one of them
 
 _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
@@ -104,17 +102,14 @@ class LaserExtractorNode(Node):
         self.declare_parameter("background", "none", ParameterDescriptor(
             description="none: each frame alone; texture: minus the laser-off frame of the scan's TEXTURE event "
                         "(ambient light and red objects cancel)"))
-        self.params = self._read_params({})
-        self.background = str(self.get_parameter("background").value)
-        if self.background not in BACKGROUNDS:
-            raise ValueError(f"background '{self.background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
-        self._recent: dict[str, collections.deque[tuple[int, AnyArray]]] = {
-            side: collections.deque(maxlen=FRAMES_KEPT) for side in SIDES}
-        self._texture_key: int | None = None  # stamp (ns) of the current scan's laser-off pair
-        self.textures: dict[str, AnyArray] = {}
+        background = str(self.get_parameter("background").value)
+        if background not in BACKGROUNDS:
+            raise ValueError(f"background '{background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
+        self.core = FrameExtractor(self._read_params({}), background)
+        # set while the parameters are in use elsewhere (a replay's extraction processes): changes are refused
+        self.frozen_reason: str | None = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
-        self._sizes: dict[str, tuple[int, int]] = {}
         self._reported: dict[str, str] = {}  # side -> last problem reported (one log line per problem)
         self.frames = {side: 0 for side in SIDES}
         self.dropped = {side: 0 for side in SIDES}
@@ -134,8 +129,23 @@ class LaserExtractorNode(Node):
                   for spec in fields(ExtractorParams)}
         return ExtractorParams(**values)
 
+    @property
+    def params(self) -> ExtractorParams:
+        return self.core.params
+
+    @property
+    def background(self) -> str:
+        return self.core.background
+
+    @property
+    def textures(self) -> dict[str, AnyArray]:
+        """The laser-off frame of the current scan, per camera (the texture background)."""
+        return self.core.textures
+
     def _on_set_parameters(self, changed: list[Parameter]) -> SetParametersResult:
         names = {spec.name for spec in fields(ExtractorParams)}
+        if self.frozen_reason is not None and any(p.name in names or p.name == "background" for p in changed):
+            return SetParametersResult(successful=False, reason=self.frozen_reason)
         current = {name: self.get_parameter(name).value for name in names}
         current.update({p.name: p.value for p in changed if p.name in names})
         problems = param_problems(current)
@@ -147,8 +157,8 @@ class LaserExtractorNode(Node):
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, changed: list[Parameter]) -> None:
-        self.params = self._read_params({})
-        self.background = str(self.get_parameter("background").value)
+        self.core.params = self._read_params({})
+        self.core.background = str(self.get_parameter("background").value)
         self.get_logger().info(f"parameters now: method={self.params.method}, "
                                f"min_contrast={self.params.min_contrast}, window_px={self.params.window_px}")
 
@@ -172,52 +182,31 @@ class LaserExtractorNode(Node):
         A direct replay calls this with the bag's buffers and hands the arrays on itself (`line_fields`).
         """
         try:
-            msg = parse_image_cdr(raw)
+            msg, result = self.core.extract(side, raw)
         except ImageFormatError as exc:
-            self.dropped[side] += 1
-            self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
+            self.frame_dropped(side, str(exc))
             return None
-        size = (msg.width, msg.height)
-        expected = self._sizes.setdefault(side, size)
-        try:
-            if size != expected:
-                raise ImageFormatError(
-                    f"image size changed from {expected[0]}x{expected[1]} to {size[0]}x{size[1]}; frames of the "
-                    "new size are dropped (the calibration is for the first size): restart the camera with "
-                    "the calibrated size or restart the extractor")
-            image = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
-            texture = None
-            if self.background == "texture":
-                key = stamps.to_ns(msg)
-                self._recent[side].append((key, np.array(image)))  # a copy: the message buffer is reused
-                if key == self._texture_key:
-                    self.textures[side] = self._recent[side][-1][1]
-                texture = self.textures.get(side)
-                if texture is not None and texture.shape != image.shape:
-                    texture = None  # a mono laser-off frame for a colour one, or the like: extract alone
-            result = extract_laser_line(image, self.params, texture=texture)
-        except ImageFormatError as exc:
-            self.dropped[side] += 1
-            self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {exc}")
-            return None
+        assert result is not None  # extracted (compute=True)
+        return self.frame_extracted(side, msg.sec, msg.nanosec, msg.frame_id), result
+
+    def frame_extracted(self, side: str, sec: int, nanosec: int, frame_id: str) -> Header:
+        """Count a frame extracted (here or by a replay's extraction process); its header."""
         self.frames[side] += 1
-        header = Header(stamp=Time(sec=msg.sec, nanosec=msg.nanosec), frame_id=msg.frame_id)
         if side in self._reported:
             self._report(side, DiagnosticStatus.OK, f"{side} camera: extracting again")
-        return header, result
+        return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def frame_dropped(self, side: str, problem: str) -> None:
+        """Count and report a frame that could not be read (``problem``: what is wrong with it)."""
+        self.dropped[side] += 1
+        self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {problem}")
 
     def on_event(self, msg: ScanEvent) -> None:
         """STARTED, FINISHED, ABORTED: forget the laser-off pair; TEXTURE: take the pair it names."""
         if msg.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
-            self._texture_key = None
-            self.textures.clear()
+            self.core.forget_texture()
         elif msg.type == ScanEvent.TEXTURE:
-            self._texture_key = stamps.to_ns(msg.image_stamp)
-            self.textures.clear()
-            for side in SIDES:  # the pair usually came before its event; otherwise on_image takes it
-                for key, image in self._recent[side]:
-                    if key == self._texture_key:
-                        self.textures[side] = image
+            self.core.take_texture(stamps.to_ns(msg.image_stamp))
 
     def _report(self, side: str, level: bytes, message: str) -> None:
         if self._reported.get(side) == message:

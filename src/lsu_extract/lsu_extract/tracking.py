@@ -57,7 +57,7 @@ def row_starts(rows: int, width: int) -> AnyArray:
 
 
 def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
-                   min_contrast: float = 0.0, strong_only: bool = False) -> RowCandidates:
+                   min_contrast: float = 0.0, strong_only: bool = False, scratch: bool = False) -> RowCandidates:
     """Top-two peaks of each full row of the laser signal (n, W): int16 or float32, or uint8 clipped at 0.
 
     The background of a row is its mean signal: the laser covers a few pixels of hundreds,
@@ -67,7 +67,9 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     ``strong_only`` they are left out of the result altogether (``rows`` then holds only the
     strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
     the others is the same, and a frame where the line left the object (hundreds of lit rows
-    without it) costs a fraction of the second-peak search.
+    without it) costs a fraction of the second-peak search. With ``scratch`` the caller hands over
+    ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
+    overwrite, instead of a copy.
     """
     n, w = signal_rows.shape
     if n == 0:
@@ -81,9 +83,11 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     starts = row_starts(n, w)
     first_contrast = signal_rows.ravel()[starts + first] - background
     strong = first_contrast >= min_contrast
+    keep_copied = False
     if strong_only and np.count_nonzero(strong) < n:
         keep = strong.nonzero()[0]
         signal_rows, rows = signal_rows[keep], np.asarray(rows)[keep]
+        keep_copied = True
         first, background, first_contrast = first[keep], background[keep], first_contrast[keep]
         strong = strong[keep]
         n = keep.size
@@ -92,8 +96,9 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
             return RowCandidates(rows, none, none, np.zeros(0, np.float32), np.zeros(0, np.float32))
         starts = row_starts(n, w)
     # The second peak of every row, weak ones included (their result is then discarded): fewer
-    # calls than picking out the strong rows and scattering their results back.
-    rest = signal_rows.copy()
+    # calls than picking out the strong rows and scattering their results back. Blanked in place where
+    # the rows are a copy already (selected above, or handed over), so contiguous (ravel is a view).
+    rest = signal_rows if scratch or keep_copied else signal_rows.copy()
     # blank +-suppress_px around the first peak (a scatter of n x (2 s + 1) values, not a full-row mask)
     flat = rest.ravel()
     if np.minimum.reduce(first) < suppress_px or np.maximum.reduce(first) > w - 1 - suppress_px:

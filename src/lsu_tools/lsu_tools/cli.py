@@ -55,12 +55,13 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     bags = [a for a in args.arguments if ":=" not in a]
     if bags:  # `lsu run replay BAG`: the bag handed to the extractor and matcher directly
-        from .direct_replay import run_direct_replay
+        from .direct_replay import default_workers, run_direct_replay
 
         if len(bags) > 1:
             raise ValueError(f"one bag at a time (got {', '.join(bags)}); launch arguments are written name:=value")
         args.arguments = [a for a in args.arguments if ":=" in a]
-        return run_direct_replay(_load(args), Path(bags[0]), exit_when_done=args.exit)
+        return run_direct_replay(_load(args), Path(bags[0]), exit_when_done=args.exit,
+                                 workers=default_workers() if args.workers is None else args.workers)
     return run_in_process(_load(args), executor=args.executor)
 
 
@@ -93,6 +94,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="a recorded scan's bag folder to process directly, and launch arguments")
     p.add_argument("--exit", action="store_true",
                    help="with a BAG: stop once the bag is processed and its scan cloud published")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="with a BAG: extract the images in N processes of their own while this one matches "
+                        "(default 2 on a machine of 2 or more cores; 0: all in this process); the same points "
+                        "either way")
     _selection_options(p)
     p.add_argument("--executor", choices=("multi", "single"), default="multi",
                    help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "

@@ -11,6 +11,14 @@ subscribers see the same outputs. Their input subscriptions are removed: nothing
 Replaying into a graph of separate nodes is `lsu bag play` into `lsu launch replay` (or
 `lsu run replay` without a bag): the message path.
 
+With ``workers`` (`lsu run replay BAG --workers N`), the extraction runs in N processes of
+its own while this one matches: an uncompressed bag is mapped by each of them, and each runs the
+extractor's frame logic (`lsu_extract.frames.FrameExtractor`: sizes, the laser-off background)
+over every frame and event, so that all hold the same state, and extracts every N-th image. The
+lines come back in the bag's order and the matcher sees exactly the calls of the one-process
+replay: the same points, bit for bit, for stop-snap scans and sweeps alike. Meanwhile the
+extractor's parameters are those the replay started with (changes are refused until it ends).
+
 Hand-written because this is the integration of our own two nodes; the bag is read with
 `rosbags` (lsu_bags.bags) and the extraction/matching are the nodes' own methods.
 """
@@ -19,10 +27,13 @@ from __future__ import annotations
 
 import collections
 import itertools
+import multiprocessing
+import os
 import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -30,11 +41,13 @@ from lsu_bags.bags import bag_topics, read_message_views
 from lsu_common import stamps
 from lsu_common.read_ahead import read_ahead
 
-__all__ = ["DirectReplay", "ReplayStats", "run_direct_replay"]
+__all__ = ["DirectReplay", "ReplayStats", "default_workers", "run_direct_replay"]
 
 SIDES = ("left", "right")
 SPIN_EVERY_S = 0.05  # timers and the other nodes' callbacks run at least this often during a replay
 PREFETCH = 8  # bag messages read ahead (about 4 image pairs, ~8 MB)
+PIPE_BYTES = 1 << 20  # the lines an extraction process may send ahead (`_widen`)
+WORKER_START_S = 60.0  # an extraction process that has not started by then is reported
 
 
 @dataclass
@@ -49,9 +62,13 @@ class ReplayStats:
     sweep_frames: int = 0       # pairs the sweeps' streams published (their SWEEP_END events)
     frames_dropped: int = 0     # images the extractor could not read
     lines_unpaired: int = 0     # lines that never found their partner (same stamp)
-    seconds: float = 0.0
-    cpu_s: float = 0.0          # the whole process, all threads
+    seconds: float = 0.0        # without the turns of the executor (`spin_s`)
+    cpu_s: float = 0.0          # the whole process, all threads (and the extraction processes), without `spin_s`'s
+    spin_s: float = 0.0         # the executor's turns during the replay: other nodes' callbacks (a face processor
+    #                             meshing the scan cloud), not the replay's work
     read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
+    workers: int = 0            # extraction processes (0: extracted in this process)
+    workers_start_s: float = 0.0  # their start-up (before the timed window, like the nodes' construction)
 
     def summary(self, bag: Path) -> str:
         done = self.snaps + self.sweep_frames  # a sweep's frames are its snaps
@@ -62,7 +79,27 @@ class ReplayStats:
         return (f"replayed {bag}: {self.snaps} snaps ({self.snap_events} SNAP events, {self.pairs} pairs){sweep} in "
                 f"{self.seconds:.2f} s, {rate:.0f} snaps/s, {cpu:.2f} ms CPU per snap ({read:.2f} ms of it reading "
                 f"the bag); {self.frames_dropped} frames unreadable, "
-                f"{self.lines_unpaired} lines unpaired")
+                f"{self.lines_unpaired} lines unpaired" +
+                (f"; {self.spin_s:.2f} s of other callbacks during it not counted" if self.spin_s >= 0.005 else "") +
+                (f"; extracted in {self.workers} processes (started in {self.workers_start_s:.2f} s, their CPU "
+                 "counted)" if self.workers else ""))
+
+
+def default_workers() -> int:
+    """Extraction processes of `lsu run replay BAG`: 2 beside the matching one (measured best on 2 cores: the
+    matching and each half of the extraction cost about the same), none on a single core."""
+    return 2 if (os.cpu_count() or 1) >= 2 else 0
+
+
+def _timed(items: Iterator[Any], cpu: dict[str, float]) -> Iterator[Any]:
+    """``items``, with the CPU time of making them added to ``cpu["producer_s"]`` (as `read_ahead` counts it)."""
+    while True:
+        c0 = time.thread_time()
+        item = next(items, None)
+        cpu["producer_s"] += time.thread_time() - c0
+        if item is None:
+            return
+        yield item
 
 
 def _side(topic: str, suffix: str) -> str | None:
@@ -70,6 +107,138 @@ def _side(topic: str, suffix: str) -> str | None:
         if topic.endswith(f"stereo/{side}/{suffix}"):
             return side
     return None
+
+
+
+def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str], params: dict[str, Any],
+                   background: str, index: int, count: int) -> None:
+    """An extraction process: every frame and event of ``bag`` through a FrameExtractor, every ``count``-th
+    image (from the ``index``-th) extracted and sent on ``out`` in order (see the module doc)."""
+    try:
+        import cv2
+
+        from lsu_extract.extractor import ExtractorParams
+        from lsu_extract.frames import FrameExtractor
+        from lsu_extract.image import ImageFormatError
+
+        cv2.setNumThreads(1)  # one core per process: the processes are the parallelism
+        core = FrameExtractor(ExtractorParams(**params), background, copy_frames=False)  # the mapped file stays
+        deserialize = None
+        if background == "texture":
+            from rclpy.serialization import deserialize_message
+
+            from lsu_interfaces.msg import ScanEvent
+
+            deserialize = deserialize_message
+        messages = read_message_views(bag, [*images, *(events if deserialize is not None else [])])
+        first = next(messages, None)  # opening the bag is start-up, as for the replay's own reading
+        out.send(("ready", time.process_time()))
+        n = 0
+        for m in itertools.chain([first] if first is not None else [], messages):
+            side = images.get(m.topic)
+            if side is None:
+                assert deserialize is not None
+                event = deserialize(bytes(m.data), ScanEvent)
+                if event.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
+                    core.forget_texture()
+                elif event.type == ScanEvent.TEXTURE:
+                    core.take_texture(stamps.to_ns(event.image_stamp))
+                continue
+            mine = n % count == index
+            n += 1
+            try:
+                msg, result = core.extract(side, m.data, compute=mine)
+            except ImageFormatError as exc:
+                if mine:
+                    out.send(("bad", str(exc)))
+                continue
+            if mine:
+                out.send(("line", (msg.sec, msg.nanosec, msg.frame_id), result))
+        out.send(("done", time.process_time()))
+    except BaseException:  # noqa: BLE001 - handed to the replay, which raises it
+        try:
+            out.send(("error", traceback.format_exc()))
+        except OSError:
+            pass  # the replay has stopped reading (it failed or was interrupted itself)
+    finally:
+        out.close()
+
+
+def _widen(pipe: Any) -> None:
+    """Let a pipe hold ~50 lines (Linux: 1 MB, the default limit for a user): a process that runs ahead in
+    longer bursts, rather than in turns of a few lines with a wake-up between, which a loaded host delays."""
+    import fcntl
+
+    try:
+        fcntl.fcntl(pipe.fileno(), getattr(fcntl, "F_SETPIPE_SZ", 1031), PIPE_BYTES)
+    except OSError:
+        pass  # a smaller limit: the default size works, in shorter bursts
+
+
+class _ExtractionProcesses:
+    """``count`` processes running `_extract_share` on one bag; `next` gives each image's outcome in bag order."""
+
+    def __init__(self, bag: Path | str, images: dict[str, str], events: list[str], extractor: Any, count: int) -> None:
+        context = multiprocessing.get_context("spawn")  # not fork: this process runs DDS threads
+        self.count, self.taken = count, 0
+        self.extractor = extractor
+        self.inputs: list[Any] = []
+        self.processes: list[Any] = []
+        t0 = time.monotonic()
+        for index in range(count):
+            reader, writer = context.Pipe(duplex=False)
+            _widen(reader)
+            process = context.Process(
+                target=_extract_share, name=f"lsu-replay-extract-{index}", daemon=True,
+                args=(writer, str(bag), images, events, asdict(extractor.params), extractor.background, index, count))
+            process.start()
+            writer.close()
+            self.inputs.append(reader)
+            self.processes.append(process)
+        self.cpu_at_start = [float(self._receive(i, "ready", WORKER_START_S)[1]) for i in range(count)]
+        self.start_s = time.monotonic() - t0
+
+    def _receive(self, index: int, kind: str, timeout_s: float | None = None) -> tuple[Any, ...]:
+        reader = self.inputs[index]
+        if timeout_s is not None and not reader.poll(timeout_s):
+            raise RuntimeError(f"extraction process {index} did not start within {timeout_s:.0f} s; replay with "
+                               "--workers 0 to extract in this process")
+        try:
+            item = reader.recv()
+        except EOFError:
+            raise RuntimeError(f"extraction process {index} ended unexpectedly (exit code "
+                               f"{self.processes[index].exitcode}); replay with --workers 0 to extract in this "
+                               "process") from None
+        if item[0] == "error":
+            raise RuntimeError(f"extraction process {index} failed:\n{item[1]}")
+        if item[0] != kind and not (kind == "line" and item[0] == "bad"):
+            raise RuntimeError(f"extraction process {index} sent '{item[0]}' where '{kind}' was due")
+        return tuple(item)
+
+    def next(self, side: str) -> tuple[Any, Any] | None:
+        """The next image's (header, LaserLineResult), counted by the extractor node; None: unreadable (reported)."""
+        item = self._receive(self.taken % self.count, "line")
+        self.taken += 1
+        if item[0] == "bad":
+            self.extractor.frame_dropped(side, item[1])
+            return None
+        sec, nanosec, frame_id = item[1]
+        return self.extractor.frame_extracted(side, sec, nanosec, frame_id), item[2]
+
+    def finish(self) -> float:
+        """Wait for every process to end; their CPU seconds since they were ready."""
+        cpu = sum(float(self._receive(i, "done")[1]) - self.cpu_at_start[i] for i in range(self.count))
+        self.close()
+        return cpu
+
+    def close(self) -> None:
+        for reader in self.inputs:
+            reader.close()
+        for process in self.processes:
+            process.join(timeout=5.0)
+            if process.is_alive():  # left early (an error here): it may be blocked writing to its pipe
+                process.terminate()
+                process.join(timeout=5.0)
 
 
 class DirectReplay:
@@ -103,19 +272,17 @@ class DirectReplay:
         self._left_images.clear()
         return taken
 
-    def run(self, bag: Path | str, spin: Callable[[], None] = lambda: None) -> ReplayStats:
+    def run(self, bag: Path | str, spin: Callable[[], None] = lambda: None, workers: int = 0) -> ReplayStats:
         """Process every scan event and image pair of ``bag`` in recorded order; ``spin`` runs the executor once.
+
+        ``workers``: extract in that many processes of their own (module doc) where the bag is read in
+        place (one uncompressed MCAP file); 0, or any other bag: in this process.
 
         Raises:
             lsu_bags.bags.BagError: the bag is missing, corrupt, or holds neither images nor laser lines.
+            RuntimeError: an extraction process failed or ended (``workers``).
         """
-        from rclpy.serialization import deserialize_message
-        from sensor_msgs.msg import CameraInfo
-
         from lsu_bags.bags import BagError
-        from lsu_extract.node import line_fields, result_to_msg
-        from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
-        from lsu_reconstruct.matching import LineArrays
 
         topics = bag_topics(bag)
         images = {t: side for t in topics if (side := _side(t, "image_raw")) is not None}
@@ -132,26 +299,66 @@ class DirectReplay:
         if str(self.matcher.get_parameter("calibration_source").value) == "topics":
             calibration = [t for t in topics if _side(t, "camera_info") or t.endswith("stereo/extrinsics")]
         extractor, matcher = self.extractor, self.matcher
-        publishers = extractor.publishers_
         stats = ReplayStats()
         pairs_before = matcher.pairs
         lines_of: dict[int, int] = collections.Counter()  # stamp -> lines handed to the matcher
         reading: dict[str, float] = {"producer_s": 0.0}
-        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views);
-        # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on the
-        # other core while this one extracts and matches
-        messages = read_ahead(read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration]),
-                              PREFETCH, "bag-reader", reading)
-        first = next(messages, None)  # the window starts at the first message: opening the bag is start-up
-        t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
-        next_spin = t0 + SPIN_EVERY_S
+        # the images reach the extractor as views of the mapped bag file, not copies (read_message_views)
+        source = read_message_views(bag, [*images, *lines, *events, *sweep_inputs, *calibration])
+        first = next(source, None)  # the window starts at the first message: opening the bag is start-up
+        pool = None
+        # each process maps the file: with copies (a compressed bag) every one would decompress it all
+        if workers > 0 and images and first is not None and isinstance(first.data, memoryview):
+            pool = _ExtractionProcesses(bag, images, events, extractor, workers)
+            stats.workers, stats.workers_start_s = workers, pool.start_s
+            extractor.frozen_reason = (f"a replay extracts in {workers} processes with the parameters it started "
+                                       "with; set them before it (launch arguments), or replay with --workers 0")
+            # the extraction processes have the other cores, and views cost little to read: read here, with
+            # no hand-off between threads
+            messages: Iterator[Any] = _timed(source, reading)
+        else:
+            # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on
+            # the other core while this one extracts and matches
+            messages = read_ahead(source, PREFETCH, "bag-reader", reading)
+        try:
+            t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
+            spin_cpu = [0.0]
+            self._replay(first, messages, pool, spin, images, lines, events, stats, lines_of, spin_cpu)
+            matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
+            stats.seconds = time.monotonic() - t0 - stats.spin_s
+            stats.cpu_s = time.process_time() - cpu0 - spin_cpu[0] + (pool.finish() if pool is not None else 0.0)
+            stats.read_cpu_s = reading["producer_s"] - read0
+        finally:
+            if pool is not None:
+                pool.close()
+                extractor.frozen_reason = None
+        stats.pairs = matcher.pairs - pairs_before
+        stats.frames_dropped = sum(extractor.dropped.values())
+        stats.lines_unpaired = sum(matcher.unmatched.values()) + len(matcher.left) + len(matcher.right)
+        return stats
+
+    def _replay(self, first: Any, messages: Any, pool: _ExtractionProcesses | None, spin: Callable[[], None],
+                images: dict[str, str], lines: dict[str, str], events: list[str], stats: ReplayStats,
+                lines_of: dict[int, int], spin_cpu: list[float]) -> None:
+        """The loop of `run` over the bag's messages (``first`` and the rest); the executor's turns are timed
+        (``stats.spin_s``, ``spin_cpu[0]``)."""
+        from rclpy.serialization import deserialize_message
+        from sensor_msgs.msg import CameraInfo
+
+        from lsu_extract.node import line_fields, result_to_msg
+        from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
+        from lsu_reconstruct.matching import LineArrays
+
+        extractor, matcher = self.extractor, self.matcher
+        publishers = extractor.publishers_
+        next_spin = time.monotonic() + SPIN_EVERY_S
         for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
             if side is not None:
                 stats.images += 1
                 if side == "left":
                     self._left_images.append(m.data)  # the texture is looked for among these
-                extracted = extractor.extract_of(side, m.data)
+                extracted = extractor.extract_of(side, m.data) if pool is None else pool.next(side)
                 if extracted is not None:
                     # the arrays go to the matcher as they are: a LaserLine message only for subscribers
                     header, result = extracted
@@ -184,16 +391,11 @@ class DirectReplay:
             elif (side := _side(m.topic, "camera_info")) is not None:
                 matcher.on_info(side, deserialize_message(bytes(m.data), CameraInfo))
             if time.monotonic() >= next_spin:
+                t0, cpu0 = time.monotonic(), time.process_time()
                 spin()
                 next_spin = time.monotonic() + SPIN_EVERY_S
-        matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
-        stats.seconds = time.monotonic() - t0
-        stats.cpu_s = time.process_time() - cpu0
-        stats.read_cpu_s = reading["producer_s"] - read0
-        stats.pairs = matcher.pairs - pairs_before
-        stats.frames_dropped = sum(extractor.dropped.values())
-        stats.lines_unpaired = sum(matcher.unmatched.values()) + len(matcher.left) + len(matcher.right)
-        return stats
+                stats.spin_s += next_spin - SPIN_EVERY_S - t0
+                spin_cpu[0] += time.process_time() - cpu0
 
     def scan_pending(self) -> bool:
         """A scan ended (FINISHED/ABORTED) whose cloud the matcher has not published yet (it waits for snaps)."""
@@ -201,12 +403,13 @@ class DirectReplay:
         return scan is not None and scan.end_type is not None and not scan.published
 
 
-def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exit_when_done: bool = False) -> int:
+def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exit_when_done: bool = False,
+                      workers: int = 0) -> int:
     """Build the launch file's nodes, replay ``bag`` through them directly, then spin until Ctrl-C.
 
     With ``exit_when_done`` it returns once the bag is processed and a pending scan cloud is
     published (at most the matcher's scan_timeout_s later). One thread: the replay calls into
-    the nodes between the executor's turns.
+    the nodes between the executor's turns; ``workers``: extraction processes (`DirectReplay.run`).
     """
     from lsu_bags.bags import BagError
 
@@ -221,7 +424,7 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exi
         out.flush()
         spinner.spin_once(timeout_sec=0.0)
         try:
-            stats = replay.run(bag, spin=lambda: spinner.spin_once(timeout_sec=0.0))
+            stats = replay.run(bag, spin=lambda: spinner.spin_once(timeout_sec=0.0), workers=workers)
         except BagError as exc:
             out.write(f"[lsu run] error: {exc}\n")
             return 2
