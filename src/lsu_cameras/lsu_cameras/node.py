@@ -33,12 +33,11 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.duration import Duration
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from lsu_common import diagnostics, qos, stamps
 from lsu_common.images import bgr_to_msg
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_common.read_ahead import read_ahead
 from lsu_interfaces.msg import SimTruth, StereoExposure, StereoExtrinsics
@@ -161,7 +160,7 @@ def _url_to_path(url: str) -> Path:
     return Path(url[len("file://"):]) if url.startswith("file://") else Path(url)
 
 
-class StereoCameraNode(Node):
+class StereoCameraNode(LsuNode):
     """Stereo camera pair (v4l2 | folder | sim) with synchronized capture."""
 
     def __init__(self, **kwargs: Any) -> None:

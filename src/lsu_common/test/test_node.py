@@ -84,3 +84,21 @@ def test_start_up_errors_are_one_line_and_exit_2_other_errors_are_not_hidden():
     bug = _start("bug")
     _, err = bug.communicate(timeout=60)
     assert bug.returncode == 1 and "KeyError" in err
+
+
+def test_lsu_node_keeps_one_event_handler_per_subscription_and_reports_incompatible_qos(ros_node):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import String
+
+    from lsu_common.node import LsuNode
+
+    node = ros_node.add(LsuNode("qos_probe", namespace="/lsu_node_test", context=ros_node.context))
+    before = len(list(node.waitables))
+    node.create_publisher(String, "out", 10)
+    node.create_subscription(String, "in", lambda _m: None, QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+    assert len(list(node.waitables)) == before + 1  # the subscription's incompatible-QoS handler, nothing else
+    # a best-effort publisher cannot serve a reliable subscription: the node says so, naming the topic and policy
+    ros_node.node.create_publisher(String, "/lsu_node_test/in",
+                                   QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT))
+    assert ros_node.spin_until(lambda: node.qos_warnings, 10)
+    assert "/lsu_node_test/in" in node.qos_warnings[-1] and "RELIABILITY" in node.qos_warnings[-1]

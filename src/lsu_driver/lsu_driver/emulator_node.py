@@ -12,10 +12,8 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from rclpy.node import Node
-
 from lsu_common import qos, stamps
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import SimTruth
 
@@ -70,7 +68,7 @@ def truth_to_msg(truth: Truth) -> SimTruth:
     return msg
 
 
-class Gp32EmulatorNode(Node):
+class Gp32EmulatorNode(LsuNode):
     """Runs a `Gp32Emulator` or a `Gp32Firmware` and publishes its truth."""
 
     def __init__(self, **kwargs: Any) -> None:

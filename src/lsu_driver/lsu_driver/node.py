@@ -18,11 +18,10 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TransformStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from std_srvs.srv import SetBool, Trigger
 
 from lsu_common import diagnostics, stamps
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import CarriagePosition, ScannerState
 from lsu_interfaces.srv import MoveTo, Step
@@ -53,7 +52,7 @@ PARAMETERS: dict[str, Param] = {
 }
 
 
-class Gp32DriverNode(Node):
+class Gp32DriverNode(LsuNode):
     """Services ``laser/set``, ``carriage/{move_to,step,home,stop}``; topic ``driver/state``."""
 
     def __init__(self, **kwargs: Any) -> None:

@@ -24,14 +24,13 @@ import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
 from lsu_common import diagnostics, qos, stamps
 from lsu_common.arrays import AnyArray, Float32Array
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
 
@@ -90,7 +89,7 @@ def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
                      rows_saturated=result.rows_saturated, **fields)
 
 
-class LaserExtractorNode(Node):
+class LaserExtractorNode(LsuNode):
     """Extracts the laser line from both cameras' images."""
 
     def __init__(self, **kwargs: Any) -> None:

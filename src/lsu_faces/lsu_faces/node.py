@@ -28,14 +28,13 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, PointStamped
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from shape_msgs.msg import Mesh, MeshTriangle
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
 from lsu_common import diagnostics, qos
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import ScanEvent
 from lsu_interfaces.srv import Enroll, Identify
@@ -114,7 +113,7 @@ def parameter_table() -> dict[str, Param]:
     }
 
 
-class FaceProcessorNode(Node):
+class FaceProcessorNode(LsuNode):
     """Meshes every scan cloud, finds the face, and serves the gallery (see module doc)."""
 
     def __init__(self, **kwargs: Any) -> None:

@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.node import Node
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
@@ -44,7 +43,7 @@ from lsu_cameras.polled import PolledGroup, take_all
 from lsu_common import diagnostics, qos, stamps
 from lsu_common.arrays import AnyArray
 from lsu_common.images import msg_to_bgr
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExposure, StereoExtrinsics
 
@@ -177,7 +176,7 @@ class _Scan:
     published: bool = False
 
 
-class StereoMatcherNode(Node):
+class StereoMatcherNode(LsuNode):
     """Matches left/right laser lines along epipolar lines and publishes 3D points (see module doc)."""
 
     def __init__(self, **kwargs: Any) -> None:

@@ -38,7 +38,6 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -46,7 +45,7 @@ from std_srvs.srv import SetBool, Trigger
 
 from lsu_cameras.polled import PolledGroup, take_latest
 from lsu_common import qos, stamps
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import declare_parameters
 from lsu_interfaces.action import Scan
 from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState, StereoExposure
@@ -134,7 +133,7 @@ class ScanRun:
     frame_arrivals: dict[int, float] = field(default_factory=dict)  # stamp -> monotonic time its exposure came
 
 
-class ScanCoordinatorNode(Node):
+class ScanCoordinatorNode(LsuNode):
     """Serves the ``scan`` action; publishes ``scan/events``; writes one folder per scan."""
 
     def __init__(self, **kwargs: Any) -> None:
@@ -151,8 +150,8 @@ class ScanCoordinatorNode(Node):
         # that waits for it, with no hand-off through the multi-threaded executor (a wait-set
         # rebuild and two thread switches per message, ~5-10 ms per call on a busy 2-core machine).
         # No global arguments: the process's `-r __node:=scan_coordinator` would give it our name.
-        self._io = rclpy.create_node("_scan_coordinator_io", namespace=self.get_namespace(), context=self.context,
-                                     use_global_arguments=False, start_parameter_services=False)
+        self._io = LsuNode("_scan_coordinator_io", namespace=self.get_namespace(), context=self.context,
+                           use_global_arguments=False, start_parameter_services=False)
         self._io_executor = SingleThreadedExecutor(context=self.context)
         self._io_executor.add_node(self._io)
         self.laser = self._io.create_client(SetBool, "laser/set")

@@ -23,13 +23,12 @@ import threading
 import time
 from typing import Any
 
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from lsu_bags.bags import BagError, BagTypes
 from lsu_bags.rosmsg import InterfaceError, get_interface
 from lsu_common import qos
-from lsu_common.node import main_of
+from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 
 from .channels import RateLimiter, TopicOffer, offered, ros2msg_schema, topic_kind
@@ -76,7 +75,7 @@ class _Listener:
             return {cid for cid, clients in self.subscribers.items() if clients}
 
 
-class FoxgloveBridgeNode(Node):
+class FoxgloveBridgeNode(LsuNode):
     """A Foxglove WebSocket server offering the graph's topics (see the module docstring)."""
 
     def __init__(self, **kwargs: Any) -> None:
