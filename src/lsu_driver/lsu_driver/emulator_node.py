@@ -44,7 +44,9 @@ PARAMETERS: dict[str, Param] = {
     "fault_reply_delay_ms": Param(0, "delay of every sent line [ms]", read_only=R),
     "fault_stalled": Param(False, "the motor does not move (pulses are still counted)", read_only=R),
     "fault_seed": Param(0, "seed of the fault random generator", read_only=R),
-    "truth_rate_hz": Param(50.0, "sim/truth rate while the carriage moves [Hz]", (1.0, 1000.0)),
+    # a moving carriage is at a constant rate between samples (the camera extrapolates from the last one) and
+    # every start, stop and rate change is a sample of its own: the periodic ones only bound an extrapolation
+    "truth_rate_hz": Param(10.0, "sim/truth rate while the carriage moves [Hz]", (1.0, 1000.0)),
     "truth_rest_rate_hz": Param(5.0, "sim/truth rate at rest [Hz]", (0.1, 100.0)),
 }
 
