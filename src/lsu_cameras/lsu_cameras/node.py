@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,6 +112,8 @@ START_PAST_LIMIT_S = 1.0  # a stream start further in the past is refused (clock
 # rendered pairs waiting for the publishing thread (a clocked stream): the render of the next pair overlaps
 # the wait for the readers of this one
 RENDER_AHEAD = 2
+NO_WAIT = Duration(nanoseconds=0)
+ACK_POLL_S = 0.0005  # between asking whether every image reader acknowledged a pair (see `_wait_for_readers`)
 # a simulated pair of a stream is rendered this long after its exposures ended [s]: the emulator publishes its
 # exact samples of a motion's start or stop from its executor, on a busy host tens of ms after they happened,
 # and a pair rendered before they are in shows the carriage where it was not
@@ -412,9 +415,12 @@ class StereoCameraNode(LsuNode):
         last few images: one more published before a slow reader took the older ones would push them out."""
         deadline_ns = self._now_ns() + stamps.seconds_to_ns(timeout_s)
         for pub in (self.pub_left, self.pub_right):
-            left_ns = max(0, deadline_ns - self._now_ns())
-            if not pub.wait_for_all_acked(Duration(nanoseconds=left_ns)):
-                return False
+            # rclpy's wait_for_all_acked keeps the GIL while it blocks, which froze the render thread for
+            # every acknowledgement's round trip: it is asked without waiting, and the wait is a sleep
+            while not pub.wait_for_all_acked(NO_WAIT):
+                if self._now_ns() >= deadline_ns:
+                    return False
+                time.sleep(ACK_POLL_S)
         return True
 
     def _streaming(self) -> _Stream | None:
