@@ -939,7 +939,7 @@ class ScanCoordinatorNode(LsuNode):
         record.points = cloud_points or run.points_total
         record.partial = partial
         record.status = (f"partial: {abort_reason}" if partial else
-                         f"finished: {len(run.captured)} snaps, {record.points} points")
+                         f"finished: {len(run.captured)} {'frames' if run.sweep else 'snaps'}, {record.points} points")
         record.timings_s["total"] = time.monotonic() - run.started
         record.files.append(str(record.write(folder)))
         result = Scan.Result(scan_id=run.scan_id, output_dir=str(folder), success=not partial, partial=partial,

@@ -3,8 +3,9 @@
 1. claims a ROS domain of its own (localhost only) and starts `lsu launch sim` (GP32 emulator,
    driver, simulated cameras looking at a synthetic head, extractor, matcher, face processor,
    scan coordinator) as separate processes;
-2. runs a full scan through the `/lsu/scan` action with a bag recorded (``--mode``: stop-snap, the
-   default, or a sweep: the carriage at a constant rate while the cameras free-run);
+2. runs a full scan through the `/lsu/scan` action with a bag recorded (``--mode``: a sweep, the
+   default since it meets its targets (the carriage at a constant rate while the cameras free-run),
+   or stop-snap: stop, settle and capture per line);
 3. measures the cloud against the renderer's geometry (distance of every point to the true
    head surface: truth from the simulator, not from the code under test);
 4. stops everything and prints where the files are.
@@ -135,8 +136,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--end", type=int, default=470)
     p.add_argument("--step", type=int, default=2)
     p.add_argument("--settle", type=float, default=0.1, help="stop-snap: settle after each stop [s]")
-    p.add_argument("--mode", choices=("stopsnap", "sweep"), default="stopsnap",
-                   help="stopsnap (stop, settle, capture per line) or sweep (constant rate, free-running cameras)")
+    p.add_argument("--mode", choices=("stopsnap", "sweep"), default="sweep",
+                   help="sweep (constant rate, free-running cameras; the default) or stopsnap (stop, settle, "
+                        "capture per line)")
     p.add_argument("--rate", type=float, default=60.0, help="sweep: carriage rate [steps/s], at most 180")
     p.add_argument("--fps", type=float, default=30.0, help="sweep: camera frame rate [frames/s]")
     p.add_argument("--out", default="", help="parent folder of the scan folder (default scans/ in the current directory)")
