@@ -413,7 +413,12 @@ class Gp32Emulator:
         elif self.pos_rate_hz and self._motion is not None and now >= self._next_pos:
             # the counter holds since its last pulse: that is the instant it reports
             self._send_timed(p.Position(self.counter, int(self._stamp(motion.last_pulse_at) or 0)))
-            self._next_pos = max(self._next_pos + 1.0 / self.pos_rate_hz, now)
+            period = 1.0 / self.pos_rate_hz
+            # one period after the last one; a loop that ran late sends no burst of catch-up events (they would
+            # repeat this one's position and stamp: the counter has not moved since)
+            self._next_pos += period
+            if self._next_pos <= now:
+                self._next_pos = now + period
 
     def _homing_phase(self, tripped: int, now: float) -> None:
         motion = self._motion

@@ -178,3 +178,23 @@ def test_the_drift_of_a_fast_device_clock_is_estimated_and_taken_out(tmp_path):
     assert drift == pytest.approx(800.0, abs=300.0), drift
     event, stamp, uncertainty, _ = next(m for m in recorder.mapped if m[0] == p.Done(20, result.stopped_device_ms))
     assert abs(stamp - truth[p.encode_line(event).decode().strip()]) <= uncertainty
+
+
+def test_a_late_firmware_loop_sends_one_position_event_not_a_burst():
+    """!POS comes at its rate; a loop that wakes late (a busy host) sends one for the position now, not a catch-up
+    burst repeating it (the driver publishes every event it gets: a repeat was a duplicate carriage sample)."""
+    emu = Gp32Emulator()  # not started: its loop is driven by hand with chosen instants
+    emu.pos_rate_hz = 20
+    emu._start_motion("move", +1, 100)
+    started = emu._motion.started
+    def positions() -> list[int]:
+        return [int(e["line"].split()[1]) for e in emu.timed_events if e["line"].startswith("!POS")]
+
+    rate = emu.rate  # steps/s: pulse n is due at started + n / rate
+    emu._advance(started)             # the first at the start
+    emu._advance(started + 0.30)      # 6 periods late: one event, the counter where the pulses got to
+    emu._advance(started + 0.3005)    # half a millisecond later: not due yet
+    emu._advance(started + 0.3495)
+    assert positions() == [0, int(0.30 * rate)]
+    emu._advance(started + 0.3505)    # one period after the late one
+    assert positions() == [0, int(0.30 * rate), int(0.3505 * rate)]
