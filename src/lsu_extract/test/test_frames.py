@@ -5,13 +5,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import ExtractorParams
 from lsu_extract.frames import FrameExtractor
 from lsu_extract.image import ImageFormatError
 from lsu_extract.synthetic import LineScene, render_line
 
 
-def serialized(image: np.ndarray, sec: int) -> bytes:
+def serialized(image: AnyArray, sec: int) -> bytes:
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Image
 
