@@ -32,7 +32,7 @@ class LsuNode(Node):
 
     rclpy gives every publisher and subscription two default event handlers (incompatible QoS, incompatible
     type), each a waitable that the executor adds to a new wait set at every wake-up and checks after it:
-    the matcher had 26 of them, which cost ~2 ms of CPU per frame of a 30 fps sweep. A subscription keeps
+    with a dozen endpoints that work is a large share of a node's CPU at 30 frames/s. A subscription keeps
     its incompatible-QoS warning (what tells a user why their camera's best-effort images never arrive);
     a publisher's is the same mismatch, reported by the subscribing node on its side. ``event_callbacks``
     given by the caller are used as they are.
