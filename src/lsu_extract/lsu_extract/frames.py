@@ -22,7 +22,7 @@ from lsu_common.arrays import AnyArray
 from .extractor import ExtractorParams, LaserLineResult, extract_laser_line
 from .image import ImageCdr, ImageFormatError, decode_image, parse_image_cdr
 
-__all__ = ["BACKGROUNDS", "FRAMES_KEPT", "FrameExtractor"]
+__all__ = ["BACKGROUNDS", "FRAMES_KEPT", "SIDES", "FrameExtractor"]
 
 SIDES = ("left", "right")
 BACKGROUNDS = ("none", "texture")

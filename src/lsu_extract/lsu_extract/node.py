@@ -36,10 +36,9 @@ from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
 from .extractor import ExtractorParams, LaserLineResult, param_problems
-from .frames import BACKGROUNDS, FrameExtractor
+from .frames import BACKGROUNDS, SIDES, FrameExtractor
 from .image import ImageFormatError
 
-SIDES = ("left", "right")
 # scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
 SCAN_DATA_QOS = qos.SCAN_DATA
 EVENTS_QOS = qos.EVENTS
@@ -87,6 +86,15 @@ def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
     return LaserLine(header=header, image_width=result.image_width, image_height=result.image_height,
                      method=result.method, rows_searched=result.rows_searched, rows_ambiguous=result.rows_ambiguous,
                      rows_saturated=result.rows_saturated, **fields)
+
+
+def follow_scan_event(core: FrameExtractor, msg: ScanEvent) -> None:
+    """What a scan event means to the frame state: STARTED, FINISHED, ABORTED forget the laser-off pair;
+    TEXTURE takes the pair it names (the node, and each extraction process of a replay)."""
+    if msg.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
+        core.forget_texture()
+    elif msg.type == ScanEvent.TEXTURE:
+        core.take_texture(stamps.to_ns(msg.image_stamp))
 
 
 class LaserExtractorNode(LsuNode):
@@ -201,11 +209,7 @@ class LaserExtractorNode(LsuNode):
         self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {problem}")
 
     def on_event(self, msg: ScanEvent) -> None:
-        """STARTED, FINISHED, ABORTED: forget the laser-off pair; TEXTURE: take the pair it names."""
-        if msg.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
-            self.core.forget_texture()
-        elif msg.type == ScanEvent.TEXTURE:
-            self.core.take_texture(stamps.to_ns(msg.image_stamp))
+        follow_scan_event(self.core, msg)
 
     def _report(self, side: str, level: bytes, message: str) -> None:
         if self._reported.get(side) == message:

@@ -127,6 +127,7 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
         if background == "texture":
             from rclpy.serialization import deserialize_message
 
+            from lsu_extract.node import follow_scan_event
             from lsu_interfaces.msg import ScanEvent
 
             deserialize = deserialize_message
@@ -138,11 +139,7 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
             side = images.get(m.topic)
             if side is None:
                 assert deserialize is not None
-                event = deserialize(bytes(m.data), ScanEvent)
-                if event.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
-                    core.forget_texture()
-                elif event.type == ScanEvent.TEXTURE:
-                    core.take_texture(stamps.to_ns(event.image_stamp))
+                follow_scan_event(core, deserialize(bytes(m.data), ScanEvent))
                 continue
             mine = n % count == index
             n += 1
