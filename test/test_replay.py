@@ -76,6 +76,7 @@ def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_
         replay = DirectReplay(nodes)
         published, clouds = [], []
         replay.matcher.points_pub.publish = published.append  # what subscribers of /lsu/points would get
+        replay.matcher.points_pub.get_subscription_count = lambda: 1  # one, or the points are not encoded
         replay.matcher.cloud_pub.publish = clouds.append
         stats = replay.run(BAG)
     finally:
@@ -162,6 +163,7 @@ def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_repl
             assert replay.extractor.set_parameters([Parameter("background", value=background)])[0].successful
             published, clouds, refused = [], [], []
             replay.matcher.points_pub.publish = published.append
+            replay.matcher.points_pub.get_subscription_count = lambda: 1  # one, or the points are not encoded
             replay.matcher.cloud_pub.publish = clouds.append
 
             def spin() -> None:  # a parameter change while the replay runs
