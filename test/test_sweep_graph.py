@@ -175,19 +175,24 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
 
     description = select_nodes(load_launch(resolve_launch_file("replay"), {}, resolve_executable),
                                ["laser_extractor", "stereo_matcher"], [], {})
-    nodes = build_nodes(description, tmp_path, context=ros_context)
-    try:
-        replay = DirectReplay(nodes)
-        clouds_direct: list = []
-        replay.matcher.cloud_pub.publish = clouds_direct.append
-        stats = replay.run(Path(result.output_dir) / "bag")
-    finally:
-        for node in nodes:
-            node.destroy_node()
-    # every frame in the bag: its complete pairs are the sweep's and the laser-off texture pair
-    assert (stats.sweep_frames, stats.frames_dropped, stats.pairs) == (FRAMES, 0, FRAMES + 1)
-    assert len(clouds_direct) == 1
+    clouds_direct: list = []
+    for workers in (0, 2):  # extracting in this process, and in two of its own (`lsu run replay`'s default)
+        nodes = build_nodes(description, tmp_path, context=ros_context)
+        try:
+            replay = DirectReplay(nodes)
+            replay.matcher.cloud_pub.publish = clouds_direct.append
+            stats = replay.run(Path(result.output_dir) / "bag", workers=workers)
+        finally:
+            for node in nodes:
+                node.destroy_node()
+        # every frame in the bag: its complete pairs are the sweep's and the laser-off texture pair
+        assert (stats.sweep_frames, stats.frames_dropped, stats.pairs) == (FRAMES, 0, FRAMES + 1)
+        assert stats.workers == workers  # the bag is read in place, so the processes took the extraction
+    assert len(clouds_direct) == 2
     same_frames(clouds_direct[0], recorded[0])
+    # the processes' lines reach the matcher in the bag's order: the same cloud, bit for bit
+    assert bytes(clouds_direct[1].data) == bytes(clouds_direct[0].data)
+    assert clouds_direct[1].width == clouds_direct[0].width
 
     # and through the graph of separate nodes (`lsu bag play` into `lsu launch replay`)
     replay_graph = LaunchedProcess(["launch", "replay"])
