@@ -261,11 +261,16 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
     their CDR buffers (lsu_extract.image), two extractions with the replay launch file's extractor
     parameters, matching + triangulation (lsu_reconstruct.pipeline.reconstruct_snap) with its
     matcher parameters and calibration: the functions the nodes call. The median of ``passes``
-    passes (after one untimed one) of CPU time (this process, all threads).
+    passes (after one untimed one) of CPU time (this process, all threads), with OpenCV on one
+    thread as in the replay's extraction processes: its thread pool, of no use to a frame this
+    small, would add its own CPU to the reference and hide the replay's overhead.
     """
     from dataclasses import fields
 
+    import cv2
     import numpy as np
+
+    cv2.setNumThreads(1)  # for the rest of this process: the graphs it measures run in processes of their own
 
     from lsu_bags.bags import read_message_views, read_messages
     from lsu_extract.extractor import ExtractorParams, extract_laser_line
@@ -440,10 +445,11 @@ REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
     "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
     "no ROS (images read from their CDR buffers, two extractions and matching + triangulation with the "
-    "replay launch file's parameters; median of 4 passes, one before and one after each replay run). "
+    "replay launch file's parameters, OpenCV on one thread as in the extraction processes; median of the "
+    "passes, one before and one after each replay run). "
     "replay_snaps_per_s / replay_cpu_ms_per_snap: "
     "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "
-    "matcher nodes without DDS, which publish lines (to subscribers), points and the scan cloud as "
+    "matcher nodes without DDS, which publish lines and points (to subscribers) and the scan cloud as "
     "live; the images extracted in replay_workers processes of their own, each mapping the bag and "
     "extracting every 2nd image, while the replay's process matches), from the first message read to the "
     "scan cloud published (bag reading included, the extraction processes' start-up not: like the "
@@ -461,7 +467,8 @@ REPLAY_NOTES = (
     "uncompressed bag as views of the mapped file (lsu_bags.bags.read_message_views), so the images reach "
     "the extractor without a copy. replay_read_ms_per_snap: CPU per snap of reading the bag alone that way "
     "(scan bags are recorded uncompressed; same run; the pages of the images are then read by the "
-    "extraction), which the direct replay does in a second thread; replay_cpu_over_compute_and_read = "
+    "extraction), which the direct replay does in a second thread when it extracts in its own process and "
+    "between the lines it receives when processes extract; replay_cpu_over_compute_and_read = "
     "replay CPU / (compute + read); "
     "replay_processing_cpu_over_compute: the replay's CPU without its bag-reading thread's (thread CPU "
     "clock) over compute, paired like replay_cpu_over_compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
