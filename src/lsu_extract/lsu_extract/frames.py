@@ -62,6 +62,8 @@ class FrameExtractor:
                 f"image size changed from {expected[0]}x{expected[1]} to {size[0]}x{size[1]}; frames of the "
                 "new size are dropped (the calibration is for the first size): restart the camera with "
                 "the calibrated size or restart the extractor")
+        if not compute and self.background != "texture":
+            return msg, None  # the sizes are all the state kept without a texture background
         image = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
         texture = None
         if self.background == "texture":
