@@ -152,7 +152,7 @@ def _wait_acks(node, acks: set, in_flight: list, done: int) -> None:
     in_flight.pop(0)
 
 
-REPLAYS = 3
+REPLAYS = 5
 
 
 def _cpu_s(pid: int) -> float:
@@ -320,7 +320,13 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
             "timed_pass": timed_pass}
 
 
-REPLAY_WORKERS = 2  # `lsu run replay`'s default: extraction processes beside the one that matches
+def _default_workers() -> int:
+    from lsu_tools.direct_replay import default_workers
+
+    return default_workers()
+
+
+REPLAY_WORKERS = _default_workers()  # `lsu run replay`'s default: extraction processes beside the one that matches
 
 
 def replay_direct(bag: Path, workers: int = REPLAY_WORKERS) -> dict:
@@ -348,8 +354,10 @@ def replay_direct(bag: Path, workers: int = REPLAY_WORKERS) -> dict:
     if workers and f"extracted in {workers} processes" not in graph.output:
         raise RuntimeError(f"lsu run replay {bag} --workers {workers} extracted in one process: {graph.output[-3000:]}")
     snaps = int(match.group(1))
+    here = re.search(r"and (\d+) of (\d+) images here", graph.output)
     return {"snaps": snaps, "seconds": float(match.group(2)), "cpu_s": float(match.group(3)) * snaps / 1000.0,
-            "read_cpu_s": float(match.group(4)) * snaps / 1000.0, "lost": int(match.group(5)) + int(match.group(6))}
+            "read_cpu_s": float(match.group(4)) * snaps / 1000.0, "lost": int(match.group(5)) + int(match.group(6)),
+            "here_pct": 100.0 * int(here.group(1)) / max(1, int(here.group(2))) if here else 0.0}
 
 
 def _bag_mb(bag: Path) -> float:
@@ -411,6 +419,7 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
                "replay_cpu_over_compute_min": min(r["ratio"] for r in direct),
                "replay_cpu_over_compute_max": max(r["ratio"] for r in direct),
                "replay_workers": float(REPLAY_WORKERS),
+               "replay_extracted_here_pct": median([r["here_pct"] for r in direct]),
                "replay_one_process_snaps_per_s": median([r["snaps"] / r["seconds"] for r in serial]),
                "replay_one_process_cpu_over_compute": median([r["ratio"] for r in serial]),
                "replay_snaps_per_s_over_one_process": median([(d["snaps"] / d["seconds"]) / (o["snaps"] / o["seconds"])
@@ -439,7 +448,8 @@ REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps
                 "replay_dds_cpu_over_compute": "x", "replay_read_ms_per_snap": "ms",
                 "replay_cpu_over_compute_and_read": "x", "replay_processing_cpu_over_compute": "x",
                 "replay_bag_mb_per_snap": "MB", "replay_bag_zstd_mb_per_snap": "MB", "replay_read_zstd_ms_per_snap": "ms",
-                "replay_workers": "processes", "replay_one_process_snaps_per_s": "snaps/s",
+                "replay_workers": "processes", "replay_extracted_here_pct": "%",
+                "replay_one_process_snaps_per_s": "snaps/s",
                 "replay_one_process_cpu_over_compute": "x", "replay_snaps_per_s_over_one_process": "x"}
 REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
@@ -450,15 +460,17 @@ REPLAY_NOTES = (
     "replay_snaps_per_s / replay_cpu_ms_per_snap: "
     "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "
     "matcher nodes without DDS, which publish lines and points (to subscribers) and the scan cloud as "
-    "live; the images extracted in replay_workers processes of their own, each mapping the bag and "
-    "extracting every 2nd image, while the replay's process matches), from the first message read to the "
+    "live; the images extracted in replay_workers processes of their own, each mapping the bag, in turn, "
+    "and by the replay's own extractor node in place of a turn whenever it had to wait for a line "
+    "(replay_extracted_here_pct of the images, median), while the replay's process matches), from the "
+    "first message read to the "
     "scan cloud published (bag reading included, the extraction processes' start-up not: like the "
     "nodes' construction it comes before), CPU of the whole process (all threads) and of its extraction "
     "processes, without the executor's turns the replay gives the launch file's other nodes (the face "
     "processor meshing the scan cloud once it is out: seconds of work that landed inside the window or "
-    "not by chance), which the command prints apart; median of 3 runs, min and max beside it; "
+    "not by chance), which the command prints apart; median of 5 runs, min and max beside it; "
     "replay_cpu_over_compute: each run's CPU per snap over the mean of the reference passes right before "
-    "and after it (the host's load changes the CPU a fixed work takes), median of the 3 runs (min, max "
+    "and after it (the host's load changes the CPU a fixed work takes), median of the 5 runs (min, max "
     "beside it); replay_one_process_*: the same with --workers 0 (everything in the replay's process), "
     "its runs alternating with those; replay_snaps_per_s_over_one_process: the median of each pair's "
     "ratio; replay_lost: "
@@ -474,7 +486,7 @@ REPLAY_NOTES = (
     "clock) over compute, paired like replay_cpu_over_compute, like for like with replay_dds_cpu_over_compute, whose bag was read beforehand "
     "by the benchmark. replay_dds_*: the message path (`lsu run replay --executor "
     "single`, the bag's raw CDR published into it closed-loop with at most 4 snaps awaiting their "
-    "/lsu/points, below the image queue depth 5), CPU of that process only (median of 3 runs, each in a "
+    "/lsu/points, below the image queue depth 5), CPU of that process only (median of 5 runs, each in a "
     "fresh graph); these were replay_snaps_per_s / replay_cpu_ms_per_snap before the direct replay. "
     "replay_bag_mb_per_snap: the bag's disk size per snap; replay_bag_zstd_mb_per_snap and "
     "replay_read_zstd_ms_per_snap: a zstd-compressed copy of it (mcap chunks, as scan bags were recorded "

@@ -137,21 +137,26 @@ def uncompressed_copy(bag: Path, out: Path) -> Path:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("background, counts", [("none", (2, 3)), ("texture", (2,))])
+@pytest.mark.parametrize("background, counts", [("none", (1, 2, 3)), ("texture", (1, 2))])
 def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_replay(ros_context, tmp_path, monkeypatch,
                                                                                     background, counts):
-    """Extraction split over processes gives every snap's points and the scan cloud of the replay in one process,
-    bit for bit (and, without a background, the points the live graph recorded); with the laser-off background
-    every process holds the same texture pair. Extractor parameter changes are refused meanwhile."""
+    """Extraction split over processes and the replay's own extractor gives every snap's points and the scan cloud
+    of the replay in one process, bit for bit (and, without a background, the points the live graph recorded);
+    with the laser-off background every process holds the same texture pair. Extractor parameter changes are
+    refused meanwhile."""
     from rclpy.parameter import Parameter
 
     from lsu_tools.cli import resolve_launch_file
-    from lsu_tools.direct_replay import DirectReplay
+    from lsu_tools.direct_replay import DirectReplay, _ExtractionProcesses
     from lsu_tools.launch_file import load_launch, select_nodes
     from lsu_tools.nodes_index import resolve_executable
     from lsu_tools.runner import build_nodes
 
     monkeypatch.setattr("lsu_tools.direct_replay.SPIN_EVERY_S", 0.0)  # spin after every message
+    # places decided 4 images ahead, and as if the replay waited for every third line: the 14 images are
+    # extracted both by the processes and by the replay's own extractor (whichever the host's timing)
+    monkeypatch.setattr("lsu_tools.direct_replay.AHEAD", 4)
+    monkeypatch.setattr(_ExtractionProcesses, "_waits_for", lambda pool, place: pool.taken % 3 == 0)
     bag = uncompressed_copy(BAG, tmp_path / "bag")
     runs = {}
     for workers in (0, *counts):
@@ -176,6 +181,7 @@ def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_repl
                 node.destroy_node()
         assert (stats.snaps, stats.pairs, stats.frames_dropped, stats.lines_unpaired, stats.workers) == \
             (6, 7, 0, 0, workers)
+        assert stats.images == 14 and (0 < stats.extracted_here < 14) == (workers > 0)
         assert all(refused) and (len(refused) > 0) == (workers > 0)
         assert len(published) == 6 and len(clouds) == 1
         runs[workers] = ([(m.header.stamp.sec, m.header.stamp.nanosec, bytes(m.data)) for m in published],

@@ -96,8 +96,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="with a BAG: stop once the bag is processed and its scan cloud published")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="with a BAG: extract the images in N processes of their own while this one matches "
-                        "(default 2 on a machine of 2 or more cores; 0: all in this process); the same points "
-                        "either way")
+                        "and extracts what they leave (default: one per core beside this one, at most 4; 0: "
+                        "all in this process); the same points either way")
     _selection_options(p)
     p.add_argument("--executor", choices=("multi", "single"), default="multi",
                    help="multi (default): callbacks on a thread pool, needed by nodes that wait inside a "

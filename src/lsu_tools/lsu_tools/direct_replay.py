@@ -14,10 +14,14 @@ Replaying into a graph of separate nodes is `lsu bag play` into `lsu launch repl
 With ``workers`` (`lsu run replay BAG --workers N`), the extraction runs in N processes of
 its own while this one matches: an uncompressed bag is mapped by each of them, and each runs the
 extractor's frame logic (`lsu_extract.frames.FrameExtractor`: sizes, the laser-off background)
-over every frame and event, so that all hold the same state, and extracts every N-th image. The
-lines come back in the bag's order and the matcher sees exactly the calls of the one-process
-replay: the same points, bit for bit, for stop-snap scans and sweeps alike. Meanwhile the
-extractor's parameters are those the replay started with (changes are refused until it ends).
+over every frame and event, so that all hold the same state. The images go to the processes in
+turn, and to this process's extractor node whenever it had to wait for a line (the place of
+each image is decided a few images ahead and sent to the processes): the matching and the
+extraction share the cores without a fixed split, and fewer processes than one per core plus
+this one contend for them. The lines come back in the bag's order and the matcher sees exactly
+the calls of the one-process replay: the same points, bit for bit, for stop-snap scans and
+sweeps alike. Meanwhile the extractor's parameters are those the replay started with (changes
+are refused until it ends).
 
 Hand-written because this is the integration of our own two nodes; the bag is read with
 `rosbags` (lsu_bags.bags) and the extraction/matching are the nodes' own methods.
@@ -48,6 +52,9 @@ SPIN_EVERY_S = 0.05  # timers and the other nodes' callbacks run at least this o
 PREFETCH = 8  # bag messages read ahead (about 4 image pairs, ~8 MB)
 PIPE_BYTES = 1 << 20  # the lines an extraction process may send ahead (`_widen`)
 WORKER_START_S = 60.0  # an extraction process that has not started by then is reported
+OWN = 255  # an image's place (one byte): the replay's own process; 0..254: an extraction process
+AHEAD = 16  # images whose place is decided before the replay reaches them
+MAX_WORKERS = 4  # every process follows every frame and event: each one added costs that much CPU again
 
 
 @dataclass
@@ -69,6 +76,7 @@ class ReplayStats:
     read_cpu_s: float = 0.0     # of which the thread reading (and decompressing) the bag
     workers: int = 0            # extraction processes (0: extracted in this process)
     workers_start_s: float = 0.0  # their start-up (before the timed window, like the nodes' construction)
+    extracted_here: int = 0     # with extraction processes: the images this process extracted in their place
 
     def summary(self, bag: Path) -> str:
         done = self.snaps + self.sweep_frames  # a sweep's frames are its snaps
@@ -82,13 +90,13 @@ class ReplayStats:
                 f"{self.lines_unpaired} lines unpaired" +
                 (f"; {self.spin_s:.2f} s of other callbacks during it not counted" if self.spin_s >= 0.005 else "") +
                 (f"; extracted in {self.workers} processes (started in {self.workers_start_s:.2f} s, their CPU "
-                 "counted)" if self.workers else ""))
+                 f"counted) and {self.extracted_here} of {self.images} images here" if self.workers else ""))
 
 
 def default_workers() -> int:
-    """Extraction processes of `lsu run replay BAG`: 2 beside the matching one (measured best on 2 cores: the
-    matching and each half of the extraction cost about the same), none on a single core."""
-    return 2 if (os.cpu_count() or 1) >= 2 else 0
+    """Extraction processes of `lsu run replay BAG`: one per core beside the replay's own (which matches, and
+    extracts what they leave), at most ``MAX_WORKERS``; none on a single core."""
+    return max(0, min((os.cpu_count() or 1) - 1, MAX_WORKERS))
 
 
 def _timed(items: Iterator[Any], cpu: dict[str, float]) -> Iterator[Any]:
@@ -110,10 +118,11 @@ def _side(topic: str, suffix: str) -> str | None:
 
 
 
-def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str], params: dict[str, Any],
-                   background: str, index: int, count: int) -> None:
-    """An extraction process: every frame and event of ``bag`` through a FrameExtractor, every ``count``-th
-    image (from the ``index``-th) extracted and sent on ``out`` in order (see the module doc)."""
+def _extract_share(out: Any, places: Any, bag: str, images: dict[str, str], events: list[str],
+                   params: dict[str, Any], background: str, index: int) -> None:
+    """An extraction process: every frame and event of ``bag`` through a FrameExtractor; image n extracted
+    and sent on ``out`` (in order) where the n-th byte read from ``places`` (a pipe, written by the replay
+    ahead of its reading) is ``index`` (see the module doc)."""
     try:
         import cv2
 
@@ -134,6 +143,7 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
         messages = read_message_views(bag, [*images, *(events if deserialize is not None else [])])
         first = next(messages, None)  # opening the bag is start-up, as for the replay's own reading
         out.send(("ready", time.process_time()))
+        placed = bytearray()
         n = 0
         for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
@@ -141,7 +151,12 @@ def _extract_share(out: Any, bag: str, images: dict[str, str], events: list[str]
                 assert deserialize is not None
                 follow_scan_event(core, deserialize(bytes(m.data), ScanEvent))
                 continue
-            mine = n % count == index
+            while len(placed) <= n:
+                chunk = os.read(places.fileno(), 4096)
+                if not chunk:
+                    raise RuntimeError("the replay closed the image places before the last image")
+                placed += chunk
+            mine = placed[n] == index
             n += 1
             try:
                 msg, result = core.extract(side, m.data, compute=mine)
@@ -173,24 +188,43 @@ def _widen(pipe: Any) -> None:
 
 
 class _ExtractionProcesses:
-    """``count`` processes running `_extract_share` on one bag; `next` gives each image's outcome in bag order."""
+    """``count`` processes running `_extract_share` on one bag, and the replay's extractor node beside them;
+    `next` gives each image's outcome in bag order.
+
+    Where image n is extracted is decided ``AHEAD`` images before the replay reaches it, and sent to every
+    process: by the processes in turn while their lines are ready when the replay takes them; by the
+    replay's own process (``OWN``) in place of the next turn whenever it had to wait for a line. So the
+    replay extracts what the processes cannot keep up with, and on a host with as many cores as processes
+    the two kinds of work balance without a fixed share. Every image's line is the same wherever it is
+    extracted: each process, and the node, follows every frame and event (`FrameExtractor`).
+    """
 
     def __init__(self, bag: Path | str, images: dict[str, str], events: list[str], extractor: Any, count: int) -> None:
+        if not 0 < count < OWN:
+            raise ValueError(f"{count} extraction processes: give 1 to {OWN - 1} (or 0 to extract in this process)")
         context = multiprocessing.get_context("spawn")  # not fork: this process runs DDS threads
-        self.count, self.taken = count, 0
+        self.count, self.taken, self.turn, self.own = count, 0, 0, 0
         self.extractor = extractor
         self.inputs: list[Any] = []
+        self.places: list[Any] = []  # write ends of the processes' place pipes
         self.processes: list[Any] = []
+        self.decided = bytearray(index % count for index in range(AHEAD))
         t0 = time.monotonic()
         for index in range(count):
             reader, writer = context.Pipe(duplex=False)
             _widen(reader)
+            # the places go down a pipe as raw bytes (its descriptor), one per image, without message framing
+            place_reader, place_writer = context.Pipe(duplex=False)
             process = context.Process(
                 target=_extract_share, name=f"lsu-replay-extract-{index}", daemon=True,
-                args=(writer, str(bag), images, events, asdict(extractor.params), extractor.background, index, count))
+                args=(writer, place_reader, str(bag), images, events, asdict(extractor.params), extractor.background,
+                      index))
             process.start()
             writer.close()
+            place_reader.close()
+            os.write(place_writer.fileno(), bytes(self.decided))
             self.inputs.append(reader)
+            self.places.append(place_writer)
             self.processes.append(process)
         self.cpu_at_start = [float(self._receive(i, "ready", WORKER_START_S)[1]) for i in range(count)]
         self.start_s = time.monotonic() - t0
@@ -212,15 +246,47 @@ class _ExtractionProcesses:
             raise RuntimeError(f"extraction process {index} sent '{item[0]}' where '{kind}' was due")
         return tuple(item)
 
-    def next(self, side: str) -> tuple[Any, Any] | None:
-        """The next image's (header, LaserLineResult), counted by the extractor node; None: unreadable (reported)."""
-        item = self._receive(self.taken % self.count, "line")
+    def next(self, side: str, raw: Any) -> tuple[Any, Any] | None:
+        """The next image's (header, LaserLineResult), counted by the extractor node; None: unreadable (reported).
+
+        ``raw``: the image's buffer, which the extractor node follows (or extracts, in its turns) itself.
+        """
+        from lsu_extract.image import ImageFormatError
+
+        place = self.decided[self.taken]
         self.taken += 1
+        waited = False
+        if place == OWN:
+            self.own += 1
+            extracted = self.extractor.extract_of(side, raw)
+        else:
+            try:  # the node's frame state follows every image, as each process's does
+                self.extractor.core.extract(side, raw, compute=False)
+            except ImageFormatError:
+                pass  # reported by the process that extracts it
+            waited = self._waits_for(place)
+            extracted = self._line(side, self._receive(place, "line"))
+        self._decide(OWN if waited else None)
+        return extracted
+
+    def _waits_for(self, place: int) -> bool:
+        """The line of process ``place`` is not there yet: taking it, this process will wait."""
+        return not self.inputs[place].poll(0)
+
+    def _line(self, side: str, item: tuple[Any, ...]) -> tuple[Any, Any] | None:
         if item[0] == "bad":
             self.extractor.frame_dropped(side, item[1])
             return None
         sec, nanosec, frame_id = item[1]
         return self.extractor.frame_extracted(side, sec, nanosec, frame_id), item[2]
+
+    def _decide(self, place: int | None) -> None:
+        """The place of image ``taken + AHEAD - 1``: ``place``, or the processes' next turn."""
+        if place is None:
+            place, self.turn = self.turn, (self.turn + 1) % self.count
+        self.decided.append(place)
+        for writer in self.places:
+            os.write(writer.fileno(), bytes((place,)))
 
     def finish(self) -> float:
         """Wait for every process to end; their CPU seconds since they were ready."""
@@ -229,6 +295,9 @@ class _ExtractionProcesses:
         return cpu
 
     def close(self) -> None:
+        for writer in self.places:
+            writer.close()
+        self.places = []
         for reader in self.inputs:
             reader.close()
         for process in self.processes:
@@ -324,6 +393,7 @@ class DirectReplay:
             matcher._check_scan_end()  # a complete scan is published now, not at the matcher's next timer
             stats.seconds = time.monotonic() - t0 - stats.spin_s
             stats.cpu_s = time.process_time() - cpu0 - spin_cpu[0] + (pool.finish() if pool is not None else 0.0)
+            stats.extracted_here = pool.own if pool is not None else 0
             stats.read_cpu_s = reading["producer_s"] - read0
         finally:
             if pool is not None:
@@ -355,7 +425,7 @@ class DirectReplay:
                 stats.images += 1
                 if side == "left":
                     self._left_images.append(m.data)  # the texture is looked for among these
-                extracted = extractor.extract_of(side, m.data) if pool is None else pool.next(side)
+                extracted = extractor.extract_of(side, m.data) if pool is None else pool.next(side, m.data)
                 if extracted is not None:
                     # the arrays go to the matcher as they are: a LaserLine message only for subscribers
                     header, result = extracted
