@@ -20,6 +20,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
+from . import workspace
 from .detectors import clamp as _clamp
 
 _CONTINUITY_PASSES = 4
@@ -67,7 +68,8 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     ``strong_only`` they are left out of the result altogether (``rows`` then holds only the
     strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
     the others is the same, and a frame where the line left the object (hundreds of lit rows
-    without it) costs a fraction of the second-peak search. With ``scratch`` the caller hands over
+    without it) costs a fraction of the second-peak search (the strong rows are gathered into a
+    per-thread buffer, `workspace.scratch`, which the result does not reference). With ``scratch`` the caller hands over
     ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
     overwrite, instead of a copy.
     """
@@ -86,7 +88,8 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     keep_copied = False
     if strong_only and np.count_nonzero(strong) < n:
         keep = strong.nonzero()[0]
-        signal_rows, rows = signal_rows[keep], np.asarray(rows)[keep]
+        strong_rows = workspace.scratch("strong rows", (keep.size, w), signal_rows.dtype)
+        signal_rows, rows = np.take(signal_rows, keep, axis=0, out=strong_rows, mode="clip"), np.asarray(rows)[keep]
         keep_copied = True
         first, background, first_contrast = first[keep], background[keep], first_contrast[keep]
         strong = strong[keep]
