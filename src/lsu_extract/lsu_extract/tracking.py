@@ -182,7 +182,20 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
     competing = double & (c.second_contrast >= ambiguity_ratio * c.first_contrast)
     column = np.where(strong > double, c.first, -1)  # strong and not double
     ref_rows = np.asarray(ref_rows, dtype=np.int64)
-    ref_cols = np.asarray(ref_cols, dtype=np.float64)
+    # Every row that can serve as a reference, the external ones and these, in one ascending list
+    # merged once (both are ascending and disjoint): each pass then only marks which of them are
+    # known, instead of merging and sorting the references again.
+    if ref_rows.size:
+        merged = np.concatenate([ref_rows, c.rows])
+        order = np.argsort(merged, kind="stable")
+        all_rows = merged[order]
+        at = np.empty_like(order)  # the merged position of each row of c
+        at[order] = np.arange(order.size)
+        at = at[ref_rows.size:]
+        all_cols = np.concatenate([np.asarray(ref_cols, dtype=np.float64), column])[order]
+        known = np.concatenate([np.ones(ref_rows.size, bool), column >= 0])[order]
+    else:  # c.rows is ascending: it is the list
+        all_rows, at, all_cols, known = c.rows, None, column.copy(), column >= 0
     # Each pass lets rows resolved in the previous one serve as references for their
     # neighbours, so continuity spreads along a run of double-peaked rows (bounded: a loop
     # over passes, vectorised over rows). Integer indices of the open rows, not masks: the
@@ -191,24 +204,22 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
         open_idx = (double & (column < 0)).nonzero()[0]
         if not open_idx.size:
             break
-        known = (column >= 0).nonzero()[0]
-        if ref_rows.size:  # merge the external references with the rows resolved here
-            all_rows = np.concatenate([ref_rows, c.rows[known]])
-            order = np.argsort(all_rows, kind="stable")
-            all_rows = all_rows[order]
-            all_cols = np.concatenate([ref_cols, column[known]])[order]
-        else:  # c.rows is ascending: so are its resolved rows
-            all_rows, all_cols = c.rows[known], column[known]
-            if not all_rows.size:  # no reference at all: no open row can be resolved
-                break
-        ref = nearest_reference(c.rows[open_idx], all_rows, all_cols, max_gap_rows)
+        ref_idx = known.nonzero()[0]
+        if not ref_idx.size:  # no reference at all: no open row can be resolved
+            break
+        ref = nearest_reference(c.rows[open_idx], all_rows[ref_idx], all_cols[ref_idx], max_gap_rows)
         first, second = c.first[open_idx], c.second[open_idx]
         near_first = np.abs(first - ref) <= window_px  # False where ref is NaN
         near_second = np.abs(second - ref) <= window_px
         pick = np.where(near_first > near_second, first, np.where(near_second > near_first, second, -1))
-        if not np.count_nonzero(pick >= 0):
+        resolved = pick >= 0
+        if not np.count_nonzero(resolved):
             break
         column[open_idx] = pick
+        if at is not None:
+            open_idx = at[open_idx]
+        all_cols[open_idx] = pick
+        known[open_idx] = resolved
     undecided = double & (column < 0)
     column = np.where(undecided > competing, c.first, column)
     ambiguous = undecided & competing
