@@ -567,7 +567,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     step = params.coarse_step_rows
     on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
     coarse_rows = _coarse_rows(height, step)
-    coarse = sig.rows_clipped(slice(coarse_rows[0], height, step)) if params.window_px > 0 else None
+    coarse = sig.rows_clipped(coarse_rows) if params.window_px > 0 else None
     if params.contrast_sigmas > 0.0:
         # every 4th coarse row: ~10^4 samples pin the median down; more only cost time
         if sig.texture is not None:

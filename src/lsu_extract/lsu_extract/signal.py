@@ -16,8 +16,9 @@ window of columns per row (tracking), gathering the window pixels with one strid
 
 The arithmetic runs in OpenCV: numpy reads a channel of interleaved BGR with a 3-byte stride
 and cannot vectorise it. Full rows are de-interleaved with ``split`` and stay row-major, as
-the full-row argmax wants them. The tracking windows are short (a few dozen pixels) and many
-(one per row): `window_columns` de-interleaves them with one byte transpose (``cv2.transpose``
+the full-row argmax wants them; the gathered rows and their planes live in per-thread buffers
+reused from frame to frame (`workspace.scratch`), as does the fallback's signal. The tracking
+windows are short (a few dozen pixels) and many (one per row): `window_columns` de-interleaves them with one byte transpose (``cv2.transpose``
 of the (n, 3 L) pixel bytes), which leaves each channel as an (L, n) view with contiguous
 rows, and keeps that column-major layout, in which a per-row peak search is a reduction over
 axis 0 (one vector operation per window column for all rows at once) instead of numpy's
@@ -109,19 +110,14 @@ class LaserSignal:
 
     @staticmethod
     def _gather(image: AnyArray, rows: RowSelection, name: str) -> AnyArray:
-        """``image[rows]``: a view for a slice, else a copy in this thread's `scratch` buffer ``name``."""
-        if isinstance(rows, slice):
-            return image[rows]
-        rows = np.asarray(rows)
+        """``image[rows]``, a copy in this thread's `scratch` buffer ``name``."""
+        rows = np.arange(image.shape[0])[rows] if isinstance(rows, slice) else np.asarray(rows)
         # "clip" never fires on valid rows, and unlike the default mode writes straight into ``out``
         return np.take(image, rows, axis=0, out=scratch(name, (rows.size, *image.shape[1:]), np.uint8), mode="clip")
 
     @staticmethod
     def _split(pixels: AnyArray, name: str) -> tuple[AnyArray, AnyArray, AnyArray]:
-        """The (blue, green, red) planes of (n, W, 3) pixels, in this thread's `scratch` buffer ``name``."""
-        if not pixels.flags.c_contiguous:
-            blue, green, red = cv2.split(pixels)
-            return blue, green, red
+        """The (blue, green, red) planes of contiguous (n, W, 3) pixels, in this thread's `scratch` buffer ``name``."""
         planes = scratch(name, (3, *pixels.shape[:2]), np.uint8)
         cv2.split(pixels, [planes[0], planes[1], planes[2]])  # OpenCV writes into planes of the right size
         return planes[0], planes[1], planes[2]
@@ -132,14 +128,18 @@ class LaserSignal:
         What the coarse search reads: the laser is a positive peak, so the clipped signal has
         the same peaks, and uint8 arithmetic and copies cost a fraction of float32 ones.
         """
-        pixels = self.image[rows]
+        if not self.colour:
+            pixels = self.image[rows]
+            if pixels.shape[0] == 0:
+                return np.zeros((0, self.width), np.uint8)
+            return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
+        # gathered first: OpenCV splits contiguous rows faster than rows strided across the frame
+        pixels = self._gather(self.image, rows, "pixels")
         if pixels.shape[0] == 0:
             return np.zeros((0, self.width), np.uint8)
-        if not self.colour:
-            return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
-        blue, green, red = cv2.split(pixels)
+        blue, green, red = self._split(pixels, "planes")
         if self.texture is None:
-            return cv2.subtract(red, cv2.max(green, blue))
+            return cv2.subtract(red, cv2.max(green, blue, dst=green))
         return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
                             self._other_rise(green, blue, self.texture[rows]))
 
