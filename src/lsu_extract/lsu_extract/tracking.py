@@ -159,14 +159,6 @@ class Decision:
         return _clamp(1.0 - ratio, 0.0, 1.0)
 
 
-@lru_cache(maxsize=16)
-def _nearest_first(max_gap_rows: int) -> AnyArray:
-    """Row offsets -1, +1, -2, +2, ..., -max_gap_rows, +max_gap_rows: by distance, the row above first (cached)."""
-    offsets = np.arange(1, max_gap_rows + 1).repeat(2) * np.tile([-1, 1], max_gap_rows)
-    offsets.setflags(write=False)
-    return offsets
-
-
 def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window_px: int,
            ref_rows: AnyArray, ref_cols: AnyArray, max_gap_rows: int) -> Decision:
     """Choose between the two strongest peaks of each row, by continuity where possible.
@@ -190,41 +182,44 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
     competing = double & (c.second_contrast >= ambiguity_ratio * c.first_contrast)
     column = np.where(strong > double, c.first, -1)  # strong and not double
     ref_rows = np.asarray(ref_rows, dtype=np.int64)
-    known = (column >= 0).nonzero()[0]
-    if max_gap_rows >= 1 and (ref_rows.size or known.size):  # else no open row has a reference
-        # The known columns by row, NaN where a row is no reference, with max_gap_rows of margin
-        # at both ends: a row's nearest reference is then the first known entry among its
-        # neighbours taken in order of distance, the one above first on a tie (`_nearest_first`),
-        # as `nearest_reference` finds it: one gather per pass instead of merging and searching the
-        # references.
-        lowest, highest = int(c.rows[0]), int(c.rows[-1])
-        if ref_rows.size:
-            lowest, highest = min(lowest, int(ref_rows[0])), max(highest, int(ref_rows[-1]))
-        base = max_gap_rows - lowest  # index of row r: r + base
-        by_row = np.full(highest + base + max_gap_rows + 1, np.nan)
-        by_row[ref_rows + base] = ref_cols
-        by_row[c.rows[known] + base] = column[known]
-        search = _nearest_first(max_gap_rows) + base
-        peaks = np.stack([c.first, c.second])
-        # Each pass lets rows resolved in the previous one serve as references for their
-        # neighbours, so continuity spreads along a run of double-peaked rows (bounded: a loop
-        # over passes, vectorised over rows). Integer indices of the open rows, not masks: the
-        # loop body is a few dozen calls on a handful of rows, so each call counts.
-        for _ in range(_CONTINUITY_PASSES):
-            open_idx = (double & (column < 0)).nonzero()[0]
-            if not open_idx.size:
-                break
-            rows = c.rows[open_idx]
-            near = by_row[rows[:, None] + search]  # (k, 2 max_gap_rows): neighbours' columns, nearest first
-            ref = near[np.arange(rows.size), (near == near).argmax(axis=1)]  # column 0 (NaN) where none is known
-            both = peaks[:, open_idx]
-            close = np.abs(both - ref) <= window_px  # False where ref is NaN
-            pick = np.where(close[0] > close[1], both[0], np.where(close[1] > close[0], both[1], -1))
-            resolved = pick >= 0
-            if not np.count_nonzero(resolved):
-                break
-            column[open_idx] = pick
-            by_row[rows + base] = np.where(resolved, pick, np.nan)
+    # Every row that can serve as a reference, the external ones and these, in one ascending list
+    # merged once (both are ascending and disjoint): each pass then only marks which of them are
+    # known, instead of merging and sorting the references again.
+    if ref_rows.size:
+        merged = np.concatenate([ref_rows, c.rows])
+        order = np.argsort(merged, kind="stable")
+        all_rows = merged[order]
+        at = np.empty_like(order)  # the merged position of each row of c
+        at[order] = np.arange(order.size)
+        at = at[ref_rows.size:]
+        all_cols = np.concatenate([np.asarray(ref_cols, dtype=np.float64), column])[order]
+        known = np.concatenate([np.ones(ref_rows.size, bool), column >= 0])[order]
+    else:  # c.rows is ascending: it is the list
+        all_rows, at, all_cols, known = c.rows, None, column.copy(), column >= 0
+    # Each pass lets rows resolved in the previous one serve as references for their
+    # neighbours, so continuity spreads along a run of double-peaked rows (bounded: a loop
+    # over passes, vectorised over rows). Integer indices of the open rows, not masks: the
+    # loop body is a few dozen calls on a handful of rows, so each call counts.
+    for _ in range(_CONTINUITY_PASSES):
+        open_idx = (double & (column < 0)).nonzero()[0]
+        if not open_idx.size:
+            break
+        ref_idx = known.nonzero()[0]
+        if not ref_idx.size:  # no reference at all: no open row can be resolved
+            break
+        ref = nearest_reference(c.rows[open_idx], all_rows[ref_idx], all_cols[ref_idx], max_gap_rows)
+        first, second = c.first[open_idx], c.second[open_idx]
+        near_first = np.abs(first - ref) <= window_px  # False where ref is NaN
+        near_second = np.abs(second - ref) <= window_px
+        pick = np.where(near_first > near_second, first, np.where(near_second > near_first, second, -1))
+        resolved = pick >= 0
+        if not np.count_nonzero(resolved):
+            break
+        column[open_idx] = pick
+        if at is not None:
+            open_idx = at[open_idx]
+        all_cols[open_idx] = pick
+        known[open_idx] = resolved
     undecided = double & (column < 0)
     column = np.where(undecided > competing, c.first, column)
     ambiguous = undecided & competing
