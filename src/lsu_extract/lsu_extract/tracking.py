@@ -69,8 +69,8 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
     the others is the same, and a frame where the line left the object (hundreds of lit rows
     without it) costs a fraction of the second-peak search (the strong rows are gathered into a
-    per-thread buffer, `workspace.scratch`, which the result does not reference). With ``scratch`` the caller hands over
-    ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
+    per-thread buffer, `workspace.scratch`, which the result does not reference). With
+    ``scratch`` the caller hands over ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
     overwrite, instead of a copy.
     """
     n, w = signal_rows.shape
@@ -85,15 +85,18 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     starts = row_starts(n, w)
     first_contrast = signal_rows.ravel()[starts + first] - background
     strong = first_contrast >= min_contrast
+    n_strong = np.count_nonzero(strong)
     keep_copied = False
-    if strong_only and np.count_nonzero(strong) < n:
+    # Where the weak rows are the majority, the strong ones are copied out and searched alone; where
+    # they are few, searching them along costs less than that copy, and their results are dropped.
+    if strong_only and 2 * n_strong < n:
         keep = strong.nonzero()[0]
         strong_rows = workspace.scratch("strong rows", (keep.size, w), signal_rows.dtype)
         signal_rows, rows = np.take(signal_rows, keep, axis=0, out=strong_rows, mode="clip"), np.asarray(rows)[keep]
         keep_copied = True
         first, background, first_contrast = first[keep], background[keep], first_contrast[keep]
         strong = strong[keep]
-        n = keep.size
+        n = n_strong = keep.size
         if n == 0:
             none = np.zeros(0, np.int64)
             return RowCandidates(rows, none, none, np.zeros(0, np.float32), np.zeros(0, np.float32))
@@ -111,7 +114,11 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
         flat[_suppression_offsets(n, w, suppress_px) + first[:, None]] = blank
     second = rest.argmax(axis=1)
     second_contrast = flat[starts + second] - background
-    if np.count_nonzero(strong) < n:
+    if n_strong < n:
+        if strong_only:
+            keep = strong.nonzero()[0]
+            return RowCandidates(rows=np.asarray(rows)[keep], first=first[keep], second=second[keep],
+                                 first_contrast=first_contrast[keep], second_contrast=second_contrast[keep])
         # weak rows get no second peak: nothing will be chosen in them
         second = np.where(strong, second, first)
         second_contrast = np.where(strong, second_contrast, BLANK)

@@ -115,6 +115,12 @@ def test_strong_only_keeps_exactly_the_rows_with_a_peak_above_the_contrast_and_d
     assert d_strong.ambiguous.sum() == d_all.ambiguous.sum()
     nothing = row_candidates(rows[~laser], index[~laser], 4, 30.0, strong_only=True)
     assert nothing.rows.size == nothing.first.size == 0
+    # weak rows the minority (searched along with the strong ones, then dropped): the same strong rows
+    few_weak = np.sort(np.r_[laser.nonzero()[0], (~laser).nonzero()[0][:3]])
+    mostly = row_candidates(rows[few_weak], index[few_weak], 4, 30.0, strong_only=True)
+    np.testing.assert_array_equal(mostly.rows, index[truth])
+    for name in ("first", "second", "first_contrast", "second_contrast"):
+        np.testing.assert_array_equal(getattr(mostly, name), getattr(every, name)[truth])
 
 
 def _decide_row_by_row(rows, first, second, first_contrast, second_contrast, min_contrast, ambiguity_ratio,
