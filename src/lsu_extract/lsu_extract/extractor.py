@@ -617,7 +617,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         full_searched += pending.size
         # strong rows only: on a frame where the line has left the object, most pending rows are lit
         # skin or background without it, and they need no second-peak search nor a decision
-        cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True, scratch=True)
+        cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True,
+                              scratch=True)
         known_rows = chunks[0]["v"] if chunks else _NO_ROWS
         known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),

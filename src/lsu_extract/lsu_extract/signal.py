@@ -18,11 +18,11 @@ The arithmetic runs in OpenCV: numpy reads a channel of interleaved BGR with a 3
 and cannot vectorise it. Full rows are de-interleaved with ``split`` and stay row-major, as
 the full-row argmax wants them; the gathered rows and their planes live in per-thread buffers
 reused from frame to frame (`workspace.scratch`), as does the fallback's signal. The tracking
-windows are short (a few dozen pixels) and many (one per row): `window_columns` de-interleaves them with one byte transpose (``cv2.transpose``
-of the (n, 3 L) pixel bytes), which leaves each channel as an (L, n) view with contiguous
-rows, and keeps that column-major layout, in which a per-row peak search is a reduction over
-axis 0 (one vector operation per window column for all rows at once) instead of numpy's
-per-row loop.
+windows are short (a few dozen pixels) and many (one per row): `window_columns` de-interleaves
+them with one byte transpose (``cv2.transpose`` of the (n, 3 L) pixel bytes), which leaves each
+channel as an (L, n) view with contiguous rows, and keeps that column-major layout, in which a
+per-row peak search is a reduction over axis 0 (one vector operation per window column for all
+rows at once) instead of numpy's per-row loop.
 """
 
 from __future__ import annotations

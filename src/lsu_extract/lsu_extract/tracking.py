@@ -69,9 +69,10 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
     the others is the same, and a frame where the line left the object (hundreds of lit rows
     without it) costs a fraction of the second-peak search (the strong rows are gathered into a
-    per-thread buffer, `workspace.scratch`, which the result does not reference). With
-    ``scratch`` the caller hands over ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
-    overwrite, instead of a copy.
+    per-thread buffer, `workspace.scratch`, which the result does not reference, where they are
+    the fewer; else every row is searched and the weak ones dropped after). With ``scratch`` the
+    caller hands over ``signal_rows`` (an array of its own, not a view of the frame) for the
+    second-peak search to overwrite, instead of a copy.
     """
     n, w = signal_rows.shape
     if n == 0:
