@@ -567,7 +567,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     step = params.coarse_step_rows
     on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
     coarse_rows = _coarse_rows(height, step)
-    coarse = sig.rows_clipped(slice(coarse_rows[0], height, step)) if params.window_px > 0 else None
+    coarse = sig.rows_clipped(coarse_rows) if params.window_px > 0 else None
     if params.contrast_sigmas > 0.0:
         # every 4th coarse row: ~10^4 samples pin the median down; more only cost time
         if sig.texture is not None:
@@ -617,7 +617,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         full_searched += pending.size
         # strong rows only: on a frame where the line has left the object, most pending rows are lit
         # skin or background without it, and they need no second-peak search nor a decision
-        cand = row_candidates(sig.rows(pending), pending, half, params.min_contrast, strong_only=True, scratch=True)
+        cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True,
+                              scratch=True)
         known_rows = chunks[0]["v"] if chunks else _NO_ROWS
         known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),

@@ -16,12 +16,13 @@ window of columns per row (tracking), gathering the window pixels with one strid
 
 The arithmetic runs in OpenCV: numpy reads a channel of interleaved BGR with a 3-byte stride
 and cannot vectorise it. Full rows are de-interleaved with ``split`` and stay row-major, as
-the full-row argmax wants them. The tracking windows are short (a few dozen pixels) and many
-(one per row): `window_columns` de-interleaves them with one byte transpose (``cv2.transpose``
-of the (n, 3 L) pixel bytes), which leaves each channel as an (L, n) view with contiguous
-rows, and keeps that column-major layout, in which a per-row peak search is a reduction over
-axis 0 (one vector operation per window column for all rows at once) instead of numpy's
-per-row loop.
+the full-row argmax wants them; the gathered rows and their planes live in per-thread buffers
+reused from frame to frame (`workspace.scratch`), as does the fallback's signal. The tracking
+windows are short (a few dozen pixels) and many (one per row): `window_columns` de-interleaves
+them with one byte transpose (``cv2.transpose`` of the (n, 3 L) pixel bytes), which leaves each
+channel as an (L, n) view with contiguous rows, and keeps that column-major layout, in which a
+per-row peak search is a reduction over axis 0 (one vector operation per window column for all
+rows at once) instead of numpy's per-row loop.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from lsu_common.arrays import AnyArray
 
 from .detectors import clamp as _clamp
 from .image import ImageFormatError
+from .workspace import scratch
 
 RowSelection = AnyArray | slice
 
@@ -78,23 +80,47 @@ class LaserSignal:
             return self.image.reshape(self.height, -1).max(axis=1)[rows] >= min_contrast
         return self.image[rows].reshape(len(rows), -1).max(axis=1) >= min_contrast
 
-    def rows(self, rows: RowSelection) -> AnyArray:
+    def rows(self, rows: RowSelection, reuse: bool = False) -> AnyArray:
         """Signal of whole ``rows`` (indices or a slice): (n, W) int16.
 
         int16 holds the signal exactly (-255..255) at half the bytes of float32, and numpy's
-        int16 subtraction of the planes costs a third of OpenCV's conversion to float.
+        int16 subtraction of the planes costs a third of OpenCV's conversion to float. With
+        ``reuse`` the result is this thread's `scratch` buffer "signal" (for a caller done with
+        it before it asks again); the gathered pixels and their planes always are.
         """
-        pixels = self.image[rows]
-        if pixels.shape[0] == 0:
+        pixels = self._gather(self.image, rows, "pixels")
+        n = pixels.shape[0]
+        if n == 0:
             return np.zeros((0, self.width), np.int16)
-        texture = None if self.texture is None else self.texture[rows]
+        signal = scratch("signal", (n, self.width), np.int16) if reuse else np.empty((n, self.width), np.int16)
+        texture = None if self.texture is None else self._gather(self.texture, rows, "texture")
         if not self.colour:
-            return pixels.astype(np.int16) if texture is None else np.subtract(pixels, texture, dtype=np.int16)
-        blue, green, red = cv2.split(pixels)
+            if texture is None:
+                np.copyto(signal, pixels)
+                return signal
+            return np.subtract(pixels, texture, out=signal, dtype=np.int16)
+        blue, green, red = self._split(pixels, "planes")
         if texture is None:
-            return np.subtract(red, cv2.max(green, blue), dtype=np.int16)
-        rise = np.subtract(red, cv2.extractChannel(texture, 2), dtype=np.int16)
-        return np.subtract(rise, self._other_rise(green, blue, texture), dtype=np.int16)
+            return np.subtract(red, cv2.max(green, blue, dst=green), out=signal, dtype=np.int16)
+        tex_blue, tex_green, tex_red = self._split(texture, "texture planes")
+        np.subtract(red, tex_red, out=signal, dtype=np.int16)
+        # max(green - green_off, blue - blue_off, 0), as `_other_rise`, in the planes' own memory
+        other = cv2.max(cv2.subtract(green, tex_green, dst=green), cv2.subtract(blue, tex_blue, dst=blue), dst=green)
+        return np.subtract(signal, other, out=signal, dtype=np.int16)
+
+    @staticmethod
+    def _gather(image: AnyArray, rows: RowSelection, name: str) -> AnyArray:
+        """``image[rows]``, a copy in this thread's `scratch` buffer ``name``."""
+        rows = np.arange(image.shape[0])[rows] if isinstance(rows, slice) else np.asarray(rows)
+        # "clip" never fires on valid rows, and unlike the default mode writes straight into ``out``
+        return np.take(image, rows, axis=0, out=scratch(name, (rows.size, *image.shape[1:]), np.uint8), mode="clip")
+
+    @staticmethod
+    def _split(pixels: AnyArray, name: str) -> tuple[AnyArray, AnyArray, AnyArray]:
+        """The (blue, green, red) planes of contiguous (n, W, 3) pixels, in this thread's `scratch` buffer ``name``."""
+        planes = scratch(name, (3, *pixels.shape[:2]), np.uint8)
+        cv2.split(pixels, [planes[0], planes[1], planes[2]])  # OpenCV writes into planes of the right size
+        return planes[0], planes[1], planes[2]
 
     def rows_clipped(self, rows: RowSelection) -> AnyArray:
         """Signal of whole ``rows``, clipped at 0: (n, W) uint8.
@@ -102,14 +128,18 @@ class LaserSignal:
         What the coarse search reads: the laser is a positive peak, so the clipped signal has
         the same peaks, and uint8 arithmetic and copies cost a fraction of float32 ones.
         """
-        pixels = self.image[rows]
+        if not self.colour:
+            pixels = self.image[rows]
+            if pixels.shape[0] == 0:
+                return np.zeros((0, self.width), np.uint8)
+            return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
+        # gathered first: OpenCV splits contiguous rows faster than rows strided across the frame
+        pixels = self._gather(self.image, rows, "pixels")
         if pixels.shape[0] == 0:
             return np.zeros((0, self.width), np.uint8)
-        if not self.colour:
-            return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
-        blue, green, red = cv2.split(pixels)
+        blue, green, red = self._split(pixels, "planes")
         if self.texture is None:
-            return cv2.subtract(red, cv2.max(green, blue))
+            return cv2.subtract(red, cv2.max(green, blue, dst=green))
         return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
                             self._other_rise(green, blue, self.texture[rows]))
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
+from . import workspace
 from .detectors import clamp as _clamp
 
 _CONTINUITY_PASSES = 4
@@ -67,9 +68,11 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     ``strong_only`` they are left out of the result altogether (``rows`` then holds only the
     strong rows): `decide` never picks a weak row nor uses one as a reference, so its choice for
     the others is the same, and a frame where the line left the object (hundreds of lit rows
-    without it) costs a fraction of the second-peak search. With ``scratch`` the caller hands over
-    ``signal_rows`` (an array of its own, not a view of the frame) for the second-peak search to
-    overwrite, instead of a copy.
+    without it) costs a fraction of the second-peak search (the strong rows are gathered into a
+    per-thread buffer, `workspace.scratch`, which the result does not reference, where they are
+    the fewer; else every row is searched and the weak ones dropped after). With ``scratch`` the
+    caller hands over ``signal_rows`` (an array of its own, not a view of the frame) for the
+    second-peak search to overwrite, instead of a copy.
     """
     n, w = signal_rows.shape
     if n == 0:
@@ -83,14 +86,18 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
     starts = row_starts(n, w)
     first_contrast = signal_rows.ravel()[starts + first] - background
     strong = first_contrast >= min_contrast
+    n_strong = np.count_nonzero(strong)
     keep_copied = False
-    if strong_only and np.count_nonzero(strong) < n:
+    # Where the weak rows are the majority, the strong ones are copied out and searched alone; where
+    # they are few, searching them along costs less than that copy, and their results are dropped.
+    if strong_only and 2 * n_strong < n:
         keep = strong.nonzero()[0]
-        signal_rows, rows = signal_rows[keep], np.asarray(rows)[keep]
+        strong_rows = workspace.scratch("strong rows", (keep.size, w), signal_rows.dtype)
+        signal_rows, rows = np.take(signal_rows, keep, axis=0, out=strong_rows, mode="clip"), np.asarray(rows)[keep]
         keep_copied = True
         first, background, first_contrast = first[keep], background[keep], first_contrast[keep]
         strong = strong[keep]
-        n = keep.size
+        n = n_strong = keep.size
         if n == 0:
             none = np.zeros(0, np.int64)
             return RowCandidates(rows, none, none, np.zeros(0, np.float32), np.zeros(0, np.float32))
@@ -108,7 +115,11 @@ def row_candidates(signal_rows: AnyArray, rows: AnyArray, suppress_px: int,
         flat[_suppression_offsets(n, w, suppress_px) + first[:, None]] = blank
     second = rest.argmax(axis=1)
     second_contrast = flat[starts + second] - background
-    if np.count_nonzero(strong) < n:
+    if n_strong < n:
+        if strong_only:
+            keep = strong.nonzero()[0]
+            return RowCandidates(rows=np.asarray(rows)[keep], first=first[keep], second=second[keep],
+                                 first_contrast=first_contrast[keep], second_contrast=second_contrast[keep])
         # weak rows get no second peak: nothing will be chosen in them
         second = np.where(strong, second, first)
         second_contrast = np.where(strong, second_contrast, BLANK)
@@ -179,7 +190,20 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
     competing = double & (c.second_contrast >= ambiguity_ratio * c.first_contrast)
     column = np.where(strong > double, c.first, -1)  # strong and not double
     ref_rows = np.asarray(ref_rows, dtype=np.int64)
-    ref_cols = np.asarray(ref_cols, dtype=np.float64)
+    # Every row that can serve as a reference, the external ones and these, in one ascending list
+    # merged once (both are ascending and disjoint): each pass then only marks which of them are
+    # known, instead of merging and sorting the references again.
+    if ref_rows.size:
+        merged = np.concatenate([ref_rows, c.rows])
+        order = np.argsort(merged, kind="stable")
+        all_rows = merged[order]
+        at = np.empty_like(order)  # the merged position of each row of c
+        at[order] = np.arange(order.size)
+        at = at[ref_rows.size:]
+        all_cols = np.concatenate([np.asarray(ref_cols, dtype=np.float64), column])[order]
+        known = np.concatenate([np.ones(ref_rows.size, bool), column >= 0])[order]
+    else:  # c.rows is ascending: it is the list
+        all_rows, at, all_cols, known = c.rows, None, column.copy(), column >= 0
     # Each pass lets rows resolved in the previous one serve as references for their
     # neighbours, so continuity spreads along a run of double-peaked rows (bounded: a loop
     # over passes, vectorised over rows). Integer indices of the open rows, not masks: the
@@ -188,24 +212,22 @@ def decide(c: RowCandidates, min_contrast: float, ambiguity_ratio: float, window
         open_idx = (double & (column < 0)).nonzero()[0]
         if not open_idx.size:
             break
-        known = (column >= 0).nonzero()[0]
-        if ref_rows.size:  # merge the external references with the rows resolved here
-            all_rows = np.concatenate([ref_rows, c.rows[known]])
-            order = np.argsort(all_rows, kind="stable")
-            all_rows = all_rows[order]
-            all_cols = np.concatenate([ref_cols, column[known]])[order]
-        else:  # c.rows is ascending: so are its resolved rows
-            all_rows, all_cols = c.rows[known], column[known]
-            if not all_rows.size:  # no reference at all: no open row can be resolved
-                break
-        ref = nearest_reference(c.rows[open_idx], all_rows, all_cols, max_gap_rows)
+        ref_idx = known.nonzero()[0]
+        if not ref_idx.size:  # no reference at all: no open row can be resolved
+            break
+        ref = nearest_reference(c.rows[open_idx], all_rows[ref_idx], all_cols[ref_idx], max_gap_rows)
         first, second = c.first[open_idx], c.second[open_idx]
         near_first = np.abs(first - ref) <= window_px  # False where ref is NaN
         near_second = np.abs(second - ref) <= window_px
         pick = np.where(near_first > near_second, first, np.where(near_second > near_first, second, -1))
-        if not np.count_nonzero(pick >= 0):
+        resolved = pick >= 0
+        if not np.count_nonzero(resolved):
             break
         column[open_idx] = pick
+        if at is not None:
+            open_idx = at[open_idx]
+        all_cols[open_idx] = pick
+        known[open_idx] = resolved
     undecided = double & (column < 0)
     column = np.where(undecided > competing, c.first, column)
     ambiguous = undecided & competing

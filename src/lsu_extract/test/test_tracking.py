@@ -115,3 +115,73 @@ def test_strong_only_keeps_exactly_the_rows_with_a_peak_above_the_contrast_and_d
     assert d_strong.ambiguous.sum() == d_all.ambiguous.sum()
     nothing = row_candidates(rows[~laser], index[~laser], 4, 30.0, strong_only=True)
     assert nothing.rows.size == nothing.first.size == 0
+    # weak rows the minority (searched along with the strong ones, then dropped): the same strong rows
+    few_weak = np.sort(np.r_[laser.nonzero()[0], (~laser).nonzero()[0][:3]])
+    mostly = row_candidates(rows[few_weak], index[few_weak], 4, 30.0, strong_only=True)
+    np.testing.assert_array_equal(mostly.rows, index[truth])
+    for name in ("first", "second", "first_contrast", "second_contrast"):
+        np.testing.assert_array_equal(getattr(mostly, name), getattr(every, name)[truth])
+
+
+def _decide_row_by_row(rows, first, second, first_contrast, second_contrast, min_contrast, ambiguity_ratio,
+                       window_px, ref_rows, ref_cols, max_gap_rows):
+    """`decide`'s rule written out row by row in plain Python: the reference of a row is the first known
+    row at distance 1, 2, ... up to max_gap_rows, the one above first; up to 4 passes."""
+    n = len(rows)
+    strong = [first_contrast[i] >= min_contrast for i in range(n)]
+    double = [strong[i] and second_contrast[i] >= max(0.25 * first_contrast[i], min_contrast) for i in range(n)]
+    competing = [double[i] and second_contrast[i] >= ambiguity_ratio * first_contrast[i] for i in range(n)]
+    column = [int(first[i]) if strong[i] and not double[i] else -1 for i in range(n)]
+    known = {int(r): float(c) for r, c in zip(ref_rows, ref_cols)}
+    known.update({int(rows[i]): float(column[i]) for i in range(n) if column[i] >= 0})
+    for _ in range(4):
+        picks = {}
+        for i in range(n):
+            if not double[i] or column[i] >= 0:
+                continue
+            ref = next((known[r] for d in range(1, max_gap_rows + 1) for r in (rows[i] - d, rows[i] + d)
+                        if r in known), None)
+            if ref is None:
+                continue
+            near_first, near_second = abs(first[i] - ref) <= window_px, abs(second[i] - ref) <= window_px
+            if near_first != near_second:
+                picks[i] = int(first[i] if near_first else second[i])
+        if not picks:
+            break
+        for i, pick in picks.items():
+            column[i] = pick
+            known[int(rows[i])] = float(pick)
+    ambiguous = [double[i] and column[i] < 0 and competing[i] for i in range(n)]
+    column = [int(first[i]) if double[i] and column[i] < 0 and not competing[i] else column[i] for i in range(n)]
+    return column, ambiguous
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), max_gap_rows=st.integers(1, 20), with_refs=st.booleans())
+def test_decide_follows_its_rule_row_by_row(seed, max_gap_rows, with_refs):
+    from lsu_extract.tracking import RowCandidates, decide
+
+    rng = np.random.default_rng(seed)
+    # a line drifting across 120 rows, with a reflection 15-40 px away in most rows and gaps between
+    # references at every distance, so that ties, the gap limit and several passes all occur
+    all_rows = np.arange(120)
+    line = np.rint(60 + np.cumsum(rng.integers(-2, 3, 120))).astype(np.int64)
+    searched = np.sort(rng.choice(120, 80, replace=False))
+    others = np.setdiff1d(all_rows, searched)
+    ref_rows = np.sort(rng.choice(others, rng.integers(1, others.size), replace=False)) if with_refs \
+        else np.zeros(0, np.int64)
+    ref_cols = line[ref_rows].astype(np.float32) + rng.uniform(-1, 1, ref_rows.size).astype(np.float32)
+    reflection = line[searched] + rng.choice([-1, 1], searched.size) * rng.integers(15, 40, searched.size)
+    swap = rng.random(searched.size) < 0.5  # the reflection is the stronger peak in half the rows
+    first, second = np.where(swap, reflection, line[searched]), np.where(swap, line[searched], reflection)
+    # whole numbers and a ratio of 0.5: the thresholds are exact in float32 and in Python's floats alike
+    first_contrast = rng.integers(20, 100, searched.size).astype(np.float32)
+    second_contrast = np.floor(first_contrast * rng.uniform(0.0, 1.0, searched.size)).astype(np.float32)
+    c = RowCandidates(rows=searched, first=first, second=second, first_contrast=first_contrast,
+                      second_contrast=second_contrast)
+    got = decide(c, 30.0, 0.5, 8, ref_rows, ref_cols, max_gap_rows)
+    column, ambiguous = _decide_row_by_row(searched.tolist(), first.tolist(), second.tolist(), first_contrast.tolist(),
+                                           second_contrast.tolist(), 30.0, 0.5, 8, ref_rows.tolist(),
+                                           ref_cols.tolist(), max_gap_rows)
+    assert got.column.tolist() == column
+    assert got.ambiguous.tolist() == ambiguous
