@@ -17,7 +17,7 @@ from lsu_common.arrays import AnyArray
 
 from .matching import LineArrays, MatchParams, match_line, match_thesis
 from .stereo import StereoModel
-from .triangulate import accept_points, triangulate
+from .triangulate import accept_points, midpoint_of_rays, triangulate
 
 __all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps"]
 
@@ -58,16 +58,24 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
         m = match_thesis(model, left, right, params)
     else:
         raise ValueError(f"unknown matching chain '{chain}'; use 'subpixel' or 'thesis'")
-    X = triangulate(model, m.x1, m.x2, params.method)
+    if params.method == "midpoint" and m.rays is not None:
+        X = midpoint_of_rays(model, m.rays)  # the matcher's depth test already found the closest approach
+    else:
+        X = triangulate(model, m.x1, m.x2, params.method)
     ok, rejected = accept_points(model, X, m.x1, m.x2, params.depth_min_m, params.depth_max_m, params.max_reproj_px)
+    points = int(np.count_nonzero(ok))
     stats = dict(m.stats)
-    stats.update(matched=int(len(X)), points=int(np.count_nonzero(ok)), rejected_non_finite=rejected.non_finite,
+    stats.update(matched=int(len(X)), points=points, rejected_non_finite=rejected.non_finite,
                  rejected_depth=rejected.depth, rejected_reprojection=rejected.reprojection)
-    idx = m.left_index[ok]
-    order = np.argsort(left.v[idx], kind="stable")  # points ordered along the line, top to bottom
-    idx = idx[order]
-    return SnapPoints(xyz=X[ok][order], u=left.u[idx].copy(), v=left.v[idx].copy(),
-                      snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
+    idx = m.left_index
+    if points < len(X):
+        pick = np.flatnonzero(ok)
+        idx, X = idx[pick], X[pick]
+    v = left.v[idx]
+    if np.any(v[1:] < v[:-1]):  # points ordered along the line, top to bottom (already so when smoothed)
+        order = np.argsort(v, kind="stable")
+        idx, X, v = idx[order], X[order], v[order]
+    return SnapPoints(xyz=np.ascontiguousarray(X), u=left.u[idx], v=v, snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
 
 
 def colour_at(image_bgr: AnyArray, u: AnyArray, v: AnyArray) -> AnyArray:
