@@ -154,7 +154,7 @@ def smooth_line(u: AnyArray, v: AnyArray, window: int, linked: AnyArray | None =
     cut = np.abs((v[1:] - v[:-1]) - 1.0) > 1e-3
     if linked is not None:
         cut |= ~np.asarray(linked, dtype=bool)
-    bounds = [0, *(np.flatnonzero(cut) + 1).tolist(), len(u)]
+    bounds = [0, *(cut.nonzero()[0] + 1).tolist(), len(u)]
     for start, stop in zip(bounds[:-1], bounds[1:]):  # a handful of runs per line
         if stop - start < window:
             continue
@@ -197,8 +197,8 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     """Match every left sample to the right polyline by sub-pixel epipolar intersection (vectorised)."""
     stats = {"left_rows": len(left), "right_rows": len(right), "no_crossing": 0, "out_of_range": 0,
              "ambiguous_resolved": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
-    lidx = np.flatnonzero(left.valid(params.min_quality))
-    ridx = np.flatnonzero(right.valid(params.min_quality))
+    lidx = left.valid(params.min_quality).nonzero()[0]
+    ridx = right.valid(params.min_quality).nonzero()[0]
     stats["invalid_rows"] = len(left) - lidx.size + len(right) - ridx.size
     vr = right.v[ridx]
     order = np.argsort(vr, kind="stable")
@@ -240,7 +240,7 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     if n_inside == ii.size:
         pick = np.arange(ii.size)
     else:
-        pick = np.flatnonzero(inside)
+        pick = inside.nonzero()[0]
         crossings = np.bincount(ii, minlength=lidx.size)
         stats["out_of_range"] = int(np.count_nonzero((crossings > 0)
                                                      & (np.bincount(ii[pick], minlength=lidx.size) == 0)))
@@ -271,25 +271,31 @@ def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
     a, b, c = lines[:, 0:1], lines[:, 1:2], lines[:, 2:3]
     x, y = p[:, 0], p[:, 1]
     m = len(p)
-    if np.all(np.abs(b) > 0.2):
-        xs = np.array([x.min(), x.max()])
-        ys = -(a * xs + c) / b                                    # (N, 2) line rows at the x extremes
-        ylo, yhi = ys.min(axis=1), ys.max(axis=1)
-        first = np.searchsorted(np.maximum.accumulate(y), ylo, side="left") - 1
-        last = np.searchsorted(np.minimum.accumulate(y[::-1])[::-1], yhi, side="right")
-        start = np.clip(first, 0, m - 2)
-        stop = np.clip(last, 1, m - 1)                            # segments start..stop-1
-        width = int((stop - start).max(initial=0))
+    if (np.abs(lines[:, 1]) > 0.2).all():
+        # line rows at the x extremes; the two columns of -(a * [xmin, xmax] + c) / b, one at a time
+        ya = -(lines[:, 0] * x.min() + lines[:, 2]) / lines[:, 1]
+        yb = -(lines[:, 0] * x.max() + lines[:, 2]) / lines[:, 1]
+        start = np.searchsorted(np.maximum.accumulate(y), np.minimum(ya, yb), side="left")
+        start -= 1
+        np.clip(start, 0, m - 2, out=start)
+        stop = np.searchsorted(np.minimum.accumulate(y[::-1])[::-1], np.maximum(ya, yb), side="right")
+        np.clip(stop, 1, m - 1, out=stop)                         # segments start..stop-1
+        band = stop - start
+        width = int(band.max(initial=0))
         if 0 < width <= m // 3:
             k = start[:, None] + np.arange(width + 1)             # vertex window (N, width + 1)
-            k = np.minimum(k, m - 1)
+            np.minimum(k, m - 1, out=k)
             dist = a * x[k] + b * y[k] + c
             seg = k[:, :-1]
-            valid = (np.arange(width)[None, :] < (stop - start)[:, None]) & joined[np.minimum(seg, m - 2)]
+            valid = (np.arange(width) < band[:, None]) & joined[np.minimum(seg, m - 2)]
             side = dist >= 0.0                                    # half-open: a vertex on the line counts once
-            cross = (side[:, :-1] != side[:, 1:]) & valid
-            ii, kk = np.nonzero(cross)
-            return ii, seg[ii, kk], dist[ii, kk], dist[ii, kk + 1]
+            valid &= side[:, :-1] != side[:, 1:]
+            # flat positions in the (N, width) window: line i, offset kk; its vertices in dist at f + i, f + i + 1
+            f = valid.ravel().nonzero()[0]
+            ii, kk = np.divmod(f, width)
+            f += ii
+            flat = dist.reshape(-1)
+            return ii, start[ii] + kk, flat[f], flat[f + 1]
         if width == 0:
             e = np.zeros(0, dtype=np.intp)
             return e, e, np.zeros(0), np.zeros(0)
@@ -323,7 +329,7 @@ def _resolve_by_order(ii: AnyArray, pos: AnyArray, unique: AnyArray, count: AnyA
     has_second = np.zeros(cand.size, dtype=bool)
     has_second[:-1] = first[:-1] & ~first[1:]
     second_dev = np.full(cand.size, np.inf)
-    second_dev[has_second] = dev[np.flatnonzero(has_second) + 1]
+    second_dev[has_second] = dev[has_second.nonzero()[0] + 1]
     ok = first & (dev <= params.max_order_dev) & (second_dev > params.max_order_dev)
     chosen[cand[ok]] = True
     stats["ambiguous_resolved"] += int(np.count_nonzero(ok))
@@ -361,7 +367,7 @@ def match_thesis(model: StereoModel, left: LineArrays, right: LineArrays,
     inside = hit & (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
     stats["no_crossing"] = int(np.count_nonzero(~hit))
     stats["out_of_range"] = int(np.count_nonzero(hit & ~inside))
-    pick = np.flatnonzero(inside)
+    pick = inside.nonzero()[0]
     # a single kept row would take numpy's one-row path in closest_approach: recompute it there
     kept_rays = tuple(a[pick] for a in rays) if pick.size != 1 or lidx.size == 1 else None
     return Matches(lidx[pick], x1[pick], x2[pick], depth[pick], stats, kept_rays)

@@ -69,7 +69,7 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
                  rejected_depth=rejected.depth, rejected_reprojection=rejected.reprojection)
     idx = m.left_index
     if points < len(X):
-        pick = np.flatnonzero(ok)
+        pick = ok.nonzero()[0]
         idx, X = idx[pick], X[pick]
     v = left.v[idx]
     if np.any(v[1:] < v[:-1]):  # points ordered along the line, top to bottom (already so when smoothed)

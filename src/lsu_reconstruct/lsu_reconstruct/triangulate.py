@@ -92,13 +92,13 @@ def reprojection_error_px(model: StereoModel, X: AnyArray, x1: AnyArray, x2: Any
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
     h1 = X @ model.K1.T
     h2 = (X @ model.R.T + model.T) @ model.K2.T
+    x1, x2 = np.asarray(x1), np.asarray(x2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        d1 = h1[:, :2] / h1[:, 2:3] - x1
-        d2 = h2[:, :2] / h2[:, 2:3] - x2
-        d1 *= d1
-        d2 *= d2
+        # column by column: numpy is slow on (N, 2) blocks
+        ex, ey = h1[:, 0] / h1[:, 2] - x1[:, 0], h1[:, 1] / h1[:, 2] - x1[:, 1]
+        fx, fy = h2[:, 0] / h2[:, 2] - x2[:, 0], h2[:, 1] / h2[:, 2] - x2[:, 1]
         # sqrt is monotone: the larger root is the root of the larger sum (NaN stays NaN)
-        return np.sqrt(np.maximum(d1[:, 0] + d1[:, 1], d2[:, 0] + d2[:, 1]))
+        return np.sqrt(np.maximum(ex * ex + ey * ey, fx * fx + fy * fy))
 
 
 @dataclass(frozen=True)
@@ -117,10 +117,15 @@ def accept_points(model: StereoModel, X: AnyArray, x1: AnyArray, x2: AnyArray, d
     Returns ``(mask, Acceptance)``. NaN or infinite points (parallel rays, degenerate DLT) are
     always rejected, so they never reach a cloud.
     """
-    finite = np.logical_and.reduce(np.isfinite(X), axis=1)
-    n_finite = int(np.count_nonzero(finite))
-    all_finite = n_finite == len(X)
-    Xf = X if all_finite else np.where(finite[:, None], X, 0.0)
+    X = np.asarray(X, dtype=np.float64)
+    # a finite sum means finite rows (NaN and inf propagate); only otherwise look row by row
+    all_finite = math.isfinite(X.sum())
+    if all_finite:
+        Xf, n_finite = X, len(X)
+    else:
+        finite = np.logical_and.reduce(np.isfinite(X), axis=1)
+        n_finite = int(np.count_nonzero(finite))
+        Xf = np.where(finite[:, None], X, 0.0)
     z = Xf[:, 2]
     depth_ok = (z >= depth_min_m) & (z <= depth_max_m) & (Xf @ model.R[2] + model.T[2] > 0)
     if not all_finite:
