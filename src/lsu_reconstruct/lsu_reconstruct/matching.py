@@ -201,7 +201,7 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     ridx = right.valid(params.min_quality).nonzero()[0]
     stats["invalid_rows"] = len(left) - lidx.size + len(right) - ridx.size
     vr = right.v[ridx]
-    order = np.argsort(vr, kind="stable")
+    order = vr.argsort(kind="stable")
     vr = vr[order]
     ur = right.u[ridx[order]]
     joined, stats["right_shared_rows"] = _links(ur, vr, params)
@@ -210,7 +210,7 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
         return _no_matches(stats)
     window = params.smooth_window_rows
     if window:
-        lidx = lidx[np.argsort(left.v[lidx], kind="stable")]
+        lidx = lidx[left.v[lidx].argsort(kind="stable")]
     ul, vl = left.u[lidx], left.v[lidx]
     if window >= 5:  # smooth_line leaves lines shorter than the window alone: no links needed then
         if len(ul) >= window:
@@ -275,11 +275,11 @@ def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
         # line rows at the x extremes; the two columns of -(a * [xmin, xmax] + c) / b, one at a time
         ya = -(lines[:, 0] * x.min() + lines[:, 2]) / lines[:, 1]
         yb = -(lines[:, 0] * x.max() + lines[:, 2]) / lines[:, 1]
-        start = np.searchsorted(np.maximum.accumulate(y), np.minimum(ya, yb), side="left")
+        start = np.maximum.accumulate(y).searchsorted(np.minimum(ya, yb), side="left")
         start -= 1
-        np.clip(start, 0, m - 2, out=start)
-        stop = np.searchsorted(np.minimum.accumulate(y[::-1])[::-1], np.maximum(ya, yb), side="right")
-        np.clip(stop, 1, m - 1, out=stop)                         # segments start..stop-1
+        np.minimum(np.maximum(start, 0, out=start), m - 2, out=start)
+        stop = np.minimum.accumulate(y[::-1])[::-1].searchsorted(np.maximum(ya, yb), side="right")
+        np.minimum(np.maximum(stop, 1, out=stop), m - 1, out=stop)  # segments start..stop-1
         band = stop - start
         width = int(band.max(initial=0))
         if 0 < width <= m // 3:

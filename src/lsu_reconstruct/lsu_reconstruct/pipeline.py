@@ -72,8 +72,8 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
         pick = ok.nonzero()[0]
         idx, X = idx[pick], X[pick]
     v = left.v[idx]
-    if np.any(v[1:] < v[:-1]):  # points ordered along the line, top to bottom (already so when smoothed)
-        order = np.argsort(v, kind="stable")
+    if (v[1:] < v[:-1]).any():  # points ordered along the line, top to bottom (already so when smoothed)
+        order = v.argsort(kind="stable")
         idx, X, v = idx[order], X[order], v[order]
     return SnapPoints(xyz=np.ascontiguousarray(X), u=left.u[idx], v=v, snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
 
@@ -81,14 +81,15 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
 def colour_at(image_bgr: AnyArray, u: AnyArray, v: AnyArray) -> AnyArray:
     """Packed rgb (float32, 0x00RRGGBB) of a bgr8 (or mono8) image at raw pixels (nearest pixel, clamped)."""
     img = np.asarray(image_bgr)
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    if img.ndim != 3 or img.shape[2] < 3:
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] >= 3)):
         raise ValueError(f"texture image has shape {img.shape}; expected HxWx3 bgr8 or HxW mono8")
     h, w = img.shape[:2]
     # fmax/fmin: NaN to 0 and infinities to the border, in two calls (nan_to_num + clip cost ~5x more per snap)
     col = np.fmin(np.fmax(np.rint(u), 0.0), w - 1).astype(np.intp)
     row = np.fmin(np.fmax(np.rint(v), 0.0), h - 1).astype(np.intp)
+    if img.ndim == 2:  # grey: the sampled pixels as r = g = b (not the whole image made bgr)
+        grey = img[row, col]
+        return pack_rgb(np.stack([grey, grey, grey], axis=1))
     return pack_rgb(img[row, col, :3][:, ::-1])
 
 
