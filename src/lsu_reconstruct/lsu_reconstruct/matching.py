@@ -283,19 +283,19 @@ def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
         band = stop - start
         width = int(band.max(initial=0))
         if 0 < width <= m // 3:
-            k = start[:, None] + np.arange(width + 1)             # vertex window (N, width + 1)
+            # vertex window, one row per offset (width + 1, N): numpy's loops run along the N lines, not the
+            # few offsets
+            k = np.arange(width + 1)[:, None] + start
             np.minimum(k, m - 1, out=k)
-            dist = a * x[k] + b * y[k] + c
-            seg = k[:, :-1]
-            valid = (np.arange(width) < band[:, None]) & joined[np.minimum(seg, m - 2)]
+            dist = lines[:, 0] * x[k] + lines[:, 1] * y[k] + lines[:, 2]
+            valid = (np.arange(width)[:, None] < band) & joined[np.minimum(k[:-1], m - 2)]
             side = dist >= 0.0                                    # half-open: a vertex on the line counts once
-            valid &= side[:, :-1] != side[:, 1:]
-            # flat positions in the (N, width) window: line i, offset kk; its vertices in dist at f + i, f + i + 1
-            f = valid.ravel().nonzero()[0]
-            ii, kk = np.divmod(f, width)
-            f += ii
+            valid &= side[:-1] != side[1:]
+            # crossings ordered by line, then offset (as np.nonzero of the full matrix orders them)
+            ii, kk = np.divmod(valid.T.ravel().nonzero()[0], width)
+            f = kk * len(lines) + ii                              # (offset, line) in the window
             flat = dist.reshape(-1)
-            return ii, start[ii] + kk, flat[f], flat[f + 1]
+            return ii, start[ii] + kk, flat[f], flat[f + len(lines)]
         if width == 0:
             e = np.zeros(0, dtype=np.intp)
             return e, e, np.zeros(0), np.zeros(0)
