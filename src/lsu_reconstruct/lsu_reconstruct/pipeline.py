@@ -75,7 +75,8 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
     if (v[1:] < v[:-1]).any():  # points ordered along the line, top to bottom (already so when smoothed)
         order = v.argsort(kind="stable")
         idx, X, v = idx[order], X[order], v[order]
-    return SnapPoints(xyz=np.ascontiguousarray(X), u=left.u[idx], v=v, snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
+    return SnapPoints(xyz=np.ascontiguousarray(X), u=left.u[idx], v=v, snap=np.full(len(idx), snap, dtype=np.uint32),
+                      stats=stats)
 
 
 def colour_at(image_bgr: AnyArray, u: AnyArray, v: AnyArray) -> AnyArray:
