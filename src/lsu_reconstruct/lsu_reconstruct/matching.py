@@ -104,6 +104,9 @@ class Matches:
     x2: AnyArray                    # (K, 2) undistorted right pixels (on the epipolar line)
     depth_m: AnyArray               # (K,) depth along the left optical axis from the candidate test
     stats: dict = field(default_factory=dict)
+    # StereoModel.closest_approach of the pairs (x1, x2), already computed for the depth test, so
+    # the midpoint triangulation need not repeat it; None where the matcher has not kept it.
+    rays: tuple | None = None
 
 
 @lru_cache(maxsize=16)
@@ -147,11 +150,12 @@ def smooth_line(u: AnyArray, v: AnyArray, window: int, linked: AnyArray | None =
     centre, head, tail = _savgol_matrices(window)
     half = window // 2
     out = u.copy()
-    cut = np.abs(np.diff(v) - 1.0) > 1e-3
+    v = np.asarray(v)
+    cut = np.abs((v[1:] - v[:-1]) - 1.0) > 1e-3
     if linked is not None:
         cut |= ~np.asarray(linked, dtype=bool)
-    breaks = np.nonzero(cut)[0] + 1
-    for start, stop in zip(np.r_[0, breaks], np.r_[breaks, len(u)]):  # a handful of runs per line
+    bounds = [0, *(cut.nonzero()[0] + 1).tolist(), len(u)]
+    for start, stop in zip(bounds[:-1], bounds[1:]):  # a handful of runs per line
         if stop - start < window:
             continue
         run = u[start:stop]
@@ -176,13 +180,15 @@ def _links(u: AnyArray, v: AnyArray, params: MatchParams) -> tuple:
     several samples (a LaserLine has one per row; several mean the extractor could not decide,
     so none of them is trusted). Returns ``(linked, shared_rows_count)``.
     """
-    dv, du = np.diff(v), np.abs(np.diff(u))
+    dv, du = v[1:] - v[:-1], np.abs(u[1:] - u[:-1])
     same_row = dv < 1e-6
+    linked = (dv <= params.max_gap_rows) & (du <= params.max_step_px * np.maximum(dv, 1.0))
+    if not same_row.any():  # the usual case: one sample per row
+        return linked, 0
     shared = np.zeros(len(v), dtype=bool)
     shared[:-1] |= same_row
     shared[1:] |= same_row
-    linked = ~same_row & (dv <= params.max_gap_rows) & (du <= params.max_step_px * np.maximum(dv, 1.0))
-    linked &= ~shared[:-1] & ~shared[1:]
+    linked &= ~same_row & ~shared[:-1] & ~shared[1:]
     return linked, int(np.count_nonzero(shared))
 
 
@@ -191,46 +197,66 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     """Match every left sample to the right polyline by sub-pixel epipolar intersection (vectorised)."""
     stats = {"left_rows": len(left), "right_rows": len(right), "no_crossing": 0, "out_of_range": 0,
              "ambiguous_resolved": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
-    lok = left.valid(params.min_quality)
-    stats["invalid_rows"] = int((~lok).sum() + (~right.valid(params.min_quality)).sum())
-    lidx = np.nonzero(lok)[0]
-    rok = right.valid(params.min_quality)
-    order = np.argsort(right.v[rok], kind="stable")
-    ur, vr = right.u[rok][order], right.v[rok][order]
+    lidx = left.valid(params.min_quality).nonzero()[0]
+    ridx = right.valid(params.min_quality).nonzero()[0]
+    stats["invalid_rows"] = len(left) - lidx.size + len(right) - ridx.size
+    vr = right.v[ridx]
+    order = vr.argsort(kind="stable")
+    vr = vr[order]
+    ur = right.u[ridx[order]]
     joined, stats["right_shared_rows"] = _links(ur, vr, params)
-    empty = Matches(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), stats)
     if lidx.size == 0 or ur.size < 2:
         stats["no_crossing"] = int(lidx.size)
-        return empty
-    ul = left.u[lidx]
-    if params.smooth_window_rows:
-        order = np.argsort(left.v[lidx], kind="stable")
-        lidx, ul = lidx[order], ul[order]
-        ul = smooth_line(ul, left.v[lidx], params.smooth_window_rows, _links(ul, left.v[lidx], params)[0])
-        ur = smooth_line(ur, vr, params.smooth_window_rows, joined)
-    x1 = model.undistort_left(ul, left.v[lidx])
+        return _no_matches(stats)
+    window = params.smooth_window_rows
+    if window:
+        lidx = lidx[left.v[lidx].argsort(kind="stable")]
+    ul, vl = left.u[lidx], left.v[lidx]
+    if window >= 5:  # smooth_line leaves lines shorter than the window alone: no links needed then
+        if len(ul) >= window:
+            ul = smooth_line(ul, vl, window, _links(ul, vl, params)[0])
+        ur = smooth_line(ur, vr, window, joined)
+    x1 = model.undistort_left(ul, vl)
     p = model.undistort_right(ur, vr)
-    lines = model.epipolar_lines(x1)
-    ii, jj, d0, d1 = _crossings(lines, p, joined)
+    ii, jj, d0, d1 = _crossings(model.epipolar_lines(x1), p, joined)
     if ii.size == 0:
         stats["no_crossing"] = int(lidx.size)
-        return empty
+        return _no_matches(stats)
     t = d0 / (d0 - d1)
-    x2c = p[jj] + t[:, None] * (p[jj + 1] - p[jj])
-    depth = ray_depths(model, x1[ii], x2c)
+    pj = p[jj]
+    x2c = pj + t[:, None] * (p[jj + 1] - pj)
+    x1c = x1[ii]
+    rays = model.closest_approach(x1c, x2c)
+    depth = rays[2] * rays[0][:, 2]  # ray_depths
     inside = (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
-    crossings = np.bincount(ii, minlength=lidx.size)
-    stats["out_of_range"] = int(np.count_nonzero((crossings > 0) & (np.bincount(ii[inside], minlength=lidx.size) == 0)))
-    stats["no_crossing"] = int(np.count_nonzero(crossings == 0))
-    ii, jj, t, x2c, depth = ii[inside], jj[inside], t[inside], x2c[inside], depth[inside]
-    count = np.bincount(ii, minlength=lidx.size)
-    unique = count[ii] == 1
-    keep = unique.copy()
-    amb_rows = np.nonzero(count > 1)[0]
-    if amb_rows.size:
-        keep |= _resolve_by_order(ii, jj + t, unique, count, left.v[lidx], params, stats)
-    sel = np.nonzero(keep)[0]
-    return Matches(lidx[ii[sel]], x1[ii[sel]], x2c[sel], depth[sel], stats)
+    n_inside = int(np.count_nonzero(inside))
+    # ii is sorted (row-major crossings), so rows with a crossing start where ii changes
+    new_row = ii[1:] != ii[:-1]
+    rows_crossed = 1 + int(np.count_nonzero(new_row))
+    stats["no_crossing"] = int(lidx.size) - rows_crossed
+    if n_inside == ii.size and rows_crossed == ii.size:
+        # every crossing in range and one per left row: all of them are the matches
+        return Matches(lidx[ii], x1c, x2c, depth, stats, rays)
+    if n_inside == ii.size:
+        pick = np.arange(ii.size)
+    else:
+        pick = inside.nonzero()[0]
+        crossings = np.bincount(ii, minlength=lidx.size)
+        stats["out_of_range"] = int(np.count_nonzero((crossings > 0)
+                                                     & (np.bincount(ii[pick], minlength=lidx.size) == 0)))
+    ii_in = ii[pick]
+    count = np.bincount(ii_in, minlength=lidx.size)
+    keep = count[ii_in] == 1
+    if not keep.all():  # some left rows have several crossings in range
+        keep |= _resolve_by_order(ii_in, jj[pick] + t[pick], keep, count, vl, params, stats)
+    pick = pick[keep]
+    # a single kept row would take numpy's one-row path in closest_approach: recompute it there
+    kept_rays = tuple(a[pick] for a in rays) if pick.size != 1 or ii.size == 1 else None
+    return Matches(lidx[ii[pick]], x1c[pick], x2c[pick], depth[pick], stats, kept_rays)
+
+
+def _no_matches(stats: dict) -> Matches:
+    return Matches(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), stats)
 
 
 def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
@@ -245,25 +271,31 @@ def _crossings(lines: AnyArray, p: AnyArray, joined: AnyArray) -> tuple:
     a, b, c = lines[:, 0:1], lines[:, 1:2], lines[:, 2:3]
     x, y = p[:, 0], p[:, 1]
     m = len(p)
-    if np.all(np.abs(b) > 0.2):
-        xs = np.array([x.min(), x.max()])
-        ys = -(a * xs + c) / b                                    # (N, 2) line rows at the x extremes
-        ylo, yhi = ys.min(axis=1), ys.max(axis=1)
-        first = np.searchsorted(np.maximum.accumulate(y), ylo, side="left") - 1
-        last = np.searchsorted(np.minimum.accumulate(y[::-1])[::-1], yhi, side="right")
-        start = np.clip(first, 0, m - 2)
-        stop = np.clip(last, 1, m - 1)                            # segments start..stop-1
-        width = int((stop - start).max(initial=0))
+    if (np.abs(lines[:, 1]) > 0.2).all():
+        # line rows at the x extremes; the two columns of -(a * [xmin, xmax] + c) / b, one at a time
+        ya = -(lines[:, 0] * x.min() + lines[:, 2]) / lines[:, 1]
+        yb = -(lines[:, 0] * x.max() + lines[:, 2]) / lines[:, 1]
+        start = np.maximum.accumulate(y).searchsorted(np.minimum(ya, yb), side="left")
+        start -= 1
+        np.minimum(np.maximum(start, 0, out=start), m - 2, out=start)
+        stop = np.minimum.accumulate(y[::-1])[::-1].searchsorted(np.maximum(ya, yb), side="right")
+        np.minimum(np.maximum(stop, 1, out=stop), m - 1, out=stop)  # segments start..stop-1
+        band = stop - start
+        width = int(band.max(initial=0))
         if 0 < width <= m // 3:
-            k = start[:, None] + np.arange(width + 1)             # vertex window (N, width + 1)
-            k = np.minimum(k, m - 1)
-            dist = a * x[k] + b * y[k] + c
-            seg = k[:, :-1]
-            valid = (np.arange(width)[None, :] < (stop - start)[:, None]) & joined[np.minimum(seg, m - 2)]
+            # vertex window, one row per offset (width + 1, N): numpy's loops run along the N lines, not the
+            # few offsets
+            k = np.arange(width + 1)[:, None] + start
+            np.minimum(k, m - 1, out=k)
+            dist = lines[:, 0] * x[k] + lines[:, 1] * y[k] + lines[:, 2]
+            valid = (np.arange(width)[:, None] < band) & joined[np.minimum(k[:-1], m - 2)]
             side = dist >= 0.0                                    # half-open: a vertex on the line counts once
-            cross = (side[:, :-1] != side[:, 1:]) & valid
-            ii, kk = np.nonzero(cross)
-            return ii, seg[ii, kk], dist[ii, kk], dist[ii, kk + 1]
+            valid &= side[:-1] != side[1:]
+            # crossings ordered by line, then offset (as np.nonzero of the full matrix orders them)
+            ii, kk = np.divmod(valid.T.ravel().nonzero()[0], width)
+            f = kk * len(lines) + ii                              # (offset, line) in the window
+            flat = dist.reshape(-1)
+            return ii, start[ii] + kk, flat[f], flat[f + len(lines)]
         if width == 0:
             e = np.zeros(0, dtype=np.intp)
             return e, e, np.zeros(0), np.zeros(0)
@@ -291,10 +323,13 @@ def _resolve_by_order(ii: AnyArray, pos: AnyArray, unique: AnyArray, count: AnyA
     cand = np.nonzero(amb)[0]
     o = np.lexsort((dev, ii[cand]))  # group by left row, best deviation first
     cand, dev = cand[o], dev[o]
-    first = np.r_[True, ii[cand][1:] != ii[cand][:-1]]
+    rows = ii[cand]
+    first = np.ones(cand.size, dtype=bool)
+    first[1:] = rows[1:] != rows[:-1]
+    has_second = np.zeros(cand.size, dtype=bool)
+    has_second[:-1] = first[:-1] & ~first[1:]
     second_dev = np.full(cand.size, np.inf)
-    has_second = np.r_[~first[1:], False] & first
-    second_dev[has_second] = dev[np.nonzero(has_second)[0] + 1]
+    second_dev[has_second] = dev[has_second.nonzero()[0] + 1]
     ok = first & (dev <= params.max_order_dev) & (second_dev > params.max_order_dev)
     chosen[cand[ok]] = True
     stats["ambiguous_resolved"] += int(np.count_nonzero(ok))
@@ -326,8 +361,13 @@ def match_thesis(model: StereoModel, left: LineArrays, right: LineArrays,
     best = np.argmin(dist, axis=1)
     bd = dist[np.arange(lidx.size), best]
     hit = bd <= np.sqrt(0.5)
-    depth = ray_depths(model, x1, p[best])
+    x2 = p[best]
+    rays = model.closest_approach(x1, x2)
+    depth = rays[2] * rays[0][:, 2]  # ray_depths
     inside = hit & (depth >= params.depth_min_m) & (depth <= params.depth_max_m)
     stats["no_crossing"] = int(np.count_nonzero(~hit))
     stats["out_of_range"] = int(np.count_nonzero(hit & ~inside))
-    return Matches(lidx[inside], x1[inside], p[best[inside]], depth[inside], stats)
+    pick = inside.nonzero()[0]
+    # a single kept row would take numpy's one-row path in closest_approach: recompute it there
+    kept_rays = tuple(a[pick] for a in rays) if pick.size != 1 or lidx.size == 1 else None
+    return Matches(lidx[pick], x1[pick], x2[pick], depth[pick], stats, kept_rays)

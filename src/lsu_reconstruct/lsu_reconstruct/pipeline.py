@@ -17,7 +17,7 @@ from lsu_common.arrays import AnyArray
 
 from .matching import LineArrays, MatchParams, match_line, match_thesis
 from .stereo import StereoModel
-from .triangulate import accept_points, triangulate
+from .triangulate import accept_points, midpoint_of_rays, triangulate
 
 __all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps"]
 
@@ -58,29 +58,39 @@ def reconstruct_snap(model: StereoModel, left: LineArrays, right: LineArrays, pa
         m = match_thesis(model, left, right, params)
     else:
         raise ValueError(f"unknown matching chain '{chain}'; use 'subpixel' or 'thesis'")
-    X = triangulate(model, m.x1, m.x2, params.method)
+    if params.method == "midpoint" and m.rays is not None:
+        X = midpoint_of_rays(model, m.rays)  # the matcher's depth test already found the closest approach
+    else:
+        X = triangulate(model, m.x1, m.x2, params.method)
     ok, rejected = accept_points(model, X, m.x1, m.x2, params.depth_min_m, params.depth_max_m, params.max_reproj_px)
+    points = int(np.count_nonzero(ok))
     stats = dict(m.stats)
-    stats.update(matched=int(len(X)), points=int(np.count_nonzero(ok)), rejected_non_finite=rejected.non_finite,
+    stats.update(matched=int(len(X)), points=points, rejected_non_finite=rejected.non_finite,
                  rejected_depth=rejected.depth, rejected_reprojection=rejected.reprojection)
-    idx = m.left_index[ok]
-    order = np.argsort(left.v[idx], kind="stable")  # points ordered along the line, top to bottom
-    idx = idx[order]
-    return SnapPoints(xyz=X[ok][order], u=left.u[idx].copy(), v=left.v[idx].copy(),
-                      snap=np.full(len(idx), snap, dtype=np.uint32), stats=stats)
+    idx = m.left_index
+    if points < len(X):
+        pick = ok.nonzero()[0]
+        idx, X = idx[pick], X[pick]
+    v = left.v[idx]
+    if (v[1:] < v[:-1]).any():  # points ordered along the line, top to bottom (already so when smoothed)
+        order = v.argsort(kind="stable")
+        idx, X, v = idx[order], X[order], v[order]
+    return SnapPoints(xyz=np.ascontiguousarray(X), u=left.u[idx], v=v, snap=np.full(len(idx), snap, dtype=np.uint32),
+                      stats=stats)
 
 
 def colour_at(image_bgr: AnyArray, u: AnyArray, v: AnyArray) -> AnyArray:
     """Packed rgb (float32, 0x00RRGGBB) of a bgr8 (or mono8) image at raw pixels (nearest pixel, clamped)."""
     img = np.asarray(image_bgr)
-    if img.ndim == 2:
-        img = np.repeat(img[:, :, None], 3, axis=2)
-    if img.ndim != 3 or img.shape[2] < 3:
+    if not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] >= 3)):
         raise ValueError(f"texture image has shape {img.shape}; expected HxWx3 bgr8 or HxW mono8")
     h, w = img.shape[:2]
     # fmax/fmin: NaN to 0 and infinities to the border, in two calls (nan_to_num + clip cost ~5x more per snap)
     col = np.fmin(np.fmax(np.rint(u), 0.0), w - 1).astype(np.intp)
     row = np.fmin(np.fmax(np.rint(v), 0.0), h - 1).astype(np.intp)
+    if img.ndim == 2:  # grey: the sampled pixels as r = g = b (not the whole image made bgr)
+        grey = img[row, col]
+        return pack_rgb(np.stack([grey, grey, grey], axis=1))
     return pack_rgb(img[row, col, :3][:, ::-1])
 
 

@@ -52,6 +52,7 @@ __all__ = [
 # Sub-millipixel undistortion: OpenCV's default (5 fixed iterations) leaves ~0.01-0.1 px near the
 # image corners with the LSU's barrel distortion, which is as large as the extractor's own noise.
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
+_EYE3 = np.eye(3)
 
 
 def fundamental_from(K1: AnyArray, K2: AnyArray, R: AnyArray, T: AnyArray) -> tuple[AnyArray, AnyArray]:
@@ -159,6 +160,16 @@ class StereoModel:
         """Inverse of the right camera matrix."""
         return np.linalg.inv(self.K2)
 
+    @cached_property
+    def _left_ray(self) -> tuple[AnyArray, AnyArray]:
+        """``(K1^-1[:, :2].T, K1^-1[:, 2])``: undistorted left pixel -> ray (z = 1)."""
+        return self.K1_inv[:, :2].T, self.K1_inv[:, 2]
+
+    @cached_property
+    def _right_ray(self) -> tuple[AnyArray, AnyArray]:
+        """``(K2^-1[:, :2].T, K2^-1[:, 2])``: undistorted right pixel -> ray in the right frame."""
+        return self.K2_inv[:, :2].T, self.K2_inv[:, 2]
+
     def closest_approach(self, x1: AnyArray, x2: AnyArray
                          ) -> tuple[AnyArray, AnyArray, AnyArray, AnyArray]:
         """Where the rays of undistorted pixel pairs (N, 2) pass closest: ``(r1, r2, lam, mu)``.
@@ -166,9 +177,15 @@ class StereoModel:
         ``r1``, ``r2``: ray directions in the left frame (z = 1 in each camera); the closest points
         are ``lam * r1`` on the left ray and ``right_centre + mu * r2`` on the right one (NaN or inf
         for parallel rays). The 2x2 normal equations are solved for all rows at once.
+
+        Each row's result depends on that row only, for any two or more rows (numpy's matrix
+        products take a vector path for a single row, whose last bits may differ); callers that
+        keep a subset of rows rely on this to reuse the result instead of recomputing it.
         """
-        r1 = x1 @ self.K1_inv[:, :2].T + self.K1_inv[:, 2]
-        r2 = (x2 @ self.K2_inv[:, :2].T + self.K2_inv[:, 2]) @ self.R  # R^T r: in the left frame
+        m1, o1 = self._left_ray
+        m2, o2 = self._right_ray
+        r1 = x1 @ m1 + o1
+        r2 = (x2 @ m2 + o2) @ self.R  # R^T r: in the left frame
         c = self.right_centre
         a = np.einsum("ij,ij->i", r1, r1)
         b = np.einsum("ij,ij->i", r1, r2)
@@ -197,27 +214,42 @@ class StereoModel:
                 f"{which} is {width}x{height} px but the calibration ({self.source}) is "
                 f"{self.image_size[0]}x{self.image_size[1]}; recalibrate at this resolution or set the cameras back")
 
+    @cached_property
+    def _undistort_left_args(self) -> tuple:
+        return self._undistort_args(self.K1, self.K1_inv, self.D1)
+
+    @cached_property
+    def _undistort_right_args(self) -> tuple:
+        return self._undistort_args(self.K2, self.K2_inv, self.D2)
+
     @staticmethod
-    def _undistort(u: AnyArray, v: AnyArray, K: AnyArray, Kinv: AnyArray, D: AnyArray) -> AnyArray:
+    def _undistort_args(K: AnyArray, Kinv: AnyArray, D: AnyArray) -> tuple:
+        """The per-camera constants of :meth:`_undistort` (D is None for a camera without distortion)."""
+        return Kinv[:2, :2].T, Kinv[:2, 2], (D if D.size and np.any(D != 0) else None), K[:2, :2].T, K[:2, 2]
+
+    @staticmethod
+    def _undistort(u: AnyArray, v: AnyArray, args: tuple) -> AnyArray:
         # Normalise with the full K^-1 ourselves (OpenCV's undistortPoints ignores skew K[0,1]),
         # let OpenCV invert the distortion in normalised coordinates, and map back with K.
-        pts = np.stack([np.asarray(u, dtype=np.float64).reshape(-1), np.asarray(v, dtype=np.float64).reshape(-1)], 1)
+        u = np.asarray(u, dtype=np.float64).reshape(-1)
+        pts = np.empty((u.size, 2))
+        pts[:, 0] = u
+        pts[:, 1] = np.asarray(v, dtype=np.float64).reshape(-1)
         if pts.shape[0] == 0:
             return np.zeros((0, 2))
-        xd = pts @ Kinv[:2, :2].T + Kinv[:2, 2]
-        if D.size and np.any(D != 0):
-            xu = cv2.undistortPoints(xd.reshape(-1, 1, 2), np.eye(3), D, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
-        else:
-            xu = xd
-        return xu @ K[:2, :2].T + K[:2, 2]
+        kinv, kinv_offset, D, k, k_offset = args
+        xd = pts @ kinv + kinv_offset
+        if D is not None:
+            xd = cv2.undistortPoints(xd.reshape(-1, 1, 2), _EYE3, D, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+        return xd @ k + k_offset
 
     def undistort_left(self, u: AnyArray, v: AnyArray) -> AnyArray:
         """Raw left pixels -> undistorted left pixels, (N, 2)."""
-        return self._undistort(u, v, self.K1, self.K1_inv, self.D1)
+        return self._undistort(u, v, self._undistort_left_args)
 
     def undistort_right(self, u: AnyArray, v: AnyArray) -> AnyArray:
         """Raw right pixels -> undistorted right pixels, (N, 2)."""
-        return self._undistort(u, v, self.K2, self.K2_inv, self.D2)
+        return self._undistort(u, v, self._undistort_right_args)
 
     def distort_right(self, pts: AnyArray) -> AnyArray:
         """Undistorted right pixels (N, 2) -> raw right pixels (N, 2), via ``cv2.projectPoints``."""
@@ -246,13 +278,18 @@ class StereoModel:
         """3D points in the left frame [m] (N, 3) -> raw (distorted) right pixels (N, 2)."""
         return self._project(X, self.R, self.T, self.K2, self.D2)
 
+    @cached_property
+    def _epipolar(self) -> tuple[AnyArray, AnyArray]:
+        """``(F[:, :2].T, F[:, 2])``: undistorted left pixel -> right epipolar line."""
+        return self.F[:, :2].T, self.F[:, 2]
+
     def epipolar_lines(self, x1: AnyArray) -> AnyArray:
         """Right epipolar lines ``l2 = F x1`` of undistorted left pixels (N, 2), as (N, 3) with a^2 + b^2 = 1.
 
         With that normalisation ``l2 . (x, y, 1)`` is the signed distance in right pixels.
         """
         x1 = np.asarray(x1, dtype=np.float64).reshape(-1, 2)
-        lines = x1 @ self.F[:, :2].T + self.F[:, 2]
+        f, f_offset = self._epipolar
+        lines = x1 @ f + f_offset
         norm = np.hypot(lines[:, 0], lines[:, 1])
         return lines / norm[:, None]
-

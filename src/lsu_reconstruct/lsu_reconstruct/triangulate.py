@@ -17,6 +17,7 @@ them; the default is ``midpoint`` (equal accuracy, fastest, no degenerate homoge
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -26,8 +27,8 @@ from lsu_common.arrays import AnyArray
 
 from .stereo import StereoModel
 
-__all__ = ["METHODS", "TriangulationError", "triangulate", "triangulate_midpoint", "triangulate_dlt",
-           "triangulate_optimal", "reprojection_error_px", "accept_points"]
+__all__ = ["METHODS", "TriangulationError", "triangulate", "triangulate_midpoint", "midpoint_of_rays",
+           "triangulate_dlt", "triangulate_optimal", "reprojection_error_px", "accept_points"]
 
 METHODS = ("midpoint", "dlt", "optimal")
 
@@ -47,7 +48,12 @@ def _check(x1: AnyArray, x2: AnyArray) -> tuple:
 def triangulate_midpoint(model: StereoModel, x1: AnyArray, x2: AnyArray) -> AnyArray:
     """Midpoint of the shortest segment between the two rays, (N, 3) [m]."""
     x1, x2 = _check(x1, x2)
-    r1, r2, lam, mu = model.closest_approach(x1, x2)
+    return midpoint_of_rays(model, model.closest_approach(x1, x2))
+
+
+def midpoint_of_rays(model: StereoModel, rays: tuple) -> AnyArray:
+    """The midpoint triangulation from ``model.closest_approach(x1, x2)`` of the pairs, (N, 3) [m]."""
+    r1, r2, lam, mu = rays
     return 0.5 * (lam[:, None] * r1 + (model.right_centre + mu[:, None] * r2))
 
 
@@ -86,10 +92,13 @@ def reprojection_error_px(model: StereoModel, X: AnyArray, x1: AnyArray, x2: Any
     X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
     h1 = X @ model.K1.T
     h2 = (X @ model.R.T + model.T) @ model.K2.T
+    x1, x2 = np.asarray(x1), np.asarray(x2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        e1 = np.linalg.norm(h1[:, :2] / h1[:, 2:3] - x1, axis=1)
-        e2 = np.linalg.norm(h2[:, :2] / h2[:, 2:3] - x2, axis=1)
-    return np.maximum(e1, e2)
+        # column by column: numpy is slow on (N, 2) blocks
+        ex, ey = h1[:, 0] / h1[:, 2] - x1[:, 0], h1[:, 1] / h1[:, 2] - x1[:, 1]
+        fx, fy = h2[:, 0] / h2[:, 2] - x2[:, 0], h2[:, 1] / h2[:, 2] - x2[:, 1]
+        # sqrt is monotone: the larger root is the root of the larger sum (NaN stays NaN)
+        return np.sqrt(np.maximum(ex * ex + ey * ey, fx * fx + fy * fy))
 
 
 @dataclass(frozen=True)
@@ -108,13 +117,24 @@ def accept_points(model: StereoModel, X: AnyArray, x1: AnyArray, x2: AnyArray, d
     Returns ``(mask, Acceptance)``. NaN or infinite points (parallel rays, degenerate DLT) are
     always rejected, so they never reach a cloud.
     """
-    finite = np.all(np.isfinite(X), axis=1)
-    Xf = np.where(finite[:, None], X, 0.0)
-    z_right = Xf @ model.R[2] + model.T[2]
-    depth_ok = finite & (Xf[:, 2] >= depth_min_m) & (Xf[:, 2] <= depth_max_m) & (z_right > 0)
+    X = np.asarray(X, dtype=np.float64)
+    # a finite sum means finite rows (NaN and inf propagate); only otherwise look row by row
+    all_finite = math.isfinite(X.sum())
+    if all_finite:
+        Xf, n_finite = X, len(X)
+    else:
+        finite = np.logical_and.reduce(np.isfinite(X), axis=1)
+        n_finite = int(np.count_nonzero(finite))
+        Xf = np.where(finite[:, None], X, 0.0)
+    z = Xf[:, 2]
+    depth_ok = (z >= depth_min_m) & (z <= depth_max_m) & (Xf @ model.R[2] + model.T[2] > 0)
+    if not all_finite:
+        depth_ok &= finite
     err = reprojection_error_px(model, Xf, x1, x2)
-    reproj_ok = depth_ok & np.isfinite(err) & (err <= max_reproj_px)
-    counts = Acceptance(non_finite=int(np.count_nonzero(~finite)),
-                        depth=int(np.count_nonzero(finite & ~depth_ok)),
-                        reprojection=int(np.count_nonzero(depth_ok & ~reproj_ok)))
+    reproj_ok = depth_ok & (err <= max_reproj_px)  # false for NaN and, below a finite limit, for inf
+    if not math.isfinite(max_reproj_px):
+        reproj_ok &= np.isfinite(err)
+    n_depth_ok = int(np.count_nonzero(depth_ok))
+    counts = Acceptance(non_finite=len(X) - n_finite, depth=n_finite - n_depth_ok,
+                        reprojection=n_depth_ok - int(np.count_nonzero(reproj_ok)))
     return reproj_ok, counts

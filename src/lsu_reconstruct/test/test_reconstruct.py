@@ -5,10 +5,10 @@ import pytest
 
 from lsu_bags.pointcloud2 import unpack_rgb
 from lsu_reconstruct import synthetic as S
-from lsu_reconstruct.matching import LaserLineError, LineArrays, MatchParams, match_line, smooth_line
+from lsu_reconstruct.matching import LaserLineError, LineArrays, MatchParams, match_line, match_thesis, smooth_line
 from lsu_reconstruct.pipeline import colour_at, merge_snaps, reconstruct_snap
 from lsu_reconstruct.stereo import CalibrationSizeError, StereoModel
-from lsu_reconstruct.triangulate import TriangulationError, accept_points, triangulate
+from lsu_reconstruct.triangulate import TriangulationError, accept_points, midpoint_of_rays, triangulate
 
 RAW = MatchParams(smooth_window_rows=0)
 
@@ -233,6 +233,24 @@ def test_optimal_triangulation_minimises_reprojection_off_the_epipolar_line(rig,
     assert err["optimal"] < 1.05 * err["midpoint"]
 
 
+@pytest.mark.parametrize("depth_max_m", [0.8, 0.30])  # all crossings in range / some rows cut off
+def test_the_matchers_rays_triangulate_as_the_matches_do(rig, model, depth_max_m):
+    # the midpoint triangulation reuses the closest approach the depth test computed for all crossings;
+    # its kept rows must be the very numbers a triangulation of the kept pairs computes
+    sphere = S.Sphere(np.array([0.02, 0.0, 0.33]), 0.05)
+    left, right = lines(rig, [sphere], -0.03)
+    rng = np.random.default_rng(5)
+    noisy = LineArrays(right.u + rng.normal(0.0, 0.2, len(right.u)), right.v)
+    params = MatchParams(depth_max_m=depth_max_m)
+    for m in (match_line(model, arrays(left), noisy, params), match_thesis(model, arrays(left), noisy, params)):
+        assert len(m.x1) > 50 and m.rays is not None
+        assert np.array_equal(midpoint_of_rays(model, m.rays), triangulate(model, m.x1, m.x2, "midpoint"))
+        assert np.array_equal(m.rays[2] * m.rays[0][:, 2], m.depth_m)
+    cut = reconstruct_snap(model, arrays(left), noisy, params)
+    assert cut.stats["out_of_range"] == 0 if depth_max_m == 0.8 else cut.stats["out_of_range"] > 20
+    assert np.all(cut.xyz[:, 2] <= depth_max_m)
+
+
 def test_acceptance_rejects_nan_depth_and_reprojection(model):
     X = np.array([[0.0, 0.0, 0.3], [np.nan, 0.0, 0.3], [0.0, 0.0, 5.0], [0.01, 0.0, 0.3]])
     x1 = (X / X[:, 2:3]) @ model.K1.T
@@ -249,6 +267,13 @@ def test_colours_come_from_the_texture_at_the_left_pixel():
     img[100, 200] = (10, 20, 30)  # bgr
     rgb = unpack_rgb(colour_at(img, np.array([200.2]), np.array([99.8])))
     assert rgb.tolist() == [[30, 20, 10]]
+
+
+def test_a_grey_texture_colours_grey():
+    img = np.zeros((480, 640), dtype=np.uint8)
+    img[100, 200], img[0, 639] = 77, 201
+    rgb = unpack_rgb(colour_at(img, np.array([200.2, 700.0, np.nan]), np.array([99.8, -3.0, 100.0])))
+    assert rgb.tolist() == [[77, 77, 77], [201, 201, 201], [0, 0, 0]]  # off the image: the nearest border pixel
 
 
 def test_merge_keeps_snap_order_and_fields(rig, model):
