@@ -343,10 +343,9 @@ def replay_direct(bag: Path, workers: int = REPLAY_WORKERS) -> dict:
 
     graph = LaunchedProcess(["run", "replay", str(bag), "--exit", "--workers", str(workers)])
     try:
-        graph.process.wait(timeout=600)
+        graph.wait(timeout_s=600)
     finally:
         graph.kill()
-    graph._reader.join(timeout=10)
     match = re.search(r"replayed .*: (\d+) snaps .* in ([\d.]+) s, \d+ snaps/s, ([\d.]+) ms CPU per snap \(([\d.]+) "
                       r"ms of it reading the bag\); (\d+) frames unreadable, (\d+) lines unpaired", graph.output)
     if graph.process.returncode != 0 or match is None:

@@ -34,8 +34,7 @@ def main() -> int:
             result = scanner.scan(start=205, end=265, step=12, settle_s=0.1, record_bag=True)
             scanner.close()
         finally:
-            graph.interrupt(timeout_s=20)
-            graph.kill()
+            graph.stop(timeout_s=20)
             claim.release()
         if not result.success:
             print(f"scan failed: {result.status}", file=sys.stderr)

@@ -44,10 +44,10 @@ from typing import Any, TextIO
 from lsu_bags.bags import bag_topics, read_message_views
 from lsu_common import stamps
 from lsu_common.read_ahead import read_ahead
+from lsu_extract.frames import SIDES
 
 __all__ = ["DirectReplay", "ReplayStats", "default_workers", "run_direct_replay"]
 
-SIDES = ("left", "right")
 SPIN_EVERY_S = 0.05  # timers and the other nodes' callbacks run at least this often during a replay
 PREFETCH = 8  # bag messages read ahead (about 4 image pairs, ~8 MB)
 PIPE_BYTES = 1 << 20  # the lines an extraction process may send ahead (`_widen`)
