@@ -48,8 +48,9 @@ class _Child:
 class Launcher:
     """Starts, watches and stops the processes of a `LaunchDescription`."""
 
-    def __init__(self, description: LaunchDescription, out: TextIO = sys.stdout,
+    def __init__(self, description: LaunchDescription, out: TextIO | None = None,
                  sigint_timeout_s: float = 2.5, sigterm_timeout_s: float = 1.5) -> None:
+        out = sys.stdout if out is None else out
         self.description = description
         self.out = out
         self.sigint_timeout_s = sigint_timeout_s

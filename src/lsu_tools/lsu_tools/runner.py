@@ -19,12 +19,13 @@ from .nodes_index import node_class
 
 
 def build_nodes(description: LaunchDescription, param_dir: Path, context: Any | None = None,
-                out: TextIO = sys.stdout) -> list[Any]:
+                out: TextIO | None = None) -> list[Any]:
     """Instantiate every node of ``description`` in this process (rclpy must be initialised).
 
     Raises:
         LookupError: a node has no in-process entry point.
     """
+    out = sys.stdout if out is None else out  # the stream of the call, not of the import
     nodes: list[Any] = []
     try:
         for index, spec in enumerate(description.nodes):
@@ -49,13 +50,14 @@ def build_nodes(description: LaunchDescription, param_dir: Path, context: Any | 
 
 
 @contextlib.contextmanager
-def spinning_nodes(description: LaunchDescription, out: TextIO = sys.stdout,
+def spinning_nodes(description: LaunchDescription, out: TextIO | None = None,
                    executor: str = "multi") -> Iterator[tuple[list[Any], Any]]:
     """rclpy, every node of ``description`` and an executor holding them, for the ``with`` block.
 
     A Ctrl-C / SIGTERM inside the block ends it quietly; on every way out the executor stops, the
     nodes are destroyed and rclpy shut down.
     """
+    out = sys.stdout if out is None else out
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 
@@ -79,13 +81,14 @@ def spinning_nodes(description: LaunchDescription, out: TextIO = sys.stdout,
         rclpy.try_shutdown()
 
 
-def run_in_process(description: LaunchDescription, out: TextIO = sys.stdout, executor: str = "multi") -> int:
+def run_in_process(description: LaunchDescription, out: TextIO | None = None, executor: str = "multi") -> int:
     """Build all nodes and spin them until Ctrl-C / SIGTERM; returns the exit code.
 
     ``executor``: "multi" (a thread pool: nodes may block in a callback waiting for another
     node's reply) or "single" (one thread: no hand-off between threads per callback, so a
     pipeline of processing nodes runs faster; a callback that waits would deadlock it).
     """
+    out = sys.stdout if out is None else out
     with spinning_nodes(description, out, executor) as (nodes, spinner):
         out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process ({executor}-threaded executor); "
                   "Ctrl-C stops\n")
