@@ -1,6 +1,7 @@
 """A recorded scan replayed through extractor -> matcher gives the recorded cloud: through DDS (separate processes,
 `lsu bag play`) and handed over directly in one process (`lsu run replay BAG`)."""
 
+import collections
 import subprocess
 from pathlib import Path
 
@@ -147,16 +148,16 @@ def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_repl
     from rclpy.parameter import Parameter
 
     from lsu_tools.cli import resolve_launch_file
-    from lsu_tools.direct_replay import DirectReplay, _ExtractionProcesses
+    from lsu_tools.direct_replay import OWN, DirectReplay, _ExtractionProcesses
     from lsu_tools.launch_file import load_launch, select_nodes
     from lsu_tools.nodes_index import resolve_executable
     from lsu_tools.runner import build_nodes
 
     monkeypatch.setattr("lsu_tools.direct_replay.SPIN_EVERY_S", 0.0)  # spin after every message
-    # places decided 4 images ahead, and as if the replay waited for every third line: the 14 images are
-    # extracted both by the processes and by the replay's own extractor (whichever the host's timing)
+    # places decided 4 images ahead, every third at the replay's own extractor and the others at the processes in
+    # turn: the 14 images are extracted by both (whichever the host's timing)
     monkeypatch.setattr("lsu_tools.direct_replay.AHEAD", 4)
-    monkeypatch.setattr(_ExtractionProcesses, "_waits_for", lambda pool, place: pool.taken % 3 == 0)
+    monkeypatch.setattr(_ExtractionProcesses, "_choose", lambda pool: OWN if pool.taken % 3 == 0 else pool.taken % pool.count)
     bag = uncompressed_copy(BAG, tmp_path / "bag")
     runs = {}
     for workers in (0, *counts):
@@ -192,3 +193,39 @@ def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_repl
                 assert np.max(np.abs(xyz_rep - recorded[key][0])) <= 1e-6
     for workers in counts:
         assert runs[workers] == runs[0]
+
+
+class _Lines:
+    """A process's pipe of lines as `_ExtractionProcesses` reads it: ``sent`` lines waiting."""
+
+    def __init__(self, sent: int) -> None:
+        self.sent = sent
+
+    def poll(self, timeout: float = 0.0) -> bool:
+        return self.sent > 0
+
+    def recv(self) -> tuple:
+        self.sent -= 1
+        return ("line", (0, 0, "left"), None)
+
+
+def test_replay_places_an_image_where_it_is_expected_to_be_extracted_first():
+    """The replay takes an image itself when every process has more lines to send before it than the replay has
+    work before reaching it, and leaves it to the least busy process otherwise; lines already sent count as done."""
+    from lsu_tools.direct_replay import AHEAD, OWN, _ExtractionProcesses
+
+    def pool(placed: list[int], sent: list[int], own_placed: int, extract_s: float = 2.0, other_s: float = 0.5):
+        p = object.__new__(_ExtractionProcesses)  # the placement alone: no processes
+        p.count, p.placed, p.own_placed, p.extract_s, p.other_s = len(placed), placed, own_placed, extract_s, other_s
+        p.inputs, p.ready, p.done = [_Lines(n) for n in sent], [collections.deque() for _ in placed], [None] * len(placed)
+        return p
+
+    work = (AHEAD - 1) * 0.5  # the replay's other work before the image, at 0.5 per image
+    busy = int(work // 2.0)  # unsent lines after which a process (2.0 per line) has the image later than that
+    assert pool([busy], [0], 0)._choose() == OWN
+    assert pool([busy - 1], [0], 0)._choose() == 0
+    assert pool([busy + 2], [3], 0)._choose() == 0  # three of them sent already
+    assert pool([busy], [0], 2)._choose() == 0  # the replay has two images of its own to extract first
+    assert pool([busy + 4, 1, busy], [0, 0, 0], 0)._choose() == 1  # the least busy process
+    p = pool([busy + 1], [2], 0)
+    assert p._choose() == 0 and list(p.ready[0]) == [("line", (0, 0, "left"), None)] * 2  # read, kept in order

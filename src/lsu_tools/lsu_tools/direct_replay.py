@@ -14,14 +14,15 @@ Replaying into a graph of separate nodes is `lsu bag play` into `lsu launch repl
 With ``workers`` (`lsu run replay BAG --workers N`), the extraction runs in N processes of
 its own while this one matches: an uncompressed bag is mapped by each of them, and each runs the
 extractor's frame logic (`lsu_extract.frames.FrameExtractor`: sizes, the laser-off background)
-over every frame and event, so that all hold the same state. The images go to the processes in
-turn, and to this process's extractor node whenever it had to wait for a line (the place of
-each image is decided a few images ahead and sent to the processes): the matching and the
-extraction share the cores without a fixed split, and fewer processes than one per core plus
-this one contend for them. The lines come back in the bag's order and the matcher sees exactly
-the calls of the one-process replay: the same points, bit for bit, for stop-snap scans and
-sweeps alike. Meanwhile the extractor's parameters are those the replay started with (changes
-are refused until it ends).
+over every frame and event, so that all hold the same state. Each image goes to whichever is
+expected to have it first, a process or this process's own extractor node (decided a few images
+ahead from the lines each process has yet to send and this process's CPU per image, and sent to
+the processes): the matching and the extraction share the cores without a fixed split or waits
+for a line, and fewer processes than one per core plus this one contend for them. OpenCV runs on
+one thread in every process: the processes are the parallelism. The lines come back in the bag's
+order and the matcher sees exactly the calls of the one-process replay: the same points, bit for
+bit, for stop-snap scans and sweeps alike. Meanwhile the extractor's parameters are those the
+replay started with (changes are refused until it ends).
 
 Hand-written because this is the integration of our own two nodes; the bag is read with
 `rosbags` (lsu_bags.bags) and the extraction/matching are the nodes' own methods.
@@ -55,6 +56,9 @@ WORKER_START_S = 60.0  # an extraction process that has not started by then is r
 OWN = 255  # an image's place (one byte): the replay's own process; 0..254: an extraction process
 AHEAD = 16  # images whose place is decided before the replay reaches them
 MAX_WORKERS = 4  # every process follows every frame and event: each one added costs that much CPU again
+# where the replay places an image (`_ExtractionProcesses._choose`): its CPU per image, extracting one and the
+# rest of its work, as first guesses (a 640x480 frame, two per snap) and then smoothed over ~16 images
+EXTRACT_S, OTHER_S, SMOOTHING = 2e-3, 0.5e-3, 1.0 / 16.0
 
 
 @dataclass
@@ -192,23 +196,34 @@ class _ExtractionProcesses:
     `next` gives each image's outcome in bag order.
 
     Where image n is extracted is decided ``AHEAD`` images before the replay reaches it, and sent to every
-    process: by the processes in turn while their lines are ready when the replay takes them; by the
-    replay's own process (``OWN``) in place of the next turn whenever it had to wait for a line. So the
-    replay extracts what the processes cannot keep up with, and on a host with as many cores as processes
-    the two kinds of work balance without a fixed share. Every image's line is the same wherever it is
-    extracted: each process, and the node, follows every frame and event (`FrameExtractor`).
+    process (`_choose`): to whichever is expected to have it first, the replay's own process (``OWN``)
+    when it would reach the image before any process had extracted it. That estimate counts each process's
+    placed images it has not sent yet and the images the replay has to take before n, its own ones and its
+    other work for each (matching, reading), at the CPU per image the replay measures for both. So the
+    replay extracts what the processes cannot keep up with, without waiting for a line to find out, and on a
+    host with as many cores as processes the two kinds of work balance without a fixed share. Every image's
+    line is the same wherever it is extracted: each process, and the node, follows every frame and event
+    (`FrameExtractor`).
     """
 
     def __init__(self, bag: Path | str, images: dict[str, str], events: list[str], extractor: Any, count: int) -> None:
         if not 0 < count < OWN:
             raise ValueError(f"{count} extraction processes: give 1 to {OWN - 1} (or 0 to extract in this process)")
         context = multiprocessing.get_context("spawn")  # not fork: this process runs DDS threads
-        self.count, self.taken, self.turn, self.own = count, 0, 0, 0
+        self.count, self.taken, self.own = count, 0, 0
         self.extractor = extractor
         self.inputs: list[Any] = []
-        self.places: list[Any] = []  # write ends of the processes' place pipes
+        self.places: list[Any] = []  # write ends of the processes' place pipes (None: the process has ended)
         self.processes: list[Any] = []
+        self.ready: list[collections.deque[tuple[Any, ...]]] = [collections.deque() for _ in range(count)]  # lines
+        self.done: list[tuple[Any, ...] | None] = [None] * count  # a process's last message, read with its lines
         self.decided = bytearray(index % count for index in range(AHEAD))
+        self.placed = [self.decided.count(index) for index in range(count)]  # placed and not yet taken
+        self.own_placed = 0
+        # the replay's CPU per image (thread clock): extracting one, and the rest of its work per image
+        self.extract_s, self.other_s = EXTRACT_S, OTHER_S
+        self._mark: float | None = None  # thread clock when the last image was taken ...
+        self._extracting = 0.0  # ... and how much of the time since it spent extracting it
         t0 = time.monotonic()
         for index in range(count):
             reader, writer = context.Pipe(duplex=False)
@@ -229,7 +244,8 @@ class _ExtractionProcesses:
         self.cpu_at_start = [float(self._receive(i, "ready", WORKER_START_S)[1]) for i in range(count)]
         self.start_s = time.monotonic() - t0
 
-    def _receive(self, index: int, kind: str, timeout_s: float | None = None) -> tuple[Any, ...]:
+    def _receive(self, index: int, kind: str, timeout_s: float | None = None, done: bool = False) -> tuple[Any, ...]:
+        """The next message of process ``index``, of ``kind`` (a line may be "bad"; ``done``: or "done")."""
         reader = self.inputs[index]
         if timeout_s is not None and not reader.poll(timeout_s):
             raise RuntimeError(f"extraction process {index} did not start within {timeout_s:.0f} s; replay with "
@@ -242,7 +258,7 @@ class _ExtractionProcesses:
                                "process") from None
         if item[0] == "error":
             raise RuntimeError(f"extraction process {index} failed:\n{item[1]}")
-        if item[0] != kind and not (kind == "line" and item[0] == "bad"):
+        if item[0] != kind and not (kind == "line" and (item[0] == "bad" or (done and item[0] == "done"))):
             raise RuntimeError(f"extraction process {index} sent '{item[0]}' where '{kind}' was due")
         return tuple(item)
 
@@ -253,25 +269,49 @@ class _ExtractionProcesses:
         """
         from lsu_extract.image import ImageFormatError
 
+        now = time.thread_time()
+        if self._mark is not None:  # all the replay did for the last image but extract it: matching, reading, ...
+            self.other_s += SMOOTHING * (now - self._mark - self._extracting - self.other_s)
+        self._mark, self._extracting = now, 0.0
         place = self.decided[self.taken]
         self.taken += 1
-        waited = False
         if place == OWN:
             self.own += 1
+            self.own_placed -= 1
             extracted = self.extractor.extract_of(side, raw)
+            self._extracting = time.thread_time() - now
+            self.extract_s += SMOOTHING * (self._extracting - self.extract_s)
         else:
             try:  # the node's frame state follows every image, as each process's does
                 self.extractor.core.extract(side, raw, compute=False)
             except ImageFormatError:
                 pass  # reported by the process that extracts it
-            waited = self._waits_for(place)
-            extracted = self._line(side, self._receive(place, "line"))
-        self._decide(OWN if waited else None)
+            self.placed[place] -= 1
+            item = self.ready[place].popleft() if self.ready[place] else self._receive(place, "line")
+            extracted = self._line(side, item)
+        self._decide(self._choose())
         return extracted
 
-    def _waits_for(self, place: int) -> bool:
-        """The line of process ``place`` is not there yet: taking it, this process will wait."""
-        return not self.inputs[place].poll(0)
+    def _choose(self) -> int:
+        """The place of the image ``AHEAD - 1`` after the next one: whichever is expected to have it first.
+
+        A process has it once it has extracted its placed images that are not sent yet, then this one; the
+        replay reaches it after its own placed images and its other work for each image before it.
+        """
+        for index in range(self.count):  # the lines already sent, so that they count as done
+            reader, ready = self.inputs[index], self.ready[index]
+            while len(ready) < self.placed[index] and self.done[index] is None and reader.poll(0):
+                item = self._receive(index, "line", done=True)
+                if item[0] == "done":  # past the bag's last image: places are written ahead of the images
+                    self.done[index] = item
+                else:
+                    ready.append(item)
+        best, soonest = OWN, self.own_placed * self.extract_s + (AHEAD - 1) * self.other_s
+        for index in range(self.count):
+            at = (self.placed[index] - len(self.ready[index]) + 1) * self.extract_s
+            if at <= soonest:  # a process before the replay when even: its core has nothing else to do
+                best, soonest = index, at
+        return best
 
     def _line(self, side: str, item: tuple[Any, ...]) -> tuple[Any, Any] | None:
         if item[0] == "bad":
@@ -280,23 +320,34 @@ class _ExtractionProcesses:
         sec, nanosec, frame_id = item[1]
         return self.extractor.frame_extracted(side, sec, nanosec, frame_id), item[2]
 
-    def _decide(self, place: int | None) -> None:
-        """The place of image ``taken + AHEAD - 1``: ``place``, or the processes' next turn."""
-        if place is None:
-            place, self.turn = self.turn, (self.turn + 1) % self.count
+    def _decide(self, place: int) -> None:
+        """Image ``taken + AHEAD - 1`` is extracted at ``place`` (a process, or ``OWN``): tell every process."""
         self.decided.append(place)
-        for writer in self.places:
-            os.write(writer.fileno(), bytes((place,)))
+        if place == OWN:
+            self.own_placed += 1
+        else:
+            self.placed[place] += 1
+        for index, writer in enumerate(self.places):
+            if writer is None:
+                continue
+            try:
+                os.write(writer.fileno(), bytes((place,)))
+            except BrokenPipeError:
+                # The process has ended: past the bag's last image (places are written ahead of the images), or
+                # failed, which its next line due, or `finish`, reports from its own message.
+                writer.close()
+                self.places[index] = None
 
     def finish(self) -> float:
         """Wait for every process to end; their CPU seconds since they were ready."""
-        cpu = sum(float(self._receive(i, "done")[1]) - self.cpu_at_start[i] for i in range(self.count))
+        cpu = sum(float((self.done[i] or self._receive(i, "done"))[1]) - self.cpu_at_start[i] for i in range(self.count))
         self.close()
         return cpu
 
     def close(self) -> None:
         for writer in self.places:
-            writer.close()
+            if writer is not None:
+                writer.close()
         self.places = []
         for reader in self.inputs:
             reader.close()
@@ -470,7 +521,7 @@ class DirectReplay:
         return scan is not None and scan.end_type is not None and not scan.published
 
 
-def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exit_when_done: bool = False,
+def run_direct_replay(description: Any, bag: Path, out: TextIO | None = None, exit_when_done: bool = False,
                       workers: int = 0) -> int:
     """Build the launch file's nodes, replay ``bag`` through them directly, then spin until Ctrl-C.
 
@@ -478,12 +529,19 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO = sys.stdout, exi
     published (at most the matcher's scan_timeout_s later). One thread: the replay calls into
     the nodes between the executor's turns; ``workers``: extraction processes (`DirectReplay.run`).
     """
+    out = sys.stdout if out is None else out
     from lsu_bags.bags import BagError
 
     from .runner import spinning_nodes
 
     if not Path(bag).exists():
         raise FileNotFoundError(f"bag '{bag}' not found: give a bag folder (or its .mcap/.db3 file)")
+    import cv2
+
+    # The replay's parallelism is its processes (and its reading thread). OpenCV's calls on one frame's rows
+    # and windows are too small for its thread pool to speed up, and the pool's threads busy-wait between
+    # them: on every core the replay would want, for nothing (bench/bench_scan.py, replay_cpu_over_compute).
+    cv2.setNumThreads(1)
     with spinning_nodes(description, out, "single") as (nodes, spinner):
         replay = DirectReplay(nodes)
         out.write(f"[lsu run] replaying {bag} directly into laser_extractor and stereo_matcher "
