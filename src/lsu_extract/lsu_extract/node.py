@@ -225,7 +225,17 @@ class LaserExtractorNode(LsuNode):
             {"frames": self.frames[side], "dropped": self.dropped[side]}, hardware_id=f"{side} camera"))
 
 
-main = main_of(LaserExtractorNode)
+_run = main_of(LaserExtractorNode)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console script running LaserExtractorNode in a process of its own, with OpenCV on one thread: the
+    extraction's calls work on a frame's rows and windows, too small for OpenCV's thread pool to speed up,
+    whose threads busy-wait between them and take CPU the graph's other processes want."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    return _run(args)
 
 
 if __name__ == "__main__":
