@@ -657,6 +657,25 @@ SWEEP_UNITS = {"sweep_scan_s": "s", "sweep_lines": "lines", "sweep_frames_droppe
                "sweep_full_track_frames_dropped_pct": "%", "stopsnap_face_scan_s": "s", "sweep_face_motion_s": "s",
                "sweep_face_rate_steps_s": "steps/s"}
 
+LIVE_NOTES = (
+    "live: lsu launch sim (6 processes, synthetic head 7), after a 3-snap warm-up scan two scans 0..470 step 2, "
+    "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
+    "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
+    "scan_wall_over_mechanical_recording; bound = moves at the emulator's 200 steps/s + (settle + 33 ms "
+    "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture "
+    "round trips (the sim's render stands in for the exposure). ")
+NOTES = LIVE_NOTES + REPLAY_NOTES + VIEW_NOTES + " " + SETTLE_NOTES + " " + SWEEP_NOTES + (
+    " When and how each part was measured: \"measured\" (`--only PART` measures one part again, the others kept).")
+# the parts of scan.json, each with its own "measured" note; `--only sweep` is sweep_live and sweep_accuracy
+PARTS = ("live", "replay", "view", "two_host", "settle", "sweep_live", "sweep_accuracy")
+
+
+def measured_note(command: str) -> str:
+    """When and by what a part's figures were measured, with the host's load then (the host is shared)."""
+    return (f"{time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by `{command}`, load average "
+            f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end")
+
+
 
 def lines_on_face(folder: Path, scene: str = "head:7") -> dict[int, int]:
     """A scan's lines (snaps or sweep frames) that land on the face: carriage position [steps] -> points on it.
@@ -798,7 +817,7 @@ def only(parts: set, bag: Path | None = None) -> int:
     claim = rosenv.isolate()
     figures: dict = {}
     failure = None
-    replay_note = ""
+    replay_source = ""
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-bench-scan-") as tmp_name:
             tmp = Path(tmp_name)
@@ -806,9 +825,7 @@ def only(parts: set, bag: Path | None = None) -> int:
                 source = "a recorded scan bag given with --bag" if bag else "a bag written by lsu_testing.simbags (synthetic head 7, " \
                     "0..470 step 2 + texture pair, rendered by the simulated rig without the graph)"
                 figures.update(replay_figures(bag or sim_bag(tmp)))
-                replay_note = (f"[replay figures: `bench_scan.py --only replay` {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} "
-                               f"UTC on {source}; host shared with other heavy jobs, load average "
-                               f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores at the end] ")
+                replay_source = source
             if "view" in parts:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
@@ -831,24 +848,14 @@ def only(parts: set, bag: Path | None = None) -> int:
     path = Path(__file__).resolve().parent / "results" / "scan.json"
     old = json.loads(path.read_text()) if path.is_file() else {"figures": {}, "units": {}, "notes": ""}
     merged = {**old["figures"], **figures}
-    notes = old.get("notes", "")
-    if "replay" in parts:  # its section of the notes replaced, the rest kept
-        head, _, rest = notes.partition("replay: ")
-        at = rest.find("bridge: a default")
-        notes = head + REPLAY_NOTES + replay_note + (rest[at:] if at >= 0 else "")
-    view_parts = parts - {"replay"}
-    # the settle section of the notes (with its measurement note) stays when the settle figures do
-    kept_settle = notes.partition(" settle: in one")[2]
-    kept_settle = " settle: in one" + min(kept_settle.split(" ||")[0], kept_settle.split(" sweep: live")[0], key=len) \
-        if kept_settle else ""
-    if view_parts:
-        notes = notes.split(" bridge: a default")[0] + (
-            f" {VIEW_NOTES} [{', '.join(sorted(view_parts))} figures measured {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC by "
-            f"`bench_scan.py --only {','.join(sorted(view_parts))}`, load average {os.getloadavg()[0]:.1f} on "
-            f"{os.cpu_count()} cores at the end; the others on {old.get('when', '?')}]")
-        notes = notes.split(" settle: in one")[0] + (f" {SWEEP_NOTES}" if view_parts & {"sweep", "sweep_live", "sweep_accuracy"} else "") + (f" {SETTLE_NOTES}" if "settle" in view_parts else kept_settle)
+    note = measured_note(f"bench_scan.py --only {','.join(sorted(parts))}")
+    done = {p for part in parts for p in (("sweep_live", "sweep_accuracy") if part == "sweep" else (part,))}
+    measured = {**old.get("measured", {}), **{part: note for part in done}}
+    if "replay" in parts:
+        measured["replay"] += f", on {replay_source}"
     if parts:
-        write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=notes)
+        write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=NOTES,
+                     extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
         return 1
@@ -893,12 +900,7 @@ def main() -> int:
          "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s",
          "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
          "capture_ms_median": "ms", **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
-        notes="live: lsu launch sim (6 processes, synthetic head 7), after a 3-snap warm-up scan two scans 0..470 step 2, "
-              "settle 0.1 s, texture on: the default one (no bag, like `lsu scan`) gives scan_wall_over_mechanical and "
-              "the per-snap figures, one recording its bag in the coordinator (`lsu scan --record`) gives "
-              "scan_wall_over_mechanical_recording; bound = moves at the emulator's 200 steps/s + (settle + 33 ms "
-              "exposure) per snap + the texture exposure; move/capture: per-snap medians of the move_to and stereo/capture round trips (the sim's render stands in for the exposure). "
-              + REPLAY_NOTES + VIEW_NOTES + " " + SETTLE_NOTES + " " + SWEEP_NOTES)
+        notes=NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in PARTS}})
     return 0
 
 
