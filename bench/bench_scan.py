@@ -134,6 +134,29 @@ def two_host_runs(tmp: Path) -> dict:
     return walls
 
 
+LIVE_UNITS = {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
+              "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s", "scan_points": "points",
+              "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms", "capture_ms_median": "ms"}
+
+
+def live_figures(runs: dict) -> dict:
+    """The live stop-snap figures of `live_scan`'s default and recording scans."""
+    default, recording = runs["default"], runs["recording"]
+    result, record = default["result"], default["record"]
+    acks = sorted(s.get("ack_s", 0.0) for s in record["snaps"])
+    # where a snap's time goes (the coordinator records each phase per snap; the first snap's move
+    # from the texture position is left out)
+    phases = {name: sorted(s[f"{name}_s"] for s in record["snaps"][1:] if f"{name}_s" in s) or [0.0]
+              for name in ("move", "capture")}
+    return {"scan_wall_over_mechanical": ratio(default), "scan_wall_s": result.seconds,
+            "scan_mechanical_bound_s": record["timings_s"]["mechanical_lower_bound"], "scan_snaps": result.snaps,
+            "scan_points": result.points, "scan_wall_over_mechanical_recording": ratio(recording),
+            "scan_wall_s_recording": recording["result"].seconds,
+            "ack_ms_median": 1000 * acks[len(acks) // 2], "ack_ms_max": 1000 * acks[-1],
+            "move_ms_median": 1000 * phases["move"][len(phases["move"]) // 2],
+            "capture_ms_median": 1000 * phases["capture"][len(phases["capture"]) // 2]}
+
+
 def ratio(run: dict) -> float:
     """A scan's wall time over its mechanical lower bound."""
     return run["result"].seconds / run["record"]["timings_s"]["mechanical_lower_bound"]
@@ -809,10 +832,10 @@ def sweep_accuracy() -> dict:
 
 
 def only(parts: set, bag: Path | None = None) -> int:
-    """Measure only the replay, live-view and/or two-host figures and merge them into the existing scan.json."""
-    unknown = parts - {"replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy"}
+    """Measure only the named parts (`PARTS`; sweep = sweep_live + sweep_accuracy) and merge them into the existing scan.json."""
+    unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy"}
     if unknown:
-        raise SystemExit("--only takes replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy (comma-separated); "
+        raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
@@ -826,6 +849,8 @@ def only(parts: set, bag: Path | None = None) -> int:
                     "0..470 step 2 + texture pair, rendered by the simulated rig without the graph)"
                 figures.update(replay_figures(bag or sim_bag(tmp)))
                 replay_source = source
+            if "live" in parts:
+                figures.update(live_figures(live_scan(tmp, baseline=True, view=False)))
             if "view" in parts:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
@@ -854,7 +879,8 @@ def only(parts: set, bag: Path | None = None) -> int:
     if "replay" in parts:
         measured["replay"] += f", on {replay_source}"
     if parts:
-        write_result("scan", merged, {**old["units"], **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS}, notes=NOTES,
+        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
+                     notes=NOTES,
                      extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -871,16 +897,8 @@ def main() -> int:
         with tempfile.TemporaryDirectory(prefix="lsu-bench-scan-") as tmp_name:
             tmp = Path(tmp_name)
             runs = live_scan(tmp)
-            default, recording = runs["default"], runs["recording"]
-            result, record = default["result"], default["record"]
-            bound = record["timings_s"]["mechanical_lower_bound"]
-            acks = sorted(s.get("ack_s", 0.0) for s in record["snaps"])
-            # where a snap's time goes (the coordinator records each phase per snap; the first snap's move
-            # from the texture position is left out)
-            phases = {name: sorted(s[f"{name}_s"] for s in record["snaps"][1:] if f"{name}_s" in s) or [0.0]
-                      for name in ("move", "capture")}
             # medians of REPLAYS runs (each in a fresh process): one run is at the mercy of the host's noise
-            replays = replay_figures(Path(recording["result"].output_dir) / "bag")
+            replays = replay_figures(Path(runs["recording"]["result"].output_dir) / "bag")
             unavailable = why_unavailable()
             walls = two_host_runs(tmp) if unavailable is None else {}
             settle = settle_figures(tmp)
@@ -889,17 +907,8 @@ def main() -> int:
         claim.release()
     write_result(
         "scan",
-        {"scan_wall_over_mechanical": ratio(default), "scan_wall_s": result.seconds,
-         "scan_mechanical_bound_s": bound, "scan_snaps": result.snaps, "scan_points": result.points,
-         "scan_wall_over_mechanical_recording": ratio(recording), "scan_wall_s_recording": recording["result"].seconds,
-         "ack_ms_median": 1000 * acks[len(acks) // 2], "ack_ms_max": 1000 * acks[-1],
-         "move_ms_median": 1000 * phases["move"][len(phases["move"]) // 2],
-         "capture_ms_median": 1000 * phases["capture"][len(phases["capture"]) // 2],
-         **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
-        {"scan_wall_over_mechanical": "x", "scan_wall_s": "s", "scan_mechanical_bound_s": "s", "scan_snaps": "snaps",
-         "scan_wall_over_mechanical_recording": "x", "scan_wall_s_recording": "s",
-         "scan_points": "points", "ack_ms_median": "ms", "ack_ms_max": "ms", "move_ms_median": "ms",
-         "capture_ms_median": "ms", **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
+        {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
+        {**LIVE_UNITS, **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
         notes=NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in PARTS}})
     return 0
 
