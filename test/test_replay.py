@@ -155,7 +155,7 @@ def test_replay_extracting_in_processes_gives_the_points_of_the_one_process_repl
 
     monkeypatch.setattr("lsu_tools.direct_replay.SPIN_EVERY_S", 0.0)  # spin after every message
     # places decided 4 images ahead, every third at the replay's own extractor and the others at the processes in
-    # turn: the 14 images are extracted by both (whichever the host's timing)
+    # turn: the 14 images are extracted by both, whatever the host's timing
     monkeypatch.setattr("lsu_tools.direct_replay.AHEAD", 4)
     monkeypatch.setattr(_ExtractionProcesses, "_choose", lambda pool: OWN if pool.taken % 3 == 0 else pool.taken % pool.count)
     bag = uncompressed_copy(BAG, tmp_path / "bag")
