@@ -82,6 +82,13 @@ CLIPPED_CENTRE = ("signal", "red")
 # anyway) and accepts contrast_sigmas (8) of it where that is below min_contrast; never below
 # NOISE_FLOOR_DN, under which the 8-bit quantisation of smoothed webcam pictures says nothing.
 NOISE_FLOOR_DN = 12.0
+# A laser line is continuous from row to row. A weak detection (below ISOLATED_WEAK x the frame's threshold) that no
+# detection within +-CONTINUITY_ROWS rows continues (at most CONTINUITY_PX_PER_ROW px per row of distance) is taken
+# on noise: on a dark frame the threshold falls to NOISE_FLOOR_DN, where single rows at the faint end of a line (a
+# sphere's limb) came from noise (bench_reconstruct's sphere; bench_extract's rig and real false rows).
+ISOLATED_WEAK = 2.0
+CONTINUITY_ROWS = 2
+CONTINUITY_PX_PER_ROW = 3.0
 
 
 class ExtractorConfigError(ValueError):
@@ -537,6 +544,31 @@ def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
     return kept
 
 
+def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple[dict[str, Any], int]:
+    """``found`` (per-row arrays by row, "v" the rows; `_FIELDS`) without its weak isolated rows (`ISOLATED_WEAK`),
+    and how many were dropped.
+
+    Weak: a peak below ``ISOLATED_WEAK`` x ``threshold``. Isolated: no other row within ``CONTINUITY_ROWS``
+    holds a detection within ``CONTINUITY_PX_PER_ROW`` px per row of distance of its column.
+    """
+    v = found["v"].astype(np.int64)
+    weak = found["peak"] < ISOLATED_WEAK * threshold
+    if not np.any(weak):
+        return found, 0
+    reach = CONTINUITY_ROWS
+    column = np.full(height + 2 * reach, np.nan, np.float32)  # NaN: no detection (compares False)
+    column[v + reach] = found["u"]
+    continued = np.zeros(v.size, bool)
+    for distance in range(1, reach + 1):
+        for offset in (-distance, distance):
+            continued |= np.abs(column[v + reach + offset] - found["u"]) <= CONTINUITY_PX_PER_ROW * distance
+    keep = ~(weak & ~continued)
+    dropped = int(v.size - np.count_nonzero(keep))
+    if dropped == 0:
+        return found, 0
+    return {name: found[name][keep] for name in ("v", *_FIELDS)}, dropped
+
+
 def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                        texture: AnyArray | None = None) -> LaserLineResult:
     """Find the laser line in a BGR (H, W, 3) or mono (H, W) uint8 frame.
@@ -642,10 +674,12 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         found = {name: np.concatenate([c[name] for c in chunks])[order] for name in ("v", *_FIELDS)}
     else:
         found = {name: np.zeros(0, np.float32) for name in ("v", *_FIELDS)}
+    found, isolated = drop_isolated(found, params.min_contrast, height)
     # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
         u=found["u"].astype(np.float32, copy=False), v=found["v"].astype(np.float32),
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
-        rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched)
+        rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
+        extra={"rows_isolated": isolated} if isolated else {})

@@ -294,3 +294,20 @@ def test_noisier_frames_keep_the_fixed_threshold():
 def test_real_light_parameters_are_checked(name, value, message):
     with pytest.raises(ExtractorConfigError, match=message):
         ExtractorParams(**{name: value})
+
+
+def test_a_weak_detection_no_neighbouring_row_continues_is_dropped():
+    """`drop_isolated`: a weak row whose column no detection within 2 rows continues (3 px per row) goes; a strong
+    one, or one the line continues (also across a missing row), stays."""
+    from lsu_extract.extractor import drop_isolated
+
+    v = np.array([10, 11, 12, 14, 30, 40, 50, 51], np.int64)
+    u = np.array([100.0, 101.0, 102.0, 105.5, 300.0, 310.0, 200.0, 209.0], np.float32)
+    peak = np.array([50.0, 13.0, 50.0, 13.0, 13.0, 60.0, 13.0, 13.0], np.float32)  # threshold 12: weak below 24
+    found = {"v": v, "u": u, "peak": peak, "width": np.full(8, 3.0, np.float32), "quality": np.ones(8, np.float32)}
+    kept, dropped = drop_isolated(found, 12.0, 64)
+    # row 14 continues row 12 (3.5 px over 2 rows); rows 30, 50 and 51 are weak and alone (51 is 9 px from 50)
+    assert dropped == 3 and kept["v"].tolist() == [10, 11, 12, 14, 40]
+    assert kept["u"].tolist() == [100.0, 101.0, 102.0, 105.5, 310.0]
+    assert set(kept) == {"v", "u", "peak", "width", "quality"}
+    assert drop_isolated(found, 6.0, 64) == (found, 0)  # nothing weak at a 6 DN threshold: unchanged
