@@ -19,7 +19,9 @@ Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixel
 4. refinement: a window of the signal around each integer peak gives the background (the
    lower end), the sub-pixel centre (detectors.py) and the width (the equivalent width of the
    profile, see `_fit`); the half-maximum crossings are walked for the rows that need them,
-   and give a saturated plateau its centre.
+   and give a saturated plateau its centre;
+5. continuity: a weak detection that no detection in the neighbouring rows continues is noise
+   (`drop_isolated`).
 
 Speed: a 640x480 frame costs some 80 numpy/OpenCV calls on arrays of a few thousand
 elements, so the call count, not the arithmetic, sets the time. Hence the fast paths for the
