@@ -553,10 +553,10 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple
     Weak: a peak below ``ISOLATED_WEAK`` x ``threshold``. Isolated: no other row within ``CONTINUITY_ROWS``
     holds a detection within ``CONTINUITY_PX_PER_ROW`` px per row of distance of its column.
     """
-    v = found["v"].astype(np.int64)
     weak = found["peak"] < ISOLATED_WEAK * threshold
     if not np.any(weak):
         return found, 0
+    v = found["v"].astype(np.int64)
     reach = CONTINUITY_ROWS
     column = np.full(height + 2 * reach, np.nan, np.float32)  # NaN: no detection (compares False)
     column[v + reach] = found["u"]
@@ -564,7 +564,7 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple
     for distance in range(1, reach + 1):
         for offset in (-distance, distance):
             continued |= np.abs(column[v + reach + offset] - found["u"]) <= CONTINUITY_PX_PER_ROW * distance
-    keep = ~(weak & ~continued)
+    keep = continued | ~weak
     dropped = int(v.size - np.count_nonzero(keep))
     if dropped == 0:
         return found, 0
