@@ -191,10 +191,15 @@ def test_a_late_firmware_loop_sends_one_position_event_not_a_burst():
         return [int(e["line"].split()[1]) for e in emu.timed_events if e["line"].startswith("!POS")]
 
     rate = emu.rate  # steps/s: pulse n is due at started + n / rate
+
+    def pulses_by(offset: float) -> int:
+        # the same float arithmetic as the loop: started + 0.30 - started may be 0.2999..., one pulse fewer
+        return int(((started + offset) - started) * rate)
+
     emu._advance(started)             # the first at the start
     emu._advance(started + 0.30)      # 6 periods late: one event, the counter where the pulses got to
     emu._advance(started + 0.3005)    # half a millisecond later: not due yet
     emu._advance(started + 0.3495)
-    assert positions() == [0, int(0.30 * rate)]
+    assert positions() == [0, pulses_by(0.30)]
     emu._advance(started + 0.3505)    # one period after the late one
-    assert positions() == [0, int(0.30 * rate), int(0.3505 * rate)]
+    assert positions() == [0, pulses_by(0.30), pulses_by(0.3505)]
