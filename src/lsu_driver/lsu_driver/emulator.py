@@ -40,6 +40,8 @@ from . import protocol as p
 
 # the thesis: 470 pulses at low speed, 467 at high speed for the same physical track
 _HIGH_SPEED_GAIN = 470.0 / 467.0 - 1.0
+# lines kept in a unit's log: hours of sweeps at 20 position events/s would otherwise grow it without end
+LOG_LINES = 4096
 
 
 @dataclass
@@ -243,7 +245,8 @@ class Gp32Emulator:
         self._inbuf = b""
         self._outq: list[tuple[float, bytes]] = []
         self._unplugged_until: float | None = None
-        self.log: list[str] = []          # every line in and out, for tests and debugging
+        # the recent lines in and out, for tests and debugging (bounded: a unit runs for hours)
+        self.log: collections.deque[str] = collections.deque(maxlen=LOG_LINES)
         self.boot_count = 0
         self._true = float(self.config.start_position_steps)
         if self.config.protocol_version not in p.SUPPORTED_VERSIONS:

@@ -43,6 +43,7 @@ from pathlib import Path
 
 from . import protocol as p
 from .emulator import (
+    LOG_LINES,
     ControlServer,
     EmulatorConfig,
     Faults,
@@ -210,7 +211,7 @@ class Gp32Firmware:
         self._sim_fds: list[int] = []
         self._sim_in = self._sim_out = -1
         self.device_path = ""
-        self.log: list[str] = []
+        self.log: collections.deque[str] = collections.deque(maxlen=LOG_LINES)  # the recent lines, as the emulator's
         self.boot_count = 0
         self.steps: collections.deque[StepRecord] = collections.deque(maxlen=4096)
         self.on_change: Callable[[], None] | None = None
@@ -515,7 +516,7 @@ class Gp32Firmware:
             self._power_request.set()
         if not self._booted.wait(wait_s):
             raise FirmwareUnavailable(f"the firmware did not boot within {wait_s:g} s in the simulator; "
-                                      f"last lines: {self.log[-5:]}")
+                                      f"last lines: {list(self.log)[-5:]}")
 
     def power_off(self) -> None:
         """Unpower the microcontroller until the next `reset`: the simulator stops (no replies, the
