@@ -21,6 +21,7 @@ logged as one line and returned in the service message; no exception escapes a c
 from __future__ import annotations
 
 import datetime as _dt
+import struct
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
 from lsu_common import diagnostics, qos
+from lsu_common.arrays import AnyArray
 from lsu_common.node import LsuNode, main_of
 from lsu_common.params import Param, declare_parameters
 from lsu_interfaces.msg import ScanEvent
@@ -47,28 +49,41 @@ from .signature import SIGNATURE_METHODS, SignatureParams
 from .smoothing import METHODS as SMOOTH_METHODS
 from .smoothing import SmoothParams
 
-__all__ = ["FaceProcessorNode", "mesh_to_marker", "mesh_to_shape", "main"]
+__all__ = ["FaceProcessorNode", "mesh_to_marker", "mesh_to_shape", "marker_cdr", "shape_cdr", "main"]
 
 LATCHED = qos.LATCHED
 EVENTS = qos.EVENTS
 
 
-def mesh_to_marker(mesh: FaceMesh, header: Header, max_triangles: int = 0) -> Marker:
-    """A TRIANGLE_LIST Marker (three points per triangle, one colour per point) of ``mesh``."""
-    tri = mesh.triangles
-    if max_triangles and len(tri) > max_triangles:
-        # RViz draws every point of the list: keep an even subset of a huge mesh
-        tri = tri[np.linspace(0, len(tri) - 1, max_triangles).astype(np.int64)]
+def _marker_template(header: Header) -> Marker:
     m = Marker(header=header, ns="lsu_scan_mesh", id=0, type=Marker.TRIANGLE_LIST, action=Marker.ADD)
     m.pose.orientation.w = 1.0
     m.scale.x = m.scale.y = m.scale.z = 1.0
     m.color = ColorRGBA(r=0.8, g=0.8, b=0.8, a=1.0)
+    return m
+
+
+def _marker_arrays(mesh: FaceMesh, max_triangles: int) -> tuple[AnyArray, AnyArray | None]:
+    """Points (3 per triangle) and their RGBA colours in [0, 1] (or None) of the TRIANGLE_LIST of ``mesh``."""
+    tri = mesh.triangles
+    if max_triangles and len(tri) > max_triangles:
+        # RViz draws every point of the list: keep an even subset of a huge mesh
+        tri = tri[np.linspace(0, len(tri) - 1, max_triangles).astype(np.int64)]
     flat = tri.reshape(-1)
-    v = mesh.vertices[flat]
+    if mesh.colors is None:
+        return mesh.vertices[flat], None
+    rgba = np.ones((len(flat), 4))
+    rgba[:, :3] = mesh.colors[flat].astype(np.float64) / 255.0
+    return mesh.vertices[flat], rgba
+
+
+def mesh_to_marker(mesh: FaceMesh, header: Header, max_triangles: int = 0) -> Marker:
+    """A TRIANGLE_LIST Marker (three points per triangle, one colour per point) of ``mesh``."""
+    v, rgba = _marker_arrays(mesh, max_triangles)
+    m = _marker_template(header)
     m.points = [Point(x=float(a), y=float(b), z=float(c)) for a, b, c in v.tolist()]
-    if mesh.colors is not None:
-        col = mesh.colors[flat].astype(np.float64) / 255.0
-        m.colors = [ColorRGBA(r=float(r), g=float(g), b=float(b), a=1.0) for r, g, b in col.tolist()]
+    if rgba is not None:
+        m.colors = [ColorRGBA(r=float(r), g=float(g), b=float(b), a=1.0) for r, g, b, _ in rgba.tolist()]
     return m
 
 
@@ -79,6 +94,78 @@ def mesh_to_shape(mesh: FaceMesh) -> Mesh:
     out.vertices = [Point(x=float(a), y=float(b), z=float(c)) for a, b, c in m.vertices.tolist()]
     out.triangles = [MeshTriangle(vertex_indices=np.asarray(t, dtype=np.uint32)) for t in m.triangles.tolist()]
     return out
+
+
+# The node publishes the two mesh messages as serialized bytes written from the numpy arrays, not as
+# the message objects above: those hold one Python object per point, triangle and colour (several per
+# triangle of the mesh). Building and dropping that many small objects every scan makes CPython's
+# object allocator map fresh 1 MiB arenas, and any long-lived object allocated meanwhile keeps its
+# arena mapped after the scan (gc.collect and malloc_trim cannot release it), so the node's resident
+# memory grew with every scan although nothing was kept. The bytes must deserialize to the same
+# message as the objects' serialization (test_node checks it).
+_SCALARS = {"boolean": "<?", "octet": "<B", "uint8": "<B", "int8": "<b", "int16": "<h", "uint16": "<H",
+            "int32": "<i", "uint32": "<I", "int64": "<q", "uint64": "<Q", "float": "<f", "double": "<d"}
+
+
+class _Cdr:
+    """Little-endian CDR, as rclpy's ``serialize_message`` writes it and ``Publisher.publish(bytes)`` sends it,
+    of messages whose large sequences are given as arrays; every other sequence must be empty. Alignment
+    counts from after the 4-byte encapsulation header; padding bytes are zero."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = [b"\x00\x01\x00\x00"]  # CDR_LE, options 0
+        self.size = 0
+
+    def _put(self, data: bytes, align: int = 1) -> None:
+        pad = -self.size % align
+        if pad:
+            self.parts.append(bytes(pad))
+        self.parts.append(data)
+        self.size += pad + len(data)
+
+    def message(self, msg: Any, arrays: dict[str, tuple[int, int, bytes]] | None = None) -> _Cdr:
+        """Append ``msg``; ``arrays`` maps a sequence field to (element count, element alignment, element bytes)."""
+        for name, kind in msg.get_fields_and_field_types().items():
+            value = getattr(msg, name)
+            if arrays and name in arrays:
+                count, align, data = arrays[name]
+                self._put(struct.pack("<I", count), 4)
+                if count:
+                    self._put(data, align)
+            elif kind in _SCALARS:
+                fmt = _SCALARS[kind]
+                self._put(struct.pack(fmt, value), struct.calcsize(fmt))
+            elif kind == "string":
+                self._put(struct.pack("<I", len(value.encode()) + 1) + value.encode() + b"\x00", 4)
+            elif kind.startswith("sequence<"):
+                if len(value):
+                    raise ValueError(f"{type(msg).__name__}.{name}: only empty sequences are written field by field")
+                self._put(struct.pack("<I", 0), 4)
+            elif "/" in kind and not kind.endswith("]"):
+                self.message(value)
+            else:
+                raise ValueError(f"{type(msg).__name__}.{name}: field type {kind} not supported")
+        return self
+
+    def tobytes(self) -> bytes:
+        return b"".join(self.parts)
+
+
+def marker_cdr(mesh: FaceMesh, header: Header, max_triangles: int = 0) -> bytes:
+    """``mesh_to_marker(mesh, header, max_triangles)`` serialized, without building its point objects."""
+    v, rgba = _marker_arrays(mesh, max_triangles)
+    arrays = {"points": (len(v), 8, np.ascontiguousarray(v, dtype="<f8").tobytes())}
+    if rgba is not None:
+        arrays["colors"] = (len(rgba), 4, np.ascontiguousarray(rgba, dtype="<f4").tobytes())
+    return _Cdr().message(_marker_template(header), arrays).tobytes()
+
+
+def shape_cdr(mesh: FaceMesh) -> bytes:
+    """``mesh_to_shape(mesh)`` serialized, without building its point and triangle objects."""
+    m = mesh.compact()
+    return _Cdr().message(Mesh(), {
+        "triangles": (m.n_triangles, 4, np.ascontiguousarray(m.triangles, dtype="<u4").tobytes()),
+        "vertices": (m.n_vertices, 8, np.ascontiguousarray(m.vertices, dtype="<f8").tobytes())}).tobytes()
 
 
 def parameter_table() -> dict[str, Param]:
@@ -202,8 +289,8 @@ class FaceProcessorNode(LsuNode):
         frame_id = msg.header.frame_id or "lsu_left_optical"
         header = Header(stamp=msg.header.stamp, frame_id=frame_id)
         if result.mesh is not None:
-            self.mesh_pub.publish(mesh_to_marker(result.mesh, header, int(self._value("marker_max_triangles"))))
-            self.shape_pub.publish(mesh_to_shape(result.mesh))
+            self.mesh_pub.publish(marker_cdr(result.mesh, header, int(self._value("marker_max_triangles"))))
+            self.shape_pub.publish(shape_cdr(result.mesh))
         if result.nose is not None:
             tip = result.frame.origin if result.frame is not None else result.nose.tip
             self.nose_pub.publish(PointStamped(header=header, point=Point(x=float(tip[0]), y=float(tip[1]),

@@ -85,6 +85,35 @@ def test_cloud_in_mesh_and_nose_out_then_enroll_identify(ros_node, tmp_path, hea
     assert not r.success and "name" in r.message
 
 
+def test_published_mesh_bytes_are_the_mesh_messages():
+    """marker_cdr/shape_cdr (what the node publishes) deserialize to mesh_to_marker/mesh_to_shape."""
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+    from shape_msgs.msg import Mesh
+    from std_msgs.msg import Header
+    from visualization_msgs.msg import Marker
+
+    from lsu_faces.mesh import FaceMesh
+    from lsu_faces.node import marker_cdr, mesh_to_marker, mesh_to_shape, shape_cdr
+
+    rng = np.random.default_rng(3)
+    vertices = rng.normal(size=(40, 3))
+    triangles = rng.integers(0, 30, size=(25, 3))   # vertices 30..39 unused: the shape drops them
+    colors = rng.integers(0, 256, size=(40, 3)).astype(np.uint8)
+    header = Header(stamp=Time(sec=17, nanosec=123456789), frame_id="lsu_left_optical")
+    for mesh in (FaceMesh(vertices, triangles, colors), FaceMesh(vertices, triangles[:1], None),
+                 FaceMesh(vertices[:3], np.zeros((0, 3)), None)):
+        for max_triangles in (0, 7):
+            want = serialize_message(mesh_to_marker(mesh, header, max_triangles))
+            got = marker_cdr(mesh, header, max_triangles)
+            # equal up to the padding bytes, which rclpy leaves unset
+            assert len(got) == len(want)
+            assert deserialize_message(got, Marker) == deserialize_message(want, Marker)
+        want, got = serialize_message(mesh_to_shape(mesh)), shape_cdr(mesh)
+        assert len(got) == len(want)
+        assert deserialize_message(got, Mesh) == deserialize_message(want, Mesh)
+
+
 def test_bad_clouds_give_errors_not_exceptions(ros_node, tmp_path, head_scan):
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
