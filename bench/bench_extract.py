@@ -43,10 +43,16 @@ from lsu_cameras.sim.scenes import uniform_albedo  # noqa: E402
 from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_extract import devdata  # noqa: E402
 from lsu_extract.detectors import METHODS, SUBPIXEL_METHODS  # noqa: E402
-from lsu_extract.extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line  # noqa: E402
+from lsu_extract.extractor import (  # noqa: E402
+    DEFAULT_METHOD,
+    ExtractorParams,
+    LaserLineResult,
+    extract_laser_line,
+    one_opencv_thread,
+)
 from lsu_extract.synthetic import LineScene, render_line  # noqa: E402
 
-cv2.setNumThreads(1)
+one_opencv_thread()
 DEFAULT_SCENE = LineScene()  # 640x480, FWHM 4 px, ambient 10 %, reddish texture, read 1 DN + shot 0.05 DN/DN
 FRAMES = 8
 

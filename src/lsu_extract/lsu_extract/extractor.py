@@ -40,6 +40,7 @@ from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 from typing import Any
 
+import cv2
 import numpy as np
 
 from lsu_common.arrays import AnyArray
@@ -569,6 +570,16 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple
     if dropped == 0:
         return found, 0
     return {name: found[name][keep] for name in ("v", *_FIELDS)}, dropped
+
+
+def one_opencv_thread() -> None:
+    """Run OpenCV on one thread in this process, as every process that extracts laser lines does.
+
+    The extraction's OpenCV calls work on one frame's rows and windows, too small for OpenCV's thread
+    pool to speed up, and the pool's threads busy-wait between them, taking CPU from the other
+    processes of the graph (or the replay's own extraction processes): parallelism comes from processes.
+    """
+    cv2.setNumThreads(1)
 
 
 def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,

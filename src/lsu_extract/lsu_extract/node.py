@@ -35,7 +35,7 @@ from lsu_common.params import Param, descriptor
 from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
-from .extractor import ExtractorParams, LaserLineResult, param_problems
+from .extractor import ExtractorParams, LaserLineResult, one_opencv_thread, param_problems
 from .frames import BACKGROUNDS, SIDES, FrameExtractor
 from .image import ImageFormatError
 
@@ -229,12 +229,8 @@ _run = main_of(LaserExtractorNode)
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console script running LaserExtractorNode in a process of its own, with OpenCV on one thread: the
-    extraction's calls work on a frame's rows and windows, too small for OpenCV's thread pool to speed up,
-    whose threads busy-wait between them and take CPU the graph's other processes want."""
-    import cv2
-
-    cv2.setNumThreads(1)
+    """Console script running LaserExtractorNode in a process of its own (`one_opencv_thread`)."""
+    one_opencv_thread()
     return _run(args)
 
 

@@ -128,13 +128,11 @@ def _extract_share(out: Any, places: Any, bag: str, images: dict[str, str], even
     and sent on ``out`` (in order) where the n-th byte read from ``places`` (a pipe, written by the replay
     ahead of its reading) is ``index`` (see the module doc)."""
     try:
-        import cv2
-
-        from lsu_extract.extractor import ExtractorParams
+        from lsu_extract.extractor import ExtractorParams, one_opencv_thread
         from lsu_extract.frames import FrameExtractor
         from lsu_extract.image import ImageFormatError
 
-        cv2.setNumThreads(1)  # one core per process: the processes are the parallelism
+        one_opencv_thread()
         core = FrameExtractor(ExtractorParams(**params), background, copy_frames=False)  # the mapped file stays
         deserialize = None
         if background == "texture":
@@ -536,12 +534,9 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO | None = None, ex
 
     if not Path(bag).exists():
         raise FileNotFoundError(f"bag '{bag}' not found: give a bag folder (or its .mcap/.db3 file)")
-    import cv2
+    from lsu_extract.extractor import one_opencv_thread
 
-    # The replay's parallelism is its processes (and its reading thread). OpenCV's calls on one frame's rows
-    # and windows are too small for its thread pool to speed up, and the pool's threads busy-wait between
-    # them: on every core the replay would want, for nothing (bench/bench_scan.py, replay_cpu_over_compute).
-    cv2.setNumThreads(1)
+    one_opencv_thread()  # this process extracts too, beside its extraction processes
     with spinning_nodes(description, out, "single") as (nodes, spinner):
         replay = DirectReplay(nodes)
         out.write(f"[lsu run] replaying {bag} directly into laser_extractor and stereo_matcher "
