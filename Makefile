@@ -21,7 +21,7 @@ help:
 	@echo "make test    - set up if needed, lint, run the whole test suite (2 workers, then the serial tests)"
 	@echo "make test-faults - only the fault-injection tests; summary in test-results/faults.json"
 	@echo "make bench   - run the benchmarks, JSON in bench/results/ and a table in bench/results/SUMMARY.md"
-	@echo "make lock    - re-resolve requirements.in into requirements.lock"
+	@echo "make lock    - resolve requirements.in into requirements.lock (keeps existing pins; tools/lock.py --upgrade moves them)"
 	@echo "make clean   - remove build/ log/ (keeps .venv); make distclean also removes .venv"
 
 setup:

@@ -14,7 +14,9 @@ cd "$ROOT"
 VENV="$ROOT/.venv"
 STAMPS="$VENV/.lsu-stamps"
 PYTHON="${PYTHON:-python3}"
-PY_PACKAGES=(lsu_common lsu_config lsu_driver lsu_cameras lsu_extract lsu_reconstruct lsu_faces lsu_bags lsu_scan lsu_accuracy lsu_tools lsu_testing lsu_view)
+# every ament_python package under src/ (a new package needs no edit here)
+PY_PACKAGES=()
+for setup_py in "$ROOT"/src/*/setup.py; do PY_PACKAGES+=("$(basename "$(dirname "$setup_py")")"); done
 
 step=""
 fail() {
@@ -47,6 +49,8 @@ if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then missing+=
 # the GP32 firmware: compiler and HC08 simulator (lsu gp32 firmware build|run)
 command -v sdcc >/dev/null || missing+=(sdcc)
 command -v shc08 >/dev/null || missing+=(sdcc-ucsim)
+# the web page's browser tests: Debian's chromium, driven by Playwright (which downloads no browser)
+command -v chromium >/dev/null || missing+=(chromium)
 if [ ${#missing[@]} -gt 0 ]; then
     say "installing Debian packages: ${missing[*]}"
     if [ "$(id -u)" != 0 ]; then
