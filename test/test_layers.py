@@ -23,14 +23,18 @@ ALLOWED: dict[str, set[str]] = {
     "lsu_bags": {"lsu_interfaces", "lsu_common"},
     "lsu_driver": _BASE,
     "lsu_cameras": _BASE,
+    # the simulator: above the cameras (it writes its rig's calibration with their calib_io and is their
+    # ``sim`` source through the lsu.camera_sources entry point), below whoever renders test scenes with it
+    "lsu_sim": _BASE | {"lsu_cameras"},
     "lsu_extract": _BASE,
-    "lsu_reconstruct": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract"},
-    "lsu_faces": _BASE | {"lsu_bags", "lsu_cameras"},
+    "lsu_reconstruct": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_sim"},
+    "lsu_faces": _BASE | {"lsu_bags", "lsu_cameras", "lsu_sim"},
     "lsu_view": _BASE | {"lsu_bags"},
     "lsu_scan": _BASE | {"lsu_bags", "lsu_cameras", "lsu_driver", "lsu_extract", "lsu_reconstruct"},
-    "lsu_accuracy": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces"},
-    "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy"},
-    "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools"},
+    "lsu_accuracy": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces", "lsu_sim"},
+    "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy",
+                          "lsu_sim"},
+    "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools", "lsu_sim"},
 }
 
 

@@ -261,8 +261,8 @@ def simulate_board_scans(out: str | Path, calib_dir: str | Path, boards: Sequenc
     """
     from lsu_bags.ply import write_cloud_ply
     from lsu_cameras.calib_io import calibration_checksum
-    from lsu_cameras.sim import SimulatedRig, load_rig, make_plane
     from lsu_extract.extractor import extract_laser_line
+    from lsu_sim import SimulatedRig, load_rig, make_plane
 
     from .matching import LineArrays
     from .pipeline import merge_snaps, reconstruct_snap

@@ -34,7 +34,7 @@ def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequen
     ``positions``: carriage positions [steps] of the laser snaps (settled, laser on); with ``texture``
     a laser-off pair comes first. Render noise is seeded ``seed + index``. Returns the bag folder.
     """
-    from lsu_cameras.sim import CarriageState, SimulatedRig, load_rig
+    from lsu_sim import CarriageState, SimulatedRig, load_rig
 
     geometry = geometry or load_rig()
     rig = SimulatedRig(geometry, objects, seed=seed)
@@ -90,7 +90,7 @@ def write_board_scan_bags(root: Path | str, poses: Sequence, square_m: float = 0
     ``root/pose<i>/bag``, like `lsu scan --record` leaves them; input for `lsu accuracy --bag`
     (``--square`` = ``square_m`` in mm). Returns the bag folders."""
     from lsu_accuracy.accuracy import board_pose_object
-    from lsu_cameras.sim import load_rig
+    from lsu_sim import load_rig
 
     geometry = geometry or load_rig()
     bags = []

@@ -28,7 +28,7 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> dict[str, float]:
     import open3d as o3d
 
     from lsu_accuracy.accuracy import surface_distances_m
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
 
     cloud = o3d.io.read_point_cloud(str(cloud_ply))
     points = np.asarray(cloud.points, dtype=np.float32)

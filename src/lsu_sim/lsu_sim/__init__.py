@@ -1,8 +1,14 @@
 """The simulated LSU rig (pure: numpy, OpenCV, open3d; no rclpy).
 
+Its own package above ``lsu_cameras`` (whose calibration files it writes): the camera node finds its
+`source` through the ``lsu.camera_sources`` entry point and never imports it; `lsu render` is its ``lsu.commands``.
+
 - `geometry`: cameras, extrinsics, track and laser sheet from ``config/sim_rig.yaml`` (`load_rig`).
 - `scenes`: plane, sphere, calibration chessboard, mesh files; `head`: procedural synthetic heads.
 - `rig`: `SimulatedRig.render(carriage, capture_time_s)` -> `StereoFrame` (+ exact `LaserTruth`).
+- `source`: `SimSource`, the stereo_camera node's ``sim`` source (carriage from ``sim/truth``).
+- `people`: realistic synthetic people (MakeHuman head and shoulders); `depthcam`: a coarse depth camera;
+  `boards`: calibration board poses and their rendered pairs.
 - `physics`: what real laser-line images have: laser speckle (per camera, a new realisation per
   capture), subsurface scattering on skin (objects with ``material="skin"``: the head scenes),
   blooming, an optional Bayer mosaic; each camera's own exposure start (``sensor.capture_offset_s``).
