@@ -210,8 +210,8 @@ def test_unknown_scene_and_missing_mesh_are_clear_errors(tmp_path):
 def test_lsu_render_writes_pairs_and_truth(tmp_path):
     import argparse
 
-    from lsu_sim.cli import cmd_render
     from lsu_sim import LaserTruth
+    from lsu_sim.cli import cmd_render
 
     args = argparse.Namespace(scene="sphere", position=[200.0, 260.0], distance=None, yaw=0.0, pitch=0.0,
                               laser_off=False, vibration=0.0, after_stop=0.005, tau=0.06, freq=25.0, seed=0,
