@@ -92,7 +92,7 @@ PARAMETERS: dict[str, Param] = {
                              "baseline [m]", read_only=R),
     "preview_rate_hz": Param(0.0, "free-running publish rate [Hz]; 0 = capture only", (0.0, 100.0)),
     "capture_timeout_s": Param(2.0, "default capture timeout [s]", (0.01, 600.0)),
-    "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | mesh file", read_only=R),
+    "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | person | person:SEED | mesh file", read_only=R),
     "sim_rig": Param("", "sim: rig geometry YAML (default config/sim_rig.yaml)", read_only=R),
     "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
     "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),

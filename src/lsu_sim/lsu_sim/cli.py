@@ -42,11 +42,11 @@ def register(subparsers: Any) -> None:
     r = subparsers.add_parser("render", help="render simulated stereo pairs with ground truth",
                               description="Render pairs of the simulated rig (config/sim_rig.yaml) and their exact "
                                           "laser ground truth (truth_NNN.npz).")
-    r.add_argument("--scene", default="head", help="plane | sphere | board | head | head:SEED | mesh file")
+    r.add_argument("--scene", default="head", help="plane | sphere | board | head | head:SEED | person | person:SEED (a realistic person) | mesh file")
     r.add_argument("--position", type=float, nargs="*", help="carriage position(s) [steps] (default: centre)")
     r.add_argument("--distance", type=float, default=None, help="subject distance [m] (default from the rig)")
-    r.add_argument("--yaw", type=float, default=0.0, help="head yaw [deg]")
-    r.add_argument("--pitch", type=float, default=0.0, help="head pitch [deg]")
+    r.add_argument("--yaw", type=float, default=0.0, help="head or person yaw [deg]")
+    r.add_argument("--pitch", type=float, default=0.0, help="head or person pitch [deg]")
     r.add_argument("--laser-off", action="store_true", help="render without the laser (texture/calibration frame)")
     r.add_argument("--vibration", type=float, default=0.0, help="post-stop vibration amplitude [steps]")
     r.add_argument("--after-stop", type=float, default=0.005, help="exposure start after the stop [s]")
