@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median, percentile, time_calls, write_result  # noqa: E402
 
 from lsu_cameras.calibration import BoardSpec, calibrate_stereo  # noqa: E402
-from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig  # noqa: E402
-from lsu_cameras.sim.boards import random_board_poses, render_board_pairs  # noqa: E402
+from lsu_sim import CarriageState, SimulatedRig, build_scene, load_rig  # noqa: E402
+from lsu_sim.boards import random_board_poses, render_board_pairs  # noqa: E402
 
 
 def _no_physics(geometry, scene: str) -> SimulatedRig:

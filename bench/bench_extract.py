@@ -1,6 +1,6 @@
 """Benchmark of lsu_extract: speed against np.copy, column error, false and missed rows.
 
-Truth comes from the simulated rig (`lsu_cameras.sim`: ray-cast laser sheet, lens distortion and
+Truth comes from the simulated rig (`lsu_sim`: ray-cast laser sheet, lens distortion and
 blur, shot + read noise, exact per-row laser pixels from the renderer) for the ARCHITECTURE.md
 figures: ``rms_px_default`` / ``rms_px_thesis`` on a plane at 300 mm and a synthetic head at
 default noise, ``false_rows_pct_ambient`` / ``missed_rows_pct_ambient`` on a reddish textured
@@ -38,8 +38,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import open3d as o3d  # noqa: E402
 from common import RESULTS, median, time_calls, write_result  # noqa: E402
 
-from lsu_cameras.sim import RigGeometry, SceneObject, SimulatedRig, build_scene, load_rig, make_plane  # noqa: E402
-from lsu_cameras.sim.scenes import uniform_albedo  # noqa: E402
 from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_extract import devdata  # noqa: E402
 from lsu_extract.detectors import METHODS, SUBPIXEL_METHODS  # noqa: E402
@@ -51,6 +49,8 @@ from lsu_extract.extractor import (  # noqa: E402
     one_opencv_thread,
 )
 from lsu_extract.synthetic import LineScene, render_line  # noqa: E402
+from lsu_sim import RigGeometry, SceneObject, SimulatedRig, build_scene, load_rig, make_plane  # noqa: E402
+from lsu_sim.scenes import uniform_albedo  # noqa: E402
 
 one_opencv_thread()
 DEFAULT_SCENE = LineScene()  # 640x480, FWHM 4 px, ambient 10 %, reddish texture, read 1 DN + shot 0.05 DN/DN
@@ -509,7 +509,7 @@ def main() -> int:
     units["bench_wall_s"] = "s"
     frame_counts = {name: len(f) for name, f in frames.items()}
     notes = (
-        f"Default method {DEFAULT_METHOD}. RIG (lsu_cameras.sim, config/sim_rig.yaml, default noise: read 1.2 DN, "
+        f"Default method {DEFAULT_METHOD}. RIG (lsu_sim, config/sim_rig.yaml, default noise: read 1.2 DN, "
         "full well 6000 e-, PSF 0.5 px; truth = the renderer's per-row laser pixels, each detection compared with "
         f"the nearest true crossing of its row; errors beyond {MATCH_PX:g} px are false detections, not RMS): "
         f"rms_px_default/thesis over {frame_counts['plane']} plane (300 mm) + {frame_counts['head']} head (head:0) "

@@ -1,13 +1,13 @@
 """Benchmark of lsu_faces on realistic synthetic people: identification, open-set errors, nose tip, determinism.
 
-Data: ``lsu_cameras.sim.people`` (MakeHuman's CC0 head-and-shoulders mesh with seeded identity morphs,
+Data: ``lsu_sim.people`` (MakeHuman's CC0 head-and-shoulders mesh with seeded identity morphs,
 hair volume, expressions, glasses, a raised fist), scanned by two sensors:
 
 - the LSU rig (``lsu_faces.synthetic.fast_scan``: left-camera ray casting, a laser sheet per carriage
   position, laser shadow and right-camera visibility, noise along the ray at the rig's speckle limit
   (``lsu_accuracy.accuracy.rig_speckle_limit`` for config/sim_rig.yaml: ~0.1 mm per point at 300 mm,
   what the rendered rig measures on a plane), 10 % of the points dropped);
-- a coarse consumer depth camera (``lsu_cameras.sim.depthcam``: 640 x 480 at 850 mm, 4 mm depth steps,
+- a coarse consumer depth camera (``lsu_sim.depthcam``: 640 x 480 at 850 mm, 4 mm depth steps,
   1.5 mm noise, holes at silhouettes and in projector shadows, hair returning 60 % of its pixels).
 
 Gallery: one frontal, neutral scan per identity (each person's own hair). Probes: two per identity and
@@ -34,13 +34,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median, write_result  # noqa: E402
 
-from lsu_cameras.sim import load_rig  # noqa: E402
-from lsu_cameras.sim.depthcam import depth_scan  # noqa: E402
-from lsu_cameras.sim.people import PersonSpec, make_person, person_objects  # noqa: E402
 from lsu_faces.face import NotAFaceError, embed_face, nose_tip_protrusion  # noqa: E402
 from lsu_faces.gallery import DEFAULT_FALSE_ACCEPT  # noqa: E402
 from lsu_faces.signature import ImpostorModel, compare, make_signature  # noqa: E402
 from lsu_faces.synthetic import fast_scan  # noqa: E402
+from lsu_sim import load_rig  # noqa: E402
+from lsu_sim.depthcam import depth_scan  # noqa: E402
+from lsu_sim.people import PersonSpec, make_person, person_objects  # noqa: E402
 
 IDENTITIES = int(os.environ.get("LSU_BENCH_FACES_IDS", "16"))
 PROBES = 2
@@ -239,7 +239,7 @@ def main() -> None:
         units[k] = ("%" if "_pct" in k else "mm" if "_mm" in k else "ms" if "_ms" in k else "s" if k.endswith("_s")
                     else "1")
     notes = (f"{IDENTITIES} synthetic people (MakeHuman CC0 head+shoulders with seeded identity morphs, hair volume; "
-             f"lsu_cameras.sim.people), gallery = 1 frontal neutral scan each, {PROBES} probes per person and sensor "
+             f"lsu_sim.people), gallery = 1 frontal neutral scan each, {PROBES} probes per person and sensor "
              f"(smile / open mouth / surprise, yaw +-25, pitch +-10, glasses on 1/3, a fist before the chin on 1/5). "
              f"Sensors: the LSU rig (fast path: ray casting with laser shadow and right-camera visibility, "
              f"{NOISE_M * 1000:.2f} mm noise (the rig's speckle limit), {DROP * 100:.0f} % dropped, carriage step {STEP}) and a "

@@ -1,7 +1,7 @@
 """Benchmark of lsu_reconstruct: end-to-end accuracy on the simulated rig, and the time of one snap.
 
 Rig figures (the ARCHITECTURE.md names: ``plane_sigma_mm_300``, ``plane_bias_mm_300``,
-``sphere_radius_err_mm``, ``thesis_plane_sigma_mm_300``, ...): `lsu_cameras.sim` renders stereo
+``sphere_radius_err_mm``, ``thesis_plane_sigma_mm_300``, ...): `lsu_sim` renders stereo
 pairs of a plane at 250/300/350 mm and of its 6 cm sphere at every 4th carriage step of the track
 (default noise, settled carriage), `lsu_extract` finds the laser lines (its default sub-pixel
 method, and the thesis' pixel detector), the matcher uses ``config/calibration/sim`` (the rig's
@@ -30,7 +30,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median, time_calls, write_result  # noqa: E402
 
-from lsu_cameras.sim import SimulatedRig, build_scene, load_rig  # noqa: E402
 from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_extract.detectors import SUBPIXEL_METHODS  # noqa: E402
 from lsu_extract.extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line  # noqa: E402
@@ -39,6 +38,7 @@ from lsu_reconstruct.matching import LineArrays, MatchParams  # noqa: E402
 from lsu_reconstruct.pipeline import reconstruct_snap  # noqa: E402
 from lsu_reconstruct.stereo import StereoModel  # noqa: E402
 from lsu_reconstruct.triangulate import METHODS  # noqa: E402
+from lsu_sim import SimulatedRig, build_scene, load_rig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SIM_CALIBRATION = ROOT / "config" / "calibration" / "sim"
@@ -357,7 +357,7 @@ def main() -> None:
               "rig_extract_rms_over_speckle_limit_300"):
         units[k] = "ratio"
     default = MatchParams()
-    notes = (f"RIG figures (unprefixed, the ARCHITECTURE.md names): lsu_cameras.sim with config/sim_rig.yaml "
+    notes = (f"RIG figures (unprefixed, the ARCHITECTURE.md names): lsu_sim with config/sim_rig.yaml "
              f"(its physics on: laser speckle, crosstalk, blooming; default sensor noise, settled carriage, render "
              f"seed {RIG_SEED} + step), carriage at steps "
              f"{RIG_STEPS.start}..{RIG_STEPS.stop - 1} every {RIG_STEPS.step} (snaps where the laser misses the "

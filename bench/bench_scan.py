@@ -517,7 +517,7 @@ REPLAY_NOTES = (
 
 def sim_bag(tmp: Path) -> Path:
     """A recorded-like scan bag of synthetic head 7, 0..470 step 2 with the texture pair, without the graph."""
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
     from lsu_testing.simbags import write_sim_scan_bag
 
     geometry = load_rig()
@@ -709,7 +709,7 @@ def lines_on_face(folder: Path, scene: str = "head:7") -> dict[int, int]:
 
     from lsu_accuracy.accuracy import surface_distances_m
     from lsu_bags.ply import read_ply
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
 
     record = json.loads((folder / "scan.json").read_text())
     position = {int(s["index"]): int(s["position_steps"]) for s in record["snaps"]}
@@ -802,10 +802,10 @@ def sweep_accuracy() -> dict:
     """Part 5, without ROS: RMS to the rendered head of sweeps against stop-snap, same scene and physics."""
     from lsu_accuracy.accuracy import surface_rms_mm
     from lsu_accuracy.sweep_sim import reconstruct_rendered, render_sweep, stopsnap_scene
-    from lsu_cameras.sim import build_scene, load_rig
     from lsu_config import config_dir
     from lsu_reconstruct.laser_sheet import read_laser_yaml
     from lsu_reconstruct.stereo import StereoModel
+    from lsu_sim import build_scene, load_rig
 
     calib = config_dir() / "calibration" / "sim"
     model, sheet = StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml")

@@ -69,7 +69,7 @@ def timeline(bag: Path) -> str:
 
 def late_right_camera_rig(folder: Path) -> Path:
     """The packaged sim rig with the right camera exposing ``OFFSET_S`` after the left."""
-    from lsu_cameras.sim.geometry import default_rig_path
+    from lsu_sim.geometry import default_rig_path
 
     text = default_rig_path().read_text()
     assert "capture_offset_s: 0.0 " in text
@@ -80,7 +80,7 @@ def late_right_camera_rig(folder: Path) -> Path:
 
 def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path, ros_context, ros_node):
     from lsu_accuracy.accuracy import surface_distances_m
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
 
     port = str(tmp_path / "gp32")
     rig = late_right_camera_rig(tmp_path)

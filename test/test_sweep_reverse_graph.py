@@ -35,9 +35,9 @@ def by_frame(msg: PointCloud2) -> dict[int, AnyArray]:
 
 def test_a_sweep_runs_back_from_the_end_it_stands_at_and_otherwise_from_the_nearer_end(tmp_path, ros_context):
     from lsu_accuracy.accuracy import surface_distances_m
-    from lsu_cameras.sim import build_scene, load_rig
     from lsu_reconstruct.node import image_to_array
     from lsu_reconstruct.pipeline import colour_at
+    from lsu_sim import build_scene, load_rig
 
     graph = LaunchedProcess(["launch", "sim", f"port:={tmp_path / 'gp32'}", "scene:=plane",
                              f"output_dir:={tmp_path / 'scans'}"])

@@ -15,7 +15,7 @@ setup(
     zip_safe=True,
     maintainer="LSU developers",
     maintainer_email="lsu-dev@example.org",
-    description="Stereo camera sources (v4l2, image folders, simulated rig), stereo calibration and the stereo_camera node.",
+    description="Stereo camera sources (v4l2, image folders; more as lsu.camera_sources plug-ins, e.g. lsu_sim), stereo calibration and the stereo_camera node.",
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={

@@ -6,7 +6,7 @@ against 68.2 / 95.4 / 99.7 %), their mean and standard deviation against the mea
 left camera (straight-line fits), and the effect of Laplacian smoothing (30 iterations at 0.1). It
 quoted 1.4 mm at 30 cm: 3 sigma (0.9 mm) plus a 0.5 mm bias. We do the same here:
 
-- `scan_scene`: a stop-snap scan of any `lsu_cameras.sim` scene, through *both* chains in the same
+- `scan_scene`: a stop-snap scan of any `lsu_sim` scene, through *both* chains in the same
   run: ours (the default sub-pixel extractor + sub-pixel matching) and the thesis chain (the thesis'
   pixel detector + nearest-pixel match, no row smoothing). Reusable by any study of the sim rig.
 - `plane_pose_object`: a textured flat board at a distance, yawed and pitched about the rig centre.
@@ -155,8 +155,8 @@ def _rotation(axis: AnyArray, deg: float) -> AnyArray:
 
 
 def plane_pose_object(geometry, pose: Pose):
-    """The flat textured board of one pose (an `lsu_cameras.sim.SceneObject`; extra: point, normal)."""
-    from lsu_cameras.sim import make_plane
+    """The flat textured board of one pose (an `lsu_sim.SceneObject`; extra: point, normal)."""
+    from lsu_sim import make_plane
 
     x, y, z = geometry.rig_axes
     center = geometry.rig_center + pose.distance_m * z
@@ -167,7 +167,7 @@ def plane_pose_object(geometry, pose: Pose):
 def board_pose_object(geometry, pose: Pose, square_m: float = 0.02, inner_corners: tuple[int, int] = (9, 6)):
     """The sim's chessboard at a pose: centre ``pose.distance_m`` in front of the rig, tilted like
     `plane_pose_object`; ``extra["pose_R"]`` / ``extra["pose_t"]`` hold its true pose (left frame)."""
-    from lsu_cameras.sim import make_board
+    from lsu_sim import make_board
 
     x, y, z = geometry.rig_axes
     R = _rotation(x, pose.pitch_deg) @ _rotation(y, pose.yaw_deg) @ geometry.rig_axes.T
@@ -231,7 +231,7 @@ def scan_scene(model, geometry, objects: Sequence, step: int, seed: int,
     Each pair is rendered once (settled carriage, laser on, render noise seeded ``seed + step``) and
     both chains see the same pixels, so their difference is the chain alone.
     """
-    from lsu_cameras.sim import SimulatedRig
+    from lsu_sim import SimulatedRig
 
     rig = SimulatedRig(geometry, objects, seed=seed)
     runner = ChainRunner(model, chains)
@@ -452,10 +452,10 @@ def rig_speckle_limit(geometry, distance_m: float = REFERENCE_DISTANCE_M, with_l
 
 def run_study(config: StudyConfig = StudyConfig(), progress: Callable[[str], None] = lambda s: None) -> dict:
     """The whole study on the simulated rig; returns a JSON-ready dict (see `write_report`)."""
-    from lsu_cameras.sim import build_scene, load_rig
     from lsu_config import config_dir
     from lsu_faces.smoothing import SmoothParams
     from lsu_reconstruct.stereo import StereoModel
+    from lsu_sim import build_scene, load_rig
 
     config.check()
     t_start = time.perf_counter()

@@ -73,8 +73,8 @@ def render_sweep(geometry, objects: Sequence, rate_steps_s: float, fps: float = 
                  end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0, position_rate_hz: float = 20.0,
                  seed: int = 0, frames: int | None = None) -> RenderedSweep:
     """Render a sweep (module doc) and extract both lines of every frame; ``frames`` limits the count (tests)."""
-    from lsu_cameras.sim import CarriageState, SimulatedRig
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame
+    from lsu_sim import CarriageState, SimulatedRig
 
     rig = SimulatedRig(geometry, objects, seed=seed)
     rig.set_capture_timing(offset_s, jitter_s)
@@ -137,10 +137,10 @@ def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int 
     With ``sheet``, ``checked_xyz`` also holds the stop-snap points that pass the sweep's check against
     the sheet at the snap's position (what the sweep's stereo path keeps), for a like-for-like comparison.
     """
-    from lsu_cameras.sim import CarriageState, SimulatedRig
     from lsu_reconstruct.matching import MatchParams
     from lsu_reconstruct.pipeline import reconstruct_snap
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
+    from lsu_sim import CarriageState, SimulatedRig
 
     rig = SimulatedRig(geometry, objects, seed=seed)
     xyz: list[AnyArray] = []

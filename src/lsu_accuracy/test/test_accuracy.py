@@ -71,7 +71,7 @@ def test_default_poses_span_the_range_and_include_300_mm_facing():
 
 
 def test_board_pose_normal_is_tilted_by_the_pose_angles():
-    from lsu_cameras.sim import load_rig
+    from lsu_sim import load_rig
 
     g = load_rig()
     z = g.rig_axes[2]
@@ -180,7 +180,7 @@ BOARD_POSES = (A.Pose(0.26), A.Pose(0.30), A.Pose(0.35, yaw_deg=15.0, pitch_deg=
 @pytest.fixture(scope="module")
 def board_bags(tmp_path_factory):
     """One scan bag per board pose, written from the simulated rig; the renderer's boards are the truth."""
-    from lsu_cameras.sim import load_rig
+    from lsu_sim import load_rig
     from lsu_testing.simbags import write_board_scan_bags
 
     root = tmp_path_factory.mktemp("board_scans")
@@ -249,7 +249,7 @@ def test_accuracy_from_board_bags_end_to_end(board_study):
     assert f["three_sigma_mm_300_smoothed"] < f["thesis_three_sigma_mm_300"]
     # the bags carry laser speckle: the raw sigma at the reference pose within 1.5 x the rig's speckle
     # limit at that distance (the 0.15 mm target of the clean rig is below what speckle allows)
-    from lsu_cameras.sim import load_rig
+    from lsu_sim import load_rig
 
     limit = A.rig_speckle_limit(load_rig(), f["reference_distance_mm"] / 1000.0)["depth_mm"]
     reference = next(p for p in r["poses"] if p["label"] == r["reference_pose"])
@@ -260,7 +260,7 @@ def test_accuracy_from_board_bags_end_to_end(board_study):
 
 def test_board_bag_without_images_or_board_fails_clearly(tmp_path, capsys):
     from lsu_bags.bags import BagWriter
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
     from lsu_testing.simbags import EVENTS_TOPIC, write_sim_scan_bag
 
     with BagWriter(tmp_path / "events_only" / "bag") as bag:

@@ -4,8 +4,10 @@ Publishes ``stereo/{left,right}/image_raw`` (bgr8, one stamp per pair) and with 
 ``stereo/{left,right}/camera_info`` (same header, same QoS, as ROS camera drivers do),
 ``stereo/extrinsics`` and ``/tf_static`` (the rig frames of the calibration, see `lsu_cameras.frames`;
 both transient-local), serves ``stereo/capture`` (a fresh pair, published and/or returned) and
-optionally previews at ``preview_rate_hz``. The ``sim`` source follows ``sim/truth`` (the GP32
-emulator) and falls back to the ``carriage_position_steps`` parameter without it.
+optionally previews at ``preview_rate_hz``. Sources other than ``v4l2`` and ``folder`` are plug-ins
+(`lsu_cameras.sources.open_plugin_source`): the simulated rig's ``sim`` (package lsu_sim) follows
+``sim/truth`` (the GP32 emulator), which this node reads for it, and falls back to the
+``carriage_position_steps`` parameter without it.
 
 ``stereo/stream`` (StreamStereo) runs the cameras free: a streaming thread publishes a pair per frame
 slot (clocked sources: stamp ``t_k = t0 + k * period`` exactly; v4l2: the buffer stamps) and, with
@@ -28,7 +30,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray
@@ -57,13 +59,10 @@ from .frames import TrackGeometry, rig_transforms, transform_msg
 from .paths import config_dir
 from .polled import PolledGroup, take_all
 from .profiles import ProfileError, load_profile
-from .sources import CameraError, FolderSource, SimSource, StereoPair, StereoSource, V4l2Source
+from .sources import CameraError, FolderSource, SourceContext, StereoPair, StereoSource, V4l2Source, open_plugin_source
 from .stream import DropCounter, LagStats, TruthHistory, frame_period_ns, slot_stamp_ns
 
-if TYPE_CHECKING:  # the simulator is imported only when the node simulates
-    from .sim import CarriageState
-
-SOURCES = ("sim", "v4l2", "folder")
+SOURCES = ("sim", "v4l2", "folder")  # sim: the lsu.camera_sources plug-in of lsu_sim
 
 
 image_msg = bgr_to_msg  # a bgr8 sensor_msgs/Image of an HxWx3 uint8 array
@@ -93,7 +92,7 @@ PARAMETERS: dict[str, Param] = {
                              "baseline [m]", read_only=R),
     "preview_rate_hz": Param(0.0, "free-running publish rate [Hz]; 0 = capture only", (0.0, 100.0)),
     "capture_timeout_s": Param(2.0, "default capture timeout [s]", (0.01, 600.0)),
-    "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | mesh file", read_only=R),
+    "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | person | person:SEED | mesh file", read_only=R),
     "sim_rig": Param("", "sim: rig geometry YAML (default config/sim_rig.yaml)", read_only=R),
     "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
     "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),
@@ -114,10 +113,6 @@ START_PAST_LIMIT_S = 1.0  # a stream start further in the past is refused (clock
 RENDER_AHEAD = 2
 NO_WAIT = Duration(nanoseconds=0)
 ACK_POLL_S = 0.0005  # between asking whether every image reader acknowledged a pair (see `_wait_for_readers`)
-# a simulated pair of a stream is rendered this long after its exposures ended [s]: the emulator publishes its
-# exact samples of a motion's start or stop from its executor, on a busy host tens of ms after they happened,
-# and a pair rendered before they are in shows the carriage where it was not
-TRUTH_DELAY_S = 0.1
 TRUTH_DEPTH = 64          # sim/truth samples held by DDS between two reads (50 Hz x > 1 s of rendering)
 
 
@@ -255,51 +250,10 @@ class StereoCameraNode(LsuNode):
     def _now_ns(self) -> int:
         return int(self.get_clock().now().nanoseconds)
 
-    def _sim_carriage(self, t_ns: int) -> CarriageState:
-        from .sim import CarriageState
-
-        truth, later = self._truth_at(t_ns)
-        if truth is None:
-            return CarriageState(float(self.get_parameter("carriage_position_steps").value),
-                                 bool(self.get_parameter("laser_on").value))
-        stamp = stamps.to_seconds(truth.header.stamp)
-        start = next((s for s in later if s.moving and s.velocity_steps_per_s != 0.0), None)
-        if (not truth.moving or truth.velocity_steps_per_s == 0.0) and start is not None:
-            # at rest at t, moving before the later camera's exposure ends: rest until the start's sample
-            truth, stamp, later = start, stamps.to_seconds(start.header.stamp), later[later.index(start) + 1:]
-            started: float | None = stamp
-        else:
-            started = None
-        if truth.moving:
-            # the carriage keeps going between samples: the renderer follows it through each camera's
-            # own exposure (motion blur) from the sample's position and time, up to a stop in that time
-            stop = next((s for s in later if not s.moving), None)
-            if stop is None:
-                return CarriageState(truth.position_steps, truth.laser_on,
-                                     velocity_steps_per_s=truth.velocity_steps_per_s, position_time_s=stamp,
-                                     motion_start_s=started)
-            return CarriageState(truth.position_steps, truth.laser_on, velocity_steps_per_s=truth.velocity_steps_per_s,
-                                 position_time_s=stamp, motion_start_s=started,
-                                 motion_stop_s=stamps.to_seconds(stop.stopped_at) or stamps.to_seconds(stop.header.stamp),
-                                 vibration_amplitude_steps=stop.vibration_amplitude_steps,
-                                 vibration_tau_s=stop.vibration_tau_s, vibration_freq_hz=stop.vibration_freq_hz)
-        stopped = stamps.to_seconds(truth.stopped_at)
-        return CarriageState(truth.position_steps, truth.laser_on, stopped if stopped > 0 else None,
-                             truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
-
     def _open_source(self) -> None:
         kind = str(self.get_parameter("source").value)
         try:
-            if kind == "sim":
-                from .sim import SimulatedRig, build_scene, load_rig
-
-                rig_path = str(self.get_parameter("sim_rig").value) or None
-                geometry = load_rig(rig_path)
-                scene = build_scene(str(self.get_parameter("sim_scene").value), geometry)
-                rig = SimulatedRig(geometry, scene, seed=int(self.get_parameter("sim_seed").value))
-                self.source = SimSource(rig, self._sim_carriage, clock=lambda: stamps.ns_to_seconds(self._now_ns()),
-                                        seed=int(self.get_parameter("sim_seed").value))
-            elif kind == "v4l2":
+            if kind == "v4l2":
                 profile_name = str(self.get_parameter("profile").value)
                 profile = load_profile(profile_name) if profile_name else None
                 size = (int(self.get_parameter("image_width").value), int(self.get_parameter("image_height").value))
@@ -308,7 +262,9 @@ class StereoCameraNode(LsuNode):
             elif kind == "folder":
                 self.source = FolderSource(str(self.get_parameter("folder").value))
             else:
-                raise CameraError(f"unknown source '{kind}': use one of {', '.join(SOURCES)}")
+                context = SourceContext(parameter=lambda name: self.get_parameter(name).value,
+                                        clock=lambda: stamps.ns_to_seconds(self._now_ns()), truth_at=self._truth_at)
+                self.source = open_plugin_source(kind, context)
         except (CameraError, ProfileError, ValueError, OSError) as exc:
             self.source = None
             self._fail(f"camera source '{kind}' not available: {exc}")
@@ -380,7 +336,7 @@ class StereoCameraNode(LsuNode):
             return self.source.grab_pair(timeout_s)
 
     def _stamp(self, pair: StereoPair) -> Time:
-        if isinstance(self.source, SimSource):  # sim time is already the node's clock
+        if self.source is not None and self.source.stamps_on_node_clock:  # e.g. sim time: already the node's clock
             sec = pair.time_s
         else:  # device sources report wall time; stamp with the node clock at the same instant
             sec = stamps.ns_to_seconds(self.get_clock().now().nanoseconds)
@@ -612,8 +568,7 @@ class StereoCameraNode(LsuNode):
     def _clocked_pairs(self, stream: _Stream, source: StereoSource) -> Iterator[tuple[int, int, StereoPair]]:
         """The render stage of `_run_clocked`: (index, stamp, pair) per slot in order, each once its time has come."""
         ready_ns = stamps.seconds_to_ns(source.ready_after_s)
-        if isinstance(source, SimSource):
-            ready_ns += stamps.seconds_to_ns(TRUTH_DELAY_S)
+        ready_ns += stamps.seconds_to_ns(source.render_delay_s)
         index = 0
         while not stream.frames or index < stream.frames:
             t_ns = slot_stamp_ns(stream.t0_ns, stream.period_ns, index)

@@ -1,9 +1,12 @@
-"""Stereo camera sources behind one interface: ``v4l2`` (OpenCV), ``folder`` (recorded pairs), ``sim``.
+"""Stereo camera sources behind one interface: ``v4l2`` (OpenCV), ``folder`` (recorded pairs) and plug-ins.
 
 A source returns a `StereoPair`: two BGR images exposed *after* the request, the capture time and
 the measured left/right skew. Streams (`lsu_cameras.stream`): a *clocked* source (sim, folder) makes
 the pair of a given frame slot (`StereoSource.pair_at`); a free-running one (v4l2) delivers pairs
 at the devices' rate with their buffer stamps (`StereoSource.start_stream` / `next_pair`).
+Other sources are plug-ins: a package registers a factory under the ``lsu.camera_sources`` entry point
+group (the simulated rig: ``sim = lsu_sim.source:open_sim_source``), found by name with `open_plugin_source`,
+so that this package never imports them.
 Pure module (no rclpy): the node maps it onto topics and services.
 """
 
@@ -13,19 +16,17 @@ import abc
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import cv2
 
 from lsu_common.arrays import AnyArray
-from lsu_common.stamps import ns_to_seconds, seconds_to_ns
+from lsu_common.stamps import ns_to_seconds
 
 from .profiles import Profile, apply_profile
-from .stream import buffer_stamp_s, frame_seed
-
-if TYPE_CHECKING:  # the simulator is imported only when a SimSource is made
-    from .sim import CarriageState, SimulatedRig
+from .stream import buffer_stamp_s
 
 
 class CameraError(RuntimeError):
@@ -51,6 +52,12 @@ class StereoPair:
 
 class StereoSource(abc.ABC):
     """A pair of cameras."""
+
+    #: its pairs' ``time_s`` is the node's own clock (a simulated rig), not a device's wall time
+    stamps_on_node_clock: bool = False
+    #: clocked sources: how much later than `ready_after_s` a stream makes a frame (a source that renders from
+    #: truth published late, see lsu_sim.source) [s]
+    render_delay_s: float = 0.0
 
     @property
     @abc.abstractmethod
@@ -278,56 +285,33 @@ class V4l2Source(StereoSource):
         self._caps = []
 
 
-class SimSource(StereoSource):
-    """The simulated rig; ``carriage(t_ns)`` says where the carriage is at time t_ns (integer ns: from
-    /lsu/sim/truth or a parameter)."""
+PLUGIN_GROUP = "lsu.camera_sources"
 
-    def __init__(self, rig: SimulatedRig, carriage: Callable[[int], CarriageState],
-                 clock: Callable[[], float] = time.time, seed: int = 0) -> None:
-        self.rig = rig
-        self.carriage = carriage
-        self.clock = clock
-        self.seed = int(seed)
 
-    @property
-    def image_size(self) -> tuple[int, int]:
-        return self.rig.geometry.image_size
+@dataclass
+class SourceContext:
+    """What a plug-in source gets from the node that opens it (no rclpy types: plug-ins stay pure)."""
 
-    @property
-    def exposure_s(self) -> float:
-        return self.rig.geometry.sensor.exposure_s
+    parameter: Callable[[str], Any]   # the node's parameter value by name
+    clock: Callable[[], float]        # the node's clock [s]
+    # the ``sim/truth`` sample (lsu_interfaces/SimTruth) that held at t_ns (None before the first) and those after
+    # it up to the end of the pair's exposures
+    truth_at: Callable[[int], tuple[Any, list[Any]]]
 
-    @property
-    def ready_after_s(self) -> float:
-        sensor = self.rig.geometry.sensor
-        # the later camera's exposure end (jitter: 3 sigma), as a real frame would arrive
-        return max(sensor.capture_offset_s, 0.0) + 3.0 * sensor.capture_jitter_s + sensor.exposure_s
 
-    def _pair(self, t_ns: int, seed: int | None, parallel: bool | None = None) -> StereoPair:
-        t = ns_to_seconds(t_ns)
-        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
-        # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
-        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed, parallel=parallel)
-        left_start, right_start = frame.exposure_start_s
-        assert left_start is not None and right_start is not None  # a capture time gives both starts
-        return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
+def plugin_source_names() -> list[str]:
+    """The names registered under ``lsu.camera_sources``."""
+    return sorted({ep.name for ep in entry_points(group=PLUGIN_GROUP)})
 
-    def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
-        """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
-        seeded by the sim seed and ``index`` (`frame_seed`).
 
-        Rendered on the calling thread only: a stream renders on its own thread beside the publishing
-        one and the rest of the graph, where the rig's second render thread costs CPU and gains no frames;
-        a single capture (`grab_pair`) keeps the rig's default for its latency.
-        """
-        return self._pair(stamp_ns, frame_seed(self.seed, index), parallel=False)
-
-    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
-        started = time.monotonic()
-        pair = self._pair(seconds_to_ns(self.clock()), None)
-        # a real frame is not there before its exposure has ended: a render faster than the
-        # exposure must not make a simulated scan faster than the unit could be
-        remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)
-        if remaining > 0:
-            time.sleep(remaining)
-        return pair
+def open_plugin_source(kind: str, context: SourceContext) -> StereoSource:
+    """The plug-in source ``kind`` opened with ``context`` (CameraError when no installed package offers it)."""
+    found = [ep for ep in entry_points(group=PLUGIN_GROUP) if ep.name == kind]
+    if not found:
+        names = ", ".join(["v4l2", "folder", *plugin_source_names()])
+        raise CameraError(f"unknown source '{kind}': use one of {names} (plug-in sources are the packages' "
+                          f"'{PLUGIN_GROUP}' entry points; is the package that offers '{kind}' installed?)")
+    source = found[0].load()(context)
+    if not isinstance(source, StereoSource):
+        raise CameraError(f"source plug-in '{kind}' ({found[0].value}) made a {type(source).__name__}, not a StereoSource")
+    return source

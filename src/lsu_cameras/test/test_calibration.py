@@ -9,8 +9,8 @@ import pytest
 from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.calibration import BoardSpec, CalibrationError, calibrate_stereo, find_board, load_pairs
 from lsu_cameras.cli import cmd_calibrate
-from lsu_cameras.sim import load_rig
-from lsu_cameras.sim.boards import random_board_poses, render_board_pairs
+from lsu_sim import load_rig
+from lsu_sim.boards import random_board_poses, render_board_pairs
 
 BOARD = BoardSpec(9, 6, 0.020)
 

@@ -6,7 +6,7 @@ import pytest
 from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.frames import LASER_FRAME, LASER_ORIGIN_FRAME, TrackGeometry, laser_transform, rig_transforms
 from lsu_cameras.paths import config_dir
-from lsu_cameras.sim import load_rig
+from lsu_sim import load_rig
 
 
 def _to_left_optical(transforms, frame):

@@ -23,8 +23,8 @@ from lsu_cameras.live import (
     run_live_calibration,
 )
 from lsu_cameras.node import StereoCameraNode
-from lsu_cameras.sim import load_rig
-from lsu_cameras.sim.boards import random_board_poses, render_board_pairs
+from lsu_sim import load_rig
+from lsu_sim.boards import random_board_poses, render_board_pairs
 
 BOARD = BoardSpec(9, 6, 0.020)
 SIZE = (640, 480)

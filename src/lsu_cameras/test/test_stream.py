@@ -1,10 +1,8 @@
 """Stream bookkeeping without ROS: frame clock, drop accounting by stamps, buffer stamps, truth history."""
 
-import math
 
 import pytest
 
-from lsu_cameras.sim import CarriageState
 from lsu_cameras.stream import (
     DropCounter,
     DropTally,
@@ -92,44 +90,6 @@ def test_a_pair_some_reader_did_not_acknowledge_is_dropped_not_published():
     assert counter.tally == DropTally(expected=5, published=3, dropped=2) and counter.unacknowledged == 1
 
 
-def test_a_motion_starting_or_stopping_within_the_exposures_rests_outside_it():
-    # sample at t=1.0 s at 100 steps, 60 steps/s; the motion started at 0.9 s and stops at 1.2 s
-    state = CarriageState(100.0, velocity_steps_per_s=60.0, position_time_s=1.0, motion_start_s=0.9,
-                          motion_stop_s=1.2, vibration_amplitude_steps=0.5, vibration_tau_s=0.04, vibration_freq_hz=20.0)
-    d = state.displacement_steps([0.8, 0.9, 1.1, 1.2, 1.2 + 0.025, 5.0])
-    assert d[:3] == pytest.approx([-6.0, -6.0, 6.0])  # at rest at 94 before the start
-    assert d[3] == pytest.approx(12.0 + 0.5)  # the stop at 112, and its vibration from there
-    assert d[4] == pytest.approx(12.0 + 0.5 * math.exp(-0.025 / 0.04) * math.cos(math.pi)) and d[5] == pytest.approx(12.0)
-
-
 def test_frame_seeds_depend_on_the_seed_and_index_only():
     assert frame_seed(0, 3) == frame_seed(0, 3)
     assert len({frame_seed(s, k) for s in (0, 1) for k in range(50)}) == 100
-
-
-def test_a_sim_stream_frame_is_a_function_of_seed_index_and_truth():
-    import numpy as np
-
-    from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig
-    from lsu_cameras.sources import SimSource
-
-    geometry = load_rig()
-    scene = build_scene("plane", geometry)
-
-    def sweep(t_ns):  # a constant-rate sweep: the truth every source below is given
-        return CarriageState(200.0, velocity_steps_per_s=120.0, position_time_s=1000.0)
-
-    def source(rig_seed):
-        rig = SimulatedRig(geometry, scene, seed=rig_seed)
-        rig.set_capture_timing(0.05, 0.003)
-        return SimSource(rig, sweep, seed=5)
-
-    a, b = source(0), source(1)  # the rig's own generator (single captures) plays no part
-    pairs = [a.pair_at(1_000_100_000_000, 7), b.pair_at(1_000_100_000_000, 7), a.pair_at(1_000_100_000_000, 8)]
-    assert np.array_equal(pairs[0].left, pairs[1].left) and np.array_equal(pairs[0].right, pairs[1].right)
-    assert (pairs[0].left_offset_s, pairs[0].skew_s) == (pairs[1].left_offset_s, pairs[1].skew_s)
-    assert not np.array_equal(pairs[0].left, pairs[2].left)  # each frame its own noise and start jitter
-    assert pairs[0].left_offset_s != pairs[2].left_offset_s
-    # the starts follow the rig: right ~50 ms after the left, each jittered by a few ms
-    assert abs(pairs[0].right_offset_s - 0.05) < 0.02 and abs(pairs[0].left_offset_s) < 0.015
-    assert pairs[0].time_s == 1000.1 and a.ready_after_s == pytest.approx(0.05 + 0.009 + 0.020)

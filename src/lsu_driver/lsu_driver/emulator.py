@@ -31,12 +31,11 @@ import select
 import socket
 import threading
 import time
-import tty
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 from . import protocol as p
+from .pty_unit import ControlServer, PtyUnit, close_pty, open_pty
 
 # the thesis: 470 pulses at low speed, 467 at high speed for the same physical track
 _HIGH_SPEED_GAIN = 470.0 / 467.0 - 1.0
@@ -127,74 +126,6 @@ def stop_vibration_amplitude(config: EmulatorConfig, rate: float) -> float:
     return config.vibration_amplitude_steps * rate / 200.0
 
 
-def open_pty(link: Path | None) -> tuple[int, int, str]:
-    """A raw pty pair (master, slave, slave path); ``link`` (if given) points at the slave."""
-    master, slave = os.openpty()
-    tty.setraw(slave)  # bytes pass unchanged: no echo, no CR/LF translation
-    path = os.ttyname(slave)
-    if link is not None:
-        tmp = link.with_name(link.name + ".tmp")
-        if tmp.is_symlink() or tmp.exists():
-            tmp.unlink()
-        tmp.symlink_to(path)
-        os.replace(tmp, link)  # atomic: a client never sees a missing link during replug
-    return master, slave, path
-
-
-def close_pty(master: int | None, slave: int | None, link: Path | None, path: str) -> None:
-    """Close a pair from `open_pty` and remove ``link`` if it still points at ``path``."""
-    for fd in (master, slave):
-        if fd is not None:
-            try:
-                os.close(fd)
-            except OSError:
-                pass  # already closed: nothing left to release
-    if link is not None and link.is_symlink() and os.readlink(link) == path:
-        link.unlink()
-
-
-class ControlServer:
-    """A UNIX socket that answers JSON-line requests with ``handler(request)`` (one thread)."""
-
-    def __init__(self, path: Path, handler: Callable[[dict[str, object]], dict[str, object]]) -> None:
-        self.path = path
-        self._handler = handler
-        if path.exists() or path.is_symlink():
-            path.unlink()
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.bind(str(path))
-        self._sock.listen(4)
-        self._sock.settimeout(0.2)
-        self._running = True
-        self._thread = threading.Thread(target=self._serve, name="gp32-control", daemon=True)
-        self._thread.start()
-
-    def close(self) -> None:
-        self._running = False
-        self._sock.close()
-        if self.path.exists():
-            self.path.unlink()
-
-    def _serve(self) -> None:
-        while self._running:
-            try:
-                conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with conn, conn.makefile("rwb") as stream:
-                for raw in stream:
-                    try:
-                        request = json.loads(raw)
-                        answer = self._handler(request) if isinstance(request, dict) else \
-                            {"ok": False, "error": "send one JSON object per line"}
-                    except json.JSONDecodeError as exc:
-                        answer = {"ok": False, "error": f"not JSON: {exc}"}
-                    stream.write((json.dumps(answer) + "\n").encode())
-                    stream.flush()
-
-
 def mono_to_wall(mono: float) -> float:
     """Wall-clock time (the host time base of ROS stamps) of monotonic instant ``mono``: the motion runs on
     the monotonic clock, stamps are on the wall clock; their offset is read now, so a stepped wall
@@ -219,8 +150,8 @@ class _Motion:
         return self.started + self.sent / self.rate
 
 
-class Gp32Emulator:
-    """The emulated GP32. Use as a context manager, or `start()` / `close()`.
+class Gp32Emulator(PtyUnit):
+    """The emulated GP32. Use as a context manager, or `start()` / `close()` (the lifecycle of `PtyUnit`).
 
     ``device_path`` is the pty a client opens; with ``link`` a stable symlink points at it
     (it survives an emulated unplug/replug, while the pty itself changes, like a real USB
@@ -230,18 +161,11 @@ class Gp32Emulator:
 
     def __init__(self, config: EmulatorConfig | None = None, faults: Faults | None = None,
                  link: str | None = None, control: str | None = None) -> None:
+        super().__init__(link, control)
         self.config = config or EmulatorConfig()
         self.faults = faults or Faults()
-        self.link = Path(link) if link else None
-        self.control_path = Path(control) if control else None
         self._lock = threading.RLock()
         self._rng = random.Random(self.faults.seed)
-        self._running = False
-        self._thread: threading.Thread | None = None
-        self._control: ControlServer | None = None
-        self._master: int | None = None
-        self._slave: int | None = None
-        self.device_path = ""
         self._inbuf = b""
         self._outq: list[tuple[float, bytes]] = []
         self._unplugged_until: float | None = None
@@ -310,38 +234,11 @@ class Gp32Emulator:
             self.timed_events.append({"line": p.encode_line(line).decode().strip(), "device_ms": device_ms,
                                       "wall_s": self._stamp_wall})
 
-    def start(self) -> Gp32Emulator:
-        """Open the pty (and link, control socket) and start the firmware thread; sends ``!BOOT``."""
-        self._open_pty()
-        self._running = True
+    thread_name = "gp32-emulator"
+
+    def _power_up(self) -> None:
+        """`start`: the firmware says ``!BOOT`` (its thread answers from then on)."""
         self._send(p.Boot(self.config.protocol_version))
-        self._thread = threading.Thread(target=self._loop, name="gp32-emulator", daemon=True)
-        self._thread.start()
-        if self.control_path is not None:
-            self._control = ControlServer(self.control_path, self.handle_control)
-        return self
-
-    def __enter__(self) -> Gp32Emulator:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Stop the firmware thread, close the pty, remove the link and control socket."""
-        self._running = False
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        if self._control is not None:
-            self._control.close()
-        self._close_pty()
-
-    def _open_pty(self) -> None:
-        self._master, self._slave, self.device_path = open_pty(self.link)
-
-    def _close_pty(self) -> None:
-        close_pty(self._master, self._slave, self.link, self.device_path)
-        self._master = self._slave = None
 
     # ---------------------------------------------------------------------------- physics
     def _sensors(self) -> tuple[bool, bool]:

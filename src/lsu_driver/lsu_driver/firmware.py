@@ -44,17 +44,15 @@ from pathlib import Path
 from . import protocol as p
 from .emulator import (
     LOG_LINES,
-    ControlServer,
     EmulatorConfig,
     Faults,
     Truth,
-    close_pty,
-    open_pty,
     overstep_gain,
     pulse_travel,
     sensors_at,
     stop_vibration_amplitude,
 )
+from .pty_unit import PtyUnit, open_pty
 
 # byte codes of the simulator link (firmware/gp32/hal_sim.c)
 IN_TICK, IN_SENSORS, IN_HIGH_BYTE, IN_CREDIT = 0x80, 0xC0, 0xC4, 0xC5
@@ -185,8 +183,9 @@ class StepRecord:
     direction: int
 
 
-class Gp32Firmware:
-    """The firmware in shc08 plus the host-side board. Use as a context manager, or `start()` / `close()`.
+class Gp32Firmware(PtyUnit):
+    """The firmware in shc08 plus the host-side board. Use as a context manager, or `start()` / `close()` (the
+    lifecycle of `PtyUnit`).
 
     The same surface as `Gp32Emulator` for clients, tests and the truth node: ``device_path``,
     ``link``, ``control_path``, `truth`, `reset`, ``log``, ``on_change``, `handle_control`.
@@ -195,22 +194,15 @@ class Gp32Firmware:
 
     def __init__(self, config: EmulatorConfig | None = None, faults: Faults | None = None,
                  link: str | None = None, control: str | None = None, image: Path | None = None) -> None:
+        super().__init__(link, control)
         self.config = config or EmulatorConfig()
         self.faults = faults or Faults()
-        self.link = Path(link) if link else None
-        self.control_path = Path(control) if control else None
         self.image = Path(image) if image else firmware_dir() / "build" / "lsu-gp32-sim.ihx"
         self._rng = random.Random(self.faults.seed)
         self._lock = threading.RLock()
-        self._running = False
-        self._thread: threading.Thread | None = None
-        self._control: ControlServer | None = None
         self._sim: subprocess.Popen | None = None
-        self._master: int | None = None
-        self._slave: int | None = None
         self._sim_fds: list[int] = []
         self._sim_in = self._sim_out = -1
-        self.device_path = ""
         self.log: collections.deque[str] = collections.deque(maxlen=LOG_LINES)  # the recent lines, as the emulator's
         self.boot_count = 0
         self.steps: collections.deque[StepRecord] = collections.deque(maxlen=4096)
@@ -241,38 +233,23 @@ class Gp32Firmware:
         self._change_key: tuple = ()
 
     # ----------------------------------------------------------------------------- lifecycle
-    def start(self) -> Gp32Firmware:
-        """Start shc08 with the image, open the client's pty; the firmware sends ``!BOOT``."""
+    thread_name = "gp32-board"
+
+    def _check_startable(self) -> None:
+        """`start` needs shc08 and the firmware image."""
         reason = toolchain_missing()
         if reason:
             raise FirmwareUnavailable(reason)
         if not self.image.exists():
             raise FirmwareUnavailable(f"no firmware image {self.image}: run `lsu gp32 firmware build` first")
-        self._master, self._slave, self.device_path = open_pty(self.link)
-        self._running = True
+
+    def _power_up(self) -> None:
+        """`start`: the board's thread starts the simulator with the image; the firmware sends ``!BOOT``."""
         self._power_request.set()
-        self._thread = threading.Thread(target=self._loop, name="gp32-board", daemon=True)
-        self._thread.start()
-        if self.control_path is not None:
-            self._control = ControlServer(self.control_path, self.handle_control)
-        return self
 
-    def __enter__(self) -> Gp32Firmware:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Stop the board and the simulator, close the ptys, remove the link and control socket."""
-        self._running = False
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        if self._control is not None:
-            self._control.close()
+    def _release(self) -> None:
+        """`close`: the simulator stops and its link closes (the board's thread has stopped)."""
         self._stop_sim()
-        close_pty(self._master, self._slave, self.link, self.device_path)
-        self._master = self._slave = None
         self._close_sim_link()
 
     def _close_sim_link(self) -> None:

@@ -6,7 +6,7 @@ row with the normal CDF, by 4 sub-rows down the column), then ambient light on a
 texture, colour crosstalk of the laser, a weaker reflection, seeded shot + read noise,
 8-bit quantisation and saturation are applied, like a colour camera would.
 
-Stand-in for the simulated rig (``lsu_cameras.sim``) until that renderer lands.
+Stand-in for the simulated rig (``lsu_sim``) until that renderer lands.
 """
 
 from __future__ import annotations

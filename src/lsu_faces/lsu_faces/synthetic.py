@@ -2,7 +2,7 @@
 
 A real simulated scan renders both images for every carriage position, extracts the laser lines and
 matches them (~40 ms per snap, several seconds per scan). For benchmarks over hundreds of heads this
-module computes the same points directly from the rig's geometry (``lsu_cameras.sim``): every pixel
+module computes the same points directly from the rig's geometry (``lsu_sim``): every pixel
 ray of the left camera is cast once into the scene (open3d), and for every carriage position the
 laser sheet ``n . X = c`` is intersected with each image row by linear interpolation between adjacent
 pixel hits on the same surface (what the extractor does at sub-pixel level). A sample is kept only
@@ -28,7 +28,7 @@ __all__ = ["ScanSample", "fast_scan", "left_pixel_rays"]
 _RAYS: dict[bytes, AnyArray] = {}
 
 
-def left_pixel_rays(camera) -> AnyArray:  # noqa: ANN001 - lsu_cameras.sim.CameraModel
+def left_pixel_rays(camera) -> AnyArray:  # noqa: ANN001 - lsu_sim.CameraModel
     """Unit rays (H*W, 3) through every pixel centre of ``camera`` (cached per camera model)."""
     key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in (camera.K, camera.D, camera.R, camera.t))
     if key not in _RAYS:
@@ -63,11 +63,11 @@ def _visible_from(scene: o3d.t.geometry.RaycastingScene, origins: AnyArray, poin
 
 def fast_scan(objects: Sequence, geometry, positions_steps: Sequence[float], noise_m: float = 5e-5,  # noqa: ANN001
               drop_fraction: float = 0.0, seed: int = 0, ambient: float | None = None) -> ScanSample:
-    """Points a stop-snap scan of ``objects`` (``lsu_cameras.sim.SceneObject``) would give.
+    """Points a stop-snap scan of ``objects`` (``lsu_sim.SceneObject``) would give.
 
     Args:
         objects: scene objects (meshes in the left optical frame, with albedo functions).
-        geometry: the rig (``lsu_cameras.sim.RigGeometry``): cameras, laser track and sheet.
+        geometry: the rig (``lsu_sim.RigGeometry``): cameras, laser track and sheet.
         positions_steps: carriage positions of the snaps.
         noise_m: sigma of the Gaussian noise along the left camera ray [m].
         drop_fraction: fraction of points removed at random (missed laser rows).

@@ -55,7 +55,7 @@ def face_template(radius_m: float = 0.085, voxel_m: float = 0.0035) -> FaceTempl
     global _TEMPLATE
     if _TEMPLATE is not None:
         return _TEMPLATE
-    from lsu_cameras.sim.people import PersonSpec, make_person
+    from lsu_sim.people import PersonSpec, make_person
 
     person = make_person(PersonSpec(identity_seed=0, identity_sigma=0.0, hair_m=0.0))
     skin = person.parts["skin"]

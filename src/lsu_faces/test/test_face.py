@@ -8,10 +8,10 @@ import pytest
 from lsu_faces.face import FaceError, FaceParams, NotAFaceError, embed_face, nose_tip, nose_tip_protrusion, nose_tip_svd
 from lsu_faces.signature import ImpostorModel, Signature, SignatureError, SignatureParams, compare, make_signature
 
-sim = pytest.importorskip("lsu_cameras.sim")
-people = pytest.importorskip("lsu_cameras.sim.people")
-from lsu_cameras.sim.depthcam import depth_scan  # noqa: E402
+sim = pytest.importorskip("lsu_sim")
+people = pytest.importorskip("lsu_sim.people")
 from lsu_faces.synthetic import fast_scan  # noqa: E402
+from lsu_sim.depthcam import depth_scan  # noqa: E402
 
 POSITIONS = np.arange(0, 471, 5)
 

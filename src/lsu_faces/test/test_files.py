@@ -37,8 +37,8 @@ def test_not_a_ply_is_named(tmp_path):
 
 
 def _person_cloud(seed: int, step: int = 6, **kw):
-    sim = pytest.importorskip("lsu_cameras.sim")
-    people = pytest.importorskip("lsu_cameras.sim.people")
+    sim = pytest.importorskip("lsu_sim")
+    people = pytest.importorskip("lsu_sim.people")
     from lsu_faces.synthetic import fast_scan
 
     rig = sim.load_rig()

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-sim = pytest.importorskip("lsu_cameras.sim")
+sim = pytest.importorskip("lsu_sim")
 from lsu_faces.synthetic import fast_scan  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def head_scan():
-    people = pytest.importorskip("lsu_cameras.sim.people")
+    people = pytest.importorskip("lsu_sim.people")
     rig = sim.load_rig()
     centre = rig.rig_center + (rig.subject_distance_m + 0.10) * rig.rig_axes[2]
     objs = people.person_objects(people.make_person(people.PersonSpec(8, yaw_deg=10)), centre)

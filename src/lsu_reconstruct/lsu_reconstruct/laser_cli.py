@@ -77,7 +77,7 @@ def _bag_positions(bag: Path) -> dict[int, int]:
     """Snap index -> carriage position from a bag's SNAP scan events."""
     from lsu_bags.bags import BagTypes, bag_topics, deserialize, read_messages
 
-    from .cli import EVENT_TYPE
+    from .bag_lines import EVENT_TYPE
 
     topics = [t for t, (msgtype, _qos) in bag_topics(bag).items() if t.endswith("scan/events") and msgtype == EVENT_TYPE]
     out: dict[int, int] = {}
@@ -116,7 +116,7 @@ def load_scan(path: str | Path, calib_dir: str | Path) -> ScanPoints:
         snaps = c["snap"].astype(np.int64)
     else:
         bag = path / "bag" if (path / "bag").is_dir() else path
-        from .cli import read_bag
+        from .bag_lines import read_bag
         from .matching import MatchParams
         from .pipeline import merge_snaps, reconstruct_snap
         from .stereo import StereoModel
@@ -220,7 +220,7 @@ def _write_line_bag(path: Path, lines: Sequence[tuple[Any, Any]], positions: Seq
     """A bag as a recording scan holds it, for what this command reads: laser lines and SNAP events."""
     from lsu_bags.bags import BagTypes, BagWriter
 
-    from .cli import EVENT_TYPE, LINE_TYPE
+    from .bag_lines import EVENT_TYPE, LINE_TYPE
 
     types = BagTypes()
     for msgtype in (EVENT_TYPE, LINE_TYPE):
@@ -261,8 +261,8 @@ def simulate_board_scans(out: str | Path, calib_dir: str | Path, boards: Sequenc
     """
     from lsu_bags.ply import write_cloud_ply
     from lsu_cameras.calib_io import calibration_checksum
-    from lsu_cameras.sim import SimulatedRig, load_rig, make_plane
     from lsu_extract.extractor import extract_laser_line
+    from lsu_sim import SimulatedRig, load_rig, make_plane
 
     from .matching import LineArrays
     from .pipeline import merge_snaps, reconstruct_snap

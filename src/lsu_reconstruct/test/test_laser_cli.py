@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from lsu_cameras.cli import register as register_cameras
-from lsu_cameras.sim import load_rig, write_true_calibration
 from lsu_reconstruct.cli import register as register_reconstruct
 from lsu_reconstruct.laser_cli import SIM_POSITIONS, calibrate_laser, simulate_board_scans
 from lsu_reconstruct.laser_sheet import LaserSheetError, read_laser_yaml
+from lsu_sim import load_rig, write_true_calibration
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsu_cameras.sim import SimulatedRig, build_scene, load_rig, write_true_calibration
 from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import extract_laser_line
 from lsu_reconstruct.laser_sheet import LaserSheetError, fit_laser_sheet, read_laser_yaml, write_laser_yaml
 from lsu_reconstruct.matching import LineArrays
 from lsu_reconstruct.pipeline import reconstruct_snap
 from lsu_reconstruct.stereo import StereoModel
+from lsu_sim import SimulatedRig, build_scene, load_rig, write_true_calibration
 
 POSITIONS = np.arange(150, 331, 15)
 

@@ -6,8 +6,6 @@ import math
 import numpy as np
 import pytest
 
-from lsu_cameras.sim import CarriageState, SimulatedRig, load_rig, make_plane
-from lsu_cameras.sim.scenes import uniform_albedo
 from lsu_common.arrays import AnyArray
 from lsu_reconstruct.speckle import (
     correlation_area_m2,
@@ -16,6 +14,8 @@ from lsu_reconstruct.speckle import (
     row_correlation_integral_m,
     speckle_limit,
 )
+from lsu_sim import CarriageState, SimulatedRig, load_rig, make_plane
+from lsu_sim.scenes import uniform_albedo
 
 LAMBDA = 671e-9
 

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig, write_true_calibration
 from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import extract_laser_line
 from lsu_reconstruct.laser_sheet import LaserSheet
@@ -27,6 +26,7 @@ from lsu_reconstruct.sweep import (
     reconstruct_sweep,
     reconstruct_sweep_frame,
 )
+from lsu_sim import CarriageState, SimulatedRig, build_scene, load_rig, write_true_calibration
 
 RATE = 60.0  # steps/s: a whole-track sweep at 30 fps gives 235 frames
 

@@ -97,9 +97,9 @@ def test_the_end_bounds_the_sweep_and_finish_counts_what_could_not_be_placed():
 # sheet at the true carriage position of its mid-exposure, projected with the true calibration.
 @pytest.fixture(scope="module")
 def plane_rig(tmp_path_factory):
-    from lsu_cameras.sim import load_rig, write_true_calibration
     from lsu_reconstruct.laser_sheet import LaserSheet
     from lsu_reconstruct.stereo import StereoModel
+    from lsu_sim import load_rig, write_true_calibration
 
     geometry = load_rig()
     folder = tmp_path_factory.mktemp("calib")

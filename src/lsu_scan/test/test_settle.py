@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lsu_cameras.sim import CarriageState, SimulatedRig, build_scene, load_rig
 from lsu_driver.emulator import EmulatorConfig
 from lsu_scan.settle import DEFAULT_TOLERANCE_PX, line_shift_px, settle_from_images
+from lsu_sim import CarriageState, SimulatedRig, build_scene, load_rig
 
 FIXED_SETTLE_S = 0.1     # the Scan goal's default settle
 FRAME_PERIOD_S = 0.033   # one frame per capture, a 30 fps camera (the coordinator's exposure_s default)

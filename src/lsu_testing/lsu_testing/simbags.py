@@ -25,19 +25,21 @@ FRAME_IDS = {"left": "lsu_left_optical", "right": "lsu_right_optical"}
 _STARTED, _TEXTURE, _SNAP, _FINISHED = 0, 1, 2, 3
 
 
-def write_sim_scan_bag(out_dir: Path | str, objects: Sequence, positions: Sequence[int], seed: int,
+def write_sim_scan_bag(out_dir: Path | str, objects: Sequence | str, positions: Sequence[int], seed: int,
                        scan_id: str = "sim-scan", geometry=None, texture: bool = True, start_ns: int = 1_800_000_000 * 10**9,
                        period_ns: int = 100_000_000, storage: str = "mcap", compress: bool = True,
                        types: BagTypes | None = None) -> Path:
-    """Render a stop-snap scan of ``objects`` (sim scene objects) and write it as a rosbag2 folder.
+    """Render a stop-snap scan of ``objects`` (sim scene objects, or the name of a scene of `lsu_sim.build_scene`,
+    e.g. ``person:3``) and write it as a rosbag2 folder.
 
     ``positions``: carriage positions [steps] of the laser snaps (settled, laser on); with ``texture``
     a laser-off pair comes first. Render noise is seeded ``seed + index``. Returns the bag folder.
     """
-    from lsu_cameras.sim import CarriageState, SimulatedRig, load_rig
+    from lsu_sim import CarriageState, SimulatedRig, build_scene, load_rig
 
     geometry = geometry or load_rig()
-    rig = SimulatedRig(geometry, objects, seed=seed)
+    scene = build_scene(objects, geometry) if isinstance(objects, str) else list(objects)
+    rig = SimulatedRig(geometry, scene, seed=seed)
     types = types or BagTypes()
     store = types.typestore
     with BagWriter(out_dir, storage, compress=compress, types=types) as bag:
@@ -90,7 +92,7 @@ def write_board_scan_bags(root: Path | str, poses: Sequence, square_m: float = 0
     ``root/pose<i>/bag``, like `lsu scan --record` leaves them; input for `lsu accuracy --bag`
     (``--square`` = ``square_m`` in mm). Returns the bag folders."""
     from lsu_accuracy.accuracy import board_pose_object
-    from lsu_cameras.sim import load_rig
+    from lsu_sim import load_rig
 
     geometry = geometry or load_rig()
     bags = []

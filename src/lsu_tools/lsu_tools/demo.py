@@ -1,13 +1,13 @@
 """`lsu demo` (what `make demo` runs): the whole graph on the emulated unit, one full scan, a report.
 
 1. claims a ROS domain of its own (localhost only) and starts `lsu launch sim` (GP32 emulator,
-   driver, simulated cameras looking at a synthetic head, extractor, matcher, face processor,
+   driver, simulated cameras looking at a realistic simulated person, extractor, matcher, face processor,
    scan coordinator) as separate processes;
 2. runs a full scan through the `/lsu/scan` action with a bag recorded (``--mode``: a sweep, the
    default since it meets its targets (the carriage at a constant rate while the cameras free-run),
    or stop-snap: stop, settle and capture per line);
 3. measures the cloud against the renderer's geometry (distance of every point to the true
-   head surface: truth from the simulator, not from the code under test);
+   surface of the person: truth from the simulator, not from the code under test);
 4. stops everything and prints where the files are.
 """
 
@@ -21,6 +21,10 @@ from pathlib import Path
 
 from lsu_scan import rosenv
 
+# what the demo scans: a realistic person of the simulator (lsu_sim.people: MakeHuman's head, neck and shoulders
+# with seed 2's identity and hair)
+DEMO_SCENE = "person:2"
+
 
 def accuracy_against_scene(cloud_ply: Path, scene: str) -> dict[str, float]:
     """Point-to-surface distances [mm] between a cloud and the simulated scene's meshes."""
@@ -28,7 +32,7 @@ def accuracy_against_scene(cloud_ply: Path, scene: str) -> dict[str, float]:
     import open3d as o3d
 
     from lsu_accuracy.accuracy import surface_distances_m
-    from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
 
     cloud = o3d.io.read_point_cloud(str(cloud_ply))
     points = np.asarray(cloud.points, dtype=np.float32)
@@ -55,18 +59,24 @@ def cmd_demo(args: argparse.Namespace) -> int:
         scanner = None
         try:
             scanner = LsuScanner(wait_s=60)
+            # the scan also needs the cameras: on a loaded host the camera node (which builds the scene) can
+            # come up well after the driver homed, later than the scan coordinator waits for it
+            from lsu_interfaces.srv import CaptureStereo
+
+            camera = scanner.node.create_client(CaptureStereo, "stereo/capture")
             t0 = time.monotonic()
             while True:
                 try:
-                    if scanner.state(timeout_s=1.0).homed:
+                    if scanner.state(timeout_s=1.0).homed and camera.service_is_ready():
                         break
                 except ScannerError:
                     pass  # the driver is still starting
                 if graph.process.poll() is not None or time.monotonic() - t0 > 90:
-                    raise ScannerError("the graph did not come up (driver not homed within 90 s); see the log above")
+                    raise ScannerError("the graph did not come up (driver not homed, or the cameras not serving "
+                                       "stereo/capture, within 90 s); see the log above")
             how = (f"step {args.step} (settle {args.settle} s)" if args.mode == "stopsnap" else
                    f"sweeping at {args.rate:g} steps/s, {args.fps:g} fps")
-            print(f"[demo] graph up and carriage homed after {time.monotonic() - t0:.1f} s; scanning "
+            print(f"[demo] graph up (carriage homed, cameras serving) after {time.monotonic() - t0:.1f} s; scanning "
                   f"{args.start}..{args.end} {how}, recording a bag")
             last = [-1]
             unit = "snap" if args.mode == "stopsnap" else "frame"
@@ -131,7 +141,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add `demo` to the `lsu` parser."""
     p = sub.add_parser("demo", help="start the sim graph, run a full scan, report accuracy and files (make demo)")
-    p.add_argument("--scene", default="head:7", help="sim scene (default head:7, a synthetic head)")
+    p.add_argument("--scene", default=DEMO_SCENE, help=f"sim scene (default {DEMO_SCENE}: a realistic person with hair, "
+                   f"neck and shoulders; head:7 is the procedural head; see `lsu render --help`)")
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--end", type=int, default=470)
     p.add_argument("--step", type=int, default=2)

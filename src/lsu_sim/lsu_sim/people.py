@@ -20,7 +20,7 @@ person looks along -z). Pose = yaw (about y), pitch (about x), roll (about z), a
 Truth: ``landmarks`` (pronasale = nose tip, eye centres, mouth centre, chin) are vertices of the
 generator's mesh carried through morphs, subdivision and pose, never found by any face code.
 
-Build the assets once from the original files: ``python -m lsu_cameras.sim.people build-assets
+Build the assets once from the original files: ``python -m lsu_sim.people build-assets
 MAKEHUMAN_DIR LEEPERRYSMITH_DIR OUT_DIR``.
 """
 
@@ -38,8 +38,8 @@ import open3d as o3d
 from scipy.spatial.transform import Rotation
 
 from lsu_common.arrays import AnyArray
+from lsu_config import config_dir
 
-from ..paths import config_dir
 from .scenes import AlbedoFn, SceneError, SceneObject
 
 __all__ = ["PersonSpec", "Person", "make_person", "person_objects", "heads_dir", "build_assets", "EXPRESSIONS"]
@@ -174,7 +174,7 @@ def _assets(name: str) -> dict[str, AnyArray]:
         path = heads_dir() / f"{name}.npz"
         if not path.exists():
             raise SceneError(f"{path} is missing; it ships with the repository (config/heads), or rebuild it with "
-                             f"python -m lsu_cameras.sim.people build-assets")
+                             f"python -m lsu_sim.people build-assets")
         with np.load(path, allow_pickle=False) as z:
             _ASSETS[name] = {k: z[k] for k in z.files}
     return _ASSETS[name]
@@ -456,7 +456,7 @@ def _main(argv: list[str]) -> int:
         for f in build_assets(argv[1], argv[2], argv[3]):
             print(f"{f} {f.stat().st_size / 1e6:.2f} MB")
         return 0
-    print("usage: python -m lsu_cameras.sim.people build-assets MAKEHUMAN_DIR LEEPERRYSMITH_DIR OUT_DIR",
+    print("usage: python -m lsu_sim.people build-assets MAKEHUMAN_DIR LEEPERRYSMITH_DIR OUT_DIR",
           file=sys.stderr)
     return 2
 

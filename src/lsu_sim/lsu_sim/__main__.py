@@ -1,4 +1,4 @@
-"""`python -m lsu_cameras.sim [--rig sim_rig.yaml] --write-calibration DIR`: the rig's true calibration files."""
+"""`python -m lsu_sim [--rig sim_rig.yaml] --write-calibration DIR`: the rig's true calibration files."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from .geometry import RigConfigError, load_rig, write_true_calibration
 
 def main(argv: list[str] | None = None) -> int:
     """Write left.yaml/right.yaml/stereo.yaml from the simulated rig's geometry."""
-    parser = argparse.ArgumentParser(prog="python -m lsu_cameras.sim", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m lsu_sim", description=__doc__)
     parser.add_argument("--rig", default=None, help="sim rig YAML (default: config/sim_rig.yaml)")
     parser.add_argument("--write-calibration", metavar="DIR", required=True, help="output directory")
     args = parser.parse_args(argv)

@@ -9,7 +9,7 @@ import yaml
 from scipy.special import erf
 
 from lsu_cameras.paths import config_dir
-from lsu_cameras.sim import (
+from lsu_sim import (
     CarriageState,
     RigConfigError,
     SimulatedRig,
@@ -18,7 +18,7 @@ from lsu_cameras.sim import (
     make_plane,
     rig_from_dict,
 )
-from lsu_cameras.sim.physics import (
+from lsu_sim.physics import (
     BAYER_PATTERNS,
     ERF_ONE,
     bloom,
@@ -30,7 +30,7 @@ from lsu_cameras.sim.physics import (
     speckle_tiles,
     surface_profile_box,
 )
-from lsu_cameras.sim.scenes import SceneError, uniform_albedo
+from lsu_sim.scenes import SceneError, uniform_albedo
 
 
 @pytest.mark.parametrize("pattern", sorted(BAYER_PATTERNS))

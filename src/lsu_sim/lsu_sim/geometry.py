@@ -22,10 +22,10 @@ import cv2
 import numpy as np
 import yaml
 
+from lsu_cameras.calib_io import CameraCalibration, StereoCalibration, fundamental_from, write_calibration_dir
 from lsu_common.arrays import AnyArray
+from lsu_config import config_dir
 
-from ..calib_io import CameraCalibration, StereoCalibration, fundamental_from, write_calibration_dir
-from ..paths import config_dir
 from .physics import BAYER_PATTERNS, SkinModel, SpeckleModel
 
 
@@ -304,4 +304,4 @@ def write_true_calibration(rig: RigGeometry, directory: os.PathLike | str) -> No
     write_calibration_dir(directory, rig.left.calibration("lsu_left"), rig.right.calibration("lsu_right"),
                           rig.stereo_calibration(),
                           header="TRUE calibration of the simulated rig (config/sim_rig.yaml), written by\n"
-                                 "`python -m lsu_cameras.sim --write-calibration DIR`. Do not edit: regenerate.")
+                                 "`python -m lsu_sim --write-calibration DIR`. Do not edit: regenerate.")

@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 
 from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.paths import config_dir
-from lsu_cameras.sim import (
+from lsu_common.arrays import AnyArray
+from lsu_sim import (
     CarriageState,
     SceneError,
     SimulatedRig,
@@ -19,7 +20,6 @@ from lsu_cameras.sim import (
     make_plane,
     write_true_calibration,
 )
-from lsu_common.arrays import AnyArray
 
 RIG_YAML = config_dir() / "sim_rig.yaml"
 
@@ -210,8 +210,8 @@ def test_unknown_scene_and_missing_mesh_are_clear_errors(tmp_path):
 def test_lsu_render_writes_pairs_and_truth(tmp_path):
     import argparse
 
-    from lsu_cameras.cli import cmd_render
-    from lsu_cameras.sim import LaserTruth
+    from lsu_sim import LaserTruth
+    from lsu_sim.cli import cmd_render
 
     args = argparse.Namespace(scene="sphere", position=[200.0, 260.0], distance=None, yaw=0.0, pitch=0.0,
                               laser_off=False, vibration=0.0, after_stop=0.005, tau=0.06, freq=25.0, seed=0,

@@ -1,14 +1,23 @@
 """The simulated LSU rig (pure: numpy, OpenCV, open3d; no rclpy).
 
+Its own package above ``lsu_cameras`` (whose calibration files it writes): the camera node finds its
+`source` through the ``lsu.camera_sources`` entry point and never imports it; `lsu render` is its ``lsu.commands``.
+
 - `geometry`: cameras, extrinsics, track and laser sheet from ``config/sim_rig.yaml`` (`load_rig`).
 - `scenes`: plane, sphere, calibration chessboard, mesh files; `head`: procedural synthetic heads.
 - `rig`: `SimulatedRig.render(carriage, capture_time_s)` -> `StereoFrame` (+ exact `LaserTruth`).
+- `source`: `SimSource`, the stereo_camera node's ``sim`` source (carriage from ``sim/truth``).
+- `people`: realistic synthetic people (MakeHuman head and shoulders); `depthcam`: a coarse depth camera;
+  `boards`: calibration board poses and their rendered pairs.
 - `physics`: what real laser-line images have: laser speckle (per camera, a new realisation per
   capture), subsurface scattering on skin (objects with ``material="skin"``: the head scenes),
   blooming, an optional Bayer mosaic; each camera's own exposure start (``sensor.capture_offset_s``).
 
-``build_scene(name, geometry)`` makes the named scenes of `lsu render --scene` and the node's
-``sim_scene`` parameter: ``plane``, ``sphere``, ``board``, ``head`` (``head:SEED``) or a mesh file path.
+``build_scene(name, geometry)`` makes the named scenes of every sim entry point (`lsu render --scene`, the
+node's ``sim_scene`` parameter, ``lsu launch sim scene:=``, `lsu demo --scene`, the bags of lsu_testing.simbags):
+``plane``, ``sphere``, ``board``, ``head`` (``head:SEED``, the procedural egg-like head), ``person``
+(``person:SEED``, a realistic person of `people`: a real head mesh with the seed's identity, hair, neck and
+shoulders) or a mesh file path.
 """
 
 from __future__ import annotations
@@ -27,7 +36,19 @@ __all__ = ["CameraModel", "RigConfigError", "RigGeometry", "load_rig", "rig_from
            "SimulatedRig", "StereoFrame", "SceneError", "SceneObject", "load_mesh_file", "make_board", "make_plane",
            "make_sphere", "build_scene", "SCENE_NAMES"]
 
-SCENE_NAMES = ("plane", "sphere", "board", "head")
+SCENE_NAMES = ("plane", "sphere", "board", "head", "person")
+# the person's head centre behind the subject point [m]: its cheeks are then at about the subject distance
+# (as the face benchmark places them)
+PERSON_DEPTH_M = 0.10
+
+
+def _seed_of(name: str, kind: str) -> int:
+    """The SEED of ``kind`` or ``kind:SEED`` (0 without one)."""
+    text = name[len(kind) + 1:] if name.startswith(kind + ":") else "0"
+    try:
+        return int(text)
+    except ValueError:
+        raise SceneError(f"scene '{name}': the seed after '{kind}:' must be a whole number (e.g. {kind}:7)") from None
 
 
 def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = None, yaw_deg: float = 0.0,
@@ -35,7 +56,9 @@ def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = Non
     """A named scene centred on the rig's subject point (``distance_m`` overrides the subject distance).
 
     ``plane``: a textured plane facing the rig; ``sphere``: a 6 cm ball; ``board``: a 9x6, 20 mm
-    chessboard facing the rig; ``head`` / ``head:SEED``: a synthetic head (yaw/pitch applied);
+    chessboard facing the rig; ``head`` / ``head:SEED``: a procedural synthetic head; ``person`` /
+    ``person:SEED``: a realistic person (`people.make_person`: MakeHuman's head, neck and shoulders with the
+    seed's identity and hair; the skin object carries the true landmarks); yaw/pitch turn heads and people;
     anything else is read as a PLY/OBJ/STL file (metres) centred on the subject point.
     """
     axes = geometry.rig_axes
@@ -50,12 +73,18 @@ def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = Non
         R = axes.T  # board x along the baseline, y down, facing the rig
         first = center - R @ np.array([4 * square, 2.5 * square, 0.0])
         return [make_board(R, first, (9, 6), square)]
+    if name == "person" or name.startswith("person:"):
+        from .people import PersonSpec, make_person, person_objects
+
+        person = make_person(PersonSpec(identity_seed=_seed_of(name, "person"), yaw_deg=yaw_deg, pitch_deg=pitch_deg))
+        return person_objects(person, center + PERSON_DEPTH_M * axes[2])
     if name == "head" or name.startswith("head:"):
-        seed = int(name.split(":", 1)[1]) if ":" in name else 0
+        seed = _seed_of(name, "head")
         head = make_head(seed, yaw_deg=yaw_deg, pitch_deg=pitch_deg)
         # head centre behind the subject point so that the cheeks are at about the subject distance
         return [head_object(head, center + 0.09 * axes[2])]
     path = Path(name)
     if path.suffix.lower() in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb") or path.exists():
         return [load_mesh_file(path, center=center)]
-    raise SceneError(f"unknown scene '{name}': use one of {', '.join(SCENE_NAMES)}, head:SEED or a PLY/OBJ file")
+    raise SceneError(f"unknown scene '{name}': use one of {', '.join(SCENE_NAMES)}, head:SEED, person:SEED "
+                     f"or a PLY/OBJ file")

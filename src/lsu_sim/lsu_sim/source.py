@@ -1,0 +1,136 @@
+"""The simulated rig as a camera source of the ``stereo_camera`` node (entry point ``lsu.camera_sources``: ``sim``).
+
+`SimSource` renders the pair of a capture time from where the carriage is then; `carriage_from_truth` turns
+the GP32 emulator's ``sim/truth`` samples (lsu_interfaces/SimTruth, read by the node) into that
+`CarriageState`; `open_sim_source` builds both from the node's ``sim_*`` parameters. Pure module (no rclpy).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from lsu_cameras.sources import SourceContext, StereoPair, StereoSource
+from lsu_cameras.stream import frame_seed
+from lsu_common import stamps
+from lsu_common.stamps import ns_to_seconds, seconds_to_ns
+
+from .rig import CarriageState, SimulatedRig
+
+# a simulated pair of a stream is rendered this long after its exposures ended [s]: the emulator publishes its
+# exact samples of a motion's start or stop from its executor, on a busy host tens of ms after they happened,
+# and a pair rendered before they are in shows the carriage where it was not
+TRUTH_DELAY_S = 0.1
+
+
+class SimSource(StereoSource):
+    """The simulated rig; ``carriage(t_ns)`` says where the carriage is at time t_ns (integer ns: from
+    /lsu/sim/truth or a parameter)."""
+
+    stamps_on_node_clock = True  # the capture time is the node's clock
+    render_delay_s = TRUTH_DELAY_S
+
+    def __init__(self, rig: SimulatedRig, carriage: Callable[[int], CarriageState],
+                 clock: Callable[[], float] = time.time, seed: int = 0) -> None:
+        self.rig = rig
+        self.carriage = carriage
+        self.clock = clock
+        self.seed = int(seed)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.rig.geometry.image_size
+
+    @property
+    def exposure_s(self) -> float:
+        return self.rig.geometry.sensor.exposure_s
+
+    @property
+    def ready_after_s(self) -> float:
+        sensor = self.rig.geometry.sensor
+        # the later camera's exposure end (jitter: 3 sigma), as a real frame would arrive
+        return max(sensor.capture_offset_s, 0.0) + 3.0 * sensor.capture_jitter_s + sensor.exposure_s
+
+    def _pair(self, t_ns: int, seed: int | None, parallel: bool | None = None) -> StereoPair:
+        t = ns_to_seconds(t_ns)
+        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
+        # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
+        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed, parallel=parallel)
+        left_start, right_start = frame.exposure_start_s
+        assert left_start is not None and right_start is not None  # a capture time gives both starts
+        return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
+
+    def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
+        """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
+        seeded by the sim seed and ``index`` (`frame_seed`).
+
+        Rendered on the calling thread only: a stream renders on its own thread beside the publishing
+        one and the rest of the graph, where the rig's second render thread costs CPU and gains no frames;
+        a single capture (`grab_pair`) keeps the rig's default for its latency.
+        """
+        return self._pair(stamp_ns, frame_seed(self.seed, index), parallel=False)
+
+    def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
+        started = time.monotonic()
+        pair = self._pair(seconds_to_ns(self.clock()), None)
+        # a real frame is not there before its exposure has ended: a render faster than the
+        # exposure must not make a simulated scan faster than the unit could be
+        remaining = self.rig.geometry.sensor.exposure_s - (time.monotonic() - started)
+        if remaining > 0:
+            time.sleep(remaining)
+        return pair
+
+
+def carriage_from_truth(truth: Any, later: Sequence[Any], fallback: CarriageState) -> CarriageState:
+    """The carriage during a pair exposed from the stamp ``truth`` held at: ``truth`` is the SimTruth sample that
+    held then (None: none received yet, ``fallback`` is used), ``later`` the samples after it up to the end of the
+    pair's exposures (a motion starting or stopping while they last)."""
+    if truth is None:
+        return fallback
+    later = list(later)
+    stamp = stamps.to_seconds(truth.header.stamp)
+    start = next((s for s in later if s.moving and s.velocity_steps_per_s != 0.0), None)
+    if (not truth.moving or truth.velocity_steps_per_s == 0.0) and start is not None:
+        # at rest at t, moving before the later camera's exposure ends: rest until the start's sample
+        truth, stamp, later = start, stamps.to_seconds(start.header.stamp), later[later.index(start) + 1:]
+        started: float | None = stamp
+    else:
+        started = None
+    if truth.moving:
+        # the carriage keeps going between samples: the renderer follows it through each camera's
+        # own exposure (motion blur) from the sample's position and time, up to a stop in that time
+        stop = next((s for s in later if not s.moving), None)
+        if stop is None:
+            return CarriageState(truth.position_steps, truth.laser_on,
+                                 velocity_steps_per_s=truth.velocity_steps_per_s, position_time_s=stamp,
+                                 motion_start_s=started)
+        return CarriageState(truth.position_steps, truth.laser_on, velocity_steps_per_s=truth.velocity_steps_per_s,
+                             position_time_s=stamp, motion_start_s=started,
+                             motion_stop_s=stamps.to_seconds(stop.stopped_at) or stamps.to_seconds(stop.header.stamp),
+                             vibration_amplitude_steps=stop.vibration_amplitude_steps,
+                             vibration_tau_s=stop.vibration_tau_s, vibration_freq_hz=stop.vibration_freq_hz)
+    stopped = stamps.to_seconds(truth.stopped_at)
+    return CarriageState(truth.position_steps, truth.laser_on, stopped if stopped > 0 else None,
+                         truth.vibration_amplitude_steps, truth.vibration_tau_s, truth.vibration_freq_hz)
+
+
+def open_sim_source(context: SourceContext) -> SimSource:
+    """The node's ``sim`` source from its parameters ``sim_rig``, ``sim_scene``, ``sim_seed`` and, until
+    ``sim/truth`` arrives, ``carriage_position_steps`` and ``laser_on``."""
+    from . import build_scene, load_rig
+
+    param = context.parameter
+    geometry = load_rig(str(param("sim_rig")) or None)
+    scene = build_scene(str(param("sim_scene")), geometry)
+    seed = int(param("sim_seed"))
+
+    def carriage(t_ns: int) -> CarriageState:
+        truth, later = context.truth_at(t_ns)
+        fallback = CarriageState(float(param("carriage_position_steps")), bool(param("laser_on")))
+        return carriage_from_truth(truth, later, fallback)
+
+    return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed)
+
+
+__all__ = ["SimSource", "carriage_from_truth", "open_sim_source", "TRUTH_DELAY_S"]
