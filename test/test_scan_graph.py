@@ -143,6 +143,32 @@ def test_live_scan_of_60_snaps(graph):
     assert not laser_on(graph)  # the unit's truth, not the driver's word
 
 
+def test_a_scan_of_100_snaps_on_a_loaded_host_has_no_empty_snap(graph, ros_node):
+    """Every snap sees the laser line: the camera renders a capture with the laser-on that preceded it, even
+    when the host is too busy for the emulator to tell the change at once (one snap in eleven came out empty).
+
+    The laser goes on before a capture after each pause of the laser guard: a short ``laser_pause_s`` and two
+    busy loops beside the graph make pauses (and so laser-ons right before captures) frequent."""
+    import subprocess
+    import sys
+
+    coordinator = "/lsu/scan_coordinator"
+    assert ros_node.set_parameter(coordinator, "laser_pause_s", 0.03).successful
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]  # ended by pid
+    try:
+        result = graph["scanner"].scan(start=120, end=219, step=1, settle_s=0.05, output_dir=str(graph["out"]))
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+        assert ros_node.set_parameter(coordinator, "laser_pause_s", 0.2).successful
+    assert result.success and not result.partial, result.status
+    record = scan_json(result)
+    assert len(record["snaps"]) == 100
+    assert [s["index"] for s in record["snaps"] if not s["points"]] == [], \
+        f"{len(record['laser_pauses'])} laser pauses"
+
+
 @pytest.mark.fault("scan: canceled mid-scan")
 def test_cancel_mid_scan_turns_the_laser_off_and_keeps_the_data(graph, fault_report):
     start(graph, start=100, end=300, step=2)
