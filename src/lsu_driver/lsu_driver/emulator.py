@@ -180,7 +180,8 @@ class Gp32Emulator(PtyUnit):
         # stamped events with the true host time of the instant they report: {"line", "device_ms", "wall_s"}
         self.timed_events: collections.deque[dict[str, object]] = collections.deque(maxlen=512)
         self._stamp_wall = 0.0
-        # exact samples at every motion start, stop and velocity change, for the ROS node (`take_truth_events`)
+        # exact samples at every motion start, stop, velocity change and laser switch, for the ROS node
+        # (`take_truth_events`)
         self._truth_events: collections.deque[Truth] = collections.deque(maxlen=256)
         # called (from the firmware thread) whenever the discrete state changes: motion started or
         # stopped, laser, homing, reset; the ROS node publishes the truth at once instead of polling
@@ -374,6 +375,7 @@ class Gp32Emulator(PtyUnit):
             self._send(p.Ok(f"R{cmd.hz}"))
         elif isinstance(cmd, p.Laser):
             self.laser_on = cmd.on
+            self._truth_events.append(self._truth_at(mono_to_wall(time.monotonic())))  # the switch's instant
             self._send(p.Ok("L1" if cmd.on else "L0"))
         elif isinstance(cmd, p.SetRate):
             self.rate = cmd.steps_per_s
@@ -485,6 +487,10 @@ class Gp32Emulator(PtyUnit):
             now = time.monotonic()
             self._advance(now)
             self._check_watchdog(now)
+        # a change is told before the replies that acknowledge it leave: a reply starts the chain (driver,
+        # coordinator, capture) that ends in a simulated frame, which must already know of the change
+        self._notify_change()
+        with self._lock:
             self._flush(now)
 
     def _idle_timeout(self, now: float) -> float:
@@ -527,7 +533,8 @@ class Gp32Emulator(PtyUnit):
                                                else time.monotonic()))
 
     def take_truth_events(self) -> list[Truth]:
-        """The exact samples at the motion starts, stops and velocity changes since the last call, oldest first."""
+        """The exact samples at the motion starts, stops, velocity changes and laser switches since the last call,
+        oldest first."""
         with self._lock:
             events = list(self._truth_events)
             self._truth_events.clear()

@@ -9,6 +9,7 @@ control socket (`lsu gp32 fault`).
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -91,11 +92,13 @@ class Gp32EmulatorNode(LsuNode):
         self.rest_period_s = 1.0 / float(v["truth_rest_rate_hz"])
         self.truth_pub = self.create_publisher(SimTruth, "sim/truth", qos.reliable(10))
         self._last_publish = 0.0
-        # Every change (motion start/stop, laser, homing, reset) is published the moment the firmware
-        # thread sees it; in between, the samples are periodic: a moving carriage is extrapolated from
-        # its velocity and a resting one from its vibration model, so a fast stream would only cost CPU
-        # in every subscriber (200 Hz took a fifth of a core per reader).
-        self._changed = self.create_guard_condition(self._publish)
+        # Every change (motion start/stop, laser, homing, reset) is published by the firmware thread the
+        # moment it sees it, before the unit's reply to the command leaves (not by the executor later: a
+        # camera captured on that reply rendered the state before it, e.g. a snap with the laser still off);
+        # in between, the samples are periodic: a moving carriage is extrapolated from its velocity and a
+        # resting one from its vibration model, so a fast stream would only cost CPU in every subscriber
+        # (200 Hz took a fifth of a core per reader). One sender at a time keeps the samples in order.
+        self._send_lock = threading.Lock()
         if unit == "firmware":
             if faults.garbage_probability or faults.drop_probability or faults.reply_delay_s:
                 raise ValueError("the firmware unit simulates no serial-line faults (garbage, drop, late); "
@@ -125,19 +128,21 @@ class Gp32EmulatorNode(LsuNode):
 
     def _on_change(self) -> None:
         try:
-            self._changed.trigger()  # thread-safe: the executor runs _publish
+            self._publish()  # on the firmware thread: rcl's publish is thread-safe
         except Exception:  # noqa: BLE001 - the node is being destroyed under the firmware thread
             pass
 
     def _periodic(self) -> None:
-        self._send_events()
-        truth = self.emulator.truth()
-        if truth.moving or time.monotonic() - self._last_publish >= self.rest_period_s:
-            self._send(truth)
+        with self._send_lock:
+            self._send_events()
+            truth = self.emulator.truth()
+            if truth.moving or time.monotonic() - self._last_publish >= self.rest_period_s:
+                self._send(truth)
 
     def _publish(self) -> None:
-        self._send_events()
-        self._send(self.emulator.truth())
+        with self._send_lock:
+            self._send_events()
+            self._send(self.emulator.truth())
 
     def _send_events(self) -> None:
         """The exact samples at each motion start, stop and velocity change, stamped when they happened: a

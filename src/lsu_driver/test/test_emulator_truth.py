@@ -66,3 +66,34 @@ def test_a_sweep_reversal_is_a_sample_at_its_pulse():
     now = emu.truth()
     assert now.position_steps == 465.0
     assert follows(reverse, now.stamp_s) == pytest.approx(465.0, abs=100 * CLOCK_S)
+
+
+def test_a_laser_switch_is_a_sample_at_its_instant_told_before_the_reply_leaves():
+    """The simulated cameras render from the truth: the sample of a laser switch must be out before the
+    unit's reply, which starts the chain (driver, coordinator, capture) that ends in a frame of that laser."""
+    import os
+    import select
+    import time
+    import tty
+
+    emu = Gp32Emulator(EmulatorConfig())
+    seen: list[tuple[bool, bool]] = []  # (laser on, reply already on the line) at each change notification
+    emu.start()
+    fd = os.open(emu.device_path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        tty.setraw(fd)
+        emu.on_change = lambda: seen.append((emu.truth().laser_on, bool(select.select([fd], [], [], 0)[0])))
+        before = time.time()
+        os.write(fd, b"L1\n")
+        reply = b""
+        while b"OK L1\n" not in reply:  # after the power-on !BOOT
+            assert select.select([fd], [], [], 10)[0], "no reply to L1"
+            reply += os.read(fd, 256)
+        after = time.time()
+        assert (True, False) in seen, seen  # told with the laser on, before the reply was readable
+        [event] = [t for t in emu.take_truth_events() if t.laser_on]
+        assert before <= event.stamp_s <= after and not event.moving
+    finally:
+        emu.on_change = None
+        os.close(fd)
+        emu.close()

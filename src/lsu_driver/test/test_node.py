@@ -227,7 +227,11 @@ def test_laser_frame_on_tf_follows_the_carriage_once_homed(rig):
     assert tf == []  # not homed: the position means nothing yet
     assert h.call(c["home"], Trigger.Request(), timeout_s=20).success
     assert h.call(c["move_to"], MoveTo.Request(position_steps=100), timeout_s=10).success
-    assert h.spin_until(lambda: any(t.transforms[0].transform.translation.y < -0.04 for t in tf), 5.0)
+    # the move's reply comes with the unit's arrival, the state (and /tf) at the end position after it:
+    # wait for that transform itself, not for the first one near it
+    final_y = -100 * 0.00042333
+    assert h.spin_until(lambda: any(t.transforms[0].transform.translation.y == pytest.approx(final_y)
+                                    for t in tf), 10.0)
     def key(stamp):
         return (stamp.sec, stamp.nanosec)
 
@@ -242,7 +246,7 @@ def test_laser_frame_on_tf_follows_the_carriage_once_homed(rig):
         position = stamps[key(t.header.stamp)]
         assert t.transform.translation.y == pytest.approx(-position * 0.00042333)
         assert (t.transform.translation.x, t.transform.translation.z, t.transform.rotation.w) == (0.0, 0.0, 1.0)
-    assert tf[-1].transforms[0].transform.translation.y == pytest.approx(-100 * 0.00042333)
+    assert tf[-1].transforms[0].transform.translation.y == pytest.approx(final_y)
 
 
 def test_every_driver_parameter_takes_effect_when_set_or_is_refused(rig, emulator):

@@ -10,12 +10,13 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
 # Not /lsu/sim/truth: simulation only, and ~1 ms of executor time per message in this process
-# while the scan loop needs the CPU. The bag is for replaying the processing; `lsu bag record
-# --all` still takes everything.
+# while the scan loop needs the CPU. The bag is for replaying the processing and for placing it
+# in the rig's frames (/tf_static: rig, cameras, laser origin; /tf: the laser per driver state);
+# `lsu bag record --all` still takes everything.
 TOPICS = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
           "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
           "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
-          "/lsu/driver/state", "/lsu/stereo/exposure", "/lsu/driver/carriage"]
+          "/lsu/driver/state", "/lsu/stereo/exposure", "/lsu/driver/carriage", "/tf", "/tf_static"]
 
 
 class ScanBag:

@@ -27,6 +27,7 @@ _TYPE_RE = re.compile(r"^[A-Za-z_]\w*/(?:(?:msg|srv|action)/)?[A-Z]\w*$")
 DISCOVERY_QUIET_S = 1.5
 DISCOVERY_MIN_S = 1.0
 DISCOVERY_MAX_S = 10.0
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"  # rmw's name for the node of an endpoint whose node info has not come
 
 
 class GraphError(RuntimeError):
@@ -83,6 +84,19 @@ class GraphClient:
         return (tuple(sorted(n.get_node_names_and_namespaces())), topics, counts,
                 tuple(sorted((name, tuple(types)) for name, types in n.get_service_names_and_types())))
 
+    def endpoints_without_node(self) -> int:
+        """Publishers and subscriptions seen whose node is not known yet.
+
+        An endpoint comes with DDS discovery, its node's name with the node's ros_discovery_info sample,
+        which arrives separately and, on a loaded host, seconds later: until then the node is running
+        but missing from every listing.
+        """
+        n, missing = self.node, 0
+        for topic, _ in n.get_topic_names_and_types():
+            for info in (*n.get_publishers_info_by_topic(topic), *n.get_subscriptions_info_by_topic(topic)):
+                missing += info.node_name == UNKNOWN_NODE
+        return missing
+
     def wait_for_discovery(self, max_s: float, quiet_s: float = DISCOVERY_QUIET_S,
                            min_s: float = DISCOVERY_MIN_S) -> float:
         """Listen until no node, topic, service or endpoint appeared for ``quiet_s`` (at least ``min_s``,
@@ -90,7 +104,8 @@ class GraphClient:
 
         There is no daemon keeping the graph: each command discovers it afresh, and how long that
         takes depends on how many nodes there are and how busy the host is, so a fixed wait is
-        either too short (entities missed) or too long.
+        either too short (entities missed) or too long. Quiet does not count while an endpoint's node
+        is unknown (`endpoints_without_node`): its name is still on the way.
         """
         start = time.monotonic()
         last_change, seen = start, self.graph_snapshot()
@@ -100,8 +115,12 @@ class GraphClient:
             # quiet only counts once another participant is seen: on a busy host the first
             # announcement can take seconds, and "nothing new" before it means nothing yet
             others = any((name, ns) != me for name, ns in seen[0])
-            if now - start >= max_s or (others and now - start >= min_s and now - last_change >= quiet_s):
+            if now - start >= max_s:
                 break
+            if others and now - start >= min_s and now - last_change >= quiet_s:
+                if not self.endpoints_without_node():
+                    break
+                last_change = now  # a node's name is on the way: it is news still to come
             self.executor.spin_once(timeout_sec=0.05)
             current = self.graph_snapshot()
             if current != seen:

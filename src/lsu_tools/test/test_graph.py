@@ -61,3 +61,41 @@ def test_listing_does_not_stop_before_the_first_other_participant_is_seen(ros_co
         waited = g.wait_for_discovery(max_s=120.0)
     # it waited for the other node, then for the quiet period after it, and not for the maximum
     assert appear_after_s + DISCOVERY_QUIET_S <= waited < 120.0
+
+
+def test_listing_waits_for_the_node_of_every_endpoint_seen(ros_context, monkeypatch):
+    # A node's topics (DDS endpoint discovery) and its name (the ros_discovery_info topic, delivered
+    # afterwards) arrive separately; on a loaded host the name came more than the quiet period after the
+    # topics, and `lsu node list` missed a running node. Scripted: the topics are there from the start,
+    # owned by a node whose name comes 2 quiet periods later.
+    with GraphClient() as g:
+        me = (g.node.get_name(), g.node.get_namespace())
+        start = time.monotonic()
+        named_after_s = 2 * DISCOVERY_QUIET_S + DISCOVERY_MIN_S
+
+        def named() -> bool:
+            return time.monotonic() - start >= named_after_s
+
+        def snapshot():
+            nodes = [me, ("other", "/graphtest3")] + ([("late_name", "/graphtest3")] if named() else [])
+            return (tuple(sorted(nodes)), (("/graphtest3/topic", ("std_msgs/msg/Empty",)),), (), ())
+
+        monkeypatch.setattr(g, "graph_snapshot", snapshot)
+        monkeypatch.setattr(g, "endpoints_without_node", lambda: 0 if named() else 1)
+        waited = g.wait_for_discovery(max_s=120.0)
+    assert named_after_s + DISCOVERY_QUIET_S <= waited < 120.0
+
+
+def test_a_settled_graph_has_no_endpoint_without_its_node(ros_context):
+    import rclpy
+    from std_msgs.msg import Empty
+
+    node = rclpy.create_node("named_owner", namespace="/graphtest4", context=ros_context)
+    node.create_publisher(Empty, "/graphtest4/topic", 1)
+    try:
+        with GraphClient() as g:
+            g.wait_for_discovery(max_s=60.0)
+            assert ("named_owner", "/graphtest4") in g.node.get_node_names_and_namespaces()
+            assert g.endpoints_without_node() == 0
+    finally:
+        node.destroy_node()

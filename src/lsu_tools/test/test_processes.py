@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import sys
 
 from lsu_tools.processes import LaunchedProcess
 
@@ -12,8 +13,19 @@ def shell(script: str) -> LaunchedProcess:
     return LaunchedProcess([], prefix=["sh", "-c", script, "sh"])
 
 
+def python(script: str) -> LaunchedProcess:
+    # like shell(); `lsu` becomes the script's unused sys.argv[1]
+    return LaunchedProcess([], prefix=[sys.executable, "-c", script])
+
+
 def test_stop_returns_the_exit_code_of_a_process_that_ends_on_sigint():
-    proc = shell("trap 'exit 3' INT; echo ready; while :; do sleep 0.05; done")
+    # Python, not a shell trap: dash runs `sleep` by vfork with every signal blocked, and a SIGINT that
+    # lands in that window can wait seconds for its trap (1 in ~1500 stops, far longer than the
+    # sleep); Python's handler runs on the next bytecode, in time whatever the host's load.
+    proc = python("import signal, sys, time\n"
+                  "signal.signal(signal.SIGINT, lambda *_: sys.exit(3))\n"
+                  "print('ready', flush=True)\n"
+                  "while True:\n    time.sleep(1)\n")
     proc.wait_for_line("ready", timeout_s=10)
     assert proc.stop(timeout_s=10) == 3
 
