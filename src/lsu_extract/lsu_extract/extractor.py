@@ -46,6 +46,7 @@ import numpy as np
 from lsu_common.arrays import AnyArray
 
 from .detectors import (
+    ADAPTIVE,
     ADAPTIVE_WIDTH_PX,
     BLAIS_RIOUX_ORDER,
     METHOD_SUPPORT_PX,
@@ -54,6 +55,7 @@ from .detectors import (
     THESIS,
     blais_rioux_crossing,
     blais_rioux_kernel,
+    com_offset,
     half_max_crossings,
     thesis_detector,
 )
@@ -183,6 +185,7 @@ class LaserLineResult:
     rows_saturated: int = 0   # detected rows whose peak was a saturated plateau
     rows_full_search: int = 0  # rows searched in full (coarse + fallback)
     extra: dict[str, int] = field(default_factory=dict)
+    saturated: AnyArray | None = None  # per detected row: its peak was a clipped plateau (None: no row clipped)
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -413,6 +416,16 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
                 ok &= ~((col < margin) | (col > image_width - 1 - margin) |
                         (col + left < 0.0) | (col + right > image_width - 1.0))
             valid[sub] = ok
+    if params.method == ADAPTIVE:
+        # `adaptive_offset`'s choice on the final width (crossings where walked): the unclipped rows wider than
+        # ADAPTIVE_WIDTH_PX take the centre of mass above half height, of the profile less its background
+        wide = width > ADAPTIVE_WIDTH_PX
+        if saturated is not None:
+            wide &= ~saturated
+        rows_wide = np.flatnonzero(wide)
+        if rows_wide.size:
+            part = profile[rows_wide]
+            offset[rows_wide] = com_offset(part - (part[:, half] - peak[rows_wide])[:, None])
     u = np.add(offset, column, out=offset, casting="unsafe")  # float32, in place
     if params.method not in BLAIS_RIOUX_ORDER:
         # u is finite by construction (finite signal, guarded divisions); the test keeps it so for
@@ -547,7 +560,8 @@ def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
     return kept
 
 
-def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple[dict[str, Any], int]:
+def drop_isolated(found: dict[str, Any], threshold: float, height: int,
+                  names: tuple[str, ...] = ("v", *_FIELDS)) -> tuple[dict[str, Any], int]:
     """``found`` (per-row arrays by row, "v" the rows; `_FIELDS`) without its weak isolated rows (`ISOLATED_WEAK`),
     and how many were dropped.
 
@@ -569,7 +583,7 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple
     dropped = int(v.size - np.count_nonzero(keep))
     if dropped == 0:
         return found, 0
-    return {name: found[name][keep] for name in ("v", *_FIELDS)}, dropped
+    return {name: found[name][keep] for name in names}, dropped
 
 
 def one_opencv_thread() -> None:
@@ -680,14 +694,20 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                 fit = _refine(s, red, first, column - first, params, width, on_red=on_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
+    clipped = saturated > 0
+    if clipped:  # the per-row flag travels with the rows only when some row clipped (`explain_rows`)
+        for c in chunks:
+            if c["saturated"] is None:
+                c["saturated"] = np.zeros(c["v"].size, bool)
+    names = ("v", *_FIELDS, "saturated") if clipped else ("v", *_FIELDS)
     if len(chunks) == 1:
         found = chunks[0]
     elif chunks:
         order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
-        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in ("v", *_FIELDS)}
+        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in names}
     else:
-        found = {name: np.zeros(0, np.float32) for name in ("v", *_FIELDS)}
-    found, isolated = drop_isolated(found, params.min_contrast, height)
+        found = {name: np.zeros(0, np.float32) for name in names}
+    found, isolated = drop_isolated(found, params.min_contrast, height, names)
     # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
@@ -695,4 +715,48 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
-        extra={"rows_isolated": isolated} if isolated else {})
+        extra={"rows_isolated": isolated} if isolated else {},
+        saturated=found["saturated"].astype(bool, copy=False) if clipped else None)
+
+
+# The model each detected row was centred with (`explain_rows`), and why; the codes index this tuple.
+ROW_MODELS: tuple[str, ...] = ("blais_rioux4", "blais_rioux8", "flanks_signal", "flanks_red", "method", "com")
+
+
+def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
+                 textured: bool = False) -> tuple[AnyArray, dict[str, str]]:
+    """Which model centred each detected row of ``result`` (codes into `ROW_MODELS`), and why each was used.
+
+    The extractor decides per row from what it measured there: a clipped peak (red at or above
+    ``saturation_level``) is centred between the half-maximum crossings of its flanks (`CLIPPED_CENTRE`);
+    otherwise the adaptive Blais-Rioux takes the 4th-order filter on a line up to `ADAPTIVE_WIDTH_PX`
+    wide (FWHM) and the 8th on a wider one; any other method centres every unclipped row itself.
+    ``textured``: the result came with a laser-off frame (its signal is red's rise over that frame, and
+    red's own flanks are not used). Returns (codes (n,) uint8, model name -> reason) for the models used.
+    """
+    params = params or ExtractorParams(method=result.method)
+    n = len(result)
+    if result.method == THESIS:
+        return np.full(n, ROW_MODELS.index("method"), np.uint8), {
+            "method": "thesis: mean column of the pixels with red above red_threshold and blue below blue_threshold"}
+    if result.method in ("blais_rioux", ADAPTIVE):
+        wide = ROW_MODELS.index("blais_rioux8" if result.method == "blais_rioux" else "com")
+        codes = np.where(result.width > ADAPTIVE_WIDTH_PX, wide, 0).astype(np.uint8)
+    else:
+        codes = np.full(n, ROW_MODELS.index("method"), np.uint8)
+    if result.saturated is not None:
+        flanks = "flanks_red" if params.clipped_centre == "red" and not textured else "flanks_signal"
+        codes[result.saturated] = ROW_MODELS.index(flanks)
+    why = {
+        "blais_rioux4": f"FWHM <= {ADAPTIVE_WIDTH_PX:g} px: the 4th-order filter spans the line's flanks",
+        "blais_rioux8": f"FWHM > {ADAPTIVE_WIDTH_PX:g} px: a 4th-order filter would see only the line's flat top",
+        "flanks_signal": f"red clipped (>= {params.saturation_level} DN) at the peak: no top to fit; centre midway "
+                         "between the half-maximum crossings of the signal's flanks",
+        "flanks_red": f"red clipped (>= {params.saturation_level} DN) at the peak: centre midway between red's own "
+                      "half-maximum crossings (colour crosstalk bends the signal's clipped top)",
+        "method": f"{result.method}: the configured estimator on every unclipped row",
+        "com": f"FWHM > {ADAPTIVE_WIDTH_PX:g} px: wider than a zero-crossing filter's model; centre of mass of the "
+               "part above half height",
+    }
+    used = {ROW_MODELS[int(c)] for c in np.unique(codes)}
+    return codes, {name: why[name] for name in ROW_MODELS if name in used}
