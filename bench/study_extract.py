@@ -22,7 +22,8 @@ bought with rows). Leave-one-set-out: for each set, the eligible
 candidate whose worst RMS over the *other* sets is best is chosen, and its RMS on the held-out set is
 reported beside the best any candidate reached there (the regret says whether a choice made without
 the set carries over to it). The default is the eligible candidate whose worst set is best (minimax
-over the held-out sets). The same run prints the README's table.
+over the held-out sets), by more than ``MARGIN_PX`` (the current default stays otherwise: smaller
+differences are within what the choice of frames moves). The same run prints the README's table.
 
 Run: ``.venv/bin/python bench/study_extract.py`` (a few minutes; ``--quick`` for fewer frames).
 Writes bench/results/study_extract.json.
@@ -56,6 +57,7 @@ from lsu_extract.extractor import DEFAULT_METHOD, ExtractorParams, extract_laser
 SEED = 20261206
 ROWS_TOLERANCE_PCT = 0.5   # missed / false rows (all sets) at most this far above the default's are eligible
 BOX_PAIRS = 10             # box pairs drawn (seeded) of 30: two lines per row, scored for false rows only
+MARGIN_PX = 0.01          # a new default must beat the current one's worst-set RMS by more than this
 SINGLE = ("weld", "globe", "photos", "sim_plane", "sim_head", "sim_ambient")  # RMS is scored on these
 
 
@@ -162,15 +164,20 @@ def study(sets: dict[str, list[devdata.DevImage]], cands: dict[str, ExtractorPar
     def worst(name: str, over: Sequence[str]) -> float:
         return max(table[name][s]["rms_px"] for s in over)
 
+    def choose(over: Sequence[str]) -> str:
+        # the default stays unless another candidate's worst set is better by more than the margin
+        best = min(eligible, key=lambda n: worst(n, over))
+        return best if worst("default", over) - worst(best, over) > MARGIN_PX else "default"
+
     loso: dict[str, dict[str, object]] = {}
     for held in rms_sets:
         others = [s for s in rms_sets if s != held]
-        chosen = min(eligible, key=lambda n: worst(n, others))
+        chosen = choose(others)
         best = min(table, key=lambda n: table[n][held]["rms_px"])
         loso[held] = {"chosen": chosen, "held_out_rms_px": table[chosen][held]["rms_px"],
                       "best": best, "best_rms_px": table[best][held]["rms_px"],
                       "regret_px": table[chosen][held]["rms_px"] - table[best][held]["rms_px"]}
-    minimax = min(eligible, key=lambda n: worst(n, rms_sets))
+    minimax = choose(rms_sets)
     return {"table": table, "eligible": eligible, "loso": loso, "minimax": minimax,
             "worst_set_rms_px": {n: worst(n, rms_sets) for n in table}}
 
@@ -233,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     notes = (f"Leave-one-set-out over the sets ({counts} images); RMS from a robust smooth fit along the line on "
              "every set (sim_*: truth_rms_px too); missed: % of clear rows; false: % of scored rows; 'all' sums "
              f"the rows of every set. Eligible: missed and false at most {ROWS_TOLERANCE_PCT} points above the "
-             f"default's. Chosen (minimax over the sets' RMS among the eligible): {result['minimax']}.")
+             f"default's. Chosen (minimax over the sets' RMS among the eligible, by more than {MARGIN_PX} px, else "
+             f"the default): {result['minimax']}.")
     write_result("study_extract", figures, units, notes,
                  extra={"loso": result["loso"], "minimax": result["minimax"], "eligible": result["eligible"],
                         "worst_set_rms_px": result["worst_set_rms_px"], "markdown": text})

@@ -19,7 +19,9 @@ Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixel
 4. refinement: a window of the signal around each integer peak gives the background (the
    lower end), the sub-pixel centre (detectors.py) and the width (the equivalent width of the
    profile, see `_fit`); the half-maximum crossings are walked for the rows that need them,
-   and give a saturated plateau its centre;
+   and give a saturated plateau its centre; the default ``adaptive`` method then centres each
+   unclipped row by the model its measured width fits (`detectors.adaptive_offset`;
+   `explain_rows` says which and why);
 5. continuity: a weak detection that no detection in the neighbouring rows continues is noise
    (`drop_isolated`).
 
@@ -64,12 +66,12 @@ from .image import ImageFormatError
 from .signal import LaserSignal, contrast_noise
 from .tracking import BLANK, coarse_track, decide, row_candidates
 
-# Chosen by bench/bench_extract.py on a mix of simulated frames and real photographs (see
-# bench/results/extract.json): blais_rioux4 is best on the rig's narrow lines (3-4 px FWHM) and
-# blais_rioux8 on the wider lines of real photographs (0.28 vs 0.32 px from a smooth fit), where
-# the short filter sees only the flat top; the adaptive blais_rioux takes each where it is best.
-# com is as precise on real lines but costs ~1.6x the time.
-DEFAULT_METHOD = "blais_rioux"
+# Chosen by bench/study_extract.py, leave-one-set-out over the real development sets (weld stripes, the
+# turntable's globe and box, two photographs) and the simulated rig's frames: the candidate whose worst
+# set is best (bench/results/study_extract.json). The adaptive method takes Blais-Rioux 4 on narrow lines
+# (the rig's 3-4 px) and the centre of mass above half height on wider ones (real photographs' 5-12 px),
+# row by row from the width it measures; every fold of the study chose it on the sets it was not tested on.
+DEFAULT_METHOD = "adaptive"
 # Where red clips, how the centre is found on a colour frame without a laser-off frame. The sensor's
 # colour crosstalk lifts green and blue in proportion to the laser (a few to 15 % of red), which only
 # scales red - max(green, blue) while red follows the laser; once red clips, green and blue still
