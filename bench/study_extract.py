@@ -69,6 +69,7 @@ def candidates() -> dict[str, ExtractorParams]:
     adaptive = replace(base, method="adaptive")
     out["adaptive+clipped_centre=red"] = replace(adaptive, clipped_centre="red")
     out["adaptive+max_width_px=20"] = replace(adaptive, max_width_px=20.0)
+    out["grow_wide=True"] = replace(base, grow_wide=True)
     for name, values in (("contrast_sigmas", (0.0, 6.0, 10.0)), ("ambiguity_ratio", (0.5, 0.75)),
                          ("clipped_centre", ("red",)), ("saturation_level", (255,)),
                          ("window_px", (8, 16)), ("max_width_px", (12.0, 20.0, 24.0))):

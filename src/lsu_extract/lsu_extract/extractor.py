@@ -116,6 +116,7 @@ class ExtractorParams:
     coarse_step_rows: int = 8        # row spacing of the coarse full-row pass
     saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
+    grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
 
@@ -588,6 +589,71 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int,
     return {name: found[name][keep] for name in names}, dropped
 
 
+# A line wider than max_width_px (grazing light, a defocused or bloomed part) is accepted only where it continues a
+# line already found: row by row from the detected rows, up to GROW_MAX_WIDTH_PX wide, within window_px of the
+# neighbouring row's centre (GROW_STEP_PX). A full-row search never accepts such a width (red print and lit patches are as wide).
+GROW_MAX_WIDTH_PX = 48.0
+GROW_PEAK_RATIO = 0.5  # ... and at least this fraction of its neighbour's peak: the same line, not a fainter patch
+GROW_STEP_PX = 3.0  # a grown row's centre is at most this far from its neighbour's: a line, not a patch beside it
+GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every front by one row)
+
+
+@lru_cache(maxsize=16)
+def _grow_params(params: ExtractorParams) -> ExtractorParams:
+    """``params`` with the width range of the rows grown along the line (`_grow_along`)."""
+    return replace(params, max_width_px=max(params.max_width_px, GROW_MAX_WIDTH_PX))
+
+
+def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: ExtractorParams, image_width: int,
+                on_red: bool) -> list[dict[str, Any]]:
+    """Rows next to a detection and without one, fitted within ``window_px`` of that detection's column with the
+    wider width range of `_grow_params`, centred within `GROW_STEP_PX` of it; repeated from the rows found, until a pass finds none (`GROW_MAX_WIDTH_PX`).
+
+    Each pass tries every row that has a detection directly above or below it and none itself (the mean of the two
+    neighbours' columns where both have one), and no row twice. Returns the new rows as `_keep` chunks.
+    """
+    height = sig.height
+    wide = _grow_params(params)
+    w = max(params.window_px, 4)
+    reach = w + wide.refine_half_px
+    have = np.zeros(height + 2, bool)   # padded by one row at each end: row v is at v + 1
+    col = np.zeros(height + 2, np.float64)
+    peak = np.zeros(height + 2, np.float64)
+    for c in chunks:
+        have[c["v"] + 1] = True
+        col[c["v"] + 1] = c["u"]
+        peak[c["v"] + 1] = c["peak"]
+    tried = have.copy()
+    out: list[dict[str, Any]] = []
+    for _ in range(GROW_PASSES):
+        above, below = have[:-2], have[2:]
+        rows = np.flatnonzero((above | below) & ~tried[1:-1])
+        if not rows.size:
+            break
+        tried[rows + 1] = True
+        a, b = above[rows], below[rows]
+        guess = (np.where(a, col[rows], 0.0) + np.where(b, col[rows + 2], 0.0)) / (a.astype(np.float64) + b)
+        ref_peak = np.maximum(np.where(a, peak[rows], 0.0), np.where(b, peak[rows + 2], 0.0))
+        centre = np.rint(guess).astype(np.int64)
+        s, red, first = sig.windows(rows, centre - reach, 2 * reach + 1)
+        rel = centre - first  # windows at a border were shifted inside the image
+        region = np.abs(np.arange(s.shape[1])[None, :] - rel[:, None]) <= w
+        peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
+        fit = _refine(s, red, first, peak_idx, wide, image_width, accept=np.abs(peak_idx - rel) < w, on_red=on_red)
+        kept = _keep(rows, fit)
+        at = np.searchsorted(rows, kept["v"])
+        step = (np.abs(kept["u"] - guess[at]) <= GROW_STEP_PX) & (kept["peak"] >= GROW_PEAK_RATIO * ref_peak[at])
+        if not np.all(step):
+            kept = {name: value if value is None else value[step] for name, value in kept.items()}
+        if not kept["v"].size:
+            break
+        out.append(kept)
+        have[kept["v"] + 1] = True
+        col[kept["v"] + 1] = kept["u"]
+        peak[kept["v"] + 1] = kept["peak"]
+    return out
+
+
 def one_opencv_thread() -> None:
     """Run OpenCV on one thread in this process, as every process that extracts laser lines does.
 
@@ -695,6 +761,11 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                 s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
                 fit = _refine(s, red, first, column - first, params, width, on_red=on_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
+    grown = 0
+    if params.grow_wide and chunks and sum(c["v"].size for c in chunks) < height:
+        more = _grow_along(sig, chunks, params, width, on_red)
+        grown = sum(c["v"].size for c in more)
+        chunks += more
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
     clipped = saturated > 0
     if clipped:  # the per-row flag travels with the rows only when some row clipped (`explain_rows`)
@@ -717,7 +788,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
-        extra={"rows_isolated": isolated} if isolated else {},
+        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {})},
         saturated=found["saturated"].astype(bool, copy=False) if clipped else None)
 
 

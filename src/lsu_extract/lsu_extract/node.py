@@ -59,6 +59,8 @@ _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
                          (1, 255)),
     "clipped_centre": ("where red clips: centre midway between the half-maximum crossings of the signal's flanks "
                        "('signal') or of red's ('red')", None),
+    "grow_wide": ("follow the line row by row from its detections, accepting it up to 48 px wide there (a "
+                  "full-row search keeps max_width_px)", None),
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }

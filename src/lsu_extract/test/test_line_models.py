@@ -82,3 +82,34 @@ def test_explain_names_a_reason_for_every_model_used():
     result = extract_laser_line(plain, params)
     assert result.saturated is None
     assert set(explain_rows(result, params)[1]) == {"blais_rioux4"}
+
+
+def test_a_line_widening_beyond_max_width_is_followed_only_with_grow_wide():
+    # rows 0..239 a 4 px line, rows 240..479 the same line 28 px wide (FWHM; beyond max_width_px 16), as where the
+    # light grazes a surface; truth: the analytic centre, the same for both halves
+    narrow, truth, _ = render_line(LineScene(textured=False, seed=3))
+    wide, _, _ = render_line(LineScene(textured=False, fwhm_px=28.0, amplitude_dn=120.0, seed=4))
+    image = np.concatenate([narrow[:240], wide[240:]])
+    default = extract_laser_line(image, ExtractorParams())
+    grown = extract_laser_line(image, ExtractorParams(grow_wide=True))
+    low = grown.v >= 240
+    assert np.count_nonzero(low) >= 0.95 * 240 > np.count_nonzero(default.v >= 240)
+    err = grown.u[low] - truth[grown.v[low].astype(int)]
+    assert float(np.sqrt(np.mean(err ** 2))) <= 0.5
+
+
+def test_grow_wide_does_not_follow_into_a_patch_without_the_line():
+    # the line stops at row 239; below it, right where the line would go on, a broad red glow (FWHM 59 px, no laser):
+    # wider than GROW_MAX_WIDTH_PX, so growing from the line's end takes none of it. (A glow within the width limits
+    # is indistinguishable from a wide line row by row; and growth follows any detection, false ones too: the
+    # study's false rows for grow_wide, which is why it is not on by default.)
+    image, truth, _ = render_line(LineScene(textured=False, last_row=239, seed=5))
+    patch = image.astype(np.int16)
+    cols = np.arange(image.shape[1])
+    bump = (80.0 * np.exp(-0.5 * ((cols - truth[300]) / 25.0) ** 2)).astype(np.int16)
+    patch[240:, :, 2] += bump[None, :]
+    image = np.clip(patch, 0, 255).astype(np.uint8)
+    grown = extract_laser_line(image, ExtractorParams(grow_wide=True))
+    default = extract_laser_line(image, ExtractorParams())
+    assert grown.extra.get("rows_grown", 0) <= 2
+    assert np.count_nonzero(grown.v >= 242) <= np.count_nonzero(default.v >= 242) + 2
