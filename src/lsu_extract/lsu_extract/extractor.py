@@ -116,6 +116,7 @@ class ExtractorParams:
     coarse_step_rows: int = 8        # row spacing of the coarse full-row pass
     saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
+    adaptive_width_px: float = ADAPTIVE_WIDTH_PX  # blais_rioux / adaptive: wider rows (FWHM) take the 8th order / com
     grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
@@ -153,6 +154,7 @@ def param_problems(values: dict[str, object]) -> list[str]:
     number("min_contrast", 1.0, 255.0)
     number("contrast_sigmas", 0.0, 100.0)
     number("ambiguity_ratio", 0.05, 1.0)
+    number("adaptive_width_px", 1.0, 64.0)
     number("min_width_px", 0.0, 64.0)
     number("max_width_px", 2.0, 64.0)
     number("window_px", 0, 128)
@@ -381,7 +383,7 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     if params.method in BLAIS_RIOUX_ORDER:
         offset = blais_rioux_crossing(features[8], features[9], features[10])
         if len(BLAIS_RIOUX_ORDER[params.method]) == 2:  # blais_rioux: the 8th order on the wider lines
-            offset = np.where(width > ADAPTIVE_WIDTH_PX, blais_rioux_crossing(features[11], features[12], features[13]),
+            offset = np.where(width > params.adaptive_width_px, blais_rioux_crossing(features[11], features[12], features[13]),
                               offset)
     else:
         offset = SUBPIXEL_METHODS[params.method](profile - (profile[:, half] - peak)[:, None])
@@ -421,8 +423,8 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
             valid[sub] = ok
     if params.method == ADAPTIVE:
         # `adaptive_offset`'s choice on the final width (crossings where walked): the unclipped rows wider than
-        # ADAPTIVE_WIDTH_PX take the centre of mass above half height, of the profile less its background
-        wide = width > ADAPTIVE_WIDTH_PX
+        # adaptive_width_px take the centre of mass above half height, of the profile less its background
+        wide = width > params.adaptive_width_px
         if saturated is not None:
             wide &= ~saturated
         rows_wide = np.flatnonzero(wide)
@@ -802,7 +804,7 @@ def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
 
     The extractor decides per row from what it measured there: a clipped peak (red at or above
     ``saturation_level``) is centred between the half-maximum crossings of its flanks (`CLIPPED_CENTRE`);
-    otherwise the adaptive Blais-Rioux takes the 4th-order filter on a line up to `ADAPTIVE_WIDTH_PX`
+    otherwise the adaptive Blais-Rioux takes the 4th-order filter on a line up to ``adaptive_width_px``
     wide (FWHM) and the 8th on a wider one; any other method centres every unclipped row itself.
     ``textured``: the result came with a laser-off frame (its signal is red's rise over that frame, and
     red's own flanks are not used). Returns (codes (n,) uint8, model name -> reason) for the models used.
@@ -814,21 +816,21 @@ def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
             "method": "thesis: mean column of the pixels with red above red_threshold and blue below blue_threshold"}
     if result.method in ("blais_rioux", ADAPTIVE):
         wide = ROW_MODELS.index("blais_rioux8" if result.method == "blais_rioux" else "com")
-        codes = np.where(result.width > ADAPTIVE_WIDTH_PX, wide, 0).astype(np.uint8)
+        codes = np.where(result.width > params.adaptive_width_px, wide, 0).astype(np.uint8)
     else:
         codes = np.full(n, ROW_MODELS.index("method"), np.uint8)
     if result.saturated is not None:
         flanks = "flanks_red" if params.clipped_centre == "red" and not textured else "flanks_signal"
         codes[result.saturated] = ROW_MODELS.index(flanks)
     why = {
-        "blais_rioux4": f"FWHM <= {ADAPTIVE_WIDTH_PX:g} px: the 4th-order filter spans the line's flanks",
-        "blais_rioux8": f"FWHM > {ADAPTIVE_WIDTH_PX:g} px: a 4th-order filter would see only the line's flat top",
+        "blais_rioux4": f"FWHM <= {params.adaptive_width_px:g} px: the 4th-order filter spans the line's flanks",
+        "blais_rioux8": f"FWHM > {params.adaptive_width_px:g} px: a 4th-order filter would see only the line's flat top",
         "flanks_signal": f"red clipped (>= {params.saturation_level} DN) at the peak: no top to fit; centre midway "
                          "between the half-maximum crossings of the signal's flanks",
         "flanks_red": f"red clipped (>= {params.saturation_level} DN) at the peak: centre midway between red's own "
                       "half-maximum crossings (colour crosstalk bends the signal's clipped top)",
         "method": f"{result.method}: the configured estimator on every unclipped row",
-        "com": f"FWHM > {ADAPTIVE_WIDTH_PX:g} px: wider than a zero-crossing filter's model; centre of mass of the "
+        "com": f"FWHM > {params.adaptive_width_px:g} px: wider than a zero-crossing filter's model; centre of mass of the "
                "part above half height",
     }
     used = {ROW_MODELS[int(c)] for c in np.unique(codes)}
