@@ -303,7 +303,8 @@ def timing(image: AnyArray, methods: Sequence[str]) -> dict[str, tuple[float, fl
 def plot(tables: dict[str, tuple[str, Sequence[float], dict[str, list[float]]]], path: Path) -> None:
     """Panels of RMS error vs a scene parameter, one polyline per method (OpenCV drawing)."""
     colours = {"thesis": (60, 60, 60), "gaussian3": (200, 120, 0), "parabola": (0, 160, 220),
-               "com": (160, 0, 160), "blais_rioux4": (0, 150, 0), "blais_rioux8": (0, 0, 220), "blais_rioux": (0, 120, 120)}
+               "com": (160, 0, 160), "blais_rioux4": (0, 150, 0), "blais_rioux8": (0, 0, 220), "blais_rioux": (0, 120, 120),
+               "adaptive": (220, 0, 120)}
     pw, ph, m = 420, 320, 50
     canvas = np.full((ph + 60, pw * len(tables), 3), 255, np.uint8)
     ymax = 0.5
@@ -327,7 +328,7 @@ def plot(tables: dict[str, tuple[str, Sequence[float], dict[str, list[float]]]],
             if len(pts) > 1:
                 cv2.polylines(canvas, [np.array(pts, np.int32)], False, colours.get(method, (0, 0, 0)), 2, cv2.LINE_AA)
     for i, method in enumerate(METHODS):
-        cv2.putText(canvas, method, (10 + i * 140, ph + 45), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colours[method], 2)
+        cv2.putText(canvas, method, (10 + i * 150, ph + 45), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colours[method], 2)
     cv2.putText(canvas, "RMS column error [px]", (5, ph + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
     cv2.imwrite(str(path), canvas)
 
@@ -339,14 +340,19 @@ def real_light_figures(figures: dict[str, float], units: dict[str, str],
     previous = ExtractorParams(**PREVIOUS)
     big = render_line(SATURATED_SCENE.with_(width=1152, height=768, u0_px=575.3))[0]
     vga = render_line(DEFAULT_SCENE)[0]
-    t_big = timing_params(big, {"default": default, "previous": previous})
-    t_vga = timing_params(vga, {"default": default, "previous": previous})
+    before = ExtractorParams(method="blais_rioux")  # the default before bench/study_extract.py
+    t_big = timing_params(big, {"default": default, "previous": previous, "blais_rioux": before})
+    t_vga = timing_params(vga, {"default": default, "previous": previous, "blais_rioux": before})
     figures.update({
+        "extract_over_copy_ratio_1152_blais_rioux": t_big["blais_rioux"][1],
+        "extract_over_copy_ratio_640_same_run_blais_rioux": t_vga["blais_rioux"][1],
         "extract_over_copy_ratio_1152": t_big["default"][1], "extract_ms_median_1152": t_big["default"][0],
         "extract_over_copy_ratio_1152_previous": t_big["previous"][1],
         "extract_over_copy_ratio_640_same_run": t_vga["default"][1],
         "extract_over_copy_ratio_640_previous": t_vga["previous"][1]})
-    units.update({"extract_over_copy_ratio_1152": "x np.copy", "extract_ms_median_1152": "ms",
+    units.update({"extract_over_copy_ratio_1152_blais_rioux": "x np.copy",
+                  "extract_over_copy_ratio_640_same_run_blais_rioux": "x np.copy",
+                  "extract_over_copy_ratio_1152": "x np.copy", "extract_ms_median_1152": "ms",
                   "extract_over_copy_ratio_1152_previous": "x np.copy",
                   "extract_over_copy_ratio_640_same_run": "x np.copy", "extract_over_copy_ratio_640_previous": "x np.copy"})
     for name, params in (("", default), ("_previous", previous),
@@ -381,17 +387,20 @@ def real_light_figures(figures: dict[str, float], units: dict[str, str],
         units.update({f"rms_px_real_dev{suffix}": "px", f"missed_rows_pct_real_dev{suffix}": "% of clear rows",
                       f"false_rows_pct_real_dev{suffix}": "% of scored rows",
                       f"whole_px_pct_real_dev{suffix}": "% of detections"})
+        # per set for every candidate, and the worst set: a default must hold on each set, not on their mix
+        figures[f"rms_px_real_worst_set{suffix}"] = max(scores[name].rms_px for name in single)
+        units[f"rms_px_real_worst_set{suffix}"] = "px"
+        for name in single:
+            figures[f"rms_px_real_{name}{suffix}"] = scores[name].rms_px
+            figures[f"missed_rows_pct_real_{name}{suffix}"] = scores[name].missed_pct
+            figures[f"false_rows_pct_real_{name}{suffix}"] = scores[name].false_pct
+            units.update({f"rms_px_real_{name}{suffix}": "px",
+                          f"missed_rows_pct_real_{name}{suffix}": "% of clear rows",
+                          f"false_rows_pct_real_{name}{suffix}": "% of scored rows"})
+        box = dev_scores(sets, params, names=("box",))["box"]
+        figures[f"false_rows_pct_real_box{suffix}"] = box.false_pct
+        units[f"false_rows_pct_real_box{suffix}"] = "% of rows"
         if suffix in ("", "_previous"):
-            for name in single:
-                figures[f"rms_px_real_{name}{suffix}"] = scores[name].rms_px
-                figures[f"missed_rows_pct_real_{name}{suffix}"] = scores[name].missed_pct
-                figures[f"false_rows_pct_real_{name}{suffix}"] = scores[name].false_pct
-                units.update({f"rms_px_real_{name}{suffix}": "px",
-                              f"missed_rows_pct_real_{name}{suffix}": "% of clear rows",
-                              f"false_rows_pct_real_{name}{suffix}": "% of scored rows"})
-            box = dev_scores(sets, params, names=("box",))["box"]
-            figures[f"false_rows_pct_real_box{suffix}"] = box.false_pct
-            units[f"false_rows_pct_real_box{suffix}"] = "% of rows"
             diff = dev_scores(sets, params, texture=True, names=("globe", "box"))
             figures[f"false_rows_pct_ambient_diff{suffix}"] = diff["all"].false_pct
             figures[f"missed_rows_pct_real_globe_diff{suffix}"] = diff["globe"].missed_pct
@@ -404,9 +413,10 @@ def real_light_figures(figures: dict[str, float], units: dict[str, str],
     units["false_rows_pct_ambient_diff_moving_person"] = "% of rows"
     counts = {name: len(images) for name, images in sets.items()}
     return (
-        "REAL (lsu_extract.devdata, read from ../shared/devdata; goals: rms_px_real_dev <= 0.3, "
-        "missed_rows_pct_real_dev <= 1, false_rows_pct_real_dev = 0, false_rows_pct_ambient_diff = 0, "
-        "extract_over_copy_ratio_1152 <= 8). Sets: weld = "
+        "REAL (lsu_extract.devdata, read from ../shared/devdata; goals: rms_px_real_worst_set <= 0.3 (the worst of "
+        "weld, globe, photos), rms_px_real_dev <= 0.3, missed_rows_pct_real_dev <= 1, false_rows_pct_real_dev <= 0.5, "
+        "false_rows_pct_ambient_diff = 0, extract_over_copy_ratio and extract_over_copy_ratio_1152 <= 8). The default "
+        "was chosen by bench/study_extract.py (leave-one-set-out, bench/results/study_extract.json). Sets: weld = "
         f"{counts['weld']} views of the weld_laser_stripes_gk stripes (mono, transposed, the other labelled stripe "
         "painted over; truth = the hand-drawn masks; only mask rows scored); globe = the 4 one-laser 1920x1080 "
         "frames of semiteleporter_turntable (reference = laser-on minus laser-off: red rose >= max(12 DN, 6 sigma) "
@@ -419,7 +429,7 @@ def real_light_figures(figures: dict[str, float], units: dict[str, str],
         "*_ambient_diff: with the laser-off frame as texture (signal = red difference), globe + box; "
         "*_moving_person: box pairs 21 and 25 alone. Suffixes: _previous = the defaults before (blais_rioux4, "
         "fixed 30 DN, clipping at 255), _fixed30 = fixed 30 DN only, _clipped_red = clipped rows centred on red's flanks, "
-        "_<method> = another estimator. whole_px_pct: detections at a whole-pixel column. SATURATED analytic: "
+        "_<method> = another estimator (_blais_rioux: the default before the study). whole_px_pct: detections at a whole-pixel column. SATURATED analytic: "
         "640x480, FWHM 7 px, 420 DN (red clips over ~4 px), crosstalk 10/8 % (30-45 DN in green/blue in the "
         "core), 4 frames. extract_over_copy_ratio_1152: that line at 1152x768; *_640_same_run/_previous: the "
         "default analytic frame, timed in the same run as the previous defaults. Known gaps: the tape roll "

@@ -14,7 +14,7 @@ import numpy as np
 from lsu_common.arrays import AnyArray
 
 from .detectors import METHODS
-from .extractor import DEFAULT_METHOD, ExtractorParams, LaserLineResult, extract_laser_line
+from .extractor import DEFAULT_METHOD, ROW_MODELS, ExtractorParams, LaserLineResult, explain_rows, extract_laser_line
 
 
 def read_image(path: Path) -> AnyArray:
@@ -88,6 +88,12 @@ def cmd_extract(args: argparse.Namespace) -> int:
         image = read_image(path)
         result = extract_laser_line(image, params, texture=texture)
         record = {"image": str(path), **summary(result)}
+        codes, why = explain_rows(result, params, textured=texture is not None)
+        if args.explain:
+            record["models"] = {name: {"rows": int(np.count_nonzero(codes == ROW_MODELS.index(name))), "why": reason}
+                                for name, reason in why.items()}
+            if texture is not None:
+                record["signal"] = "red's rise over the laser-off frame (--texture): red objects and ambient cancel"
         if args.overlay:
             target = overlay_path(Path(args.overlay), path, len(args.images) > 1)
             if not cv2.imwrite(str(target), draw_overlay(image, result)):
@@ -96,8 +102,12 @@ def cmd_extract(args: argparse.Namespace) -> int:
         if args.json:
             record.update({key: [round(float(x), 4) for x in getattr(result, key)]
                            for key in ("u", "v", "peak", "width", "quality")})
+            if args.explain:
+                record["model"] = [ROW_MODELS[int(c)] for c in codes]
         else:
             print(describe(record))
+            for name, info in record.get("models", {}).items():
+                print(f"  {info['rows']:5d} rows {name}: {info['why']}")
         records.append(record)
     if args.json:
         json.dump(records if len(records) > 1 else records[0], sys.stdout, indent=1)
@@ -118,6 +128,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--overlay", metavar="OUT.png",
                    help="write the image with the detected line drawn on it (several images: OUT_<name>.png)")
     p.add_argument("--json", action="store_true", help="print results as JSON (with per-row arrays)")
+    p.add_argument("--explain", action="store_true",
+                   help="say which model centred the rows and why (with --json: the model of every row)")
     p.add_argument("--texture", metavar="IMAGE", help="laser-off frame of the same view (signal = red difference)")
     p.add_argument("--min-contrast", type=float, default=defaults.min_contrast, metavar="DN",
                    help=f"laser signal above background to accept a row (default {defaults.min_contrast:g})")

@@ -19,7 +19,9 @@ Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixel
 4. refinement: a window of the signal around each integer peak gives the background (the
    lower end), the sub-pixel centre (detectors.py) and the width (the equivalent width of the
    profile, see `_fit`); the half-maximum crossings are walked for the rows that need them,
-   and give a saturated plateau its centre;
+   and give a saturated plateau its centre; the default ``adaptive`` method then centres each
+   unclipped row by the model its measured width fits (`detectors.adaptive_offset`;
+   `explain_rows` says which and why);
 5. continuity: a weak detection that no detection in the neighbouring rows continues is noise
    (`drop_isolated`).
 
@@ -46,6 +48,7 @@ import numpy as np
 from lsu_common.arrays import AnyArray
 
 from .detectors import (
+    ADAPTIVE,
     ADAPTIVE_WIDTH_PX,
     BLAIS_RIOUX_ORDER,
     METHOD_SUPPORT_PX,
@@ -54,6 +57,7 @@ from .detectors import (
     THESIS,
     blais_rioux_crossing,
     blais_rioux_kernel,
+    com_offset,
     half_max_crossings,
     thesis_detector,
 )
@@ -62,12 +66,12 @@ from .image import ImageFormatError
 from .signal import LaserSignal, contrast_noise
 from .tracking import BLANK, coarse_track, decide, row_candidates
 
-# Chosen by bench/bench_extract.py on a mix of simulated frames and real photographs (see
-# bench/results/extract.json): blais_rioux4 is best on the rig's narrow lines (3-4 px FWHM) and
-# blais_rioux8 on the wider lines of real photographs (0.28 vs 0.32 px from a smooth fit), where
-# the short filter sees only the flat top; the adaptive blais_rioux takes each where it is best.
-# com is as precise on real lines but costs ~1.6x the time.
-DEFAULT_METHOD = "blais_rioux"
+# Chosen by bench/study_extract.py, leave-one-set-out over the real development sets (weld stripes, the
+# turntable's globe and box, two photographs) and the simulated rig's frames: the candidate whose worst
+# set is best (bench/results/study_extract.json). The adaptive method takes Blais-Rioux 4 on narrow lines
+# (the rig's 3-4 px) and the centre of mass above half height on wider ones (real photographs' 5-12 px),
+# row by row from the width it measures; every fold of the study chose it on the sets it was not tested on.
+DEFAULT_METHOD = "adaptive"
 # Where red clips, how the centre is found on a colour frame without a laser-off frame. The sensor's
 # colour crosstalk lifts green and blue in proportion to the laser (a few to 15 % of red), which only
 # scales red - max(green, blue) while red follows the laser; once red clips, green and blue still
@@ -112,6 +116,8 @@ class ExtractorParams:
     coarse_step_rows: int = 8        # row spacing of the coarse full-row pass
     saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
+    adaptive_width_px: float = ADAPTIVE_WIDTH_PX  # blais_rioux / adaptive: wider rows (FWHM) take the 8th order / com
+    grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
 
@@ -148,6 +154,7 @@ def param_problems(values: dict[str, object]) -> list[str]:
     number("min_contrast", 1.0, 255.0)
     number("contrast_sigmas", 0.0, 100.0)
     number("ambiguity_ratio", 0.05, 1.0)
+    number("adaptive_width_px", 1.0, 64.0)
     number("min_width_px", 0.0, 64.0)
     number("max_width_px", 2.0, 64.0)
     number("window_px", 0, 128)
@@ -183,6 +190,7 @@ class LaserLineResult:
     rows_saturated: int = 0   # detected rows whose peak was a saturated plateau
     rows_full_search: int = 0  # rows searched in full (coarse + fallback)
     extra: dict[str, int] = field(default_factory=dict)
+    saturated: AnyArray | None = None  # per detected row: its peak was a clipped plateau (None: no row clipped)
 
     def __len__(self) -> int:
         return int(self.u.size)
@@ -375,7 +383,7 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     if params.method in BLAIS_RIOUX_ORDER:
         offset = blais_rioux_crossing(features[8], features[9], features[10])
         if len(BLAIS_RIOUX_ORDER[params.method]) == 2:  # blais_rioux: the 8th order on the wider lines
-            offset = np.where(width > ADAPTIVE_WIDTH_PX, blais_rioux_crossing(features[11], features[12], features[13]),
+            offset = np.where(width > params.adaptive_width_px, blais_rioux_crossing(features[11], features[12], features[13]),
                               offset)
     else:
         offset = SUBPIXEL_METHODS[params.method](profile - (profile[:, half] - peak)[:, None])
@@ -413,6 +421,16 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
                 ok &= ~((col < margin) | (col > image_width - 1 - margin) |
                         (col + left < 0.0) | (col + right > image_width - 1.0))
             valid[sub] = ok
+    if params.method == ADAPTIVE:
+        # `adaptive_offset`'s choice on the final width (crossings where walked): the unclipped rows wider than
+        # adaptive_width_px take the centre of mass above half height, of the profile less its background
+        wide = width > params.adaptive_width_px
+        if saturated is not None:
+            wide &= ~saturated
+        rows_wide = np.flatnonzero(wide)
+        if rows_wide.size:
+            part = profile[rows_wide]
+            offset[rows_wide] = com_offset(part - (part[:, half] - peak[rows_wide])[:, None])
     u = np.add(offset, column, out=offset, casting="unsafe")  # float32, in place
     if params.method not in BLAIS_RIOUX_ORDER:
         # u is finite by construction (finite signal, guarded divisions); the test keeps it so for
@@ -547,7 +565,8 @@ def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
     return kept
 
 
-def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple[dict[str, Any], int]:
+def drop_isolated(found: dict[str, Any], threshold: float, height: int,
+                  names: tuple[str, ...] = ("v", *_FIELDS)) -> tuple[dict[str, Any], int]:
     """``found`` (per-row arrays by row, "v" the rows; `_FIELDS`) without its weak isolated rows (`ISOLATED_WEAK`),
     and how many were dropped.
 
@@ -569,7 +588,72 @@ def drop_isolated(found: dict[str, Any], threshold: float, height: int) -> tuple
     dropped = int(v.size - np.count_nonzero(keep))
     if dropped == 0:
         return found, 0
-    return {name: found[name][keep] for name in ("v", *_FIELDS)}, dropped
+    return {name: found[name][keep] for name in names}, dropped
+
+
+# A line wider than max_width_px (grazing light, a defocused or bloomed part) is accepted only where it continues a
+# line already found: row by row from the detected rows, up to GROW_MAX_WIDTH_PX wide, within window_px of the
+# neighbouring row's centre (GROW_STEP_PX). A full-row search never accepts such a width (red print and lit patches are as wide).
+GROW_MAX_WIDTH_PX = 48.0
+GROW_PEAK_RATIO = 0.5  # ... and at least this fraction of its neighbour's peak: the same line, not a fainter patch
+GROW_STEP_PX = 3.0  # a grown row's centre is at most this far from its neighbour's: a line, not a patch beside it
+GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every front by one row)
+
+
+@lru_cache(maxsize=16)
+def _grow_params(params: ExtractorParams) -> ExtractorParams:
+    """``params`` with the width range of the rows grown along the line (`_grow_along`)."""
+    return replace(params, max_width_px=max(params.max_width_px, GROW_MAX_WIDTH_PX))
+
+
+def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: ExtractorParams, image_width: int,
+                on_red: bool) -> list[dict[str, Any]]:
+    """Rows next to a detection and without one, fitted within ``window_px`` of that detection's column with the
+    wider width range of `_grow_params`, centred within `GROW_STEP_PX` of it; repeated from the rows found, until a pass finds none (`GROW_MAX_WIDTH_PX`).
+
+    Each pass tries every row that has a detection directly above or below it and none itself (the mean of the two
+    neighbours' columns where both have one), and no row twice. Returns the new rows as `_keep` chunks.
+    """
+    height = sig.height
+    wide = _grow_params(params)
+    w = max(params.window_px, 4)
+    reach = w + wide.refine_half_px
+    have = np.zeros(height + 2, bool)   # padded by one row at each end: row v is at v + 1
+    col = np.zeros(height + 2, np.float64)
+    peak = np.zeros(height + 2, np.float64)
+    for c in chunks:
+        have[c["v"] + 1] = True
+        col[c["v"] + 1] = c["u"]
+        peak[c["v"] + 1] = c["peak"]
+    tried = have.copy()
+    out: list[dict[str, Any]] = []
+    for _ in range(GROW_PASSES):
+        above, below = have[:-2], have[2:]
+        rows = np.flatnonzero((above | below) & ~tried[1:-1])
+        if not rows.size:
+            break
+        tried[rows + 1] = True
+        a, b = above[rows], below[rows]
+        guess = (np.where(a, col[rows], 0.0) + np.where(b, col[rows + 2], 0.0)) / (a.astype(np.float64) + b)
+        ref_peak = np.maximum(np.where(a, peak[rows], 0.0), np.where(b, peak[rows + 2], 0.0))
+        centre = np.rint(guess).astype(np.int64)
+        s, red, first = sig.windows(rows, centre - reach, 2 * reach + 1)
+        rel = centre - first  # windows at a border were shifted inside the image
+        region = np.abs(np.arange(s.shape[1])[None, :] - rel[:, None]) <= w
+        peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
+        fit = _refine(s, red, first, peak_idx, wide, image_width, accept=np.abs(peak_idx - rel) < w, on_red=on_red)
+        kept = _keep(rows, fit)
+        at = np.searchsorted(rows, kept["v"])
+        step = (np.abs(kept["u"] - guess[at]) <= GROW_STEP_PX) & (kept["peak"] >= GROW_PEAK_RATIO * ref_peak[at])
+        if not np.all(step):
+            kept = {name: value if value is None else value[step] for name, value in kept.items()}
+        if not kept["v"].size:
+            break
+        out.append(kept)
+        have[kept["v"] + 1] = True
+        col[kept["v"] + 1] = kept["u"]
+        peak[kept["v"] + 1] = kept["peak"]
+    return out
 
 
 def one_opencv_thread() -> None:
@@ -679,15 +763,26 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                 s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
                 fit = _refine(s, red, first, column - first, params, width, on_red=on_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
+    grown = 0
+    if params.grow_wide and chunks and sum(c["v"].size for c in chunks) < height:
+        more = _grow_along(sig, chunks, params, width, on_red)
+        grown = sum(c["v"].size for c in more)
+        chunks += more
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
+    clipped = saturated > 0
+    if clipped:  # the per-row flag travels with the rows only when some row clipped (`explain_rows`)
+        for c in chunks:
+            if c["saturated"] is None:
+                c["saturated"] = np.zeros(c["v"].size, bool)
+    names = ("v", *_FIELDS, "saturated") if clipped else ("v", *_FIELDS)
     if len(chunks) == 1:
         found = chunks[0]
     elif chunks:
         order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
-        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in ("v", *_FIELDS)}
+        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in names}
     else:
-        found = {name: np.zeros(0, np.float32) for name in ("v", *_FIELDS)}
-    found, isolated = drop_isolated(found, params.min_contrast, height)
+        found = {name: np.zeros(0, np.float32) for name in names}
+    found, isolated = drop_isolated(found, params.min_contrast, height, names)
     # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
@@ -695,4 +790,48 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
-        extra={"rows_isolated": isolated} if isolated else {})
+        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {})},
+        saturated=found["saturated"].astype(bool, copy=False) if clipped else None)
+
+
+# The model each detected row was centred with (`explain_rows`), and why; the codes index this tuple.
+ROW_MODELS: tuple[str, ...] = ("blais_rioux4", "blais_rioux8", "flanks_signal", "flanks_red", "method", "com")
+
+
+def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
+                 textured: bool = False) -> tuple[AnyArray, dict[str, str]]:
+    """Which model centred each detected row of ``result`` (codes into `ROW_MODELS`), and why each was used.
+
+    The extractor decides per row from what it measured there: a clipped peak (red at or above
+    ``saturation_level``) is centred between the half-maximum crossings of its flanks (`CLIPPED_CENTRE`);
+    otherwise the adaptive Blais-Rioux takes the 4th-order filter on a line up to ``adaptive_width_px``
+    wide (FWHM) and the 8th on a wider one; any other method centres every unclipped row itself.
+    ``textured``: the result came with a laser-off frame (its signal is red's rise over that frame, and
+    red's own flanks are not used). Returns (codes (n,) uint8, model name -> reason) for the models used.
+    """
+    params = params or ExtractorParams(method=result.method)
+    n = len(result)
+    if result.method == THESIS:
+        return np.full(n, ROW_MODELS.index("method"), np.uint8), {
+            "method": "thesis: mean column of the pixels with red above red_threshold and blue below blue_threshold"}
+    if result.method in ("blais_rioux", ADAPTIVE):
+        wide = ROW_MODELS.index("blais_rioux8" if result.method == "blais_rioux" else "com")
+        codes = np.where(result.width > params.adaptive_width_px, wide, 0).astype(np.uint8)
+    else:
+        codes = np.full(n, ROW_MODELS.index("method"), np.uint8)
+    if result.saturated is not None:
+        flanks = "flanks_red" if params.clipped_centre == "red" and not textured else "flanks_signal"
+        codes[result.saturated] = ROW_MODELS.index(flanks)
+    why = {
+        "blais_rioux4": f"FWHM <= {params.adaptive_width_px:g} px: the 4th-order filter spans the line's flanks",
+        "blais_rioux8": f"FWHM > {params.adaptive_width_px:g} px: a 4th-order filter would see only the line's flat top",
+        "flanks_signal": f"red clipped (>= {params.saturation_level} DN) at the peak: no top to fit; centre midway "
+                         "between the half-maximum crossings of the signal's flanks",
+        "flanks_red": f"red clipped (>= {params.saturation_level} DN) at the peak: centre midway between red's own "
+                      "half-maximum crossings (colour crosstalk bends the signal's clipped top)",
+        "method": f"{result.method}: the configured estimator on every unclipped row",
+        "com": f"FWHM > {params.adaptive_width_px:g} px: wider than a zero-crossing filter's model; centre of mass of the "
+               "part above half height",
+    }
+    used = {ROW_MODELS[int(c)] for c in np.unique(codes)}
+    return codes, {name: why[name] for name in ROW_MODELS if name in used}

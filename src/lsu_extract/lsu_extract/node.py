@@ -59,6 +59,10 @@ _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
                          (1, 255)),
     "clipped_centre": ("where red clips: centre midway between the half-maximum crossings of the signal's flanks "
                        "('signal') or of red's ('red')", None),
+    "adaptive_width_px": ("blais_rioux / adaptive methods: rows whose line is wider than this (FWHM) [px] take "
+                          "the 8th-order filter / the centre of mass, narrower ones Blais-Rioux 4", (1.0, 64.0)),
+    "grow_wide": ("follow the line row by row from its detections, accepting it up to 48 px wide there (a "
+                  "full-row search keeps max_width_px)", None),
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }

@@ -57,3 +57,23 @@ def test_lsu_extract_subcommand_is_registered(line_png, lsu_cli):
     assert "96/96 rows, method gaussian3" in result.stdout
     missing = lsu_cli("extract", str(path) + ".missing", timeout=60)
     assert missing.returncode == 2 and "not found" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_explain_says_which_model_centred_each_row_and_why(tmp_path, capsys):
+    # the top half clips (red at 255, crosstalk in green and blue), the bottom half is a plain 4 px line
+    clipped, _, _ = render_line(LineScene(amplitude_dn=420.0, leak_green=0.10, leak_blue=0.08, fwhm_px=7.0, height=96))
+    plain, _, _ = render_line(LineScene(textured=False, height=96, seed=3))
+    path = tmp_path / "mixed.png"
+    cv2.imwrite(str(path), np.concatenate([clipped[:48], plain[48:]]))
+    assert main([str(path), "--json", "--explain"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    model, v = record["model"], np.array(record["v"])
+    assert len(model) == len(v) == record["rows_detected"]
+    top = [m for m, row in zip(model, v) if row < 46]
+    bottom = [m for m, row in zip(model, v) if row > 50]
+    assert top.count("flanks_signal") >= 0.9 * len(top) and set(bottom) == {"blais_rioux4"}
+    assert record["models"]["flanks_signal"]["rows"] == model.count("flanks_signal")
+    assert "clipped" in record["models"]["flanks_signal"]["why"]
+    assert main([str(path), "--explain"]) == 0
+    text = capsys.readouterr().out
+    assert "rows flanks_signal: red clipped" in text and "rows blais_rioux4: FWHM <= 5" in text

@@ -70,9 +70,17 @@ class LaserSheet:
         return o + t[:, None] * d
 
 
-def _solve(points: FloatArray, positions: FloatArray) -> tuple[FloatArray, float, float, FloatArray]:
-    """Least-squares (n, c0, k) and the eigenvalues of the reduced problem (ascending)."""
+def _solve(points: FloatArray, positions: FloatArray, weights: FloatArray | None = None
+           ) -> tuple[FloatArray, float, float, FloatArray]:
+    """(Weighted) least-squares (n, c0, k) and the eigenvalues of the reduced problem (ascending).
+
+    ``weights``: per point, the inverse variance of its distance to the sheet (None: all equal);
+    each row of the problem is scaled by its weight's square root.
+    """
     design = np.column_stack([np.ones_like(positions), positions])
+    if weights is not None:
+        root = np.sqrt(weights)[:, None]
+        design, points = design * root, points * root
     # project the point coordinates off span{1, p}: what c0 + k p cannot explain
     coef, *_ = np.linalg.lstsq(design, points, rcond=None)
     reduced = points - design @ coef
@@ -86,18 +94,39 @@ def _solve(points: FloatArray, positions: FloatArray) -> tuple[FloatArray, float
     return n, float(c0), float(k), values
 
 
+# Huber's constant: weights fall off beyond this many robust sigmas of a point's own normalised residual
+HUBER_K = 1.345
+
+
 def fit_laser_sheet(points: FloatArray, positions: FloatArray, trim_sigmas: float = 4.0,
-                    rounds: int = 3) -> LaserSheet:
+                    rounds: int = 3, sigma_m: FloatArray | None = None) -> LaserSheet:
     """Fit the sheet to scan points (N x 3, metres) and the carriage position of each one's snap (N,).
 
+    ``sigma_m``: each point's own uncertainty along the sheet's normal [m] (from its row's estimated
+    centre uncertainty, `lsu_extract.uncertainty.row_sigma_px`, through the triangulation), or None
+    (all equal). With it the fit is iteratively reweighted: each point weighs by its inverse variance
+    times Huber's weight of its residual in its own sigmas (over the robust scale of those normalised
+    residuals), and the trimming tests that normalised residual, so a noisy row neither pulls the sheet
+    as much as a clean one nor is trimmed for noise it was expected to have. The reported residual is
+    the plain RMS of the kept points either way.
+
     Raises LaserSheetError when the points cannot determine the sheet (too few, one position, or all
-    on one flat target).
+    on one flat target, or uncertainties that are not positive).
     """
     X = np.asarray(points, float).reshape(-1, 3)
     p = np.asarray(positions, float).reshape(-1)
     if len(X) != len(p):
         raise LaserSheetError(f"{len(X)} points but {len(p)} positions: give one carriage position per point")
+    sigma = None if sigma_m is None else np.asarray(sigma_m, float).reshape(-1)
+    if sigma is not None:
+        if len(sigma) != len(p):
+            raise LaserSheetError(f"{len(X)} points but {len(sigma)} uncertainties: give one sigma_m per point")
+        if not np.all(sigma[np.isfinite(sigma)] > 0):
+            raise LaserSheetError("every point's uncertainty sigma_m must be positive (metres)")
     finite = np.isfinite(X).all(axis=1) & np.isfinite(p)
+    if sigma is not None:
+        finite &= np.isfinite(sigma)
+        sigma = sigma[finite]
     X, p = X[finite], p[finite]
     if len(X) < 50:
         raise LaserSheetError(f"only {len(X)} usable points: scan a flat board or wall at two or more distances")
@@ -105,12 +134,22 @@ def fit_laser_sheet(points: FloatArray, positions: FloatArray, trim_sigmas: floa
         raise LaserSheetError("every point comes from one carriage position: scan across the target "
                               "(several positions)")
     keep = np.ones(len(X), bool)
-    for _ in range(rounds + 1):
-        n, c0, k, values = _solve(X[keep], p[keep])
+    robust = np.ones(len(X))
+    # with uncertainties: more rounds, as the Huber weights settle more slowly than a plain trim
+    for _ in range(rounds + 1 if sigma is None else 3 * rounds + 1):
+        weights = None if sigma is None else (robust / sigma ** 2)[keep]
+        n, c0, k, values = _solve(X[keep], p[keep], weights)
         residual = X @ n - (c0 + k * p)
-        scale = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
-        new_keep = np.abs(residual) <= max(trim_sigmas * scale, 1e-9)
-        if np.array_equal(new_keep, keep):
+        z = residual if sigma is None else residual / sigma  # in each point's own sigmas
+        scale = 1.4826 * np.median(np.abs(z[keep] - np.median(z[keep])))
+        new_keep = np.abs(z) <= max(trim_sigmas * scale, 1e-9)
+        if sigma is not None:
+            new_robust = np.minimum(1.0, HUBER_K * max(scale, 1e-12) / np.maximum(np.abs(z), 1e-30))
+            settled = np.allclose(new_robust, robust, rtol=1e-3, atol=1e-4)
+            robust = new_robust
+            if np.array_equal(new_keep, keep) and settled:
+                break
+        elif np.array_equal(new_keep, keep):
             break
         keep = new_keep
         if keep.sum() < 50:

@@ -138,3 +138,25 @@ def test_rendered_scans_of_two_planes_calibrate_the_sheet(tmp_path: Path):
     # the rendered sheet has a thickness and the points carry the rig's noise: looser than the analytic case
     assert_matches_truth(sheet, geometry, angle_deg=0.2, offset_mm=0.2)
     assert sheet.residual_mm < 0.3
+
+
+def test_uncertainty_weighting_follows_the_clean_rows():
+    # a third of the rows (say the far, speckled ones) are 6x noisier than the rest, and say so: weighting by
+    # each point's own sigma puts the sheet nearer the truth than the unweighted fit, and nothing clean is trimmed
+    geometry = load_rig()
+    points, positions = synthetic_points(geometry, [plane_at(0.26, 10.0), plane_at(0.34, -15.0)], 0.0, seed=8)
+    rng = np.random.default_rng(9)
+    sigma = np.where(rng.random(len(points)) < 1.0 / 3.0, 0.30e-3, 0.05e-3)
+    n_true = geometry.laser_normal
+    noisy = points + rng.normal(0.0, 1.0, (len(points), 1)) * sigma[:, None] * n_true[None, :]
+    plain = fit_laser_sheet(noisy, positions)
+    weighted = fit_laser_sheet(noisy, positions, sigma_m=sigma)
+
+    def error_mm(sheet) -> float:
+        return float(np.sqrt(np.mean(sheet.distance_m(points, positions) ** 2)) * 1000.0)
+
+    assert error_mm(weighted) < 0.8 * error_mm(plain)
+    # the plain fit trims noisy rows for the noise they were expected to have; the weighted one keeps them
+    assert weighted.rejected <= 0.01 * len(points) < plain.rejected
+    with pytest.raises(LaserSheetError, match="positive"):
+        fit_laser_sheet(noisy, positions, sigma_m=np.zeros(len(points)))
