@@ -36,7 +36,8 @@ from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
 
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
-           "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap"]
+           "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap",
+           "compact_vector", "prior_median_m"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
 # weight of each face region in the depth-map distance (rigid regions up, expression regions down)
@@ -79,13 +80,15 @@ class Signature:
     data: AnyArray
     params: SignatureParams
     points_used: int = 0
+    noise_m: float = float("nan")   # the scan's own depth noise (roughness about its tangent planes) [m]
 
     def to_bytes(self) -> bytes:
         """Serialise (numpy .npz in memory): what the gallery stores."""
         buf = io.BytesIO()
         fields: dict[str, Any] = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
         np.savez_compressed(buf, data=self.data.astype(np.float32), points_used=np.array(self.points_used),
-                            version=np.array(SIGNATURE_VERSION), **{f"p_{k}": v for k, v in fields.items()})
+                            noise_m=np.array(float(self.noise_m)), version=np.array(SIGNATURE_VERSION),
+                            **{f"p_{k}": v for k, v in fields.items()})
         return buf.getvalue()
 
     @classmethod
@@ -103,7 +106,8 @@ class Signature:
                     value = z[f"p_{k}"]
                     kw[k] = str(value) if f.type in ("str", str) else value.item()
                 params = SignatureParams(**kw)
-                return cls(params.method, z["data"].astype(np.float64), params, int(z["points_used"]))
+                noise = float(z["noise_m"]) if "noise_m" in z.files else float("nan")
+                return cls(params.method, z["data"].astype(np.float64), params, int(z["points_used"]), noise)
         except SignatureError:
             raise
         except (OSError, KeyError, ValueError, TypeError) as exc:
@@ -123,7 +127,7 @@ def _depth_map(local: AnyArray, params: SignatureParams) -> AnyArray:
 
 
 def make_signature(points: AnyArray, frame: FaceFrame, params: SignatureParams = SignatureParams(),
-                   face: FaceParams = FaceParams()) -> Signature:
+                   face: FaceParams = FaceParams(), noise_m: float = float("nan")) -> Signature:
     """Signature of the face ``points`` (already cropped) in ``frame``."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) < 50:
@@ -135,7 +139,7 @@ def make_signature(points: AnyArray, frame: FaceFrame, params: SignatureParams =
         m = parametric_map(el, az, rho, face.sphere_radius_m, (params.map_rows, params.map_cols),
                            np.radians(params.max_elevation_deg))
         data = _fft_magnitudes(m, params.fft_orders)
-    return Signature(params.method, data, params, int(len(p)))
+    return Signature(params.method, data, params, int(len(p)), float(noise_m))
 
 
 def _fft_magnitudes(m: AnyArray, orders: int) -> AnyArray:
@@ -289,15 +293,20 @@ class ImpostorModel:
     samples: int = 0                 # impostor distances it was fitted to (0: the prior alone)
 
     @classmethod
-    def prior(cls, method: str = "depthmap") -> ImpostorModel:
+    def prior(cls, method: str = "depthmap", noise_m: float = float("nan")) -> ImpostorModel:
+        """The prior for scans of depth noise ``noise_m`` (NaN: the LSU rig's): see `prior_median_m`."""
         mu, sigma = _PRIOR[method]
+        if method == "depthmap" and np.isfinite(noise_m):
+            mu = float(np.log(prior_median_m(noise_m)))
         return cls(mu, sigma, 0)
 
     @classmethod
-    def fit(cls, distances: AnyArray | list, method: str = "depthmap") -> ImpostorModel:
-        """Model from impostor ``distances`` [m], shrunk towards the prior (which dominates small samples)."""
+    def fit(cls, distances: AnyArray | list, method: str = "depthmap", noise_m: float = float("nan")) -> ImpostorModel:
+        """Model from impostor ``distances`` [m], shrunk towards the prior for ``noise_m`` (which dominates
+        small samples)."""
         d = np.asarray([x for x in distances if np.isfinite(x) and x > 0], dtype=np.float64)
-        mu0, s0 = _PRIOR[method]
+        prior = cls.prior(method, noise_m)
+        mu0, s0 = prior.log_mu, prior.log_sigma
         if len(d) == 0:
             return cls(mu0, s0, 0)
         ln = np.log(d)
@@ -323,7 +332,71 @@ class ImpostorModel:
         return float(np.exp(self.log_mu + self.log_sigma * ndtri(false_accept_rate)))
 
 
+def prior_median_m(noise_m: float) -> float:
+    """Median distance between two different people's scans of depth noise ``noise_m`` (prior of the model).
+
+    Two parts add in quadrature: the shape difference of two people (``_PRIOR_SHAPE_M``, the median
+    impostor distance with the LSU rig, whose ~0.1 mm noise adds nothing) and what the sensor's own
+    noise, steps and artefacts add, proportional to the noise measured on the scans
+    (``_PRIOR_NOISE_GAIN``; both from bench/bench_faces.py, rig and time-of-flight model).
+    """
+    return float(np.hypot(_PRIOR_SHAPE_M, _PRIOR_NOISE_GAIN * max(float(noise_m), 0.0)))
+
+
 # prior impostor model: distances between different synthetic people (MakeHuman morphs with hair and
 # expressions) scanned by the LSU rig, measured by bench/bench_faces.py; it counts as _PRIOR_WEIGHT pairs
 _PRIOR = {"depthmap": (float(np.log(0.0013)), 0.30), "fft": (float(np.log(0.0008)), 0.45)}
+_PRIOR_SHAPE_M = 0.0013
+_PRIOR_NOISE_GAIN = 2.0
 _PRIOR_WEIGHT = 20
+
+
+# ------------------------------------------------------------------ compact signature (1:N first stage)
+COMPACT_BLOCK = 4               # depth-map cells per block side (4 x 2.5 mm: 10 mm blocks)
+COMPACT_RADIUS_M = 0.06         # blocks whose centre lies within this of the nose tip
+_COMPACT: dict[tuple, tuple[AnyArray, AnyArray, AnyArray]] = {}
+
+
+def _compact_layout(params: SignatureParams) -> tuple[AnyArray, AnyArray, AnyArray]:
+    """(block rows, block cols, per-block weight, generic face's block heights) for ``params``' grid (kept)."""
+    key = (params.grid, params.extent_m)
+    if key not in _COMPACT:
+        from .template import REGIONS, face_template, region_of
+
+        nb = params.grid // COMPACT_BLOCK
+        cell = 2 * params.extent_m / params.grid
+        centres = (np.arange(nb) + 0.5) * COMPACT_BLOCK * cell - params.extent_m
+        bx, by = np.meshgrid(centres, centres)
+        inside = np.hypot(bx, by) <= COMPACT_RADIUS_M
+        xy = np.stack([bx[inside], by[inside], np.zeros(int(inside.sum()))], axis=1)
+        w = np.sqrt(np.array([REGION_WEIGHTS[r] for r in REGIONS])[region_of(xy)])
+        generic = _blocks(_depth_map(face_template().points, params), params)
+        _COMPACT[key] = (inside, w, generic[inside])
+    return _COMPACT[key]
+
+
+def _blocks(data: AnyArray, params: SignatureParams) -> AnyArray:
+    """Mean height of each COMPACT_BLOCK x COMPACT_BLOCK block of a depth map (NaN: fewer than 4 cells seen)."""
+    nb = params.grid // COMPACT_BLOCK
+    d = data[: nb * COMPACT_BLOCK, : nb * COMPACT_BLOCK].reshape(nb, COMPACT_BLOCK, nb, COMPACT_BLOCK)
+    valid = np.isfinite(d)
+    count = valid.sum(axis=(1, 3))
+    total = np.where(valid, d, 0.0).sum(axis=(1, 3))
+    return np.where(count >= 4, total / np.maximum(count, 1), np.nan)
+
+
+def compact_vector(sig: Signature) -> AnyArray:
+    """Short float32 vector of a depth-map signature for the 1:N first stage (L2 ~ the weighted distance).
+
+    The face's height in 10 mm blocks within 60 mm of the nose tip, minus the generic face's (blocks
+    the scan did not see take the generic face's height, i.e. count as no difference), less its mean
+    (a tip found a little high or low shifts every height alike), each block scaled by the square root
+    of its region's weight (`REGION_WEIGHTS`). Units: metres.
+    """
+    if sig.method != "depthmap":
+        raise SignatureError("compact vectors are made from depth-map signatures only")
+    inside, w, generic = _compact_layout(sig.params)
+    b = _blocks(sig.data, sig.params)[inside]
+    diff = np.where(np.isfinite(b), b - generic, 0.0)
+    diff -= diff.mean()
+    return (diff * w).astype(np.float32)
