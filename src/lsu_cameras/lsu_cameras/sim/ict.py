@@ -33,7 +33,8 @@ from lsu_common.arrays import AnyArray
 
 from .scenes import SceneError
 
-__all__ = ["IctModel", "Occasion", "load_ict", "ict_person", "random_occasion", "EXPRESSION_SETS"]
+__all__ = ["IctModel", "Occasion", "load_ict", "ict_person", "ict_vertices", "eyeballs", "random_occasion",
+           "identity_weights", "EXPRESSION_SETS"]
 
 # named expressions: {blendshape: weight at strength 1}
 EXPRESSION_SETS: dict[str, dict[str, float]] = {
@@ -87,8 +88,9 @@ def load_ict(folder: str | Path) -> IctModel:
             _MODELS[key] = IctModel(
                 neutral=z["neutral_m"].astype(np.float64) * _TO_PERSON,
                 triangles=z["triangles"].astype(np.int64),
-                identity=(z["identity_modes_m"].astype(np.float64) * _TO_PERSON).reshape(-1, V * 3),
-                expression=(z["expression_modes_m"].astype(np.float64) * _TO_PERSON).reshape(-1, V * 3),
+                # float32 (as stored): a person is one pass over these, memory-bound
+                identity=(z["identity_modes_m"] * _TO_PERSON.astype(np.float32)).reshape(-1, V * 3),
+                expression=(z["expression_modes_m"] * _TO_PERSON.astype(np.float32)).reshape(-1, V * 3),
                 expression_names=[str(n) for n in z["expression_names"]],
                 landmarks=np.asarray(json.loads(marks.read_text())["idx_to_landmark_verts"], dtype=np.int64),
                 face_vertex_count=int(z["face_vertex_count"]))
@@ -128,41 +130,52 @@ def identity_weights(seed: int, modes: int = 100) -> AnyArray:
     return np.random.default_rng(np.random.SeedSequence([0x1C7, int(seed)])).standard_normal(modes)
 
 
-def ict_person(model: IctModel, seed: int, occasion: Occasion = Occasion()):  # noqa: ANN201 - people.Person
-    """Person ``seed`` on ``occasion`` as a `lsu_cameras.sim.people.Person` (skin, eyes, mouth, hair, collar)."""
-    from .people import Person, PersonSpec, _hair
-
+def ict_vertices(model: IctModel, seed: int, occasion: Occasion = Occasion()) -> tuple[AnyArray, dict[str, AnyArray]]:
+    """Unposed skin vertices of person ``seed`` with ``occasion``'s expression (person frame) and its landmarks."""
     if occasion.expression not in EXPRESSION_SETS:
         raise SceneError(f"expression must be one of {', '.join(EXPRESSION_SETS)} (got {occasion.expression!r})")
-    w_id = identity_weights(seed, len(model.identity))
-    w_ex = np.zeros(len(model.expression))
+    w_id = identity_weights(seed, len(model.identity)).astype(np.float32)
+    w_ex = np.zeros(len(model.expression), dtype=np.float32)
     for name, w in EXPRESSION_SETS[occasion.expression].items():
         w_ex[model.expression_names.index(name)] = w * occasion.strength
     if occasion.jitter_seed is not None:   # a face is never exactly a named expression
         rng = np.random.default_rng(occasion.jitter_seed)
-        w_ex += np.clip(rng.normal(0.0, 0.08, len(w_ex)), 0.0, None)
+        w_ex += np.clip(rng.normal(0.0, 0.08, len(w_ex)), 0.0, None).astype(np.float32)
     w_ex = np.clip(w_ex, 0.0, 1.0)
     V = len(model.neutral)
-    verts = model.neutral + (w_id @ model.identity + w_ex @ model.expression).reshape(V, 3)
+    offset = w_id @ model.identity
+    if np.any(w_ex > 0):
+        offset += w_ex @ model.expression
+    verts = model.neutral + offset.astype(np.float64).reshape(V, 3)
     lm = verts[model.landmarks]
-    nose = lm[_NOSE].copy()
-    centre = nose + np.array([0.0, -0.01, 0.10])
+    centre = lm[_NOSE] + np.array([0.0, -0.01, 0.10])
     verts = verts - centre
     lm = lm - centre
     landmarks = {"nose_tip": lm[_NOSE], "eye_r": lm[_EYE_R].mean(axis=0), "eye_l": lm[_EYE_L].mean(axis=0),
                  "mouth": lm[_MOUTH].mean(axis=0), "chin": lm[_CHIN]}
     if landmarks["eye_r"][0] > landmarks["eye_l"][0]:
         landmarks["eye_r"], landmarks["eye_l"] = landmarks["eye_l"], landmarks["eye_r"]
-    tris = model.triangles
-    skin = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
-    parts: dict[str, o3d.geometry.TriangleMesh] = {"skin": skin}
-    # eyeballs: 12 mm spheres whose front sits just behind the eye contour (an open eye shows the ball)
+    return verts, landmarks
+
+
+def eyeballs(landmarks: dict[str, AnyArray]) -> o3d.geometry.TriangleMesh:
+    """12 mm spheres whose front sits just behind the eye contours (an open eye shows the ball, not the head's inside)."""
     eyes = o3d.geometry.TriangleMesh()
     for side in ("eye_r", "eye_l"):
         ball = o3d.geometry.TriangleMesh.create_sphere(radius=0.012, resolution=16)
         ball.translate(landmarks[side] + np.array([0.0, 0.0, 0.0145]))
         eyes += ball
-    parts["eyes"] = eyes
+    return eyes
+
+
+def ict_person(model: IctModel, seed: int, occasion: Occasion = Occasion()):  # noqa: ANN201 - people.Person
+    """Person ``seed`` on ``occasion`` as a `lsu_cameras.sim.people.Person` (skin, eyes, mouth, hair, collar)."""
+    from .people import Person, PersonSpec, _hair
+
+    verts, landmarks = ict_vertices(model, seed, occasion)
+    tris = model.triangles
+    skin = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(tris))
+    parts: dict[str, o3d.geometry.TriangleMesh] = {"skin": skin, "eyes": eyeballs(landmarks)}
     # the mouth's inside: a dark ellipsoid behind the lips, what an open jaw shows
     inside = o3d.geometry.TriangleMesh.create_sphere(radius=1.0, resolution=16)
     inside.vertices = o3d.utility.Vector3dVector(np.asarray(inside.vertices) * np.array([0.024, 0.016, 0.02])
@@ -192,4 +205,4 @@ def ict_person(model: IctModel, seed: int, occasion: Occasion = Occasion()):  # 
         m.rotate(R, center=(0.0, 0.0, 0.0))
         m.compute_vertex_normals()
     posed = {k: v @ R.T for k, v in landmarks.items()}
-    return Person(parts, posed, spec, R, {f"id{k}": float(w) for k, w in enumerate(w_id[:8])})
+    return Person(parts, posed, spec, R, {f"id{k}": float(w) for k, w in enumerate(identity_weights(seed)[:8])})

@@ -47,9 +47,11 @@ class TofCamera:
     height: int = 424
     fx: float = 365.0
     fy: float = 365.0
-    noise_at_1m_m: float = 0.0012      # random depth noise grows with the square of the distance
+    noise_at_1m_m: float = 0.004       # random depth noise grows with the square of the distance
     noise_floor_m: float = 0.0005
     smooth_sigma_px: float = 1.0       # the camera's own (edge-aware) smoothing
+    wiggle_m: float = 0.0015           # systematic error periodic in the distance ("wiggling")
+    wiggle_period_m: float = 0.25
     multipath_gain: float = 0.35
     multipath_sigma_px: float = 6.0
     multipath_max_m: float = 0.006
@@ -113,6 +115,8 @@ def tof_scan(objects: Sequence, camera_from_scene: AnyArray, cam: TofCamera = To
     smooth_large = _masked_gauss(z, valid & ~edge, cam.multipath_sigma_px)
     behind = np.clip(np.nan_to_num(z - smooth_large), 0.0, None)
     measured = z + np.minimum(cam.multipath_gain * behind, cam.multipath_max_m)
+    # 2b. the systematic error periodic in the distance: a smooth warp of the face that changes with its distance
+    measured = measured + cam.wiggle_m * np.sin(2 * np.pi * np.nan_to_num(z) / cam.wiggle_period_m)
     # 3. the camera's edge-aware smoothing (neighbours across an edge are excluded by masking them out)
     inner = valid & ~edge
     measured = np.where(inner, _masked_gauss(measured, inner, cam.smooth_sigma_px), measured)
