@@ -72,7 +72,7 @@ CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
 """
 # columns added after the first release: added to older galleries on their first write
 _NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
-FIRST_STAGE = 24         # entries the compact index hands to the full comparison
+FIRST_STAGE = 10         # entries the compact index hands to the full comparison (each ~5-10 ms)
 IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
 
 

@@ -37,16 +37,21 @@ from .register import apply, rotation_from_vector
 
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
            "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap",
-           "compact_vector", "prior_median_m"]
+           "compact_vector", "prior_median_m", "REGION_WEIGHTS_FIRST_PASS", "smoothed", "smoothing_cells"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
 # weight of each face region in the depth-map distance (rigid regions up, expression regions down)
-REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
+# mouth and chin move with every expression (an open jaw moves the whole lower face) and the lower
+# cheeks with a smile: identity is compared on the rigid upper face (ICT population, tuning seeds)
+REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.5, "cheeks": 0.3, "mouth": 0.0, "chin": 0.0}
+# the first pass's weights (its distances are the ones quoted against the real maps)
+REGION_WEIGHTS_FIRST_PASS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
 
 SIGNATURE_METHODS = ("depthmap", "fft")
 ALIGN_STRIDE = 3          # every third cell of the probe aligns it onto the reference
 ALIGN_ITERATIONS = 5      # Gauss-Newton steps per correspondence distance (two distances)
 SMOOTH_CELLS_PER_MM = 1.5  # comparison smoothing per mm of the scans' measured noise (see smoothing_cells)
+SMOOTH_MIN_CELLS = 0.8     # at least this: fills isolated empty cells
 SMOOTH_MAX_CELLS = 3.0
 
 
@@ -238,7 +243,9 @@ def align_to_depthmap(points: AnyArray, ref: Signature, weights: AnyArray,
 
 
 def smoothed(sig: Signature, sigma_cells: float) -> Signature:
-    """The depth map averaged over a Gaussian of ``sigma_cells`` cells (NaN-aware: holes stay holes)."""
+    """The depth map averaged over a Gaussian of ``sigma_cells`` cells, NaN-aware; a hole at least half
+    surrounded by measured cells is filled (a depth camera's pixels are about one cell apart, so its
+    maps are sprinkled with empty cells, and the bilinear comparison needs four cells around a point)."""
     if sigma_cells <= 0:
         return sig
     from scipy import ndimage
@@ -246,7 +253,7 @@ def smoothed(sig: Signature, sigma_cells: float) -> Signature:
     valid = np.isfinite(sig.data)
     w = ndimage.gaussian_filter(valid.astype(np.float64), sigma_cells, mode="constant")
     v = ndimage.gaussian_filter(np.where(valid, sig.data, 0.0), sigma_cells, mode="constant")
-    data = np.where(valid, v / np.maximum(w, 1e-9), np.nan)
+    data = np.where(valid | (w >= 0.5), v / np.maximum(w, 1e-9), np.nan)
     return Signature(sig.method, data, sig.params, sig.points_used, sig.noise_m)
 
 
@@ -258,11 +265,12 @@ def smoothing_cells(a: Signature, b: Signature) -> float:
     """
     noise = max(float(a.noise_m), float(b.noise_m))
     if not np.isfinite(noise):
-        return 0.0
-    return float(np.clip(SMOOTH_CELLS_PER_MM * noise * 1000.0, 0.0, SMOOTH_MAX_CELLS))
+        noise = 0.0
+    return float(np.clip(SMOOTH_CELLS_PER_MM * noise * 1000.0, SMOOTH_MIN_CELLS, SMOOTH_MAX_CELLS))
 
 
-def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = None) -> tuple[float, float]:
+def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = None,
+                       weights: dict[str, float] | None = None) -> tuple[float, float]:
     sigma = smoothing_cells(probe, ref) if smooth is None else smooth
     probe, ref = smoothed(probe, sigma), smoothed(ref, sigma)
     pp, _ = _grid_points(probe)
@@ -272,23 +280,23 @@ def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = 
     # the rigid alignment (6 unknowns) needs only a third of the cells: same frame, small corrections;
     # the distance itself is taken over every cell
     sub = pp[::ALIGN_STRIDE]
-    T = align_to_depthmap(sub, ref, _region_weights(sub), (4 * cell, 1.5 * cell), iterations=ALIGN_ITERATIONS,
-                          trim=probe.params.trim)
+    T = align_to_depthmap(sub, ref, _region_weights(sub, weights), (4 * cell, 1.5 * cell),
+                          iterations=ALIGN_ITERATIONS, trim=probe.params.trim)
     moved = apply(T, pp)
     diff = moved[:, 2] - _sample(ref, moved[:, :2])
     ok = np.isfinite(diff)
     overlap = float(ok.sum()) / max(len(pp), 1)
     if overlap < probe.params.min_overlap or ok.sum() < 20:
         return float("inf"), overlap
-    d, wd = np.abs(diff[ok]), _region_weights(moved[ok])
+    d, wd = np.abs(diff[ok]), _region_weights(moved[ok], weights)
     keep = d <= np.quantile(d, 1.0 - probe.params.trim)
     return float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap
 
 
-def _region_weights(local: AnyArray) -> AnyArray:
+def _region_weights(local: AnyArray, weights: dict[str, float] | None = None) -> AnyArray:
     from .template import REGIONS, region_of
 
-    table = np.array([REGION_WEIGHTS[r] for r in REGIONS])
+    table = np.array([(weights or REGION_WEIGHTS)[r] for r in REGIONS])
     return table[region_of(local)]
 
 
@@ -302,11 +310,12 @@ def _fft_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
 
 
 def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None,
-            smooth: float | None = None) -> tuple[float, float, float]:
+            smooth: float | None = None, weights: dict[str, float] | None = None) -> tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
     The score is ``model.score(distance)`` (default model: the prior). ``smooth``: Gaussian in cells
     applied to both depth maps first (None: `smoothing_cells` from the scans' noise; 0: none).
+    ``weights``: region weights (default `REGION_WEIGHTS`).
     """
     if probe.method != ref.method:
         raise SignatureError(f"cannot compare a '{probe.method}' signature with a '{ref.method}' one; "
@@ -314,7 +323,7 @@ def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None
     if probe.data.shape != ref.data.shape:
         raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); re-enrol the gallery")
     if probe.method == "depthmap":
-        dist, overlap = _depthmap_distance(probe, ref, smooth)
+        dist, overlap = _depthmap_distance(probe, ref, smooth, weights)
     else:
         dist, overlap = _fft_distance(probe, ref)
     model = model or ImpostorModel.prior(probe.method)
