@@ -51,6 +51,7 @@ SIGNATURE_METHODS = ("depthmap", "fft")
 ALIGN_STRIDE = 3          # every third cell of the probe aligns it onto the reference
 ALIGN_ITERATIONS = 5      # Gauss-Newton steps per correspondence distance (two distances)
 SMOOTH_CELLS_PER_MM = 1.5  # comparison smoothing per mm of the scans' measured noise (see smoothing_cells)
+MIRROR_FILL = True         # hidden half of a turned face taken from the seen half (mirror_completed)
 SMOOTH_MIN_CELLS = 0.8     # at least this: fills isolated empty cells
 SMOOTH_MAX_CELLS = 3.0
 
@@ -257,6 +258,20 @@ def smoothed(sig: Signature, sigma_cells: float) -> Signature:
     return Signature(sig.method, data, sig.params, sig.points_used, sig.noise_m)
 
 
+def mirror_completed(sig: Signature) -> Signature:
+    """Empty cells filled from their mirror image across the face's symmetry plane (x = 0 of the face frame).
+
+    A turned head hides one cheek and the nose's far flank; two captures turned to opposite sides then
+    share only the middle of the face. Faces are nearly mirror-symmetric, so the seen half stands in for
+    the hidden one (where both halves were seen nothing changes).
+    """
+    mirrored = sig.data[:, ::-1]
+    fill = ~np.isfinite(sig.data) & np.isfinite(mirrored)
+    if not fill.any():
+        return sig
+    return Signature(sig.method, np.where(fill, mirrored, sig.data), sig.params, sig.points_used, sig.noise_m)
+
+
 def smoothing_cells(a: Signature, b: Signature) -> float:
     """Gaussian (cells) both maps are averaged over before comparing: more for noisier scans.
 
@@ -272,6 +287,8 @@ def smoothing_cells(a: Signature, b: Signature) -> float:
 def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = None,
                        weights: dict[str, float] | None = None) -> tuple[float, float]:
     sigma = smoothing_cells(probe, ref) if smooth is None else smooth
+    if smooth is None and MIRROR_FILL:
+        probe, ref = mirror_completed(probe), mirror_completed(ref)
     probe, ref = smoothed(probe, sigma), smoothed(ref, sigma)
     pp, _ = _grid_points(probe)
     if len(pp) < 20 or np.isfinite(ref.data).sum() < 20:
@@ -434,7 +451,8 @@ def _blocks(data: AnyArray, params: SignatureParams) -> AnyArray:
 def compact_vector(sig: Signature) -> AnyArray:
     """Short float32 vector of a depth-map signature for the 1:N first stage (L2 ~ the weighted distance).
 
-    The face's height in 10 mm blocks within 60 mm of the nose tip, minus the generic face's (blocks
+    The face's height (mirror-completed, `mirror_completed`) in 10 mm blocks within 60 mm of the nose
+    tip, minus the generic face's (blocks
     the scan did not see take the generic face's height, i.e. count as no difference), less its mean
     (a tip found a little high or low shifts every height alike), each block scaled by the square root
     of its region's weight (`REGION_WEIGHTS`). Units: metres.
@@ -442,7 +460,7 @@ def compact_vector(sig: Signature) -> AnyArray:
     if sig.method != "depthmap":
         raise SignatureError("compact vectors are made from depth-map signatures only")
     inside, w, generic = _compact_layout(sig.params)
-    b = _blocks(sig.data, sig.params)[inside]
+    b = _blocks(mirror_completed(sig).data, sig.params)[inside]
     diff = np.where(np.isfinite(b), b - generic, 0.0)
     diff -= diff.mean()
     return (diff * w).astype(np.float32)
