@@ -109,6 +109,8 @@ class NoseResult:
     frame: FaceFrame | None = None  # the verified face frame (template method)
     noise_m: float = float("nan")   # the scan's depth noise: roughness about the local tangent planes
     warnings: list[str] = field(default_factory=list)   # what is unusual but no reason to refuse (asymmetry)
+    runner_up_confidence: float = 0.0   # the best face fit more than 20 mm from this one (template method)
+    runner_up_distance_mm: float = 0.0
 
 
 @dataclass
@@ -414,8 +416,10 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         rough.append((-conf, len(rough), reg.T, q))
     rough.sort(key=lambda r: (r[0], r[1]))
     best = None
+    verified = []
     for _, _, T0, q in rough[:3]:
         conf, reg, cover = verify(T0, np.arange(len(tpl.points)), (0.008, 0.004))
+        verified.append((conf, reg.T[:3, 3]))
         if best is None or conf > best[0]:
             best = (conf, reg, q)
     if best is None or best[0] < params.min_confidence:
@@ -435,8 +439,11 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
                         f"{params.max_symmetry_mm:.1f} mm): check the scan if this person is hard to identify")
     tip = origin + _refine_tip(local, smooth=noise_m > 0.0003) @ axes
     frame = FaceFrame(tip, axes)
+    # the best face fit elsewhere (more than 20 mm away): how clearly this place won
+    others = [(c, float(np.linalg.norm(o - origin))) for c, o in verified if np.linalg.norm(o - origin) > 0.02]
+    runner = max(others) if others else (0.0, 0.0)
     return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame, float(noise_m),
-                      warnings)
+                      warnings, float(runner[0]), runner[1] * 1000.0)
 
 
 def nose_tip(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
