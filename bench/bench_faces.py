@@ -457,7 +457,7 @@ def population(figures: dict[str, float], t_start: float) -> dict[str, object]:
                 # open set at N = 1000: the product's rule (impostor model of the gallery's own sampled pairs,
                 # prior for the enrolled scans' noise) at a stated FPIR of 1 %, and the DET curve
                 rng = np.random.default_rng(5)
-                pairs = rng.integers(0, size, size=(300, 2))
+                pairs = rng.integers(0, min(size, len(all_ids)), size=(300, 2))   # an enrolment refused: N - 1
                 dist = [compare(gallery_sigs[int(a)], gallery_sigs[int(b)])[1] for a, b in pairs if a != b]
                 noise = float(np.nanmedian([by[(s, 0)]["noise_mm"] for s in ids])) / 1000.0
                 model = ImpostorModel.fit(dist, "depthmap", noise)
@@ -472,6 +472,7 @@ def population(figures: dict[str, float], t_start: float) -> dict[str, object]:
                 t1 = float(np.quantile(n_d[np.isfinite(n_d)], 0.01)) if np.isfinite(n_d).any() else np.inf
                 figures[f"fnir_pct_at_fpir_1_{sensor}"] = float(100 * np.mean(~(m_ok & (m_d < t1))))
                 det_data = (fpir.tolist(), fnir.tolist())
+        figures[f"population_people_{sensor}"] = float(len(ids))
         plots["rank_vs_n"][sensor] = rank_vs_n  # type: ignore[index]
         plots["det"][sensor] = det_data  # type: ignore[index]
         print(f"[bench faces] population {sensor}: " + ", ".join(
