@@ -99,9 +99,14 @@ def run_face(args: argparse.Namespace) -> int:
     result = _process(args.cloud, args)
     if result.signature is None:
         raise ValueError(f"{args.cloud}: " + ("; ".join(result.messages) or "no face found"))
+    for text in result.messages:          # warnings (an asymmetric face): reported, never a refusal
+        print(f"lsu face: {text}")
     if args.action == "enroll":
         entry = gallery.enroll(args.name, result.signature, str(Path(args.cloud).expanduser().resolve()))
-        print(f"enrolled '{args.name}' as entry {entry} ({result.signature.points_used} face points) in {gallery.path}")
+        noise = result.signature.noise_m * 1000.0
+        print(f"enrolled '{args.name}' as entry {entry} ({result.signature.points_used} face points, depth noise "
+              f"{noise:.2f} mm, nose confidence {result.nose.confidence if result.nose else float('nan'):.2f}) in "
+              f"{gallery.path}")
         return 0
     ident = gallery.identify(result.signature, args.max_results, args.false_accept)
     if not ident.matches:
@@ -111,10 +116,10 @@ def run_face(args: argparse.Namespace) -> int:
     if ident.accepted:
         print(f"best: {best.name}")
     else:
-        print(f"best: (rejected: the nearest face, {best.name}, is {best.distance_m * 1000:.3f} mm away; accepting "
-              f"needs < {ident.threshold_m * 1000:.3f} mm for a {args.false_accept:g} false-accept rate)")
+        print(f"best: (rejected: {ident.reason})")
     model = ident.model
-    print(f"  scores calibrated on {model.samples} impostor distances of this gallery (+ the prior): a stranger "
+    print(f"  scores calibrated on {model.samples} impostor distances of this gallery (+ the prior for its scans' "
+          f"depth noise, {ident.gallery_noise_mm:.2f} mm; this scan {ident.probe_noise_mm:.2f} mm): a stranger "
           f"comes within {model.threshold_m(0.5) * 1000:.2f} mm half of the time")
     for rank, m in enumerate(ident.matches, 1):
         print(f"  {rank}. {m.name:<24s} score {m.score:.6f}  stranger chance {m.false_accept:.3e}  "

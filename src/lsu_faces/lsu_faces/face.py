@@ -38,7 +38,7 @@ parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -83,7 +83,7 @@ class FaceParams:
     ring_min_fraction: float = 0.5     # a nose candidate needs this much of its ring present (crop edges, rims)
     candidates: int = 12               # template stage: distinct candidates verified
     min_confidence: float = 0.45       # below this the best candidate is "no face"
-    max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: "no face"
+    max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: a warning, never a refusal
 
     def __post_init__(self) -> None:
         if self.nose_method not in NOSE_METHODS:
@@ -107,6 +107,10 @@ class NoseResult:
     confidence: float = 1.0           # 0..1: how face-like the surroundings are (template method)
     symmetry_mm: float = float("nan")   # median mirror residual of the face around the tip
     frame: FaceFrame | None = None  # the verified face frame (template method)
+    noise_m: float = float("nan")   # the scan's depth noise: roughness about the local tangent planes
+    warnings: list[str] = field(default_factory=list)   # what is unusual but no reason to refuse (asymmetry)
+    runner_up_confidence: float = 0.0   # the best face fit more than 20 mm from this one (template method)
+    runner_up_distance_mm: float = 0.0
 
 
 @dataclass
@@ -412,8 +416,10 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         rough.append((-conf, len(rough), reg.T, q))
     rough.sort(key=lambda r: (r[0], r[1]))
     best = None
+    verified = []
     for _, _, T0, q in rough[:3]:
         conf, reg, cover = verify(T0, np.arange(len(tpl.points)), (0.008, 0.004))
+        verified.append((conf, reg.T[:3, 3]))
         if best is None or conf > best[0]:
             best = (conf, reg, q)
     if best is None or best[0] < params.min_confidence:
@@ -425,12 +431,19 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
     origin = reg.T[:3, 3]
     local = (p - origin) @ axes.T
     sym = _symmetry_mm(local)
+    warnings = []
     if not sym <= params.max_symmetry_mm:
-        raise NotAFaceError(f"no face: the surface around the best nose candidate is not mirror-symmetric "
-                            f"(median residual {sym:.1f} mm, a face: <= {params.max_symmetry_mm:.1f} mm)")
+        # real faces and real captures (a turned head, hair, a collar) are often less symmetric than this:
+        # the layout confidence decides what is a face, the asymmetry is only reported
+        warnings.append(f"the face is not mirror-symmetric (median residual {sym:.1f} mm, usually <= "
+                        f"{params.max_symmetry_mm:.1f} mm): check the scan if this person is hard to identify")
     tip = origin + _refine_tip(local, smooth=noise_m > 0.0003) @ axes
     frame = FaceFrame(tip, axes)
-    return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame)
+    # the best face fit elsewhere (more than 20 mm away): how clearly this place won
+    others = [(c, float(np.linalg.norm(o - origin))) for c, o in verified if np.linalg.norm(o - origin) > 0.02]
+    runner = max(others) if others else (0.0, 0.0)
+    return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame, float(noise_m),
+                      warnings, float(runner[0]), runner[1] * 1000.0)
 
 
 def nose_tip(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:

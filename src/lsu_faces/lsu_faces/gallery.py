@@ -13,10 +13,25 @@ file that other local users can read or write, or one in a folder they can write
 Removal runs with SQLite's ``secure_delete`` on and then ``VACUUM``s the file, so no byte of the removed person's signature or name
 stays in the file (free pages are zeroed and dropped).
 
-Scores (`identify`) are calibrated on the gallery's own impostor distances: every pair of entries of
-different names is compared once (kept for the life of this object, keyed by the entry ids, and
-recomputed only when entries change), and `lsu_faces.signature.ImpostorModel.fit` turns them into the
-chance that a stranger comes that close.
+1:N (`identify`) runs in two stages. First, a faiss index (``IndexFlatL2``: exact, deterministic, no
+training, so it is valid for any gallery size) over the compact vectors of the entries
+(`lsu_faces.signature.compact_vector`, stored in each row beside the full signature) gives the
+``first_stage`` nearest entries; then the full comparison (`lsu_faces.signature.compare`: alignment
+and region-weighted trimmed RMS) ranks those. The SQLite file stays the source of truth: the index
+lives in memory only (no second copy of biometric data on disk), is built from the rows on first use
+and is checked against the file before every identification: the file's identity, size, modification
+time and SQLite's own file change counter (header bytes 24-27, bumped by every committed write of any
+process), and the row count. A file changed behind this object's back (another process, a restored
+backup, an edited row) is noticed and the index rebuilt; this object's own writes update it in place.
+
+Open set: scores are calibrated on the gallery's own impostor distances (pairs of entries of
+different names: all pairs of a small gallery, a fixed, seeded sample of ``impostor_pairs`` pairs of a
+large one), fitted as a log-normal (`lsu_faces.signature.ImpostorModel.fit`) and shrunk towards a prior
+for the depth noise of the scans actually enrolled (each row keeps its scan's measured noise): a
+gallery of time-of-flight scans is judged by a time-of-flight stranger, not the LSU rig's. The best
+match is accepted when the chance that a stranger comes as close, times the number of people
+compared, is at most the stated false-positive identification rate (FPIR, per search); a rejection
+says why.
 """
 
 from __future__ import annotations
@@ -30,8 +45,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from .signature import ImpostorModel, Signature, SignatureError, compare
+import numpy as np
+
+from lsu_common.arrays import AnyArray
+
+from .signature import ImpostorModel, Signature, SignatureError, compact_vector, compare
 
 __all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryPermissionError", "GalleryEntry",
            "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT"]
@@ -50,6 +70,10 @@ CREATE TABLE IF NOT EXISTS faces (
 );
 CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
 """
+# columns added after the first release: added to older galleries on their first write
+_NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
+FIRST_STAGE = 10         # entries the compact index hands to the full comparison (each ~5-10 ms)
+IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
 
 
 class GalleryError(ValueError):
@@ -78,6 +102,7 @@ class GalleryEntry:
     date: str
     mesh_file: str
     points_used: int
+    noise_mm: float = float("nan")
 
 
 @dataclass
@@ -100,6 +125,9 @@ class Identification:
     false_accept_rate: float     # the stated rate
     threshold_m: float           # distance the best match had to beat
     model: ImpostorModel
+    reason: str = ""             # why the best match was rejected (empty when accepted)
+    probe_noise_mm: float = float("nan")
+    gallery_noise_mm: float = float("nan")
 
     @property
     def best(self) -> Match | None:
@@ -111,8 +139,12 @@ class Gallery:
     def __init__(self, path: str | Path, timeout_s: float = 2.0) -> None:
         self.path = Path(path).expanduser()
         self.timeout_s = float(timeout_s)
-        self._signatures: dict[int, Signature] = {}
+        self._signatures: dict[int, Signature] = {}      # decoded full signatures (bounded: see _signature)
         self._impostor: dict[tuple, ImpostorModel] = {}
+        self._index: _Index | None = None
+        self.index_builds = 0                            # how often the index was (re)built from the file
+        self.first_stage = FIRST_STAGE
+        self.impostor_pairs = IMPOSTOR_PAIRS
 
     # ------------------------------------------------------------------ privacy
     def _check_private(self) -> None:
@@ -168,6 +200,11 @@ class Gallery:
                         if statement.strip():
                             conn.execute(statement)
                 self._check_schema(conn)
+                if write:
+                    have = {row[1] for row in conn.execute("PRAGMA table_info(faces)")}
+                    for col, kind in _NEW_COLUMNS.items():
+                        if col not in have:
+                            conn.execute(f"ALTER TABLE faces ADD COLUMN {col} {kind}")
                 yield conn
                 conn.execute("COMMIT")
             except BaseException:
@@ -193,20 +230,34 @@ class Gallery:
         if not name:
             raise GalleryError("the name to enrol is empty; give the person's name")
         blob = signature.to_bytes()
+        compact = compact_vector(signature).tobytes() if signature.method == "depthmap" else None
+        noise_mm = float(signature.noise_m) * 1000.0 if np.isfinite(signature.noise_m) else None
         date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         with self._connect(write=True) as conn:
-            cur = conn.execute("INSERT INTO faces (name, signature, method, date, mesh_file, points_used) "
-                               "VALUES (?, ?, ?, ?, ?, ?)", (name, blob, signature.method, date, str(mesh_file),
-                                                            int(signature.points_used)))
-            return int(cur.lastrowid or 0)  # set by every INSERT
+            before = self._fingerprint()
+            cur = conn.execute("INSERT INTO faces (name, signature, method, date, mesh_file, points_used, compact, "
+                               "noise_mm) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                               (name, blob, signature.method, date, str(mesh_file), int(signature.points_used),
+                                compact, noise_mm))
+            entry_id = int(cur.lastrowid or 0)  # set by every INSERT
+        # our own write: carry the index along when nothing else changed the file in between
+        if self._index is not None and before == self._index.fingerprint and compact is not None:
+            self._index.add(entry_id, name, np.frombuffer(compact, dtype=np.float32),
+                            float("nan") if noise_mm is None else noise_mm, self._fingerprint())
+        else:
+            self._index = None
+        return entry_id
 
     def list(self) -> builtins.list[GalleryEntry]:
         """Every entry, oldest first (empty when the gallery file does not exist yet)."""
         if not self.path.exists():
             return []
         with self._connect(write=False) as conn:
-            rows = conn.execute("SELECT id, name, method, date, mesh_file, points_used FROM faces ORDER BY id").fetchall()
-        return [GalleryEntry(int(r[0]), r[1], r[2], r[3], r[4], int(r[5])) for r in rows]
+            noise = "noise_mm" if "noise_mm" in self._columns(conn) else "NULL"
+            rows = conn.execute(f"SELECT id, name, method, date, mesh_file, points_used, {noise} FROM faces "
+                                f"ORDER BY id").fetchall()
+        return [GalleryEntry(int(r[0]), r[1], r[2], r[3], r[4], int(r[5]), float("nan") if r[6] is None else r[6])
+                for r in rows]
 
     def remove(self, name: str | None = None, entry_id: int | None = None) -> int:
         """Remove every sample of ``name``, or the entry ``entry_id``; returns how many rows went."""
@@ -224,6 +275,7 @@ class Gallery:
         self._vacuum()
         self._signatures.clear()     # ids may be reused; drop every per-entry state
         self._impostor.clear()
+        self._index = None
         return int(n)
 
     def _vacuum(self) -> None:
@@ -240,61 +292,219 @@ class Gallery:
         finally:
             conn.close()
 
-    def _load(self) -> builtins.list[tuple]:
-        with self._connect(write=False) as conn:
-            rows = conn.execute("SELECT id, name, signature FROM faces ORDER BY id").fetchall()
-        present = {int(r[0]) for r in rows}
-        for stale in [k for k in self._signatures if k not in present]:   # removed by another process
-            del self._signatures[stale]
-        out = []
-        for entry_id, name, blob in rows:
-            sig = self._signatures.get(entry_id)
-            if sig is None:
-                try:
-                    sig = Signature.from_bytes(blob)
-                except SignatureError as exc:
-                    raise GalleryCorruptError(f"gallery {self.path}: entry {entry_id} ({name}): {exc}") from None
-                self._signatures[entry_id] = sig
-            out.append((int(entry_id), name, sig))
-        return out
+    # ------------------------------------------------------------------ the first-stage index
+    @staticmethod
+    def _columns(conn: sqlite3.Connection) -> set[str]:
+        return {row[1] for row in conn.execute("PRAGMA table_info(faces)")}
 
-    def impostor_model(self, method: str = "depthmap", entries: builtins.list[tuple] | None = None) -> ImpostorModel:
-        """Impostor distances of this gallery (every pair of different names, once) fitted as a log-normal."""
-        entries = self._load() if entries is None else entries
-        entries = [e for e in entries if e[2].method == method]
-        key = (method, tuple(e[0] for e in entries))
-        if key not in self._impostor:
-            distances = []
-            for i, (_, name_a, a) in enumerate(entries):
-                for _, name_b, b in entries[i + 1:]:
-                    if name_a != name_b:
-                        distances.append(compare(a, b)[1])
-            self._impostor.clear()    # one model per gallery state: never grows with the scans
-            self._impostor[key] = ImpostorModel.fit(distances, method)
-        return self._impostor[key]
+    def _fingerprint(self) -> tuple:
+        """What changes whenever any process commits to the file (or replaces it): see the module doc."""
+        try:
+            st = os.stat(self.path)
+            with open(self.path, "rb") as fh:
+                header = fh.read(28)
+        except OSError:
+            return ()
+        wal = Path(str(self.path) + "-wal")
+        wal_st = wal.stat() if wal.exists() else None
+        return (st.st_ino, st.st_size, st.st_mtime_ns, header[24:28],
+                (wal_st.st_size, wal_st.st_mtime_ns) if wal_st else None)
+
+    def index(self) -> _Index:
+        """The first-stage index, rebuilt from the file when the file changed behind this object's back."""
+        fingerprint = self._fingerprint()
+        with self._connect(write=False) as conn:
+            count = int(conn.execute("SELECT count(*) FROM faces").fetchone()[0])
+            if self._index is not None and self._index.fingerprint == fingerprint and self._index.count == count:
+                return self._index
+            cols = self._columns(conn)
+            compact = "compact" if "compact" in cols else "NULL"
+            noise = "noise_mm" if "noise_mm" in cols else "NULL"
+            rows = conn.execute(f"SELECT id, name, method, {compact}, {noise} FROM faces ORDER BY id").fetchall()
+            missing = [int(r[0]) for r in rows if r[2] == "depthmap" and r[3] is None]
+            made: dict[int, bytes] = {}
+            for start in range(0, len(missing), 500):   # a gallery from before compact vectors: made here once
+                part = missing[start:start + 500]
+                q = f"SELECT id, signature FROM faces WHERE id IN ({','.join('?' * len(part))})"
+                for entry_id, blob in conn.execute(q, part):
+                    made[int(entry_id)] = compact_vector(self._decode(int(entry_id), "", blob)).tobytes()
+        self._signatures.clear()
+        self._impostor.clear()
+        idx = _Index(fingerprint)
+        depth = [r for r in rows if r[2] == "depthmap"]
+        if depth:
+            vectors = np.stack([np.frombuffer(made.get(int(r[0]), r[3] or b""), dtype=np.float32) for r in depth])
+            idx.build([int(r[0]) for r in depth], [r[1] for r in depth], vectors,
+                      [float("nan") if r[4] is None else float(r[4]) for r in depth])
+        idx.count = len(rows)
+        idx.other = [(int(r[0]), r[1]) for r in rows if r[2] != "depthmap"]
+        self._index = idx
+        self.index_builds += 1
+        return idx
+
+    def _decode(self, entry_id: int, name: str, blob: bytes) -> Signature:
+        try:
+            return Signature.from_bytes(blob)
+        except SignatureError as exc:
+            raise GalleryCorruptError(f"gallery {self.path}: entry {entry_id} ({name}): {exc}") from None
+
+    def signatures(self, ids: builtins.list[int]) -> dict[int, Signature]:
+        """Full signatures of the entries ``ids`` (decoded once; at most 4096 kept)."""
+        want = [i for i in dict.fromkeys(int(i) for i in ids) if i not in self._signatures]
+        if want:
+            with self._connect(write=False) as conn:
+                for start in range(0, len(want), 500):
+                    part = want[start:start + 500]
+                    q = f"SELECT id, name, signature FROM faces WHERE id IN ({','.join('?' * len(part))})"
+                    for entry_id, name, blob in conn.execute(q, part):
+                        if len(self._signatures) >= 4096:
+                            self._signatures.clear()
+                        self._signatures[int(entry_id)] = self._decode(int(entry_id), name, blob)
+        return {int(i): self._signatures[int(i)] for i in ids if int(i) in self._signatures}
+
+    # ------------------------------------------------------------------ open set
+    def impostor_model(self, method: str = "depthmap") -> ImpostorModel:
+        """Impostor distances of this gallery (pairs of different names) fitted as a log-normal.
+
+        Every pair of a gallery with at most ``impostor_pairs`` of them, else a fixed sample of that many
+        (seeded: the same gallery gives the same model in every process), shrunk towards the prior for
+        the median depth noise of the enrolled scans. Kept until the gallery changes.
+        """
+        idx = self.index()
+        key = (method, idx.fingerprint, idx.count)
+        if key in self._impostor:
+            return self._impostor[key]
+        if method == "depthmap":
+            ids, names = idx.ids.tolist(), idx.names
+        else:
+            ids, names = [i for i, _ in idx.other], [n for _, n in idx.other]
+        n = len(ids)
+        pairs: builtins.list[tuple[int, int]]
+        if n * (n - 1) // 2 <= self.impostor_pairs:
+            pairs = [(a, b) for a in range(n) for b in range(a + 1, n) if names[a] != names[b]]
+        else:
+            rng = np.random.default_rng(0x1A5)
+            pairs = []
+            for a, b in rng.integers(0, n, size=(4 * self.impostor_pairs, 2)):
+                if names[a] != names[b]:
+                    pairs.append((int(a), int(b)))
+                if len(pairs) >= self.impostor_pairs:
+                    break
+        sigs = self.signatures([ids[a] for a, _ in pairs] + [ids[b] for _, b in pairs])
+        distances = [compare(sigs[ids[a]], sigs[ids[b]])[1] for a, b in pairs]
+        model = ImpostorModel.fit(distances, method, idx.noise_m)
+        self._impostor.clear()    # one model per gallery state: never grows with the scans
+        self._impostor[key] = model
+        return model
 
     def identify(self, probe: Signature, max_results: int = 5,
                  false_accept_rate: float = DEFAULT_FALSE_ACCEPT) -> Identification:
         """Candidates ranked by distance (best first), one per name (its best sample), and the open-set decision.
 
-        The best match is accepted when its chance of being a stranger (`ImpostorModel.false_accept`),
-        times the number of names compared, is at most ``false_accept_rate``.
+        Depth-map probes: the ``first_stage`` nearest entries of the compact index, then the full
+        comparison on those. The best match is accepted when its chance of being a stranger
+        (`ImpostorModel.false_accept`), times the number of names in the gallery, is at most
+        ``false_accept_rate`` (the FPIR aimed at); otherwise ``reason`` says why it was rejected.
         """
         if not 0 < false_accept_rate < 1:
             raise GalleryError(f"false_accept_rate must be in (0, 1) (got {false_accept_rate})")
+        probe_noise = float(probe.noise_m) * 1000.0
         if not self.path.exists():
-            return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method))
-        entries = self._load()
-        model = self.impostor_model(probe.method, entries)
+            return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method),
+                                  "the gallery is empty: enrol faces first", probe_noise)
+        idx = self.index()
+        if probe.method == "depthmap":
+            cand, people = idx.search(compact_vector(probe), self.first_stage), idx.people
+        else:
+            cand, people = idx.other, len({n for _, n in idx.other})
+        if not cand:
+            return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method),
+                                  f"no entry of the gallery has a '{probe.method}' signature", probe_noise)
+        model = self.impostor_model(probe.method)
+        sigs = self.signatures([i for i, _ in cand])
         best: dict[str, Match] = {}
-        for entry_id, name, ref in entries:
-            if ref.method != probe.method:
-                continue
-            _, dist, _ = compare(probe, ref, model)
+        for entry_id, name in cand:
+            _, dist, _ = compare(probe, sigs[entry_id], model)
             if name not in best or dist < best[name].distance_m:
                 best[name] = Match(name, model.score(dist), entry_id, dist, model.false_accept(dist))
         ranked = sorted(best.values(), key=lambda m: (m.distance_m, m.name))
-        per_comparison = false_accept_rate / max(len(ranked), 1)
+        per_comparison = false_accept_rate / max(people, 1)
+        threshold = model.threshold_m(per_comparison)
         accepted = bool(ranked) and ranked[0].false_accept <= per_comparison
+        gallery_noise = idx.noise_m * 1000.0
+        reason = ""
+        if not accepted and ranked:
+            top = ranked[0]
+            reason = (f"the nearest face, {top.name}, is {top.distance_m * 1000:.2f} mm away; a stranger comes that "
+                      f"close with chance {top.false_accept:.2g} per person, and {people} "
+                      f"{'person' if people == 1 else 'people'} were compared: accepting at FPIR "
+                      f"{false_accept_rate:g} needs < {threshold * 1000:.2f} mm")
+            if np.isfinite(probe_noise) and np.isfinite(gallery_noise) and \
+                    max(probe_noise, gallery_noise) > 2.0 * max(min(probe_noise, gallery_noise), 0.05):
+                reason += (f" (this scan's depth noise is {probe_noise:.2f} mm, the gallery's {gallery_noise:.2f} mm: "
+                           f"another sensor or distance than the enrolments?)")
         ranked = ranked[:max(1, int(max_results))] if max_results else ranked
-        return Identification(ranked, accepted, false_accept_rate, model.threshold_m(per_comparison), model)
+        return Identification(ranked, accepted, false_accept_rate, threshold, model, reason, probe_noise,
+                              gallery_noise)
+
+
+class _Index:
+    """The first-stage index of a gallery state: faiss over the compact vectors, entry ids and names."""
+
+    def __init__(self, fingerprint: tuple) -> None:
+        self.fingerprint = fingerprint
+        self.count = 0                                    # rows of the file (every method)
+        self.ids = np.zeros(0, dtype=np.int64)
+        self.names: builtins.list[str] = []
+        self.noise_mm: builtins.list[float] = []
+        self.other: builtins.list[tuple[int, str]] = []   # entries without a compact vector (fft signatures)
+        self.faiss: Any = None                          # faiss.IndexFlatL2 once built
+        self._people: set[str] = set()
+
+    def build(self, ids: builtins.list[int], names: builtins.list[str], vectors: AnyArray,
+              noise_mm: builtins.list[float]) -> None:
+        import faiss
+
+        self.faiss = faiss.IndexFlatL2(int(vectors.shape[1]))
+        self.faiss.add(np.ascontiguousarray(vectors, dtype=np.float32))
+        self.ids = np.asarray(ids, dtype=np.int64)
+        self.names = list(names)
+        self.noise_mm = list(noise_mm)
+        self._people = set(names)
+
+    def add(self, entry_id: int, name: str, vector: AnyArray, noise_mm: float, fingerprint: tuple) -> None:
+        if self.faiss is None:
+            self.build([entry_id], [name], vector[None, :], [noise_mm])
+        else:
+            self.faiss.add(np.ascontiguousarray(vector[None, :], dtype=np.float32))
+            self.ids = np.append(self.ids, np.int64(entry_id))
+            self.names.append(name)
+            self.noise_mm.append(noise_mm)
+            self._people.add(name)
+        self.count += 1
+        self.fingerprint = fingerprint
+
+    @property
+    def people(self) -> int:
+        """Distinct names with a depth-map entry."""
+        return len(self._people)
+
+    @property
+    def noise_m(self) -> float:
+        """Median depth noise of the enrolled scans [m] (NaN: none recorded)."""
+        known = [x for x in self.noise_mm if np.isfinite(x)]
+        return float(np.median(known)) / 1000.0 if known else float("nan")
+
+    def search(self, vector: AnyArray, k: int) -> builtins.list[tuple[int, str]]:
+        """(entry id, name) of the ``k`` nearest entries, nearest first (ties by entry id: deterministic)."""
+        if self.faiss is None or self.faiss.ntotal == 0:
+            return []
+        k = min(int(k), int(self.faiss.ntotal))
+        d, pos = self.faiss.search(np.ascontiguousarray(vector[None, :], dtype=np.float32), k)
+        order = sorted((float(dd), int(self.ids[p]), int(p)) for dd, p in zip(d[0], pos[0]) if p >= 0)
+        return [(entry_id, self.names[p]) for _, entry_id, p in order]
+
+    def memory_bytes(self) -> int:
+        """Bytes the index holds per the vectors and ids (names and Python objects not counted)."""
+        dim = self.faiss.d if self.faiss is not None else 0
+        return int(len(self.ids) * (4 * dim + 8))

@@ -213,6 +213,8 @@ class FaceProcessorNode(LsuNode):
         self.processed = 0
         self.errors = 0
         self.last_error = ""
+        self._gallery: Gallery | None = None
+        self._gallery_path = ""
         self.mesh_pub = self.create_publisher(Marker, "scan/mesh", LATCHED)
         self.shape_pub = self.create_publisher(Mesh, "scan/mesh_shape", LATCHED)
         self.nose_pub = self.create_publisher(PointStamped, "face/nose", 10)
@@ -251,8 +253,12 @@ class FaceProcessorNode(LsuNode):
             signature=SignatureParams(method=str(v("signature_method"))))
 
     def gallery(self) -> Gallery:
-        """The gallery named by ``gallery_file``."""
-        return Gallery(str(self._value("gallery_file")))
+        """The gallery named by ``gallery_file`` (one object per file: its index and calibration are kept,
+        and checked against the file on every use)."""
+        path = str(self._value("gallery_file"))
+        if self._gallery is None or str(self._gallery_path) != path:
+            self._gallery, self._gallery_path = Gallery(path), path
+        return self._gallery
 
     def _error(self, text: str) -> str:
         self.errors += 1
@@ -391,6 +397,8 @@ class FaceProcessorNode(LsuNode):
             response.success = True
             if not matches:
                 response.message = "the gallery is empty; enrol faces first"
+            elif not response.accepted:
+                response.message = f"rejected: {ident.reason}"
         except (ValueError, LookupError, OSError, GalleryError) as exc:
             response.success = False
             response.message = self._error(f"identify failed: {exc}")

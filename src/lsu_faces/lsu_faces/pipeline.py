@@ -113,7 +113,8 @@ def process_cloud(columns: dict[str, AnyArray], params: ProcessParams = ProcessP
     try:
         nose, frame, mask = embed_face(pts, params.face)
         result.nose, result.frame = nose, frame
-        result.signature = make_signature(pts[mask], frame, params.signature, params.face)
+        result.signature = make_signature(pts[mask], frame, params.signature, params.face, nose.noise_m)
+        result.messages.extend(f"warning: {w}" for w in nose.warnings)
     except (FaceError, SignatureError) as exc:
         result.messages.append(f"no face: {exc}")
     return result

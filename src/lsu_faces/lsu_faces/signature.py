@@ -36,13 +36,24 @@ from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
 
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
-           "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap"]
+           "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap",
+           "compact_vector", "prior_median_m", "REGION_WEIGHTS_FIRST_PASS", "smoothed", "smoothing_cells"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
 # weight of each face region in the depth-map distance (rigid regions up, expression regions down)
-REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
+# mouth and chin move with every expression (an open jaw moves the whole lower face) and the lower
+# cheeks with a smile: identity is compared on the rigid upper face (ICT population, tuning seeds)
+REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.5, "cheeks": 0.3, "mouth": 0.0, "chin": 0.0}
+# the first pass's weights (its distances are the ones quoted against the real maps)
+REGION_WEIGHTS_FIRST_PASS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
 
 SIGNATURE_METHODS = ("depthmap", "fft")
+ALIGN_STRIDE = 3          # every third cell of the probe aligns it onto the reference
+ALIGN_ITERATIONS = 5      # Gauss-Newton steps per correspondence distance (two distances)
+SMOOTH_CELLS_PER_MM = 1.5  # comparison smoothing per mm of the scans' measured noise (see smoothing_cells)
+MIRROR_FILL = True         # hidden half of a turned face taken from the seen half (mirror_completed)
+SMOOTH_MIN_CELLS = 0.8     # at least this: fills isolated empty cells
+SMOOTH_MAX_CELLS = 3.0
 
 
 class SignatureError(ValueError):
@@ -79,13 +90,15 @@ class Signature:
     data: AnyArray
     params: SignatureParams
     points_used: int = 0
+    noise_m: float = float("nan")   # the scan's own depth noise (roughness about its tangent planes) [m]
 
     def to_bytes(self) -> bytes:
         """Serialise (numpy .npz in memory): what the gallery stores."""
         buf = io.BytesIO()
         fields: dict[str, Any] = {k: np.array(getattr(self.params, k)) for k in SignatureParams.__dataclass_fields__}
         np.savez_compressed(buf, data=self.data.astype(np.float32), points_used=np.array(self.points_used),
-                            version=np.array(SIGNATURE_VERSION), **{f"p_{k}": v for k, v in fields.items()})
+                            noise_m=np.array(float(self.noise_m)), version=np.array(SIGNATURE_VERSION),
+                            **{f"p_{k}": v for k, v in fields.items()})
         return buf.getvalue()
 
     @classmethod
@@ -103,7 +116,8 @@ class Signature:
                     value = z[f"p_{k}"]
                     kw[k] = str(value) if f.type in ("str", str) else value.item()
                 params = SignatureParams(**kw)
-                return cls(params.method, z["data"].astype(np.float64), params, int(z["points_used"]))
+                noise = float(z["noise_m"]) if "noise_m" in z.files else float("nan")
+                return cls(params.method, z["data"].astype(np.float64), params, int(z["points_used"]), noise)
         except SignatureError:
             raise
         except (OSError, KeyError, ValueError, TypeError) as exc:
@@ -123,7 +137,7 @@ def _depth_map(local: AnyArray, params: SignatureParams) -> AnyArray:
 
 
 def make_signature(points: AnyArray, frame: FaceFrame, params: SignatureParams = SignatureParams(),
-                   face: FaceParams = FaceParams()) -> Signature:
+                   face: FaceParams = FaceParams(), noise_m: float = float("nan")) -> Signature:
     """Signature of the face ``points`` (already cropped) in ``frame``."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(p) < 50:
@@ -135,7 +149,7 @@ def make_signature(points: AnyArray, frame: FaceFrame, params: SignatureParams =
         m = parametric_map(el, az, rho, face.sphere_radius_m, (params.map_rows, params.map_cols),
                            np.radians(params.max_elevation_deg))
         data = _fft_magnitudes(m, params.fft_orders)
-    return Signature(params.method, data, params, int(len(p)))
+    return Signature(params.method, data, params, int(len(p)), float(noise_m))
 
 
 def _fft_magnitudes(m: AnyArray, orders: int) -> AnyArray:
@@ -229,27 +243,77 @@ def align_to_depthmap(points: AnyArray, ref: Signature, weights: AnyArray,
     return T
 
 
-def _depthmap_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
+def smoothed(sig: Signature, sigma_cells: float) -> Signature:
+    """The depth map averaged over a Gaussian of ``sigma_cells`` cells, NaN-aware; a hole at least half
+    surrounded by measured cells is filled (a depth camera's pixels are about one cell apart, so its
+    maps are sprinkled with empty cells, and the bilinear comparison needs four cells around a point)."""
+    if sigma_cells <= 0:
+        return sig
+    from scipy import ndimage
+
+    valid = np.isfinite(sig.data)
+    w = ndimage.gaussian_filter(valid.astype(np.float64), sigma_cells, mode="constant")
+    v = ndimage.gaussian_filter(np.where(valid, sig.data, 0.0), sigma_cells, mode="constant")
+    data = np.where(valid | (w >= 0.5), v / np.maximum(w, 1e-9), np.nan)
+    return Signature(sig.method, data, sig.params, sig.points_used, sig.noise_m)
+
+
+def mirror_completed(sig: Signature) -> Signature:
+    """Empty cells filled from their mirror image across the face's symmetry plane (x = 0 of the face frame).
+
+    A turned head hides one cheek and the nose's far flank; two captures turned to opposite sides then
+    share only the middle of the face. Faces are nearly mirror-symmetric, so the seen half stands in for
+    the hidden one (where both halves were seen nothing changes).
+    """
+    mirrored = sig.data[:, ::-1]
+    fill = ~np.isfinite(sig.data) & np.isfinite(mirrored)
+    if not fill.any():
+        return sig
+    return Signature(sig.method, np.where(fill, mirrored, sig.data), sig.params, sig.points_used, sig.noise_m)
+
+
+def smoothing_cells(a: Signature, b: Signature) -> float:
+    """Gaussian (cells) both maps are averaged over before comparing: more for noisier scans.
+
+    A depth map cell holds one or a few measured points, so a depth camera's millimetres of noise
+    and quantisation steps would dominate the distance; people differ in shapes of centimetres.
+    """
+    noise = max(float(a.noise_m), float(b.noise_m))
+    if not np.isfinite(noise):
+        noise = 0.0
+    return float(np.clip(SMOOTH_CELLS_PER_MM * noise * 1000.0, SMOOTH_MIN_CELLS, SMOOTH_MAX_CELLS))
+
+
+def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = None,
+                       weights: dict[str, float] | None = None) -> tuple[float, float]:
+    sigma = smoothing_cells(probe, ref) if smooth is None else smooth
+    if smooth is None and MIRROR_FILL:
+        probe, ref = mirror_completed(probe), mirror_completed(ref)
+    probe, ref = smoothed(probe, sigma), smoothed(ref, sigma)
     pp, _ = _grid_points(probe)
     if len(pp) < 20 or np.isfinite(ref.data).sum() < 20:
         return float("inf"), 0.0
     cell = 2 * ref.params.extent_m / ref.params.grid
-    T = align_to_depthmap(pp, ref, _region_weights(pp), (4 * cell, 1.5 * cell), trim=probe.params.trim)
+    # the rigid alignment (6 unknowns) needs only a third of the cells: same frame, small corrections;
+    # the distance itself is taken over every cell
+    sub = pp[::ALIGN_STRIDE]
+    T = align_to_depthmap(sub, ref, _region_weights(sub, weights), (4 * cell, 1.5 * cell),
+                          iterations=ALIGN_ITERATIONS, trim=probe.params.trim)
     moved = apply(T, pp)
     diff = moved[:, 2] - _sample(ref, moved[:, :2])
     ok = np.isfinite(diff)
     overlap = float(ok.sum()) / max(len(pp), 1)
     if overlap < probe.params.min_overlap or ok.sum() < 20:
         return float("inf"), overlap
-    d, wd = np.abs(diff[ok]), _region_weights(moved[ok])
+    d, wd = np.abs(diff[ok]), _region_weights(moved[ok], weights)
     keep = d <= np.quantile(d, 1.0 - probe.params.trim)
     return float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap
 
 
-def _region_weights(local: AnyArray) -> AnyArray:
+def _region_weights(local: AnyArray, weights: dict[str, float] | None = None) -> AnyArray:
     from .template import REGIONS, region_of
 
-    table = np.array([REGION_WEIGHTS[r] for r in REGIONS])
+    table = np.array([(weights or REGION_WEIGHTS)[r] for r in REGIONS])
     return table[region_of(local)]
 
 
@@ -262,10 +326,13 @@ def _fft_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
     return float(np.sqrt(np.mean(d ** 2))), overlap
 
 
-def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None) -> tuple[float, float, float]:
+def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None,
+            smooth: float | None = None, weights: dict[str, float] | None = None) -> tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
-    The score is ``model.score(distance)`` (default model: the prior).
+    The score is ``model.score(distance)`` (default model: the prior). ``smooth``: Gaussian in cells
+    applied to both depth maps first (None: `smoothing_cells` from the scans' noise; 0: none).
+    ``weights``: region weights (default `REGION_WEIGHTS`).
     """
     if probe.method != ref.method:
         raise SignatureError(f"cannot compare a '{probe.method}' signature with a '{ref.method}' one; "
@@ -273,7 +340,7 @@ def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None
     if probe.data.shape != ref.data.shape:
         raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); re-enrol the gallery")
     if probe.method == "depthmap":
-        dist, overlap = _depthmap_distance(probe, ref)
+        dist, overlap = _depthmap_distance(probe, ref, smooth, weights)
     else:
         dist, overlap = _fft_distance(probe, ref)
     model = model or ImpostorModel.prior(probe.method)
@@ -289,15 +356,20 @@ class ImpostorModel:
     samples: int = 0                 # impostor distances it was fitted to (0: the prior alone)
 
     @classmethod
-    def prior(cls, method: str = "depthmap") -> ImpostorModel:
+    def prior(cls, method: str = "depthmap", noise_m: float = float("nan")) -> ImpostorModel:
+        """The prior for scans of depth noise ``noise_m`` (NaN: the LSU rig's): see `prior_median_m`."""
         mu, sigma = _PRIOR[method]
+        if method == "depthmap" and np.isfinite(noise_m):
+            mu = float(np.log(prior_median_m(noise_m)))
         return cls(mu, sigma, 0)
 
     @classmethod
-    def fit(cls, distances: AnyArray | list, method: str = "depthmap") -> ImpostorModel:
-        """Model from impostor ``distances`` [m], shrunk towards the prior (which dominates small samples)."""
+    def fit(cls, distances: AnyArray | list, method: str = "depthmap", noise_m: float = float("nan")) -> ImpostorModel:
+        """Model from impostor ``distances`` [m], shrunk towards the prior for ``noise_m`` (which dominates
+        small samples)."""
         d = np.asarray([x for x in distances if np.isfinite(x) and x > 0], dtype=np.float64)
-        mu0, s0 = _PRIOR[method]
+        prior = cls.prior(method, noise_m)
+        mu0, s0 = prior.log_mu, prior.log_sigma
         if len(d) == 0:
             return cls(mu0, s0, 0)
         ln = np.log(d)
@@ -323,7 +395,72 @@ class ImpostorModel:
         return float(np.exp(self.log_mu + self.log_sigma * ndtri(false_accept_rate)))
 
 
+def prior_median_m(noise_m: float) -> float:
+    """Median distance between two different people's scans of depth noise ``noise_m`` (prior of the model).
+
+    Two parts add in quadrature: the shape difference of two people (``_PRIOR_SHAPE_M``, the median
+    impostor distance with the LSU rig, whose ~0.1 mm noise adds nothing) and what the sensor's own
+    noise, steps and artefacts add, proportional to the noise measured on the scans
+    (``_PRIOR_NOISE_GAIN``; both from bench/bench_faces.py, rig and time-of-flight model).
+    """
+    return float(np.hypot(_PRIOR_SHAPE_M, _PRIOR_NOISE_GAIN * max(float(noise_m), 0.0)))
+
+
 # prior impostor model: distances between different synthetic people (MakeHuman morphs with hair and
 # expressions) scanned by the LSU rig, measured by bench/bench_faces.py; it counts as _PRIOR_WEIGHT pairs
 _PRIOR = {"depthmap": (float(np.log(0.0013)), 0.30), "fft": (float(np.log(0.0008)), 0.45)}
+_PRIOR_SHAPE_M = 0.0013
+_PRIOR_NOISE_GAIN = 2.0
 _PRIOR_WEIGHT = 20
+
+
+# ------------------------------------------------------------------ compact signature (1:N first stage)
+COMPACT_BLOCK = 4               # depth-map cells per block side (4 x 2.5 mm: 10 mm blocks)
+COMPACT_RADIUS_M = 0.06         # blocks whose centre lies within this of the nose tip
+_COMPACT: dict[tuple, tuple[AnyArray, AnyArray, AnyArray]] = {}
+
+
+def _compact_layout(params: SignatureParams) -> tuple[AnyArray, AnyArray, AnyArray]:
+    """(block rows, block cols, per-block weight, generic face's block heights) for ``params``' grid (kept)."""
+    key = (params.grid, params.extent_m)
+    if key not in _COMPACT:
+        from .template import REGIONS, face_template, region_of
+
+        nb = params.grid // COMPACT_BLOCK
+        cell = 2 * params.extent_m / params.grid
+        centres = (np.arange(nb) + 0.5) * COMPACT_BLOCK * cell - params.extent_m
+        bx, by = np.meshgrid(centres, centres)
+        inside = np.hypot(bx, by) <= COMPACT_RADIUS_M
+        xy = np.stack([bx[inside], by[inside], np.zeros(int(inside.sum()))], axis=1)
+        w = np.sqrt(np.array([REGION_WEIGHTS[r] for r in REGIONS])[region_of(xy)])
+        generic = _blocks(_depth_map(face_template().points, params), params)
+        _COMPACT[key] = (inside, w, generic[inside])
+    return _COMPACT[key]
+
+
+def _blocks(data: AnyArray, params: SignatureParams) -> AnyArray:
+    """Mean height of each COMPACT_BLOCK x COMPACT_BLOCK block of a depth map (NaN: fewer than 4 cells seen)."""
+    nb = params.grid // COMPACT_BLOCK
+    d = data[: nb * COMPACT_BLOCK, : nb * COMPACT_BLOCK].reshape(nb, COMPACT_BLOCK, nb, COMPACT_BLOCK)
+    valid = np.isfinite(d)
+    count = valid.sum(axis=(1, 3))
+    total = np.where(valid, d, 0.0).sum(axis=(1, 3))
+    return np.where(count >= 4, total / np.maximum(count, 1), np.nan)
+
+
+def compact_vector(sig: Signature) -> AnyArray:
+    """Short float32 vector of a depth-map signature for the 1:N first stage (L2 ~ the weighted distance).
+
+    The face's height (mirror-completed, `mirror_completed`) in 10 mm blocks within 60 mm of the nose
+    tip, minus the generic face's (blocks
+    the scan did not see take the generic face's height, i.e. count as no difference), less its mean
+    (a tip found a little high or low shifts every height alike), each block scaled by the square root
+    of its region's weight (`REGION_WEIGHTS`). Units: metres.
+    """
+    if sig.method != "depthmap":
+        raise SignatureError("compact vectors are made from depth-map signatures only")
+    inside, w, generic = _compact_layout(sig.params)
+    b = _blocks(mirror_completed(sig).data, sig.params)[inside]
+    diff = np.where(np.isfinite(b), b - generic, 0.0)
+    diff -= diff.mean()
+    return (diff * w).astype(np.float32)

@@ -424,7 +424,12 @@ def _albedos(person: Person, translation: AnyArray) -> dict[str, tuple[AlbedoFn,
             "hair": (mottled_albedo(np.array([0.06, 0.08, 0.11]) * float(rng.uniform(0.7, 3.0)), 0.3, seed=seed + 1,
                                     scale_m=0.002), 0.1),
             "glasses": (uniform_albedo((0.05, 0.05, 0.05)), 0.8),
-            "hand": (mottled_albedo(np.array([0.46, 0.55, 0.74]) * tone, 0.08, seed=seed + 2, scale_m=0.015), 0.25)}
+            "hand": (mottled_albedo(np.array([0.46, 0.55, 0.74]) * tone, 0.08, seed=seed + 2, scale_m=0.015), 0.25),
+            # parts of the ICT people (lsu_sim.ict): eyeballs, the mouth's inside, a collar
+            "eyes": (uniform_albedo((0.7, 0.7, 0.75)), 0.9),
+            "mouth": (uniform_albedo((0.12, 0.1, 0.25)), 0.3),
+            "collar": (mottled_albedo(np.array([0.3, 0.3, 0.3]) * float(rng.uniform(0.5, 2.5)), 0.1, seed=seed + 3,
+                                      scale_m=0.01), 0.1)}
 
 
 def person_objects(person: Person, translation: Sequence[float], name: str = "person") -> list[SceneObject]:

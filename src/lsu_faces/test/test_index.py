@@ -1,0 +1,92 @@
+"""1:N: the faiss first stage over compact vectors, the index checked against the SQLite file, open-set reasons."""
+
+from __future__ import annotations
+
+import sqlite3
+
+import numpy as np
+import pytest
+
+from lsu_faces.gallery import Gallery, _Index
+from lsu_faces.signature import Signature, SignatureParams, compact_vector
+
+
+def face_like(seed: int, noise_m: float = 0.0) -> Signature:
+    """A smooth synthetic depth map: a paraboloid 'face' with a seeded relief all over it, on the default grid."""
+    p = SignatureParams()
+    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    x, y = np.meshgrid(c, c)
+    rng = np.random.default_rng(seed)
+    z = -rng.uniform(2, 6) * (x ** 2 + y ** 2)
+    for _ in range(12):
+        bx, by = rng.uniform(-0.05, 0.05, 2)
+        z += rng.normal(0.0, 0.003) * np.exp(-((x - bx) ** 2 + (y - by) ** 2) / 0.0003)
+    if noise_m:
+        z = z + np.random.default_rng(seed + 10_000).normal(0, noise_m, z.shape)
+    z[np.hypot(x, y) > p.extent_m] = np.nan
+    return Signature("depthmap", z, p, 1000 + seed, noise_m if noise_m else 1e-4)
+
+
+def test_index_over_100000_signatures_returns_the_planted_person_first():
+    rng = np.random.default_rng(32)
+    planted = compact_vector(face_like(7))
+    dim = len(planted)
+    # 100,000 other people: vectors with the spread of real compact vectors (per-block sigma of the population)
+    spread = np.std([compact_vector(face_like(s)) for s in range(100, 140)], axis=0)
+    others = (rng.standard_normal((100_000, dim)) * spread).astype(np.float32)
+    idx = _Index(())
+    ids = list(range(1, 100_001))
+    idx.build(ids, [f"p{i}" for i in ids], others, [0.1] * len(ids))
+    idx.add(100_001, "planted", planted, 0.1, ())
+    probe = compact_vector(face_like(7, noise_m=2e-4))       # the same person scanned again, noisier
+    found = idx.search(probe, 24)
+    assert found[0] == (100_001, "planted")
+    assert len(found) == 24 and idx.people == 100_001
+    assert idx.memory_bytes() == 100_001 * (4 * dim + 8)
+
+
+def test_index_is_rebuilt_after_the_gallery_file_changed_behind_its_back(tmp_path):
+    path = tmp_path / "g.db"
+    g = Gallery(path)
+    for i in range(4):
+        g.enroll(f"person{i}", face_like(i))
+    assert g.identify(face_like(2)).matches[0].name == "person2"
+    builds = g.index_builds
+    g.enroll("person4", face_like(4))                 # its own write: carried into the index, no rebuild
+    assert g.identify(face_like(4)).matches[0].name == "person4" and g.index_builds == builds
+    # another process renames a person and removes another, straight in the file
+    conn = sqlite3.connect(str(path))
+    conn.execute("UPDATE faces SET name = 'mallory' WHERE name = 'person2'")
+    conn.execute("DELETE FROM faces WHERE name = 'person3'")
+    conn.commit()
+    conn.close()
+    ident = g.identify(face_like(2))
+    assert g.index_builds == builds + 1
+    assert ident.matches[0].name == "mallory"
+    assert "person3" not in [m.name for m in g.identify(face_like(3), max_results=10).matches]
+    # another Gallery object (another process) enrols: noticed too
+    Gallery(path).enroll("person9", face_like(9))
+    assert g.identify(face_like(9)).matches[0].name == "person9" and g.index_builds == builds + 2
+
+
+def test_stranger_is_rejected_with_the_reason_and_a_member_accepted(tmp_path):
+    g = Gallery(tmp_path / "g.db")
+    for i in range(6):
+        g.enroll(f"person{i}", face_like(i))
+    member = g.identify(face_like(3, noise_m=1e-4))
+    assert member.accepted and member.best.name == "person3" and member.reason == ""
+    stranger = g.identify(face_like(77, noise_m=1e-4))
+    assert not stranger.accepted and stranger.best is None
+    assert "stranger comes that close" in stranger.reason and "FPIR 0.01" in stranger.reason
+
+
+def test_threshold_follows_the_noise_of_the_enrolled_scans(tmp_path):
+    from lsu_faces.signature import ImpostorModel
+
+    quiet = ImpostorModel.prior("depthmap", 1e-4)
+    noisy = ImpostorModel.prior("depthmap", 1.5e-3)
+    assert noisy.threshold_m(0.01) > 1.5 * quiet.threshold_m(0.01)
+    g = Gallery(tmp_path / "g.db")
+    for i in range(3):
+        g.enroll(f"p{i}", face_like(i, noise_m=1.5e-3))
+    assert g.identify(face_like(0, noise_m=1.5e-3)).gallery_noise_mm == pytest.approx(1.5)

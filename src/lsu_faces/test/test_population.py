@@ -1,0 +1,117 @@
+"""People of the ICT face model (real people's shape spread) through the time-of-flight model and the rig.
+
+Truth: the model's own landmark vertices and the ray caster's surface depth, never the face code.
+Skipped, saying where the model is expected, when ``shared/devdata/face_model_ict_mit`` is absent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+sim = pytest.importorskip("lsu_sim")
+from lsu_sim.ict import Occasion, ict_person, load_ict  # noqa: E402
+from lsu_sim.people import person_objects  # noqa: E402
+from lsu_sim.tof import TofCamera, tof_scan  # noqa: E402
+from lsu_faces.face import embed_face  # noqa: E402
+from lsu_faces.gallery import Gallery  # noqa: E402
+from lsu_faces.pipeline import process_cloud  # noqa: E402
+from lsu_faces.signature import make_signature  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def ict():
+    from lsu_extract import devdata
+
+    try:
+        folder = devdata.devdata_dir() / "face_model_ict_mit"
+    except devdata.DevDataMissing as exc:
+        pytest.skip(str(exc))
+    if not (folder / "ict_face_model.npz").is_file():
+        pytest.skip(f"no ICT face model at {folder}")
+    return load_ict(folder)
+
+
+DEFAULT_TOF = TofCamera()
+
+
+def tof_capture(ict, seed: int, occasion: Occasion, cam: TofCamera = DEFAULT_TOF, distance: float = 0.85,
+                truth: bool = False):
+    objs = person_objects(ict_person(ict, seed, occasion), [0.0, 0.0, distance + 0.10])
+    return tof_scan(objs, np.eye(4), cam, seed=seed, truth=truth), objs[0].extra
+
+
+def signature_of(columns):
+    pts = np.stack([columns[c] for c in "xyz"], axis=1)
+    nose, frame, mask = embed_face(pts)
+    return make_signature(pts[mask], frame, noise_m=nose.noise_m), frame
+
+
+def test_tof_capture_has_flying_pixels_and_multipath_and_its_face_is_found(ict):
+    occ = Occasion(hair_m=0.02)
+    # without random noise and steps, the model's systematic errors are plain against the true depth
+    clean = TofCamera(noise_at_1m_m=0.0, noise_floor_m=0.0, depth_step_m=1e-6, wiggle_m=0.0, smooth_sigma_px=0.0,
+                      dropout=0.0, hair_dropout=0.0)
+    c, extra = tof_capture(ict, 3, occ, clean, truth=True)
+    fly = c["flying"]
+    assert fly.sum() > 50                                   # at the silhouette
+    assert np.all(np.isnan(c["true_z"][fly]))
+    err = c["z"][~fly] - c["true_z"][~fly]
+    assert np.all(err >= -1e-5)                              # multipath only ever lengthens the path
+    # concave places read deeper: the eye sockets more than the forehead (landmarks of the model)
+    marks = extra["landmarks_m"]
+    pts = np.stack([c[k] for k in "xyz"], axis=1)[~fly]
+
+    def bias_near(p, r=0.012):
+        near = np.linalg.norm(pts[:, :2] / pts[:, 2:] - p[:2] / p[2], axis=1) * 0.85 < r
+        return float(np.median(err[near]))
+
+    forehead = (marks["eye_r"] + marks["eye_l"]) / 2 + np.array([0.0, -0.045, -0.01])
+    assert bias_near(marks["eye_r"]) > bias_near(forehead) + 0.0003
+    # the default camera (noise, steps, smoothing, flying pixels, holes): the face is still found
+    c, extra = tof_capture(ict, 3, Occasion(hair_m=0.02, yaw_deg=15.0), truth=True)
+    assert c["flying"].sum() > 20
+    _, frame = signature_of(c)
+    assert np.linalg.norm(frame.origin - extra["nose_tip_m"]) < 0.008
+
+
+def test_neutral_enrolment_found_smiling_with_an_open_jaw(ict, tmp_path):
+    from lsu_faces.synthetic import fast_scan
+
+    rig = sim.load_rig()
+    centre = rig.rig_center + (rig.subject_distance_m + 0.10) * rig.rig_axes[2]
+
+    def rig_signature(seed: int, occ: Occasion):
+        objs = person_objects(ict_person(ict, seed, occ), centre)
+        cols = fast_scan(objs, rig, np.arange(0, 471, 6), noise_m=1e-4, drop_fraction=0.1, seed=seed).columns
+        return signature_of(cols)[0]
+
+    g = Gallery(tmp_path / "g.db")
+    for seed in (11, 12, 13, 14):
+        g.enroll(f"person{seed}", rig_signature(seed, Occasion(hair_m=0.01)))
+    probe = rig_signature(12, Occasion(expression="smile_open_jaw", strength=1.0, yaw_deg=10.0, hair_m=0.01))
+    ident = g.identify(probe)
+    assert ident.matches[0].name == "person12"
+    assert ident.matches[0].distance_m < min(m.distance_m for m in ident.matches[1:])
+    # the open-set decision on four people (accepting or not) always comes with its reason when it rejects
+    assert ident.accepted or "needs <" in ident.reason
+
+
+def test_asymmetric_face_is_enrolled_with_a_warning(ict, tmp_path):
+    from lsu_sim.ict import EXPRESSION_SETS
+
+    EXPRESSION_SETS.setdefault("lopsided", {"mouthSmile_L": 1.0, "jawLeft": 1.0, "mouthLeft": 1.0, "eyeBlink_R": 1.0,
+                                            "browDown_R": 1.0, "cheekPuff_L": 1.0, "noseSneer_L": 1.0})
+    c, _ = tof_capture(ict, 21, Occasion(expression="lopsided", hair_m=0.01), TofCamera(noise_at_1m_m=0.0015))
+    result = process_cloud(c)
+    assert result.signature is not None, result.messages
+    assert result.nose is not None and result.nose.symmetry_mm > 0
+    params_limit = 1.0                                       # a strict limit: this face is beyond it
+    from lsu_faces.face import FaceParams
+    from lsu_faces.pipeline import ProcessParams
+
+    strict = process_cloud(c, ProcessParams(face=FaceParams(max_symmetry_mm=params_limit)))
+    assert strict.signature is not None                      # enrolled all the same
+    assert any("not mirror-symmetric" in m and m.startswith("warning") for m in strict.messages)
+    entry = Gallery(tmp_path / "g.db").enroll("lopsided", strict.signature)
+    assert entry > 0
