@@ -30,6 +30,7 @@ ALLOWED: dict[str, set[str]] = {
     "lsu_scan": _BASE | {"lsu_bags", "lsu_cameras", "lsu_driver", "lsu_extract", "lsu_reconstruct"},
     "lsu_accuracy": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces"},
     "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy"},
+    "lsu_web": _BASE | {"lsu_bags", "lsu_cameras", "lsu_reconstruct", "lsu_faces", "lsu_scan"},
     "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools"},
 }
 
