@@ -187,7 +187,7 @@ def create_app(graph: Any, config: WebConfig, outbox: Outbox) -> FastAPI:
     # ------------------------------------------------------------------ status and scans
     @app.get("/api/status")
     async def status() -> dict[str, Any]:
-        return {"state": outbox.latest("state"), "progress": outbox.latest("progress"),
+        return {"state": outbox.latest("state"), "progress": outbox.latest("progress"), "laser": outbox.latest("laser"),
                 "scanning": graph.scanning(), "clients": outbox.count}
 
     @app.post("/api/scan")
@@ -298,13 +298,13 @@ def create_app(graph: Any, config: WebConfig, outbox: Outbox) -> FastAPI:
         try:
             if not req.on:
                 await asyncio.to_thread(graph.laser_off, "switched off on the page")
-                return {"laser": "off"}
+                return {"laser": "off", "message": "laser off"}
             idle_or_409()
             if req.client not in ws_clients:
                 raise HTTPException(422, "laser on needs the page's live connection (client id from the WebSocket "
                                          "hello): a closed page must be able to switch it off")
             seconds = await asyncio.to_thread(graph.laser_on_for, req.client, req.seconds)
-            return {"laser": "on", "seconds": seconds}
+            return {"laser": "on", "seconds": seconds, "message": f"laser on for at most {seconds:g} s"}
         except (ScannerError, TimeoutError) as exc:
             raise refuse(exc) from None
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +30,7 @@ def serve(args: argparse.Namespace) -> int:
     from .outbox import Outbox
 
     token: str | None = None
-    if not is_loopback(args.host):
+    if args.require_token or not is_loopback(args.host):
         path = Path(args.token_file) if args.token_file else token_file()
         try:
             token, made = load_or_make_token(path, renew=args.new_token)
@@ -51,8 +53,14 @@ def serve(args: argparse.Namespace) -> int:
     app = create_app(graph, config, outbox)
     server = uvicorn.Server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",
                                            access_log=False, ws_max_size=1 << 20, lifespan="off"))
-    print(f"lsu web: open http://{'127.0.0.1' if args.host == '0.0.0.0' else args.host}:{args.port}/ "
-          f"(Ctrl-C stops)", flush=True)
+    def announce() -> None:  # once uvicorn listens, so whoever reads the line can connect at once
+        while not server.started and not server.should_exit:
+            time.sleep(0.05)
+        if server.started:
+            print(f"lsu web: open http://{'127.0.0.1' if args.host == '0.0.0.0' else args.host}:{args.port}/ "
+                  f"(Ctrl-C stops)", flush=True)
+
+    threading.Thread(target=announce, daemon=True).start()
     try:
         server.run()
     finally:
@@ -74,6 +82,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the scan folders' parent (default: scan_coordinator's output_dir parameter)")
     p.add_argument("--image-max-hz", type=float, default=4.0, metavar="HZ",
                    help="live camera images sent per side and second at most (default 4; 0: none)")
+    p.add_argument("--require-token", action="store_true",
+                   help="ask for the token on a loopback address too (a PC other people log in to)")
     p.add_argument("--token-file", default="", metavar="FILE", help="where the token is kept (default "
                    "$XDG_CONFIG_HOME/lsu/web_token)")
     p.add_argument("--new-token", action="store_true", help="make a new token (the old one stops working)")
