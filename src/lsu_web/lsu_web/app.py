@@ -24,7 +24,6 @@ from fastapi import FastAPI, HTTPException, Request, WebSocket, WebSocketDisconn
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
-from starlette.middleware.base import BaseHTTPMiddleware
 
 from .library import DOWNLOADS, Library, LibraryError
 from .outbox import ClientBox, Outbox
@@ -62,6 +61,18 @@ class LaserRequest(BaseModel):
     client: int = Field(0, ge=0)
 
 
+class CalibrationStart(BaseModel):
+    model_config = {"extra": "forbid"}
+    board: str = Field("9x6", pattern=r"^[0-9]{1,2}x[0-9]{1,2}$")
+    square_mm: float = Field(25.0, gt=1.0, le=200.0)
+    min_views: int = Field(8, ge=3, le=100)
+
+
+class LaserCalibration(BaseModel):
+    model_config = {"extra": "forbid"}
+    scan_ids: list[str] = Field(..., min_length=1, max_length=20)
+
+
 class FaceRequest(BaseModel):
     model_config = {"extra": "forbid"}
     scan_id: str = Field(..., min_length=1, max_length=128)
@@ -77,14 +88,28 @@ class WebConfig:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-class AccessMiddleware(BaseHTTPMiddleware):
-    """Host, Origin and token checks on every HTTP request (WebSockets are checked in their route)."""
+class AccessMiddleware:
+    """Host, Origin and token checks on every HTTP request (WebSockets are checked in their route).
+
+    Plain ASGI (not Starlette's BaseHTTPMiddleware, which wraps every response in its own stream): a
+    refusal is answered here, anything else goes to the app untouched.
+    """
 
     def __init__(self, app: Any, access: Access) -> None:
-        super().__init__(app)
+        self.app = app
         self.access = access
 
-    async def dispatch(self, request: Request, call_next: Any) -> Response:
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        refusal = self.refusal(Request(scope))
+        if refusal is not None:
+            await refusal(scope, receive, send)
+            return
+        await self.app(scope, receive, send)
+
+    def refusal(self, request: Request) -> Response | None:
         a = self.access
         host = request.headers.get("host")
         if not a.host_ok(host):
@@ -92,8 +117,8 @@ class AccessMiddleware(BaseHTTPMiddleware):
         if not a.origin_ok(request.headers.get("origin"), host):
             return JSONResponse({"detail": "cross-origin request refused (no CORS: only this page may use the API)"},
                                 403)
-        if a.token is None or request.url.path in ("/login", "/favicon.ico"):
-            return await call_next(request)
+        if a.token is None or request.url.path in ("/login", "/login.css", "/favicon.ico"):
+            return None
         query_token = request.query_params.get("token")
         if query_token is not None and request.method == "GET":
             if not a.token_ok(query_token):
@@ -108,7 +133,7 @@ class AccessMiddleware(BaseHTTPMiddleware):
                 return login_page("" if offered is None else "wrong token", status=401)
             return JSONResponse({"detail": "token required: open /login (or send 'Authorization: Bearer TOKEN')"},
                                 401)
-        return await call_next(request)
+        return None
 
 
 def set_token_cookie(response: Response, token: str, request: Request) -> None:
@@ -388,6 +413,73 @@ def create_app(graph: Any, config: WebConfig, outbox: Outbox) -> FastAPI:
         if not removed:
             raise HTTPException(404, f"no '{name}' in the gallery")
         return {"removed": removed}
+
+    # ------------------------------------------------------------------ calibration
+    from .calib import CalibrationSession, laser_calibration
+
+    session = CalibrationSession()
+
+    async def calibration_dir() -> str:
+        try:
+            params = await asyncio.to_thread(graph.parameters, "/lsu/scan_coordinator", 5.0)
+        except TimeoutError:
+            return ""
+        return str(params.get("calibration_dir") or "")
+
+    @app.get("/api/calibration")
+    async def calibration_status() -> dict[str, Any]:
+        calib = await calibration_dir()
+        shown = os.path.normpath(calib) if calib else ""
+        if shown and Path(shown).is_relative_to(Path.cwd()):
+            shown = str(Path(shown).relative_to(Path.cwd()))  # shorter, and what a user in the checkout types
+        return {**session.status(), "calibration_dir": calib, "calibration_dir_shown": shown}
+
+    @app.post("/api/calibration/start")
+    async def calibration_start(req: CalibrationStart) -> dict[str, Any]:
+        from lsu_cameras.calibration import CalibrationError
+
+        try:
+            session.reset(req.board, req.square_mm, req.min_views)
+        except CalibrationError as exc:
+            raise HTTPException(422, str(exc)) from None
+        return session.status()
+
+    @app.post("/api/calibration/capture")
+    async def calibration_capture() -> dict[str, Any]:
+        if session.tracker is None:
+            raise HTTPException(409, "start a calibration session first (board size and square)")
+        try:
+            left, right = await asyncio.to_thread(graph.capture_pair)
+        except (RuntimeError, TimeoutError) as exc:
+            raise refuse(exc) from None
+        return await asyncio.to_thread(session.consider, left, right)
+
+    @app.post("/api/calibration/solve")
+    async def calibration_solve() -> dict[str, Any]:
+        from lsu_cameras.calibration import CalibrationError
+
+        lib = await library()
+        try:
+            return await asyncio.to_thread(session.solve, lib.root)
+        except (ValueError, CalibrationError) as exc:
+            raise HTTPException(422, str(exc)) from None
+
+    @app.post("/api/calibration/laser")
+    async def calibration_laser(req: LaserCalibration) -> dict[str, Any]:
+        from lsu_reconstruct.laser_sheet import LaserSheetError
+
+        lib = await library()
+        try:
+            folders = [lib.folder(s) for s in req.scan_ids]
+        except LibraryError as exc:
+            raise refuse(exc, exc.status) from None
+        calib = await calibration_dir()
+        if not calib:
+            raise HTTPException(503, "scan_coordinator does not say its calibration_dir: is it running?")
+        try:
+            return await asyncio.to_thread(laser_calibration, folders, Path(calib), lib.root)
+        except LaserSheetError as exc:
+            raise HTTPException(422, str(exc)) from None
 
     # ------------------------------------------------------------------ about
     @app.get("/api/about")

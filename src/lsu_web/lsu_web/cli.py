@@ -48,7 +48,7 @@ def serve(args: argparse.Namespace) -> int:
         print("lsu web: --new-token has no effect on a loopback address (no token needed)", file=sys.stderr)
     outbox = Outbox()
     graph = WebGraph(outbox, image_max_hz=args.image_max_hz, wait_s=args.wait)
-    config = WebConfig(args.host, args.port, access_for(args.host, args.port, token),
+    config = WebConfig(args.host, args.port, access_for(args.host, token),
                        Path(args.scans).expanduser().resolve() if args.scans else None)
     app = create_app(graph, config, outbox)
     server = uvicorn.Server(uvicorn.Config(app, host=args.host, port=args.port, log_level="warning",

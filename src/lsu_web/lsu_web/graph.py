@@ -95,6 +95,9 @@ class WebGraph:
         from action_msgs.srv import CancelGoal
 
         self._cancel_client = self.node.create_client(CancelGoal, "scan/_action/cancel_goal")
+        from lsu_interfaces.srv import CaptureStereo
+
+        self.capture_client = self.node.create_client(CaptureStereo, "stereo/capture")
         self.node.create_timer(0.1, self._tick)
 
     def close(self) -> None:
@@ -328,6 +331,19 @@ class WebGraph:
                else np.full((len(xyz), 3), 200, np.uint8))
         self.points_forwarded += len(xyz)
         self.outbox.publish(BULK, b"P" + struct.pack("<I", len(xyz)) + xyz.tobytes() + rgb.tobytes())
+
+    def capture_pair(self, timeout_s: float = 15.0) -> tuple[Any, Any]:
+        """A fresh stereo pair as arrays from the camera node (blocking; a worker thread)."""
+        from lsu_cameras.live import image_from_msg
+        from lsu_interfaces.srv import CaptureStereo
+
+        if self.scanning():
+            raise RuntimeError("a scan is running: calibration captures wait until it ends")
+        request = CaptureStereo.Request(publish=True, return_images=True)
+        response = self.call(self.capture_client, request, timeout_s, "stereo/capture")
+        if not response.success:
+            raise RuntimeError(response.message or "stereo/capture failed")
+        return image_from_msg(response.left), image_from_msg(response.right)
 
     # -------------------------------------------------------------- about
     def node_names(self) -> list[str]:

@@ -60,7 +60,7 @@ class Access:
     """The server's rule: the token (None: loopback, no token) and the names this server answers to."""
 
     token: str | None
-    hosts: frozenset[str]  # "host:port" values accepted in the Host header
+    hosts: frozenset[str]  # host names accepted in the Host header (any port: an SSH tunnel may forward another)
 
     def token_ok(self, offered: str | None) -> bool:
         if self.token is None:
@@ -70,7 +70,12 @@ class Access:
         return hmac.compare_digest(offered.encode(), self.token.encode())
 
     def host_ok(self, host_header: str | None) -> bool:
-        return host_header is not None and (host_header in self.hosts or self.token is not None)
+        if host_header is None:
+            return False
+        if self.token is not None:
+            return True  # reached under any name (address, host name): the token guards it
+        name = urlsplit("//" + host_header).hostname or ""
+        return name in self.hosts
 
     def origin_ok(self, origin: str | None, host_header: str | None) -> bool:
         """No Origin (same-origin GET, scripts) or an Origin that is this very server."""
@@ -80,9 +85,9 @@ class Access:
         return parts.scheme in ("http", "https") and parts.netloc == (host_header or "")
 
 
-def access_for(host: str, port: int, token: str | None) -> Access:
-    names = {host, "localhost", "127.0.0.1", "[::1]"} if is_loopback(host) else {host}
-    return Access(token, frozenset(f"{n}:{port}" for n in names))
+def access_for(host: str, token: str | None) -> Access:
+    names = {host, "localhost", "127.0.0.1", "::1"} if is_loopback(host) else {host}
+    return Access(token, frozenset(names))
 
 
 def bearer(authorization: str | None) -> str | None:

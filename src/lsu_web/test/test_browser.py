@@ -63,7 +63,12 @@ def open_page(g, url=None):
     page = g["browser"].new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
     # "load" waits for the WebGL set-up too, which a loaded host's software GL may take tens of seconds for
     page.goto(url or g["url"], wait_until="commit", timeout=60000)
-    page.wait_for_function("window.lsu && window.lsu.connected && window.lsu.clientId > 0", timeout=120000)
+    try:
+        page.wait_for_function("window.lsu && window.lsu.connected && window.lsu.clientId > 0", timeout=120000)
+    except Exception:
+        web_lines = [line for line in g["proc"].output.splitlines() if "[web_server]" in line][-30:]
+        raise AssertionError(f"the page did not connect: window.lsu = {page.evaluate('JSON.stringify(window.lsu || null)')}"
+                             f"\nweb_server said:\n" + "\n".join(web_lines)) from None
     return page
 
 
@@ -147,9 +152,11 @@ def test_scan_from_the_page_progress_points_mesh_and_ply_download(graph):
     mesh = o3d.io.read_triangle_mesh(str(stl))
     assert len(mesh.triangles) == len(o3d.io.read_triangle_mesh(str(Path(result["output_dir"]) / "mesh.ply")).triangles)
     if SHOTS:
+        page.set_viewport_size({"width": 1400, "height": 640})
         page.wait_for_timeout(1000)
         page.screenshot(path=str(Path(SHOTS) / "library.png"))
-        for tab in ("hardware", "about"):
+        for tab, height in (("calibration", 640), ("hardware", 480), ("faces", 480), ("about", 1000)):
+            page.set_viewport_size({"width": 1400, "height": height})
             page.click(f"#tabs button[data-tab={tab}]")
             page.wait_for_timeout(2500)
             page.screenshot(path=str(Path(SHOTS) / f"{tab}.png"))
@@ -250,3 +257,17 @@ def test_a_wrong_token_is_refused(graph):
         page.close()
     finally:
         proc.stop(timeout_s=10)
+
+
+def test_calibration_capture_judges_real_pairs(graph):
+    """The sim scene is a head: a captured pair is judged and refused for the reason that holds (no board)."""
+    url = graph["url"]
+    assert _http(url + "api/calibration/start", "POST", {"board": "9y6"})[0] == 422
+    code, body = _http(url + "api/calibration/start", "POST", {"board": "9x6", "square_mm": 25, "min_views": 8})
+    assert code == 200 and json.loads(body)["views"] == 0
+    code, body = _http(url + "api/calibration/capture", "POST", {})
+    status = json.loads(body)
+    assert code == 200 and status["captures"] == 1 and status["views"] == 0
+    assert status["last"] == {"accepted": False, "reason": "board not found in left image"}
+    code, body = _http(url + "api/calibration/solve", "POST", {})
+    assert code == 422 and b"capture pairs" in body

@@ -26,14 +26,15 @@ def test_token_is_made_once_private_and_kept(tmp_path):
 
 
 def test_access_checks_token_host_and_origin():
-    open_local = access_for("127.0.0.1", 8080, None)
+    open_local = access_for("127.0.0.1", None)
     assert open_local.token_ok(None)
     assert open_local.host_ok("127.0.0.1:8080") and open_local.host_ok("localhost:8080")
-    assert not open_local.host_ok("evil.example:8080")  # a DNS-rebinding page's Host
+    assert open_local.host_ok("127.0.0.1:9000") and open_local.host_ok("[::1]:8080")  # an SSH tunnel's other port
+    assert not open_local.host_ok("evil.example:8080") and not open_local.host_ok(None)  # a DNS-rebinding page
     assert open_local.origin_ok(None, "127.0.0.1:8080")
     assert open_local.origin_ok("http://127.0.0.1:8080", "127.0.0.1:8080")
     assert not open_local.origin_ok("http://evil.example", "127.0.0.1:8080")
-    guarded = access_for("0.0.0.0", 8080, "s3cret-token-" + "x" * 30)
+    guarded = access_for("0.0.0.0", "s3cret-token-" + "x" * 30)
     assert not guarded.token_ok(None) and not guarded.token_ok("wrong")
     assert guarded.token_ok("s3cret-token-" + "x" * 30)
     assert bearer("Bearer abc") == "abc" and bearer("Basic abc") is None

@@ -20,7 +20,7 @@ function showTab(name) {
   if (name === 'faces') loadFaces();
   if (name === 'about') loadAbout();
   if (name === 'calibration') loadCalibration();
-  if (name === 'scan') resize3d();
+  if (name === 'scan') { resize3d(); requestRender(); }
 }
 
 // ---------------------------------------------------------------- API
@@ -71,12 +71,21 @@ function resize3d() {
   renderer.setSize(w, h, false); renderer.domElement.style.width = '100%'; renderer.domElement.style.height = '100%';
   camera.aspect = w / h; camera.updateProjectionMatrix();
 }
-window.addEventListener('resize', resize3d);
+window.addEventListener('resize', () => { resize3d(); requestRender(); });
 resize3d();
-(function loop() { controls.update(); renderer.render(scene, camera); requestAnimationFrame(loop); })();
+// drawn on demand (a change of view or data), not every frame: an idle page costs no CPU, and a software-GL
+// browser on a busy scanner PC has no render loop to fall behind with
+let renderPending = false;
+function requestRender() {
+  if (renderPending) return;
+  renderPending = true;
+  requestAnimationFrame(() => { renderPending = false; renderer.render(scene, camera); lsu.frames = (lsu.frames || 0) + 1; });
+}
+controls.addEventListener('change', requestRender);
+requestRender();
 
 function clearPoints() { lsu.pointsDrawn = 0; pgeo.setDrawRange(0, 0); needFit = true; $('points-drawn').textContent = '0';
-  if (meshObj) { world.remove(meshObj); meshObj.geometry.dispose(); meshObj = null; } pts.visible = true; lsu.meshLoaded = false; }
+  if (meshObj) { world.remove(meshObj); meshObj.geometry.dispose(); meshObj = null; } pts.visible = true; lsu.meshLoaded = false; requestRender(); }
 function addPoints(xyz, rgb) {
   const n = xyz.length / 3;
   if (lsu.pointsDrawn + n > cap) {
@@ -94,6 +103,7 @@ function addPoints(xyz, rgb) {
   pgeo.setDrawRange(0, lsu.pointsDrawn);
   $('points-drawn').textContent = lsu.pointsDrawn.toLocaleString();
   if (needFit && lsu.pointsDrawn > 200) { fit(); needFit = false; }
+  requestRender();
 }
 function fit(object) {
   const box = new THREE.Box3();
@@ -106,6 +116,7 @@ function fit(object) {
   controls.target.copy(c);
   camera.position.set(c.x, c.y, c.z + size * 1.4);
   camera.near = size / 100; camera.far = size * 20; camera.updateProjectionMatrix();
+  controls.update(); requestRender();
 }
 $('view3d-reset').addEventListener('click', (e) => { e.preventDefault(); fit(meshObj || undefined); });
 
@@ -232,7 +243,7 @@ function onResult(r) {
   $('progress-detail').textContent = `${r.snaps} snaps, ${r.points.toLocaleString()} points in ${r.seconds} s`;
   const laser = r.laser_on === false ? 'The laser is off.' : r.laser_on ? 'WARNING: the laser is still reported ON.' : 'Laser state unknown.';
   const what = r.outcome === 'CANCELED' ? 'Scan canceled; what was captured is kept.' : r.status;
-  say($('scan-message'), `${what} ${laser}`, done && r.laser_on === false ? 'ok' : (r.laser_on ? 'bad' : 'info'));
+  say($('scan-message'), `${what.replace(/\.?$/, '.')} ${laser}`, done && r.laser_on === false ? 'ok' : (r.laser_on ? 'bad' : 'info'));
   if (r.scan_id && r.output_dir) showResult(r.scan_id, done && r.points > 0);
 }
 async function showResult(scanId, withMesh) {
@@ -366,11 +377,53 @@ $('btn-identify').addEventListener('click', async () => {
 });
 
 // ---------------------------------------------------------------- calibration
-async function loadCalibration() {
-  const box = $('calibration');
-  try { const c = await api('GET', '/api/calibration'); box.innerHTML = c.html; }
-  catch (e) { box.innerHTML = `<p class="muted">${esc(e.message)}</p>`; }
+function coverageBars(st) {
+  if (!st.session) return '<p class="muted">no session: set the board and press New session</p>';
+  const bars = st.coverage.map((c) => `<div class="cov"><span>${esc(c.name)}</span><div class="bar small-bar"><div style="width:${Math.round(100 * c.progress)}%"></div></div><span>${Math.round(100 * c.progress)} %</span></div>`).join('');
+  return `<p>${st.views} view(s) kept of ${st.captures} captured (need ${st.min_views}); ${st.good_enough ? '<b class="okc">coverage good enough: calibrate</b>' : 'keep moving the board'}</p>${bars}`;
 }
+function showCal(st) {
+  lsu.calibration = st;
+  $('cal-coverage').innerHTML = coverageBars(st);
+  if (st.last && st.last.accepted !== undefined) say($('cal-message'), st.last.accepted ? 'pair kept' : 'pair not kept: ' + st.last.reason, st.last.accepted ? 'ok' : 'info');
+}
+async function loadCalibration() {
+  try { const st = await api('GET', '/api/calibration'); showCal(st); $('cal-dir').textContent = st.calibration_dir_shown || '?'; }
+  catch (e) { say($('cal-message'), e.message, 'bad'); }
+  try {
+    const lib = await api('GET', '/api/scans');
+    const withBag = lib.scans.filter((s) => s.downloads.includes('bag.zip'));
+    $('laser-scans').innerHTML = withBag.length ? withBag.map((s) => `<label class="check"><input type="checkbox" value="${esc(s.id)}"> ${esc(s.label || s.id)} <span class="muted">${esc(s.id)}</span></label>`).join('<br>') : '<p class="muted">no scans with a recorded bag yet</p>';
+  } catch (e) { $('laser-scans').textContent = e.message; }
+}
+$('btn-cal-start').addEventListener('click', async () => {
+  try { showCal(await api('POST', '/api/calibration/start', { board: $('cal-board').value, square_mm: +$('cal-square').value, min_views: +$('cal-min').value }));
+        say($('cal-message'), 'session started: capture pairs', 'ok'); $('cal-result').innerHTML = ''; }
+  catch (e) { say($('cal-message'), e.message, 'bad'); }
+});
+$('btn-cal-capture').addEventListener('click', async () => {
+  say($('cal-message'), 'capturing…', 'info');
+  try { showCal(await api('POST', '/api/calibration/capture')); } catch (e) { say($('cal-message'), e.message, 'bad'); }
+});
+$('btn-cal-solve').addEventListener('click', async () => {
+  say($('cal-message'), 'calibrating…', 'info');
+  try {
+    const r = await api('POST', '/api/calibration/solve');
+    say($('cal-message'), `written to ${r.folder}`, 'ok');
+    $('cal-result').innerHTML = `<table class="summary"><tr><td>overall</td><td>RMS left ${r.left_rms_px.toFixed(3)} px, right ${r.right_rms_px.toFixed(3)} px, stereo ${r.stereo_rms_px.toFixed(3)} px; baseline ${r.baseline_mm.toFixed(2)} mm</td></tr>` +
+      r.views.map((v) => `<tr><td>view ${esc(v.name)}</td><td>left ${v.left_px.toFixed(3)} px, right ${v.right_px.toFixed(3)} px ${v.used ? '' : '<span class="tag bad">dropped: ' + esc(v.reason) + '</span>'}</td></tr>`).join('') + '</table>';
+  } catch (e) { say($('cal-message'), 'not calibrated: ' + e.message, 'bad'); }
+});
+$('btn-laser-fit').addEventListener('click', async () => {
+  const ids = [...document.querySelectorAll('#laser-scans input:checked')].map((i) => i.value);
+  say($('laser-cal-message'), 'fitting…', 'info');
+  try {
+    const r = await api('POST', '/api/calibration/laser', { scan_ids: ids });
+    say($('laser-cal-message'), `laser.yaml written to ${r.folder}`, 'ok');
+    $('laser-cal-result').innerHTML = `<table class="summary"><tr><td>overall</td><td>RMS ${r.residual_mm.toFixed(3)} mm over ${r.points} points (${r.rejected} trimmed)</td></tr>` +
+      r.scans.map((x) => `<tr><td>${esc(x.name)}</td><td>${x.points} points, RMS ${x.rms_mm.toFixed(3)} mm, max ${x.max_mm.toFixed(3)} mm, flatness ${x.flatness_rms_mm.toFixed(3)} mm</td></tr>`).join('') + '</table>';
+  } catch (e) { say($('laser-cal-message'), 'not fitted: ' + e.message, 'bad'); }
+});
 
 // ---------------------------------------------------------------- hardware
 async function hw(path, body, el) {
