@@ -80,8 +80,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"HTTP port (default {DEFAULT_PORT})")
     p.add_argument("--scans", default="", metavar="DIR",
                    help="the scan folders' parent (default: scan_coordinator's output_dir parameter)")
-    p.add_argument("--image-max-hz", type=float, default=4.0, metavar="HZ",
-                   help="live camera images sent per side and second at most (default 4; 0: none)")
+    p.add_argument("--image-max-hz", type=float, default=2.0, metavar="HZ",
+                   help="live camera images sent per side and second at most (default 2; 0: none)")
     p.add_argument("--require-token", action="store_true",
                    help="ask for the token on a loopback address too (a PC other people log in to)")
     p.add_argument("--token-file", default="", metavar="FILE", help="where the token is kept (default "

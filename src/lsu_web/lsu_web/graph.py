@@ -60,7 +60,7 @@ class ScanWatch:
 class WebGraph:
     """The graph as the web server sees it (construct in the server process; `close` at exit)."""
 
-    def __init__(self, outbox: Outbox, image_max_hz: float = 4.0, image_width_px: int = 400,
+    def __init__(self, outbox: Outbox, image_max_hz: float = 2.0, image_width_px: int = 400,
                  wait_s: float = 15.0) -> None:
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 

@@ -182,6 +182,11 @@ def test_cancel_mid_way_ends_with_the_laser_off(graph):
 def test_a_closed_tab_leaves_the_laser_off(graph):
     page = open_page(graph)
     page.click("#tabs button[data-tab=hardware]")
+    # the carriage moves where the page says: the driver's position, read by this test's own client
+    page.fill("#move-to", "200")
+    page.click("#btn-move")
+    page.wait_for_function("document.querySelector('#hw-message').textContent.includes('at 200 steps')", timeout=60000)
+    assert graph["scanner"].state().position_steps == 200
     page.fill("#laser-seconds", "30")
     page.click("#btn-laser-on")
     page.wait_for_function("!document.querySelector('#laser-message').textContent.includes('working')", timeout=30000)
@@ -271,3 +276,26 @@ def test_calibration_capture_judges_real_pairs(graph):
     assert status["last"] == {"accepted": False, "reason": "board not found in left image"}
     code, body = _http(url + "api/calibration/solve", "POST", {})
     assert code == 422 and b"capture pairs" in body
+
+
+def test_faces_identify_only_where_the_gallery_refuses_enrolment(graph):
+    """The sim graph's face processor keeps allow_enrolment off: the page may identify, never enrol or remove."""
+    url = graph["url"]
+    scans = sorted(p.name for p in graph["scans"].iterdir() if (p / "cloud.ply").is_file())
+    if not scans:
+        pytest.skip("no finished scan in this module's graph (the scan test did not run)")
+    code, body = _http(url + "api/faces")
+    assert code == 200 and json.loads(body) == {"enrolment": False, "names": []}
+    code, body = _http(url + "api/faces/enroll", "POST", {"scan_id": scans[0], "name": "alice"})
+    assert code == 403 and b"allow_enrolment" in body
+    assert _http(url + "api/faces/alice", "DELETE")[0] == 403
+    code, body = _http(url + "api/faces/identify", "POST", {"scan_id": scans[0]})
+    answer = json.loads(body)
+    # the face processor answered: a ranking (the gallery file is the user's, shared: what it holds is not this
+    # test's to know), or its refusal with the reason (this module's scan covers a strip of the head, 150..300)
+    if code == 200:
+        assert isinstance(answer["accepted"], bool) and isinstance(answer["matches"], list), answer
+    else:
+        assert code == 422 and answer["detail"].startswith("identify failed: "), answer
+    code, body = _http(url + "api/faces/identify", "POST", {"scan_id": "no-such-scan"})
+    assert code == 404 and b"no scan" in body

@@ -103,8 +103,11 @@ function addPoints(xyz, rgb) {
   pgeo.setDrawRange(0, lsu.pointsDrawn);
   $('points-drawn').textContent = lsu.pointsDrawn.toLocaleString();
   if (needFit && lsu.pointsDrawn > 200) { fit(); needFit = false; }
-  requestRender();
+  renderSoon();
 }
+// points arrive with every snap (5-30 a second): redraw at most twice a second while they stream
+let soon = null;
+function renderSoon() { if (soon === null) soon = setTimeout(() => { soon = null; requestRender(); }, 500); }
 function fit(object) {
   const box = new THREE.Box3();
   if (object) box.setFromObject(object);
