@@ -5,6 +5,7 @@
     .venv/bin/python bench/bench_scan.py --only sweep           (only part 6, merged into scan.json)
     .venv/bin/python bench/bench_scan.py --only sweep_live      (only part 6's live sweeps, no accuracy study)
     .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 6's accuracy figures, no ROS)
+    .venv/bin/python bench/bench_scan.py --only web             (only part 7: the web page's cost)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -38,6 +39,9 @@
    physics: a stop-snap scan 0..470 step 2 (settle 0.1 s after the emulator's post-stop vibration) and
    sweeps at 60 steps/s, 30 fps, synchronised and with the right camera 50 ms late (+-5 ms jitter);
    sweep_rms_over_stopsnap(_50ms) = RMS distance to the rendered head mesh, sweep / stop-snap.
+7. Web page (`--only web`): `lsu launch sim web:=true`, default scans 0..470 step 2 without a page, with the
+   page open in headless Chromium (live images, laser lines and points streaming to it), and without again:
+   web_overhead_pct = the watched scan's wall time over the mean of the two without, minus 1.
 """
 
 from __future__ import annotations
@@ -548,6 +552,69 @@ def view_figures(runs: dict) -> dict:
             "bridge_cpu_ms_per_snap": 1000 * bridge["client"]["bridge_cpu_s"] / max(1, bridge["result"].snaps)}
 
 
+WEB_UNITS = {"web_overhead_pct": "%", "scan_wall_s_web": "s", "scan_wall_s_without_web": "s",
+             "web_points_drawn_pct": "%", "web_server_cpu_ms_per_snap": "ms", "web_images_shown": "images"}
+WEB_NOTES = (" web: `lsu launch sim web:=true` (head 7), after a warm-up a default scan 0..470 step 2 with no page "
+             "open, one with the page open in headless Chromium (Debian's, Playwright; images at the server's "
+             "default 2 Hz per camera, laser lines and every snap's points streamed), one without again: "
+             "web_overhead_pct = the watched scan over the mean of the two without, minus 1; web_points_drawn_pct: "
+             "points the page drew over the scan's points (frames dropped for a slow page lower it); "
+             "web_server_cpu_ms_per_snap: CPU time of the web_server process during the watched scan per snap.")
+
+
+def web_figures(tmp: Path) -> dict:
+    """Part 7: the same scan with and without the web page open and live data streaming to it."""
+    import socket
+
+    from playwright.sync_api import sync_playwright
+
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32w", "scene:=head:7", f"output_dir:={tmp}/web_scans",
+                             "web:=true", f"web_port:={port}", *LAUNCH_ARGS])
+    walls: dict[str, float] = {}
+    try:
+        graph.wait_for_line(r"homed: track", timeout_s=120)
+        graph.wait_for_line(r"source 'sim' open", timeout_s=120)
+        graph.wait_for_line(r"\[web_server\] lsu web: open", timeout_s=120)
+        web_pid = graph.started_pids()["web_server"]
+        with LsuScanner(wait_s=60) as scanner:
+            scanner.scan(start=230, end=240, step=5, settle_s=0.1, output_dir=str(tmp / "warmup"))
+
+            def full_scan(name: str) -> tuple[int, int]:
+                result = scanner.scan(start=0, end=470, step=2, settle_s=0.1)
+                if not result.success:
+                    raise RuntimeError(f"the {name} scan failed: {result.status}")
+                walls[name] = result.seconds
+                return int(result.points), int(result.snaps)
+
+            full_scan("before")
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=["--no-sandbox"])
+                page = browser.new_page(viewport={"width": 1400, "height": 1000})
+                page.goto(f"http://127.0.0.1:{port}/", wait_until="commit", timeout=120000)
+                page.wait_for_function("window.lsu && window.lsu.connected", timeout=180000)
+                time.sleep(1.0)  # the server subscribes the live topics on its next tick
+                cpu0 = _cpu_s(web_pid)
+                points, snaps = full_scan("web")
+                cpu = _cpu_s(web_pid) - cpu0
+                time.sleep(1.0)  # the last frames reach the page
+                drawn = int(page.evaluate("window.lsu.pointsDrawn"))
+                images = int(page.evaluate("window.lsu.imagesShown"))
+                browser.close()
+            full_scan("after")
+    finally:
+        graph.stop(timeout_s=30)
+    without = (walls["before"] + walls["after"]) / 2
+    return {"web_overhead_pct": 100.0 * (walls["web"] / without - 1.0), "scan_wall_s_web": walls["web"],
+            "scan_wall_s_without_web": without, "web_points_drawn_pct": 100.0 * drawn / max(1, points),
+            "web_server_cpu_ms_per_snap": 1000.0 * cpu / max(1, snaps), "web_images_shown": images}
+
+
 def two_host_figures(walls: dict) -> dict:
     if not walls:
         return {}
@@ -832,9 +899,9 @@ def sweep_accuracy() -> dict:
 
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the named parts (`PARTS`; sweep = sweep_live + sweep_accuracy) and merge them into the existing scan.json."""
-    unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy"}
+    unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy", "web"}
     if unknown:
-        raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy (comma-separated); "
+        raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy, web (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
@@ -854,6 +921,8 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(view_figures(live_scan(tmp, baseline=False, view=True)))
             if "settle" in parts:
                 figures.update(settle_figures(tmp))
+            if "web" in parts:
+                figures.update(web_figures(tmp))
             if parts & {"sweep", "sweep_live"}:
                 figures.update(sweep_live(tmp))
             if parts & {"sweep", "sweep_accuracy"}:
@@ -878,8 +947,9 @@ def only(parts: set, bag: Path | None = None) -> int:
     if "replay" in parts:
         measured["replay"] += f", on {replay_source}"
     if parts:
-        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
-                     notes=NOTES,
+        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS,
+                                      **WEB_UNITS},
+                     notes=NOTES + WEB_NOTES,
                      extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -902,14 +972,15 @@ def main() -> int:
             walls = two_host_runs(tmp) if unavailable is None else {}
             settle = settle_figures(tmp)
             sweep = {**sweep_live(tmp), **sweep_accuracy()}
+            web = web_figures(tmp)
     finally:
         claim.release()
     write_result(
         "scan",
-        {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep},
-        {**LIVE_UNITS, **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS},
-        notes=NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in PARTS
-                                         if part != "two_host" or unavailable is None}})
+        {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web},
+        {**LIVE_UNITS, **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS},
+        notes=NOTES + WEB_NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in (*PARTS, "web")
+                                                     if part != "two_host" or unavailable is None}})
     return 0
 
 

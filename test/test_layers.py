@@ -36,6 +36,7 @@ ALLOWED: dict[str, set[str]] = {
     "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy",
                           "lsu_sim"},
     "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools", "lsu_sim"},
+    "lsu_web": _BASE | {"lsu_bags", "lsu_cameras", "lsu_reconstruct", "lsu_faces", "lsu_scan"},
 }
 
 

@@ -135,6 +135,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     for name in files:
         print(f"[demo]   {name}")
     print(f"[demo] graph stopped (lsu launch exit code {code}); the laser is off (driver shutdown + watchdog).")
+    print("[demo] the same in a web page: `lsu launch sim web:=true`, then open http://127.0.0.1:8080/ (README 'The web page')")
     return 0 if result.success and code == 0 else 1
 
 
