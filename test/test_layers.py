@@ -31,6 +31,7 @@ ALLOWED: dict[str, set[str]] = {
     "lsu_accuracy": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_faces"},
     "lsu_tools": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_reconstruct", "lsu_scan", "lsu_accuracy"},
     "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools"},
+    "lsu_batch": _BASE | {"lsu_bags", "lsu_extract", "lsu_reconstruct", "lsu_faces", "lsu_scan", "lsu_tools"},
 }
 
 
