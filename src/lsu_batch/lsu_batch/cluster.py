@@ -71,22 +71,23 @@ class RayNodes:
                 "--disable-usage-stats", "--log-style=record"]
         if head:
             self.address = f"127.0.0.1:{ports[0]}"
-            args += ["--head", f"--port={ports[0]}", f"--ray-client-server-port={ports[7]}", "--include-dashboard=false",
+            args += ["--head", f"--port={ports[0]}", "--include-dashboard=false",
                      f"--temp-dir={self.temp}"]
         else:
             args += [f"--address={self.address}"]
         process = subprocess.Popen(args, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                    start_new_session=True)  # its own process group: `stop` ends exactly it
         lines: list[str] = []
-        started = threading.Event()
+        started, ok = threading.Event(), threading.Event()
 
         def read() -> None:
             assert process.stdout is not None
             for line in process.stdout:
                 lines.append(line.rstrip())
                 if "Ray runtime started" in line:
+                    ok.set()
                     started.set()
-            started.set()  # ended: `start` looks at the exit status
+            started.set()  # its output ended: it failed to start (or ended after starting)
 
         threading.Thread(target=read, daemon=True, name="ray-node-output").start()
         self.processes.append(process)
@@ -95,8 +96,8 @@ class RayNodes:
         while not started.wait(0.2):
             if time.monotonic() > deadline:
                 raise RuntimeError(f"Ray node did not start within {NODE_START_S:.0f} s:\n" + "\n".join(lines[-20:]))
-        if process.poll() is not None:
-            raise RuntimeError(f"Ray node ended with status {process.returncode}:\n" + "\n".join(lines[-20:]))
+        if not ok.is_set():
+            raise RuntimeError(f"Ray node ended with status {process.wait()}:\n" + "\n".join(lines[-20:]))
 
     def start(self) -> str:
         """Start the head, then the workers; returns the head's address (host:port)."""
