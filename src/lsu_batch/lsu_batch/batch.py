@@ -269,11 +269,12 @@ def _enroll(out: Path, names: list[str], gallery_file: Path, summary: BatchSumma
         known = {entry.mesh_file for entry in gallery.list()}
         for name in names:
             folder = out / name
-            if done_steps(folder) is None or not (folder / "signature.bin").is_file() or str(folder) in known:
+            mesh = folder / "mesh.ply" if (folder / "mesh.ply").is_file() else folder
+            if done_steps(folder) is None or not (folder / "signature.bin").is_file() or str(mesh) in known:
                 continue
             result = json.loads((folder / "result.json").read_text())
             gallery.enroll(result.get("scan_id") or name, Signature.from_bytes((folder / "signature.bin").read_bytes()),
-                           mesh_file=str(folder))
+                           mesh_file=str(mesh))
             summary.enrolled += 1
         faces = sum((out / n / "signature.bin").is_file() for n in names if (out / n / DONE_FILE).is_file())
         summary.gallery_note = f"{faces} of {len(names)} bags are faces"

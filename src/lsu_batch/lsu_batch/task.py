@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["STEPS", "DONE_FILE", "PARTIAL_DIR", "BagJob", "BagResult", "BagFailure", "process_bag", "done_steps",
-           "parse_steps"]
+           "parse_steps", "process_context"]
 
 STEPS = ("extract", "match", "mesh", "face")
 DONE_FILE = "done.json"
@@ -91,7 +91,9 @@ class BagResult:
     seconds: float = 0.0         # wall, whole task (nodes built, replay, files)
     cpu_s: float = 0.0           # CPU of the task's process during it
     replay_s: float = 0.0        # wall of the replay (`ReplayStats.seconds`)
-    face_s: float = 0.0          # wall of meshing, face and signature
+    replay_cpu_s: float = 0.0    # its CPU (`ReplayStats.cpu_s`)
+    face_s: float = 0.0          # wall of meshing, face and signature (and the mesh files)
+    face_cpu_s: float = 0.0      # their CPU
     setup_s: float = 0.0         # wall of building the nodes (and, first time in a process, rclpy)
     is_face: bool = False
     notes: list[str] = field(default_factory=list)
@@ -105,7 +107,7 @@ class BagResult:
 _PROCESS: dict[str, Any] = {}  # this process's rclpy context and domain claim (module doc)
 
 
-def _process_context() -> Any:
+def process_context() -> Any:
     """The process's rclpy context, made on first use after claiming a ROS domain of its own."""
     if "context" not in _PROCESS:
         from lsu_scan import rosenv
@@ -201,7 +203,7 @@ def _reprocess(job: BagJob, folder: Path, context: Any | None, result: BagResult
     if not Path(job.bag).exists():
         raise BagFailure(f"bag '{job.bag}' not found (moved or deleted since the batch started?)")
     t0 = time.monotonic()
-    context = context if context is not None else _process_context()
+    context = context if context is not None else process_context()
     wanted = ["laser_extractor", "stereo_matcher"] + (["face_processor"] if "match" in job.steps and
                                                       {"mesh", "face"} & set(job.steps) else [])
     description = select_nodes(load_launch(resolve_launch_file(job.launch), dict(job.launch_args), resolve_executable),
@@ -229,7 +231,7 @@ def _reprocess(job: BagJob, folder: Path, context: Any | None, result: BagResult
                 (side, stamps.to_ns(header.stamp), arrays))
         result.setup_s = time.monotonic() - t0
         stats = replay.run(job.bag, spin=lambda: executor.spin_once(timeout_sec=0.0), workers=0)
-        result.snaps, result.replay_s = stats.snaps + stats.sweep_frames, stats.seconds
+        result.snaps, result.replay_s, result.replay_cpu_s = stats.snaps + stats.sweep_frames, stats.seconds, stats.cpu_s
         if stats.frames_dropped:
             result.notes.append(f"{stats.frames_dropped} frames unreadable")
         if "match" not in job.steps:
@@ -260,11 +262,11 @@ def _reprocess(job: BagJob, folder: Path, context: Any | None, result: BagResult
         write_cloud_ply(folder / "cloud.ply", columns, comment="lsu scan")
         if faces:
             face = faces[0]
-            t1 = time.monotonic()
+            t1, c1 = time.monotonic(), time.process_time()
             face.set_parameters([Parameter("write_files", value="mesh" in job.steps)])
             face.scan_id, face.scan_dir = scan.scan_id, str(folder)
             face.on_cloud(msg)  # the face processor's own handling: mesh files, nose, signature
-            result.face_s = time.monotonic() - t1
+            result.face_s, result.face_cpu_s = time.monotonic() - t1, time.process_time() - c1
             if face.latest is None:
                 result.notes.append(f"no mesh: {face.last_error}")
             else:
