@@ -5,8 +5,8 @@ replay, and the same batch on a two-node Ray cluster made on this machine.
 
 Bags: simulated face scans (synthetic heads, lsu_testing.simbags, recorded uncompressed as `lsu scan --record`
 does), all steps (extract, match, mesh, face). The reference for the engine's cost is the same task function
-(`lsu_batch.task.process_bag`) called directly, bag after bag, in this process (OpenCV on one thread, as in a
-task); `task_overhead_pct` = (1-worker batch wall - that) / that. Each Ray is warmed up first (one bag per
+(`lsu_batch.task.process_bag`) called directly, bag after bag, in a fresh process (OpenCV on one thread, and
+OMP_NUM_THREADS=1 as Ray gives a one-CPU task's worker); `task_overhead_pct` = (1-worker batch wall - that) / that. Each Ray is warmed up first (one bag per
 worker: the workers' imports) and its start-up timed apart (`ray_start_s`). `bags_equal_to_replay_pct`: the
 batch's cloud.ply against the cloud `lsu run replay`'s code path (DirectReplay, its default extraction
 processes) makes in this process, to float32 rounding (1e-6 m).
@@ -23,11 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-# the reference runs like a task: Ray starts a one-CPU task's worker with OMP_NUM_THREADS=1 (numpy's BLAS and
-# open3d's OpenMP on one thread); set before numpy loads
-os.environ.setdefault("OMP_NUM_THREADS", "1")
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import write_result  # noqa: E402
@@ -52,8 +48,7 @@ def make_bags(root: Path) -> list[Path]:
 
 def full_scan_cost(root: Path) -> tuple[float, float, float, int]:
     """One full face scan as `lsu scan` records it by default (0..470 step 2: 236 snaps, uncompressed) through the
-    task function here, after one untimed pass: (CPU s, of which the replay's, MB on disk, snaps)."""
-    from lsu_batch.task import BagJob, process_bag
+    task function in a fresh process, after one untimed pass: (CPU s, of which the replay's, MB on disk, snaps)."""
     from lsu_testing.simbags import write_sim_scan_bag
 
     try:  # the simulated rig's package (lsu_sim, or lsu_cameras.sim before it moved)
@@ -63,11 +58,20 @@ def full_scan_cost(root: Path) -> tuple[float, float, float, int]:
     geometry = load_rig()
     bag = write_sim_scan_bag(root / "full" / "bag", build_scene("head:7", geometry), list(range(0, 471, 2)), seed=7,
                              geometry=geometry, compress=False)
-    process_bag(BagJob(str(bag), str(root / "full-warm"), "full", STEPS))
-    c0 = time.process_time()
-    result = process_bag(BagJob(str(bag), str(root / "full-out"), "full", STEPS))
+    _, cpu, result = run_direct(root / "full-out", [bag])[0]
     mb = sum(p.stat().st_size for p in bag.rglob("*")) / 1e6
-    return time.process_time() - c0, float(result["replay_cpu_s"]), mb, int(result["snaps"])
+    return cpu, float(result["replay_cpu_s"]), mb, int(result["snaps"])
+
+
+def run_direct(out: Path, bags: list[Path]) -> list[tuple[float, float, dict]]:
+    """`direct` in a fresh process of its own, as a Ray worker is one (OMP_NUM_THREADS=1 as Ray sets it)."""
+    ran = subprocess.run([sys.executable, __file__, "--direct", str(out), *map(str, bags)], capture_output=True,
+                         text=True, timeout=3600, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    results = [tuple(json.loads(line[len("RESULT "):])) for line in ran.stdout.splitlines()
+               if line.startswith("RESULT ")]
+    if len(results) != len(bags) or any(r[2]["status"] != "done" for r in results):
+        raise RuntimeError(f"direct processing failed:\n{ran.stdout[-3000:]}\n{ran.stderr[-3000:]}")
+    return results  # type: ignore[return-value]
 
 
 def replay_cloud(bag: Path, param_dir: Path) -> np.ndarray:
@@ -118,9 +122,19 @@ def batch_run(bags: list[Path], out: Path, workers: int, warm: Path) -> tuple[fl
     return start_s, wall, summary.to_dict()
 
 
-def main() -> int:
+def direct(out: str, bags: list[str]) -> None:
+    """The reference, in a fresh process (`--direct`): the task function bag after bag, after one untimed bag
+    (imports); prints one JSON line per bag: wall, CPU, the task's result."""
     from lsu_batch.task import BagJob, process_bag
 
+    process_bag(BagJob(bags[0], str(Path(out) / "warm"), "warm", STEPS))
+    for bag in bags:
+        t1, c1 = time.monotonic(), time.process_time()
+        result = process_bag(BagJob(bag, out, Path(bag).parent.name, STEPS))
+        print("RESULT " + json.dumps([time.monotonic() - t1, time.process_time() - c1, result]), flush=True)
+
+
+def main() -> int:
     tmp = Path(tempfile.mkdtemp(prefix="lsu-bench-batch-"))
     try:
         t0 = time.monotonic()
@@ -130,17 +144,8 @@ def main() -> int:
         print(f"{len(bags)} bags of {len(POSITIONS)} snaps rendered in {render_s:.0f} s ({bag_mb:.0f} MB each)",
               flush=True)
 
-        # the reference: the task function bag after bag in this process (after one untimed bag: imports)
-        process_bag(BagJob(str(bags[0]), str(tmp / "direct-warm"), "warm", STEPS))
-        direct = []
-        for bag in bags:
-            t1, c1 = time.monotonic(), time.process_time()
-            result = process_bag(BagJob(str(bag), str(tmp / "direct"), bag.parent.name, STEPS))
-            direct.append((time.monotonic() - t1, time.process_time() - c1, result))
-        failed = [r["reason"] for _, _, r in direct if r["status"] != "done"]
-        if failed:
-            print(f"direct processing failed: {failed}", file=sys.stderr)
-            return 1
+        # the reference: the task function bag after bag in a fresh process of its own, as a Ray worker is one
+        direct = run_direct(tmp / "direct", bags)
         direct_wall = sum(w for w, _, _ in direct)
         snaps = sum(r["snaps"] for _, _, r in direct)
         print(f"direct: {direct_wall:.1f} s for {len(bags)} bags, {snaps} snaps", flush=True)
@@ -231,7 +236,7 @@ def main() -> int:
                  "face_scan_replay_cpu_s": "s", "face_scan_mb": "MB", "face_scan_snaps": "snaps", "load_avg_1min": ""}
         notes = (f"{len(bags)} simulated face scans (synthetic heads 1..{len(bags)}, {len(POSITIONS)} snaps, "
                  f"uncompressed), steps {','.join(STEPS)}. Reference: lsu_batch.task.process_bag called bag after "
-                 "bag in this process; speedup_2_workers = 1-worker batch wall / 2-worker batch wall, each on a "
+                 "bag in a fresh process (OMP_NUM_THREADS=1, as Ray's one-CPU workers); speedup_2_workers = 1-worker batch wall / 2-worker batch wall, each on a "
                  "private local Ray warmed up with one bag per worker (ray_start_s not in either); "
                  "task_overhead_pct = (1-worker batch wall - reference wall) / reference wall, task_overhead_cpu_pct the same with the tasks' and the driver's CPU (Ray's own daemons not counted) against the reference's: on a loaded host the CPU figure is the one that holds; "
                  "bags_equal_to_replay_pct: cloud.ply vs the cloud of lsu run replay's code path (DirectReplay, "
@@ -250,4 +255,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 2 and sys.argv[1] == "--direct":
+        direct(sys.argv[2], sys.argv[3:])
+        sys.exit(0)
     sys.exit(main())

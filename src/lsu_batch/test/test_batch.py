@@ -135,6 +135,18 @@ def test_bad_bags_are_reported_the_others_finish_and_a_rerun_skips(ray_here, arc
     assert [r["name"] for r in more.done] == ["sim1"] and done_steps(out / "sim1") == ("extract", "match", "mesh")
 
 
+def test_extract_alone_writes_the_lines_of_every_snap(ray_here, archive, tmp_path):
+    summary = run_batch([archive / "sim0"], tmp_path / "out", ("extract",), progress=False)
+    assert [r["name"] for r in summary.done] == ["sim0"]
+    lines = np.load(tmp_path / "out" / "sim0" / "lines.npz")
+    events = [deserialize_ros(m) for m in read_messages(archive / "sim0" / "bag", ["/lsu/scan/events"])]
+    snaps = {e.image_stamp.sec * 10**9 + e.image_stamp.nanosec for e in events if e.type == 2}  # SNAP
+    assert len(snaps) == 2 and set(np.unique(lines["stamp_ns"]).tolist()) == snaps  # the laser-off pair has no line
+    for stamp in snaps:  # both cameras saw the line in each snap
+        assert set(lines["side"][lines["stamp_ns"] == stamp].tolist()) == {0, 1}
+    assert np.all(np.isfinite(lines["u"])) and len(lines["u"]) > 100
+
+
 def test_a_killed_batch_resumes_where_it_stopped(ray_here, archive, tmp_path):
     """The driver (and its Ray) killed after its first finished bag; the next run skips what was finished, removes
     the half-written folders and does the rest."""
