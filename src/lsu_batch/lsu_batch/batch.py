@@ -35,7 +35,7 @@ from typing import IO, Any
 from .bags import find_bags, output_names
 from .task import DONE_FILE, PARTIAL_DIR, STEPS, BagJob, done_steps
 
-__all__ = ["BatchSummary", "run_batch", "local_ray", "SUMMARY_FILE"]
+__all__ = ["BatchSummary", "run_batch", "local_ray", "enroll_finished", "SUMMARY_FILE"]
 
 SUMMARY_FILE = "summary.json"
 OBJECT_STORE_BYTES = 100 << 20  # tasks move paths and small dicts only (Ray's minimum is 75 MB)
@@ -211,7 +211,7 @@ def run_batch(inputs: Sequence[str | Path], out_dir: str | Path, steps: Sequence
             (out / PARTIAL_DIR).rmdir()  # empty unless a task of a killed run is still writing
         summary.cpu_s += time.process_time() - c0
         if "face" in steps:
-            _enroll(out, [names[b] for b in bags], Path(gallery) if gallery else out / "gallery.db", summary)
+            enroll_finished(out, [names[b] for b in bags], Path(gallery) if gallery else out / "gallery.db", summary)
         summary.wall_s = time.monotonic() - t0
         _write_summary(out, summary)
     return summary
@@ -258,7 +258,7 @@ def _run_tasks(todo: list[BagJob], summary: BatchSummary, address: str | None, w
         summary.tasks_wall_s = time.monotonic() - t0
 
 
-def _enroll(out: Path, names: list[str], gallery_file: Path, summary: BatchSummary) -> None:
+def enroll_finished(out: Path, names: list[str], gallery_file: Path, summary: BatchSummary) -> None:
     """Every finished bag's signature into the gallery, once (module doc); one writer: this process."""
     from lsu_faces.gallery import Gallery, GalleryError
     from lsu_faces.signature import Signature, SignatureError

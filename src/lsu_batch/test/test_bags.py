@@ -1,4 +1,4 @@
-"""Which bags a batch finds, the folders it gives them, and the steps it accepts (pure, no Ray)."""
+"""Which bags a batch finds, the folders it gives them, the steps it accepts, and the gallery it fills (no Ray)."""
 
 from __future__ import annotations
 
@@ -53,3 +53,47 @@ def test_steps_are_ordered_and_need_what_they_build_on():
         parse_steps("extract,mesh")
     with pytest.raises(ValueError, match="starts with 'extract'"):
         parse_steps("match")
+
+
+def _fake_signature(seed: int):
+    """A smooth synthetic depth map on the default grid (a paraboloid 'face' with a seeded bump)."""
+    import numpy as np
+
+    from lsu_faces.signature import Signature, SignatureParams
+
+    p = SignatureParams()
+    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    x, y = np.meshgrid(c, c)
+    rng = np.random.default_rng(seed)
+    a, bx, by = rng.uniform(2, 6), rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03)
+    z = -a * (x ** 2 + y ** 2) + 0.004 * np.exp(-((x - bx) ** 2 + (y - by) ** 2) / 0.0004)
+    z[np.hypot(x, y) > p.extent_m] = np.nan
+    return Signature("depthmap", z, p, 1000 + seed)
+
+
+def test_the_gallery_gets_every_finished_face_once(tmp_path):
+    import json
+
+    from lsu_batch.batch import BatchSummary, enroll_finished
+    from lsu_faces.gallery import Gallery
+
+    out = tmp_path / "out"
+    for i, (done, face) in enumerate([(True, True), (True, True), (True, False), (False, True)]):
+        folder = out / f"bag{i}"
+        folder.mkdir(parents=True)
+        (folder / "result.json").write_text(json.dumps({"scan_id": f"scan-{i}"}))
+        if done:
+            (folder / "done.json").write_text(json.dumps({"steps": ["extract", "match", "mesh", "face"]}))
+        if face:
+            (folder / "signature.bin").write_bytes(_fake_signature(i).to_bytes())
+    names = [f"bag{i}" for i in range(4)]
+    gallery_file = tmp_path / "private" / "gallery.db"
+    first = BatchSummary(str(out), ["face"])
+    enroll_finished(out, names, gallery_file, first)
+    assert first.enrolled == 2 and not first.failed  # bag2 is no face, bag3 is not finished
+    gallery = Gallery(gallery_file)
+    assert sorted(e.name for e in gallery.list()) == ["scan-0", "scan-1"]
+    assert gallery.identify(_fake_signature(1)).best.name == "scan-1"
+    again = BatchSummary(str(out), ["face"])
+    enroll_finished(out, names, gallery_file, again)  # a rerun, or a resumed run
+    assert again.enrolled == 0 and len(gallery.list()) == 2
