@@ -37,6 +37,7 @@ ALLOWED: dict[str, set[str]] = {
                           "lsu_sim"},
     "lsu_testing": _BASE | {"lsu_bags", "lsu_cameras", "lsu_scan", "lsu_accuracy", "lsu_tools", "lsu_sim"},
     "lsu_web": _BASE | {"lsu_bags", "lsu_cameras", "lsu_reconstruct", "lsu_faces", "lsu_scan"},
+    "lsu_batch": _BASE | {"lsu_bags", "lsu_extract", "lsu_reconstruct", "lsu_faces", "lsu_scan", "lsu_tools"},
 }
 
 
