@@ -30,10 +30,7 @@ STEPS = ("extract", "match")
 
 
 def _sim_scene():
-    try:  # the simulated rig's package (lsu_sim, or lsu_cameras.sim before it moved)
-        from lsu_sim import build_scene, load_rig  # type: ignore[import-not-found]
-    except ImportError:
-        from lsu_cameras.sim import build_scene, load_rig
+    from lsu_sim import build_scene, load_rig
     geometry = load_rig()
     return geometry, build_scene("head:7", geometry)
 
