@@ -34,9 +34,8 @@ STEPS = ("extract", "match", "mesh", "face")
 
 
 def make_bags(root: Path) -> list[Path]:
-    from lsu_testing.simbags import write_sim_scan_bag
-
     from lsu_sim import build_scene, load_rig
+    from lsu_testing.simbags import write_sim_scan_bag
     geometry = load_rig()
     return [write_sim_scan_bag(root / f"person{i}" / "bag", build_scene(f"head:{i + 1}", geometry), POSITIONS,
                                seed=100 + i, scan_id=f"person{i}", geometry=geometry, compress=False)
@@ -46,9 +45,8 @@ def make_bags(root: Path) -> list[Path]:
 def full_scan_cost(root: Path) -> tuple[float, float, float, int]:
     """One full face scan as `lsu scan` records it by default (0..470 step 2: 236 snaps, uncompressed) through the
     task function in a fresh process, after one untimed pass: (CPU s, of which the replay's, MB on disk, snaps)."""
-    from lsu_testing.simbags import write_sim_scan_bag
-
     from lsu_sim import build_scene, load_rig
+    from lsu_testing.simbags import write_sim_scan_bag
     geometry = load_rig()
     bag = write_sim_scan_bag(root / "full" / "bag", build_scene("head:7", geometry), list(range(0, 471, 2)), seed=7,
                              geometry=geometry, compress=False)

@@ -19,9 +19,8 @@ LSU = str(Path(sys.executable).with_name("lsu"))
 
 
 def test_two_node_cluster_does_every_bag_on_both_nodes(tmp_path):
-    from lsu_testing.simbags import write_sim_scan_bag
-
     from lsu_sim import build_scene, load_rig
+    from lsu_testing.simbags import write_sim_scan_bag
     geometry = load_rig()
     scene = build_scene("head:7", geometry)
     names = [f"scan{i}" for i in range(4)]
