@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 sim = pytest.importorskip("lsu_sim")
-from lsu_sim.ict import Occasion, ict_person, load_ict  # noqa: E402
-from lsu_sim.people import person_objects  # noqa: E402
-from lsu_sim.tof import TofCamera, tof_scan  # noqa: E402
 from lsu_faces.face import embed_face  # noqa: E402
 from lsu_faces.gallery import Gallery  # noqa: E402
 from lsu_faces.pipeline import process_cloud  # noqa: E402
 from lsu_faces.signature import make_signature  # noqa: E402
+from lsu_sim.ict import Occasion, ict_person, load_ict  # noqa: E402
+from lsu_sim.people import person_objects  # noqa: E402
+from lsu_sim.tof import TofCamera, tof_scan  # noqa: E402
 
 
 @pytest.fixture(scope="module")
