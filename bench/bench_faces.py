@@ -35,9 +35,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import median, write_result  # noqa: E402
 
-from lsu_sim import load_rig  # noqa: E402
-from lsu_sim.depthcam import depth_scan  # noqa: E402
-from lsu_sim.people import PersonSpec, make_person, person_objects  # noqa: E402
 from lsu_faces.face import FaceParams, NotAFaceError, embed_face, nose_tip_protrusion  # noqa: E402
 from lsu_faces.gallery import DEFAULT_FALSE_ACCEPT  # noqa: E402
 from lsu_faces.signature import (  # noqa: E402
@@ -49,6 +46,9 @@ from lsu_faces.signature import (  # noqa: E402
     make_signature,
 )
 from lsu_faces.synthetic import fast_scan  # noqa: E402
+from lsu_sim import load_rig  # noqa: E402
+from lsu_sim.depthcam import depth_scan  # noqa: E402
+from lsu_sim.people import PersonSpec, make_person, person_objects  # noqa: E402
 
 IDENTITIES = int(os.environ.get("LSU_BENCH_FACES_IDS", "16"))
 PROBES = 2
@@ -309,8 +309,8 @@ def exact_signature(seed: int) -> bytes:
     in its true face frame (the cheap exact path for gallery fillers; cached by content)."""
     import hashlib
 
-    from lsu_sim.ict import eyeballs, ict_vertices, load_ict
     from lsu_faces.face import FaceFrame
+    from lsu_sim.ict import eyeballs, ict_vertices, load_ict
 
     key = hashlib.sha256(f"exact-{seed}-{_code_tag()}".encode()).hexdigest()[:24]
     path = CACHE / f"{key}.bin"
