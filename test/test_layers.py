@@ -26,7 +26,7 @@ ALLOWED: dict[str, set[str]] = {
     "lsu_cameras": _BASE,
     # the simulator: above the cameras (it writes its rig's calibration with their calib_io and is their
     # ``sim`` source through the lsu.camera_sources entry point), below whoever renders test scenes with it
-    "lsu_sim": _BASE | {"lsu_cameras"},
+    "lsu_sim": _BASE | {"lsu_cameras", "lsu_extract"},  # lsu_extract: devdata (the ICT face model's folder)
     "lsu_extract": _BASE,
     "lsu_reconstruct": _BASE | {"lsu_bags", "lsu_cameras", "lsu_extract", "lsu_sim"},
     "lsu_faces": _BASE | {"lsu_bags", "lsu_cameras", "lsu_sim"},

@@ -107,3 +107,25 @@ def test_the_demo_scans_a_person_by_default_and_the_egg_stays_a_scene(geometry):
     assert parser.parse_args(["demo"]).scene == DEMO_SCENE and DEMO_SCENE.startswith("person")
     assert [o.name for o in build_scene(DEMO_SCENE, geometry)][:2] == ["person_skin", "person_hair"]
     assert [o.name for o in build_scene("head:7", geometry)] == ["head"]
+
+
+def test_person_ict_seed_is_the_ict_models_person(geometry):
+    """`person:ict:SEED`: a person of the ICT face model (development data; skipped without it)."""
+    from lsu_extract import devdata
+    from lsu_sim.ict import ict_person, load_ict
+
+    try:
+        folder = devdata.devdata_dir() / "face_model_ict_mit"
+    except devdata.DevDataMissing as exc:
+        pytest.skip(str(exc))
+    if not (folder / "ict_face_model.npz").is_file():
+        pytest.skip(f"no ICT face model at {folder}")
+    objects = build_scene("person:ict:4", geometry)
+    head_centre = geometry.rig_center + (geometry.subject_distance_m + 0.10) * geometry.rig_axes[2]
+    expected = person_objects(ict_person(load_ict(folder), 4), head_centre)
+    assert [o.name for o in objects] == [o.name for o in expected] and objects[0].name == "person_skin"
+    assert np.allclose(objects[0].extra["nose_tip_m"], expected[0].extra["nose_tip_m"])
+    other = build_scene("person:ict:5", geometry)[0]  # another identity: the same topology, another shape
+    assert np.abs(np.asarray(other.mesh.vertices) - np.asarray(objects[0].mesh.vertices)).max() > 1e-3
+    with pytest.raises(SceneError, match=r"whole number \(e.g. person:ict:7\)"):
+        build_scene("person:ict:x", geometry)

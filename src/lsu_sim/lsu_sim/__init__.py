@@ -17,7 +17,8 @@ Its own package above ``lsu_cameras`` (whose calibration files it writes): the c
 node's ``sim_scene`` parameter, ``lsu launch sim scene:=``, `lsu demo --scene`, the bags of lsu_testing.simbags):
 ``plane``, ``sphere``, ``board``, ``head`` (``head:SEED``, the procedural egg-like head), ``person``
 (``person:SEED``, a realistic person of `people`: a real head mesh with the seed's identity, hair, neck and
-shoulders) or a mesh file path.
+shoulders; ``person:ict:SEED``: a person of the ICT face model, real people's shape statistics, `ict`) or a
+mesh file path.
 """
 
 from __future__ import annotations
@@ -40,6 +41,20 @@ SCENE_NAMES = ("plane", "sphere", "board", "head", "person")
 # the person's head centre behind the subject point [m]: its cheeks are then at about the subject distance
 # (as the face benchmark places them)
 PERSON_DEPTH_M = 0.10
+
+
+def _ict_model():  # noqa: ANN202 - ict.IctModel
+    """The ICT face model of the development data (``shared/devdata/face_model_ict_mit`` beside the repository:
+    its licence and size keep it out of the repository), or SceneError saying where it is looked for."""
+    from lsu_extract.devdata import DevDataMissing, devdata_dir
+
+    from .ict import load_ict
+
+    try:
+        folder = devdata_dir() / "face_model_ict_mit"
+    except DevDataMissing as exc:
+        raise SceneError(f"person:ict:SEED needs the ICT face model of the development data: {exc}") from None
+    return load_ict(folder)
 
 
 def _seed_of(name: str, kind: str) -> int:
@@ -73,6 +88,13 @@ def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = Non
         R = axes.T  # board x along the baseline, y down, facing the rig
         first = center - R @ np.array([4 * square, 2.5 * square, 0.0])
         return [make_board(R, first, (9, 6), square)]
+    if name.startswith("person:ict"):
+        from .ict import Occasion, ict_person
+        from .people import person_objects
+
+        seed = _seed_of(name, "person:ict")
+        person = ict_person(_ict_model(), seed, Occasion(yaw_deg=yaw_deg, pitch_deg=pitch_deg))
+        return person_objects(person, center + PERSON_DEPTH_M * axes[2])
     if name == "person" or name.startswith("person:"):
         from .people import PersonSpec, make_person, person_objects
 
@@ -86,5 +108,5 @@ def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = Non
     path = Path(name)
     if path.suffix.lower() in (".ply", ".obj", ".stl", ".off", ".gltf", ".glb") or path.exists():
         return [load_mesh_file(path, center=center)]
-    raise SceneError(f"unknown scene '{name}': use one of {', '.join(SCENE_NAMES)}, head:SEED, person:SEED "
-                     f"or a PLY/OBJ file")
+    raise SceneError(f"unknown scene '{name}': use one of {', '.join(SCENE_NAMES)}, head:SEED, person:SEED, "
+                     f"person:ict:SEED or a PLY/OBJ file")
