@@ -28,6 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import write_result  # noqa: E402
 
+from lsu_common.arrays import AnyArray  # noqa: E402
+
 BAGS = int(os.environ.get("BENCH_BATCH_BAGS", "6"))
 POSITIONS = list(range(0, 471, 6))  # 79 snaps: a face scan coarse enough to render quickly, dense enough for a face
 STEPS = ("extract", "match", "mesh", "face")
@@ -66,7 +68,7 @@ def run_direct(out: Path, bags: list[Path]) -> list[tuple[float, float, dict]]:
     return results  # type: ignore[return-value]
 
 
-def replay_cloud(bag: Path, param_dir: Path) -> np.ndarray:
+def replay_cloud(bag: Path, param_dir: Path) -> AnyArray:
     """The scan cloud of `lsu run replay BAG` (its code path, default extraction processes), x y z (N, 3)."""
     from lsu_bags.pointcloud2 import decode, from_msg
     from lsu_batch.task import process_context
@@ -92,7 +94,7 @@ def replay_cloud(bag: Path, param_dir: Path) -> np.ndarray:
     return np.stack([columns["x"], columns["y"], columns["z"]], axis=1)
 
 
-def ply_xyz(path: Path) -> np.ndarray:
+def ply_xyz(path: Path) -> AnyArray:
     from lsu_bags.ply import read_ply
 
     vertices, _ = read_ply(path)

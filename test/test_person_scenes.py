@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_sim import LaserTruth, SceneError, build_scene, load_rig
 from lsu_sim.people import PersonSpec, make_person, person_objects
 
@@ -27,7 +28,7 @@ def person3(geometry):
     return build_scene("person:3", geometry)
 
 
-def _vertices(obj) -> np.ndarray:
+def _vertices(obj) -> AnyArray:
     v = np.asarray(obj.mesh.vertices)
     used = np.unique(np.asarray(obj.mesh.triangles))
     return v[used]

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_driver.emulator import send_control
 from lsu_scan.scanner import LsuScanner
 from lsu_testing.plugin import LaunchedProcess
@@ -281,8 +282,8 @@ def test_the_bag_places_the_laser_at_every_snap_for_a_plain_rosbags_reader(graph
     assert [s["position_steps"] for s in snaps] == list(range(150, 241, 10))
 
     typestore = get_typestore(Stores.ROS2_JAZZY)
-    static: dict[str, tuple[str, np.ndarray, Rotation]] = {}  # child -> (parent, translation, rotation)
-    moving: list[tuple[int, str, str, np.ndarray, Rotation]] = []  # (stamp ns, parent, child, t, r)
+    static: dict[str, tuple[str, AnyArray, Rotation]] = {}  # child -> (parent, translation, rotation)
+    moving: list[tuple[int, str, str, AnyArray, Rotation]] = []  # (stamp ns, parent, child, t, r)
     with Reader(Path(result.output_dir) / "bag") as reader:
         connections = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
         assert {c.topic for c in connections} == {"/tf", "/tf_static"}
@@ -299,7 +300,7 @@ def test_the_bag_places_the_laser_at_every_snap_for_a_plain_rosbags_reader(graph
     moving.sort(key=lambda m: m[0])
     stamps_ns = [m[0] for m in moving]
 
-    def in_base(child: str, translation: np.ndarray, rotation: Rotation) -> np.ndarray:
+    def in_base(child: str, translation: AnyArray, rotation: Rotation) -> AnyArray:
         """``translation`` given in ``child`` expressed in the root of the static tree (rig base)."""
         point = translation
         while child in static:

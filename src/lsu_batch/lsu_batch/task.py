@@ -144,9 +144,15 @@ def process_bag(job: BagJob, context: Any | None = None) -> dict[str, Any]:
     result = BagResult(name=job.name, bag=job.bag, status="failed", pid=os.getpid(), node_id=_ray_node_id())
     out = Path(job.out_dir)
     partial = out / PARTIAL_DIR / f"{job.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    # A Ray worker has a process group of its own, so killing a batch's process group leaves it running until
+    # it sees its raylet gone; it must not put a bag in place for a run that no longer exists (the next run
+    # decides from the done markers what to skip). Its parent changing is the sign.
+    parent = os.getppid()
     try:
         partial.mkdir(parents=True)
         _reprocess(job, partial, context, result)
+        if os.getppid() != parent:
+            raise BagFailure("the batch that started this task ended before it finished; nothing was put in place")
         result.status = "done"
         result.seconds, result.cpu_s = time.monotonic() - t0, time.process_time() - c0
         (partial / RESULT_FILE).write_text(json.dumps(result.to_dict(), indent=1) + "\n")

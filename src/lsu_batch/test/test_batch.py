@@ -20,6 +20,7 @@ from lsu_bags.ply import read_ply
 from lsu_bags.pointcloud2 import decode, from_msg
 from lsu_batch.batch import local_ray, run_batch
 from lsu_batch.task import PARTIAL_DIR, done_steps
+from lsu_common.arrays import AnyArray
 
 pytestmark = pytest.mark.slow
 
@@ -67,7 +68,7 @@ def archive(tmp_path_factory):
     return root
 
 
-def xyz_of_ply(path: Path) -> np.ndarray:
+def xyz_of_ply(path: Path) -> AnyArray:
     vertices, _ = read_ply(path)
     return np.stack([vertices["x"], vertices["y"], vertices["z"]], axis=1)
 
@@ -144,6 +145,27 @@ def test_extract_alone_writes_the_lines_of_every_snap(ray_here, archive, tmp_pat
     assert np.all(np.isfinite(lines["u"])) and len(lines["u"]) > 100
 
 
+def _session_members(sid: int) -> list[int]:
+    members = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()  # after "pid (comm) ": state, ppid, pgrp, session
+            if int(fields[3]) == sid and fields[0] != "Z":
+                members.append(int(entry.name))
+    return members
+
+
+def _wait_session_gone(sid: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while (left := _session_members(sid)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not left, f"processes of the killed batch still run after {timeout_s} s: {left}"
+
+
 def test_a_killed_batch_resumes_where_it_stopped(ray_here, archive, tmp_path):
     """The driver (and its Ray) killed after its first finished bag; the next run skips what was finished, removes
     the half-written folders and does the rest."""
@@ -164,6 +186,7 @@ def test_a_killed_batch_resumes_where_it_stopped(ray_here, archive, tmp_path):
     finally:
         os.killpg(driver.pid, signal.SIGKILL)
         driver.communicate()
+    _wait_session_gone(driver.pid)  # Ray workers have process groups of their own, in the driver's session
     finished_at_kill = {p.parent.name for p in out.glob("*/done.json")}
     assert len(finished_at_kill) < 4, "the batch finished everything before it was killed: nothing to resume"
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import ROW_MODELS, ExtractorParams, explain_rows, extract_laser_line
 from lsu_extract.synthetic import LineScene, render_line
 
@@ -29,7 +30,7 @@ CASES = {
 }
 
 
-def run(scene: LineScene, params: ExtractorParams) -> tuple[np.ndarray, int, int, np.ndarray]:
+def run(scene: LineScene, params: ExtractorParams) -> tuple[AnyArray, int, int, AnyArray]:
     """(errors of the correct detections, false rows, missed rows, model codes) over SEEDS."""
     errs, codes = [], []
     false = missed = 0

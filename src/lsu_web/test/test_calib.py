@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_web.calib import CalibrationSession
 
 
-def chessboard(cols: int = 10, rows: int = 7, square_px: int = 40, margin: int = 60) -> np.ndarray:
+def chessboard(cols: int = 10, rows: int = 7, square_px: int = 40, margin: int = 60) -> AnyArray:
     """A flat chessboard of cols x rows squares ((cols-1) x (rows-1) inner corners), white margin, BGR."""
     h, w = rows * square_px + 2 * margin, cols * square_px + 2 * margin
     img = np.full((h, w), 255, np.uint8)
