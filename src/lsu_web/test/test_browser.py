@@ -40,8 +40,11 @@ def graph(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("web")
     port = free_port()
     # capture and ack timeouts sized for a loaded 2-core host: this module tests the page, not the deadlines
+    # a realistic person (the faces test enrols the page's scan) and a gallery of this module's own, open to
+    # enrolment: the page then offers enrol and remove
     proc = LaunchedProcess(["launch", "sim", f"port:={tmp / 'gp32'}", f"output_dir:={tmp / 'scans'}", "web:=true",
-                            f"web_port:={port}", "capture_timeout_s:=10.0", "ack_timeout_s:=60.0"])
+                            f"web_port:={port}", "capture_timeout_s:=10.0", "ack_timeout_s:=60.0", "scene:=person:2",
+                            f"gallery:={tmp / 'gallery.db'}", "allow_enrolment:=true"])
     scanner = None
     try:
         proc.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
@@ -51,7 +54,7 @@ def graph(tmp_path_factory):
         with playwright_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
             yield {"proc": proc, "url": f"http://127.0.0.1:{port}/", "scans": tmp / "scans", "tmp": tmp,
-                   "scanner": scanner, "browser": browser}
+                   "scanner": scanner, "browser": browser, "gallery": tmp / "gallery.db"}
             browser.close()
     finally:
         if scanner is not None:
@@ -96,11 +99,13 @@ def canvas_lit_pixels(page) -> int:
         return n; }""")
 
 
-def start_scan(page, start: int, end: int, step: int, name: str, record_bag: bool = False) -> None:
+def start_scan(page, start: int, end: int, step: int, name: str, record_bag: bool = False, mode: str = "stopsnap") -> None:
+    page.select_option("select[name=mode]", mode)
     page.fill("input[name=name]", name)
     page.fill("input[name=start]", str(start))
     page.fill("input[name=end]", str(end))
-    page.fill("input[name=step]", str(step))
+    if mode == "stopsnap":  # the sweep's own fields (rate, frames) keep their defaults
+        page.fill("input[name=step]", str(step))
     if record_bag:
         page.check("input[name=record_bag]")
     page.click("#btn-start")
@@ -278,24 +283,71 @@ def test_calibration_capture_judges_real_pairs(graph):
     assert code == 422 and b"capture pairs" in body
 
 
-def test_faces_identify_only_where_the_gallery_refuses_enrolment(graph):
-    """The sim graph's face processor keeps allow_enrolment off: the page may identify, never enrol or remove."""
-    url = graph["url"]
-    scans = sorted(p.name for p in graph["scans"].iterdir() if (p / "cloud.ply").is_file())
-    if not scans:
-        pytest.skip("no finished scan in this module's graph (the scan test did not run)")
-    code, body = _http(url + "api/faces")
-    assert code == 200 and json.loads(body) == {"enrolment": False, "names": []}
-    code, body = _http(url + "api/faces/enroll", "POST", {"scan_id": scans[0], "name": "alice"})
-    assert code == 403 and b"allow_enrolment" in body
-    assert _http(url + "api/faces/alice", "DELETE")[0] == 403
-    code, body = _http(url + "api/faces/identify", "POST", {"scan_id": scans[0]})
-    answer = json.loads(body)
-    # the face processor answered: a ranking (the gallery file is the user's, shared: what it holds is not this
-    # test's to know), or its refusal with the reason (this module's scan covers a strip of the head, 150..300)
-    if code == 200:
-        assert isinstance(answer["accepted"], bool) and isinstance(answer["matches"], list), answer
-    else:
-        assert code == 422 and answer["detail"].startswith("identify failed: "), answer
-    code, body = _http(url + "api/faces/identify", "POST", {"scan_id": "no-such-scan"})
-    assert code == 404 and b"no scan" in body
+def gallery_names(path: Path) -> list[str]:
+    """The names in the gallery file, read by lsu_faces' own gallery class (not through the page)."""
+    from lsu_faces.gallery import Gallery
+
+    return sorted({e.name for e in Gallery(str(path)).list()})
+
+
+def test_sweep_then_enrol_identify_and_remove_in_the_page(graph):
+    """A sweep scan started from the page; its face enrolled under a name, identified as that name and removed,
+    each through the page's Faces tab; the gallery file (read by lsu_faces, not the page) holds what the page said."""
+    page = open_page(graph)
+    start_scan(page, 0, 470, 2, "sweep face", mode="sweep")
+    page.wait_for_function("window.lsu.lastResult !== null", timeout=300000)
+    result = page.evaluate("window.lsu.lastResult")
+    assert result["outcome"] == "SUCCEEDED", result
+    record = json.loads((Path(result["output_dir"]) / "scan.json").read_text())
+    assert record["goal"]["label"] == "sweep face" and record["goal"]["mode"] == "sweep" and record["sweep"], record
+    assert record["points"] > 10000
+    # the face processor writes the mesh a moment after the scan: the library shows it when it is there
+    page.wait_for_function("window.lsu.meshLoaded", timeout=180000)
+
+    page.click("#tabs button[data-tab=faces]")
+    page.wait_for_function("!document.querySelector('#btn-enroll').disabled", timeout=30000)
+    page.wait_for_selector(f"#face-scan option[value='{result['scan_id']}']", state="attached", timeout=30000)
+    page.select_option("#face-scan", result["scan_id"])
+    assert gallery_names(graph["gallery"]) == []
+    page.fill("#face-name", "alice")
+    page.click("#btn-enroll")
+    page.wait_for_function("!document.querySelector('#face-message').textContent.includes('enrolling')",
+                           timeout=180000)
+    assert "enrolled as entry" in page.inner_text("#face-message"), page.inner_text("#face-message")
+    page.wait_for_selector("#gallery button[data-name='alice']", timeout=30000)
+    assert gallery_names(graph["gallery"]) == ["alice"]
+
+    page.click("#btn-identify")
+    page.wait_for_function("!document.querySelector('#face-message').textContent.includes('identifying')",
+                           timeout=180000)
+    assert page.inner_text("#face-message").startswith("identified: alice"), page.inner_text("#face-message")
+
+    page.once("dialog", lambda dialog: dialog.accept())  # "Remove alice (all samples) from the gallery?"
+    page.click("#gallery button[data-name='alice']")
+    page.wait_for_function("document.querySelector('#gallery').textContent.includes('the gallery is empty')",
+                           timeout=30000)
+    assert gallery_names(graph["gallery"]) == []
+    page.close()
+
+
+def test_calibration_in_the_page_says_why_a_pair_is_refused(graph):
+    """The sim scene is a person, not a board: the page's capture is judged and refused for the reason that holds,
+    and Calibrate says what is missing; the session's state on the server agrees."""
+    page = open_page(graph)
+    page.click("#tabs button[data-tab=calibration]")
+    page.fill("#cal-board", "9x6")
+    page.click("#btn-cal-start")
+    page.wait_for_function("document.querySelector('#cal-message').textContent.includes('session started')",
+                           timeout=60000)
+    page.click("#btn-cal-capture")
+    page.wait_for_function("document.querySelector('#cal-message').textContent.includes('board not found')",
+                           timeout=120000)
+    page.click("#btn-cal-solve")
+    page.wait_for_function("document.querySelector('#cal-message').textContent.includes('not calibrated')",
+                           timeout=60000)
+    assert "capture pairs" in page.inner_text("#cal-message"), page.inner_text("#cal-message")
+    code, body = _http(graph["url"] + "api/calibration")
+    status = json.loads(body)
+    assert code == 200 and status["captures"] == 1 and status["views"] == 0
+    page.close()
+

@@ -113,3 +113,67 @@ def test_outbox_drops_the_oldest_and_never_grows():
     assert items == [{"i": 6}, {"i": 7}, {"i": 8}, {"i": 9}, 98, 99]  # control first, newest kept
     assert dropped == 98 + 6
     assert late_items == [{"i": 9}]  # a newcomer gets the latest state
+
+
+class _GalleryClosedGraph:
+    """Only what the faces routes ask of the graph: the face processor's parameters, enrolment off."""
+
+    def __init__(self, gallery):
+        self.gallery = gallery
+        self.asked: list[str] = []
+
+    def parameters(self, node_name, timeout_s=5.0):
+        self.asked.append(node_name)
+        return {"allow_enrolment": False, "gallery_file": str(self.gallery)}
+
+
+def test_a_gallery_closed_to_enrolment_refuses_enrol_and_remove_and_lists_no_names(tmp_path):
+    """The app (served by uvicorn, asked over HTTP) follows the face processor's allow_enrolment: off means no
+    names shown, enrol and remove refused with the reason, and the gallery file untouched."""
+    import socket
+    import threading
+    import time
+    import urllib.error
+    import urllib.request
+
+    import uvicorn
+
+    from lsu_web.app import WebConfig, create_app
+
+    gallery = tmp_path / "gallery.db"
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = int(sock.getsockname()[1])
+    graph = _GalleryClosedGraph(gallery)
+    app = create_app(graph, WebConfig("127.0.0.1", port, access_for("127.0.0.1", None), tmp_path / "scans"),
+                     Outbox())
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+
+    def http(path, method="GET", body=None):
+        req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", method=method,
+                                     data=None if body is None else json.dumps(body).encode(),
+                                     headers={"Content-Type": "application/json"})
+        try:
+            with urllib.request.urlopen(req, timeout=20) as r:
+                return r.status, json.loads(r.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read())
+
+    try:
+        for _ in range(200):
+            if server.started:
+                break
+            time.sleep(0.05)
+        assert server.started
+        assert http("/api/faces") == (200, {"enrolment": False, "names": []})
+        code, answer = http("/api/faces/enroll", "POST", {"scan_id": "any", "name": "alice"})
+        assert code == 403 and "allow_enrolment" in answer["detail"]
+        code, answer = http("/api/faces/alice", "DELETE")
+        assert code == 403 and "does not allow" in answer["detail"]
+        assert graph.asked and set(graph.asked) == {"/lsu/face_processor"}
+    finally:
+        server.should_exit = True
+        thread.join(timeout=20)
+    assert not gallery.exists()  # nothing was written for the refused requests
