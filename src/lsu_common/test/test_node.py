@@ -17,6 +17,8 @@ PROBE = textwrap.dedent("""
     class Probe(Node):
         def __init__(self):
             super().__init__("runner_probe", namespace="/lsu_runner_test")
+            if sys.argv[1] == "working":  # a callback still at work when the signal comes (a scan's end)
+                self.timer = self.create_timer(0.05, self.work)
             if sys.argv[1] == "busy":
                 raise RuntimeError("port 8765 is taken; choose another")
             if sys.argv[1] == "bug":
@@ -27,11 +29,19 @@ PROBE = textwrap.dedent("""
                 from std_msgs.msg import Empty
                 self.create_publisher(Empty, "x", 1)
 
+        def work(self):
+            self.timer.cancel()
+            print("working", flush=True)
+            time.sleep(1.0)
+            self.get_clock().now()  # a handle of the node, in use to the end of the callback
+            print("work done", flush=True)
+
         def destroy_node(self):
             print("destroyed", flush=True)
             super().destroy_node()
 
     sys.exit(run_node(Probe, ["probe"], startup_errors=(RuntimeError,), program="probe",
+                      multi_threaded=sys.argv[1] == "working",
                       on_started=lambda node: print("ready", flush=True)))
 """)
 
@@ -72,6 +82,26 @@ def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
             proc.wait()
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "ready" not in out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_callback_still_running_ends_before_the_node_is_destroyed(sig):
+    # the executor's threads must not run a callback of a destroyed node in a shut-down context (what ended
+    # face_processor in a segmentation fault inside the middleware at shutdown)
+    proc = _start("working")
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        assert proc.stdout.readline().strip() == "working"
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert out.split() == ["work", "done", "destroyed"], (out, err)
+    assert "Traceback" not in err
 
 
 @pytest.mark.slow
