@@ -23,6 +23,7 @@ the cause and what to do.
 
 from __future__ import annotations
 
+import errno
 import os
 import queue
 import re
@@ -295,6 +296,12 @@ class _WriterThread:
             self._thread.join()
 
 
+# a message that would leave less free on the bag's disk is not written and the bag stops there (`BagWriter.error`):
+# the open chunk (up to ~2 MiB with an image), the index and metadata.yaml must still fit when it is closed, or
+# the whole bag could not be opened
+LOW_SPACE_BYTES = 8 << 20
+
+
 class BagWriter:
     """A new rosbag2 folder, written while topics appear; thread-safe.
 
@@ -324,6 +331,7 @@ class BagWriter:
         self.counts: dict[str, int] = {}
         self._error: BaseException | None = None
         self._open = False
+        self._kept_fd: int | None = None  # the storage file, read-only: its data outlives a deleted folder
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         mode = (CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE) if compress else None
         try:
@@ -338,7 +346,16 @@ class BagWriter:
         if mode is not None:
             writer.set_compression(mode, CompressionFormat.ZSTD)
         writer.open()
+        storage = getattr(writer.storage, "path", None)
+        if storage is not None and self.storage == "mcap":  # sqlite keeps journals beside its file: not kept
+            self._kept_fd = os.open(storage, os.O_RDONLY)
         return writer
+
+    @property
+    def error(self) -> str | None:
+        """Why the bag stopped taking messages (a write failed, the disk is nearly full), or None: said at once
+        so that a caller stops capturing data that cannot be stored (`close` raises it too)."""
+        return None if self._error is None else str(self._error)
 
     def __enter__(self) -> BagWriter:
         return self
@@ -390,9 +407,27 @@ class BagWriter:
         if self._error is not None:
             return
         try:
+            vfs = os.statvfs(self.path) if self._kept_fd is None else os.fstatvfs(self._kept_fd)
+            free = vfs.f_bavail * vfs.f_frsize
+            if free - len(data) < LOW_SPACE_BYTES:
+                raise OSError(errno.ENOSPC, f"the disk of {self.path} is full ({free / 1e6:.1f} MB free, "
+                                            f"{LOW_SPACE_BYTES >> 20} MiB are kept to close the bag); the bag holds "
+                                            "the messages before")
             self._writer.write(connection, timestamp_ns, data)
         except Exception as exc:  # kept and raised by close(): a write has no caller left to tell
             self._error = exc
+
+    def _restore(self) -> None:
+        """The storage file, deleted with its folder while open and finished since, copied back beside the new
+        metadata.yaml (atomically: a copy cut short is never taken for the bag)."""
+        assert self._kept_fd is not None
+        target = self.path / f"{self.path.name}.mcap"
+        tmp = target.with_suffix(".mcap.tmp")
+        with open(os.dup(self._kept_fd), "rb") as src, open(tmp, "wb") as dst:
+            src.seek(0)
+            while chunk := src.read(1 << 20):
+                dst.write(chunk)
+        tmp.replace(target)
 
     def close(self) -> None:
         """Write what is queued, finish the storage file and write metadata.yaml; idempotent.
@@ -404,12 +439,20 @@ class BagWriter:
             if not self._open:
                 return
             self._open = False
+        deleted = self._kept_fd is not None and os.fstat(self._kept_fd).st_nlink == 0
         try:
+            if deleted:  # deleted while recording (the folder, or the file): the data is still in the open file
+                self.path.mkdir(parents=True, exist_ok=True)
             self._io.submit(self._writer.close).result()
+            if deleted:
+                self._restore()
         except (WriterError, OSError) as exc:
             raise BagError(f"bag {self.path}: cannot finish the bag ({exc})") from None
         finally:
             self._io.shutdown(wait=True)
+            if self._kept_fd is not None:
+                os.close(self._kept_fd)
+                self._kept_fd = None
         if self._error is not None:
             raise BagError(f"bag {self.path}: writing a message failed ({self._error}); the bag was closed "
                            f"with the messages before it")

@@ -19,6 +19,19 @@ TOPICS = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/i
           "/lsu/driver/state", "/lsu/stereo/exposure", "/lsu/driver/carriage", "/tf", "/tf_static"]
 
 
+def storage_problem(bag: ScanBag | None, folder: Path) -> str | None:
+    """Why a scan cannot go on storing its data, or None: its folder is gone, or its bag stopped taking
+    messages (a full disk). Checked before every snap: capturing on would only lose what is captured."""
+    if not folder.is_dir():
+        return (f"the scan folder {folder} was deleted during the scan; the scan stopped and wrote its files there "
+                "again (the bag from its open file, with every image)" if bag is not None else
+                f"the scan folder {folder} was deleted during the scan; the scan stopped and wrote scan.json there again")
+    error = None if bag is None else bag.recorder.writer.error
+    if error is not None:
+        return f"the scan's bag cannot take more images: {error}; free space and scan again"
+    return None
+
+
 class ScanBag:
     """Records `TOPICS` on a private node spun by its own single-threaded executor, from `start` to `stop`.
 

@@ -1,0 +1,138 @@
+"""Storage faults while a scan is written: the disk fills up, the folder is deleted under the open bag.
+
+A full disk is a real one: a small tmpfs mounted for the test (root only; skipped with the reason
+elsewhere), so the failure is the kernel's ENOSPC, not an imitation of it. What must hold: nothing
+half-written is left looking complete (no PLY or scan.json cut short, no temporary file), the writer
+says what happened, and every message stored before is still there for a plain rosbags reader.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+
+from lsu_bags import bags
+from lsu_bags.ply import read_ply, write_ply
+
+TOPIC = "/lsu/stereo/left/image_raw"
+
+
+def _string_cdr(size: int, seed: int) -> bytes:
+    """A std_msgs/String of ``size`` bytes (an image's worth of data), CDR little-endian."""
+    text = bytes(np.random.default_rng(seed).integers(97, 123, size, dtype=np.uint8))
+    return b"\x00\x01\x00\x00" + struct.pack("<I", size + 1) + text + b"\x00"
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 24 MiB filesystem of its own (tmpfs), unmounted afterwards."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("a full disk needs a small tmpfs, and mounting one needs root")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=24m", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {done.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def _stored(path: Path) -> list[tuple[int, bytes]]:
+    """The messages of a bag as rosbags' own reader sees them (no LSU code)."""
+    with Reader(path) as reader:
+        return [(t, bytes(raw)) for _conn, t, raw in reader.messages()]
+
+
+@pytest.mark.fault("storage: disk full while writing a scan's bag")
+def test_a_full_disk_stops_the_bag_which_keeps_every_message_before(small_disk, fault_report):
+    path = small_disk / "scan" / "bag"
+    written = []
+    bag = bags.BagWriter(path, "mcap")
+    bag.add_topic(TOPIC, "std_msgs/msg/String", [bags.make_qos("reliable", "volatile")])
+    for i in range(60):  # 60 MB offered to a 24 MiB disk
+        data = _string_cdr(1_000_000, i)
+        bag.write(TOPIC, 1_795_000_000_000_000_000 + i * 10_000_000, data)
+        written.append((1_795_000_000_000_000_000 + i * 10_000_000, data))
+        bag._io.submit(lambda: None).result()  # the writer thread has taken it (a capture's pace)
+        if bag.error is not None:
+            break
+    assert bag.error is not None and "full" in bag.error, bag.error
+    with pytest.raises(bags.BagError, match="full"):
+        bag.close()
+    stored = _stored(path)  # metadata.yaml and the MCAP index fit in the space kept for them
+    assert len(stored) >= 5 and stored == written[:len(stored)]
+    assert not [p for p in path.rglob("*") if p.name.endswith(".tmp")]
+    fault_report.note(error_shown=bag.error, snaps_captured=len(written), snaps_lost=0,
+                      data_kept=f"a closed bag with the {len(stored)} messages before the disk filled")
+
+
+@pytest.mark.fault("storage: disk full while writing cloud.ply and scan.json")
+def test_a_full_disk_leaves_no_cloud_or_record_cut_short(small_disk, fault_report):
+    from lsu_scan.scan_plan import ScanRecord
+
+    folder = small_disk / "scan"
+    record = ScanRecord(scan_id="s1", started="2026-01-01T00:00:00", goal={}, parameters={}, calibration="")
+    first = record.write(folder)  # the scan's record before the disk filled
+    before = first.read_text()
+    small = {k: np.arange(10, dtype="<f4") for k in "xyz"}
+    write_ply(folder / "small.ply", small)
+    (small_disk / "filler").write_bytes(b"\0" * (24 * 1024 * 1024 - 2 * 1024 * 1024))  # 2 MiB left
+    big = {"x": np.zeros(2_000_000, "<f4"), "y": np.zeros(2_000_000, "<f4")}  # 16 MB: cannot fit
+    with pytest.raises(OSError) as caught:
+        write_ply(folder / "cloud.ply", big)
+    assert not (folder / "cloud.ply").exists()  # nothing that looks like a cloud
+    record.status = "x" * 3_000_000  # a record larger than what is left
+    with pytest.raises(OSError):
+        record.write(folder)
+    assert first.read_text() == before  # the record stored before is untouched
+    assert sorted(p.name for p in folder.iterdir()) == ["scan.json", "small.ply"]  # no temporary file left
+    assert len(read_ply(folder / "small.ply")[0]["x"]) == 10
+    fault_report.note(error_shown=str(caught.value), snaps_lost=0, data_kept="scan.json and the PLY written before")
+
+
+@pytest.mark.fault("storage: scan folder deleted while its bag is written")
+def test_a_bag_whose_folder_is_deleted_is_written_again_with_every_message(tmp_path, fault_report):
+    import shutil
+
+    folder = tmp_path / "scan"
+    path = folder / "bag"
+    written = []
+    bag = bags.BagWriter(path, "mcap")
+    bag.add_topic(TOPIC, "std_msgs/msg/String", [bags.make_qos("reliable", "volatile")])
+    for i in range(12):
+        if i == 6:
+            bag._io.submit(lambda: None).result()
+            shutil.rmtree(folder)  # the user deletes the scan folder mid-scan
+        t = 1_795_000_000_000_000_000 + i * 10_000_000
+        data = _string_cdr(300_000, i)
+        bag.write(TOPIC, t, data)
+        written.append((t, data))
+    assert bag.error is None
+    bag.close()
+    assert _stored(path) == written  # before and after the deletion, for a plain rosbags reader
+    assert not [p for p in path.rglob("*") if p.name.endswith(".tmp")]
+    fault_report.note(error_shown="(the scan coordinator stops the scan and names the folder)", snaps_lost=0,
+                      data_kept="the bag written again from its open file, every message")
+
+
+def test_the_scan_stops_naming_the_storage_problem(tmp_path):
+    from types import SimpleNamespace
+
+    from lsu_scan.scan_bag import storage_problem
+
+    folder = tmp_path / "scan"
+    folder.mkdir()
+    healthy = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error=None)))
+    full = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error="the disk of /x is full")))
+    assert storage_problem(healthy, folder) is None and storage_problem(None, folder) is None
+    assert "disk of /x is full" in storage_problem(full, folder) and "free space" in storage_problem(full, folder)
+    folder.rmdir()
+    assert f"scan folder {folder} was deleted" in storage_problem(healthy, folder)
