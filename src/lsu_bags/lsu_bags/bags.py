@@ -491,7 +491,9 @@ def open_bag(bag_dir: Path | str) -> Iterator[Reader]:
         raise BagError(f"bag {path} does not exist (give the folder `lsu bag record -o` created)")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise BagError(f"{path / 'metadata.yaml'} is missing: not a rosbag2 folder, or its recording was killed "
-                       f"before it could close (stop `lsu bag record` with Ctrl-C or SIGTERM)")
+                       f"before it could close (stop `lsu bag record` with Ctrl-C or SIGTERM; a killed recording "
+                       f"is made whole by `lsu_bags.bags.recover_bag`, which the scan coordinator runs on its scans "
+                       f"when it starts)")
     try:
         reader = Reader(path)
         reader.open()
@@ -677,6 +679,104 @@ def _mcap_views(file: Path, wanted: dict[str, Connection]) -> list[BagMessage] |
         return True
 
     return out if records(8, len(buffer)) else None
+
+
+def unfinished(bag_dir: Path | str) -> bool:
+    """A bag folder whose recording never closed (killed): one MCAP file and no metadata.yaml."""
+    path = Path(bag_dir)
+    return path.is_dir() and not (path / "metadata.yaml").exists() and len(list(path.glob("*.mcap"))) == 1
+
+
+def recover_bag(bag_dir: Path | str, types: BagTypes | None = None) -> dict[str, int]:
+    """Make the bag of a killed recording (`unfinished`) a complete one: every message whose record is whole
+    in the MCAP file, the file's index and metadata.yaml; returns the messages per topic.
+
+    A killed writer leaves records up to its last write and no summary or footer, which rosbags needs to open
+    the file. The complete records are read in file order (stopping at the first one cut short), written into a
+    new bag beside it with the channels' types and QoS, and the new bag replaces the folder (renamed: the folder
+    is never half recovered). Hand-written: rosbags reads only finished files and the `mcap` library is no
+    dependency; the record layout is the one `_mcap_views` reads.
+
+    Raises:
+        BagError: not an unfinished bag, or not an MCAP file.
+    """
+    import shutil
+
+    from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, get_qos
+
+    path = Path(bag_dir)
+    if not unfinished(path):
+        raise BagError(f"{path} is not the bag of a killed recording (one .mcap file, no metadata.yaml)")
+    import mmap
+
+    with open(next(path.glob("*.mcap")), "rb") as handle:
+        data: Any = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) if handle.seek(0, 2) else b""
+    if data[:8] != _MCAP_MAGIC:
+        raise BagError(f"{path}: not an MCAP file, cannot recover it")
+    u16, u32, u64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str, list[Qos]]] = {}  # id -> topic, type, offered QoS
+    messages: list[tuple[int, int, bytes]] = []  # channel, log time, data
+
+    def string(at: int) -> tuple[str, int]:
+        n = u32.unpack_from(data, at)[0]
+        return data[at + 4:at + 4 + n].decode(), at + 4 + n
+
+    def records(pos: int, stop: int) -> None:
+        while pos + 9 <= stop:
+            op, length = data[pos], u64.unpack_from(data, pos + 1)[0]
+            body, pos = pos + 9, pos + 9 + length
+            if pos > stop:
+                return  # cut short by the kill: nothing after it was stored
+            if op == 0x03:  # Schema: id, name, encoding, data
+                schemas[u16.unpack_from(data, body)[0]] = string(body + 2)[0]
+            elif op == _MCAP_CHANNEL:  # id, schema id, topic, message encoding, metadata
+                topic, at = string(body + 4)
+                _encoding, at = string(at)
+                size = u32.unpack_from(data, at)[0]
+                channels[u16.unpack_from(data, body)[0]] = (topic, schemas.get(u16.unpack_from(data, body + 2)[0], ""),
+                                                            get_qos(data[at + 4:at + 4 + size]))
+            elif op == _MCAP_MESSAGE:
+                messages.append((u16.unpack_from(data, body)[0], u64.unpack_from(data, body + 6)[0],
+                                 data[body + 22:pos]))
+            elif op == _MCAP_CHUNK:
+                compression, at = string(body + 28)
+                size = u64.unpack_from(data, at)[0]
+                if at + 8 + size > pos:
+                    return
+                inner = data[at + 8:at + 8 + size]
+                if compression:
+                    inner = DECOMPRESSORS[compression](inner, u64.unpack_from(data, body + 16)[0])
+                records_in(inner)
+            elif op == _MCAP_DATA_END:
+                return
+
+    def records_in(chunk: bytes) -> None:
+        nonlocal data
+        outer, data = data, chunk
+        try:
+            records(0, len(chunk))
+        finally:
+            data = outer
+
+    records(8, len(data))
+    staging = path.parent / f".{path.name}.recovering"
+    shutil.rmtree(staging, ignore_errors=True)
+    counts: dict[str, int] = {}
+    with BagWriter(staging / path.name, "mcap", types=types) as out:
+        for topic, msgtype, qos in channels.values():
+            out.add_topic(topic, msgtype, qos)
+            counts[topic] = 0
+        for channel, stamp, payload in messages:
+            if channel in channels:
+                out.write(channels[channel][0], stamp, payload)
+                counts[channels[channel][0]] += 1
+    aside = path.parent / f".{path.name}.unfinished"
+    path.rename(aside)
+    (staging / path.name).rename(path)
+    shutil.rmtree(aside, ignore_errors=True)
+    shutil.rmtree(staging, ignore_errors=True)
+    return counts
 
 
 def _select(reader: Reader, path: Path, topics: Iterable[str] | None) -> list[Connection]:

@@ -49,7 +49,7 @@ from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState, StereoExposur
 from lsu_interfaces.srv import CaptureStereo, MoveTo, StreamStereo
 
 from .laser_guard import LaserGuard
-from .scan_bag import ScanBag, storage_problem
+from .scan_bag import ScanBag, recover_killed_scans, storage_problem
 from .scan_calls import ScanAborted, ScanCanceled, _key
 from .scan_params import PARAMETERS, ScanParameters
 from .scan_run import ScanRun, ScanRunSteps
@@ -124,6 +124,9 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         self._server = ActionServer(self, Scan, "scan", execute_callback=self._execute,
                                     goal_callback=self._on_goal, cancel_callback=lambda _h: CancelResponse.ACCEPT,
                                     callback_group=group)
+        # scans a killed coordinator left (its bag never closed): made whole beside the start-up, not delaying it
+        threading.Thread(target=recover_killed_scans, args=(self.output_dir, self.get_logger()),
+                         name="lsu-scan-recover", daemon=True).start()
 
     # ------------------------------------------------------------------------------ inputs
     @property
