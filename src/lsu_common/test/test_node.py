@@ -51,18 +51,25 @@ def _start(mode: str) -> subprocess.Popen:
                             text=True)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_ends_the_node_cleanly(sig):
-    proc = _start("run")
+def _signal_after(mode: str, lines: list[str], sig: int) -> tuple[subprocess.Popen, str, str]:
+    """The probe in ``mode``, sent ``sig`` once it printed ``lines``; (process, rest of stdout, stderr)."""
+    proc = _start(mode)
     try:
-        assert proc.stdout.readline().strip() == "ready"
+        for line in lines:
+            assert proc.stdout.readline().strip() == line
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return proc, out, err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_node_cleanly(sig):
+    proc, out, err = _signal_after("run", ["ready"], sig)
     assert proc.returncode == 0, err
     assert "destroyed" in out, "destroy_node must run on every way out (the node's safe state)"
     assert "Traceback" not in err
@@ -71,15 +78,7 @@ def test_a_signal_ends_the_node_cleanly(sig):
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
-    proc = _start("slow")
-    try:
-        assert proc.stdout.readline().strip() == "building"
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    proc, out, err = _signal_after("slow", ["building"], sig)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "ready" not in out
 
@@ -89,16 +88,7 @@ def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
 def test_a_callback_still_running_ends_before_the_node_is_destroyed(sig):
     # the executor's threads must not run a callback of a destroyed node in a shut-down context (what ended
     # face_processor in a segmentation fault inside the middleware at shutdown)
-    proc = _start("working")
-    try:
-        assert proc.stdout.readline().strip() == "ready"
-        assert proc.stdout.readline().strip() == "working"
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    proc, out, err = _signal_after("working", ["ready", "working"], sig)
     assert proc.returncode == 0, err
     assert out.split() == ["work", "done", "destroyed"], (out, err)
     assert "Traceback" not in err
