@@ -132,9 +132,12 @@ def test_the_scan_stops_naming_the_storage_problem(tmp_path):
 
     folder = tmp_path / "scan"
     folder.mkdir()
-    healthy = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error=None)))
-    full = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error="the disk of /x is full")))
+    healthy = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error=None, free_bytes=10**9)))
+    full = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error="the disk of /x is full",
+                                                                           free_bytes=0)))
+    nearly = SimpleNamespace(recorder=SimpleNamespace(writer=SimpleNamespace(error=None, free_bytes=12 << 20)))
     assert storage_problem(healthy, folder) is None and storage_problem(None, folder) is None
+    assert "nearly full" in storage_problem(nearly, folder)
     assert "disk of /x is full" in storage_problem(full, folder) and "free space" in storage_problem(full, folder)
     folder.rmdir()
     assert f"scan folder {folder} was deleted" in storage_problem(healthy, folder)

@@ -332,6 +332,7 @@ class BagWriter:
         self._error: BaseException | None = None
         self._open = False
         self._kept_fd: int | None = None  # the storage file, read-only: its data outlives a deleted folder
+        self.free_bytes: int | None = None  # free on the bag's disk at the last write (None before the first)
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         mode = (CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE) if compress else None
         try:
@@ -408,7 +409,7 @@ class BagWriter:
             return
         try:
             vfs = os.statvfs(self.path) if self._kept_fd is None else os.fstatvfs(self._kept_fd)
-            free = vfs.f_bavail * vfs.f_frsize
+            free = self.free_bytes = vfs.f_bavail * vfs.f_frsize
             if free - len(data) < LOW_SPACE_BYTES:
                 raise OSError(errno.ENOSPC, f"the disk of {self.path} is full ({free / 1e6:.1f} MB free, "
                                             f"{LOW_SPACE_BYTES >> 20} MiB are kept to close the bag); the bag holds "

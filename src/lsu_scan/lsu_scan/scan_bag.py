@@ -9,6 +9,8 @@ from typing import Any
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 
+from lsu_bags.bags import LOW_SPACE_BYTES
+
 # Not /lsu/sim/truth: simulation only, and ~1 ms of executor time per message in this process
 # while the scan loop needs the CPU. The bag is for replaying the processing and for placing it
 # in the rig's frames (/tf_static: rig, cameras, laser origin; /tf: the laser per driver state);
@@ -69,6 +71,11 @@ def recover_killed_scans(parent: Path, log: Any, quiet_s: float = 1.0) -> list[P
     return done
 
 
+# a scan stops before its next snap when less is free on the bag's disk: the images of the snap in flight (two
+# ~1 MB frames) and the bag's own reserve (`lsu_bags.bags.LOW_SPACE_BYTES`) still fit
+NEARLY_FULL_BYTES = LOW_SPACE_BYTES + (8 << 20)
+
+
 def storage_problem(bag: ScanBag | None, folder: Path) -> str | None:
     """Why a scan cannot go on storing its data, or None: its folder is gone, or its bag stopped taking
     messages (a full disk). Checked before every snap: capturing on would only lose what is captured."""
@@ -79,6 +86,11 @@ def storage_problem(bag: ScanBag | None, folder: Path) -> str | None:
     error = None if bag is None else bag.recorder.writer.error
     if error is not None:
         return f"the scan's bag cannot take more images: {error}; free space and scan again"
+    free = None if bag is None else bag.recorder.writer.free_bytes
+    if free is not None and free < NEARLY_FULL_BYTES:
+        # stopped one snap before the bag must refuse images: the snap in flight is still stored whole
+        return (f"the disk of {folder} is nearly full ({free / 1e6:.1f} MB free); the scan stopped with every "
+                "captured image in its bag: free space and scan again")
     return None
 
 
