@@ -19,7 +19,9 @@
    extractor and matcher in one process: replay_snaps_per_s, replay_cpu_ms_per_snap and
    replay_cpu_over_compute = the two CPU times per snap), and the message path (images + events as
    raw CDR published closed-loop, each snap waiting for its /lsu/points, into `lsu run replay`:
-   replay_dds_*); three runs each, medians.
+   replay_dds_*); three runs each, medians. Beside them the code before issue 33 (REPLAY_BEFORE, a temporary git
+   worktree first on PYTHONPATH) replayed alternately with this one: replay_snaps_per_s_over_before,
+   replay_cpu_over_before.
 3. Live view: a default scan with `lsu view` running and a Foxglove client (lsu_view.wsclient) subscribed
    to every channel, images included, then one more default scan without them:
    bridge_overhead_pct = that scan's wall time over the mean of the two default scans without, minus 1.
@@ -464,6 +466,65 @@ def replay_figures(bag: Path, direct_runs: int = REPLAYS, dds_runs: int = REPLAY
                         "replay_dds_snaps": mid["snaps"], "bag_snaps_missing_images": mid["missing_in_bag"]})
         figures["replay_dds_cpu_over_compute"] = figures["replay_dds_cpu_ms_per_snap"] / compute_ms
     return figures
+
+
+REPLAY_BEFORE = "59ff447"  # the code before issue 33 (replay CPU), measured beside the current code in the same run
+
+
+def _source_path(checkout: Path) -> str:
+    """PYTHONPATH putting the Python packages of ``checkout`` before this venv's editable installs (its generated
+    interfaces, not Python sources, stay the venv's)."""
+    return os.pathsep.join(str(pkg) for pkg in sorted((checkout / "src").iterdir())
+                           if (pkg / pkg.name / "__init__.py").is_file())
+
+
+def replay_before_figures(bag: Path, runs: int = REPLAYS, before: str = REPLAY_BEFORE) -> dict:
+    """`lsu run replay BAG --exit` of the code at ``before`` (a temporary git worktree, its packages first on
+    PYTHONPATH) and of this checkout, alternated in one run on one host: replay_snaps_per_s_over_before (median
+    of the pairs' ratios) and replay_cpu_over_before (CPU per snap)."""
+    root = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory(prefix="lsu-bench-before-") as tmp:
+        checkout = Path(tmp) / "before"
+        subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(checkout), before], check=True,
+                       capture_output=True)
+        try:
+            env_before = {**os.environ, "PYTHONPATH": _source_path(checkout)}
+            pairs = []
+            for _ in range(runs):
+                old = _replay_with_env(bag, env_before)
+                new = _replay_with_env(bag, dict(os.environ))
+                pairs.append((old, new))
+        finally:
+            subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(checkout)], check=False,
+                           capture_output=True)
+
+    def median(values: list[float]) -> float:
+        return sorted(values)[len(values) // 2]
+
+    return {"replay_snaps_per_s_over_before": median([(n["snaps"] / n["seconds"]) / (o["snaps"] / o["seconds"])
+                                                      for o, n in pairs]),
+            "replay_cpu_over_before": median([(n["cpu_s"] / n["snaps"]) / (o["cpu_s"] / o["snaps"]) for o, n in pairs]),
+            "replay_before_snaps_per_s": median([o["snaps"] / o["seconds"] for o, _ in pairs])}
+
+
+def _replay_with_env(bag: Path, env: dict) -> dict:
+    """`lsu run replay BAG --exit --workers N` in ``env``: snaps, seconds, CPU seconds (the command's own figures)."""
+    from lsu_testing.plugin import LaunchedProcess
+
+    graph = LaunchedProcess(["run", "replay", str(bag), "--exit", "--workers", str(REPLAY_WORKERS)], env=env)
+    try:
+        graph.wait(timeout_s=600)
+    finally:
+        graph.kill()
+    match = re.search(r"replayed .*: (\d+) snaps .* in ([\d.]+) s, \d+ snaps/s, ([\d.]+) ms CPU per snap", graph.output)
+    if graph.process.returncode != 0 or match is None:
+        raise RuntimeError(f"lsu run replay {bag} failed (exit {graph.process.returncode}): {graph.output[-3000:]}")
+    snaps = int(match.group(1))
+    return {"snaps": snaps, "seconds": float(match.group(2)), "cpu_s": float(match.group(3)) * snaps / 1000.0}
+
+
+REPLAY_BEFORE_UNITS = {"replay_snaps_per_s_over_before": "x", "replay_cpu_over_before": "x",
+                       "replay_before_snaps_per_s": "snaps/s"}
 
 
 REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps/s", "replay_snaps_per_s_min": "snaps/s",
@@ -913,7 +974,9 @@ def only(parts: set, bag: Path | None = None) -> int:
             if "replay" in parts:
                 source = "a recorded scan bag given with --bag" if bag else "a bag written by lsu_testing.simbags (synthetic head 7, " \
                     "0..470 step 2 + texture pair, rendered by the simulated rig without the graph)"
-                figures.update(replay_figures(bag or sim_bag(tmp)))
+                replay_bag = bag or sim_bag(tmp)
+                figures.update(replay_figures(replay_bag))
+                figures.update(replay_before_figures(replay_bag))
                 replay_source = source
             if "live" in parts:
                 figures.update(live_figures(live_scan(tmp, baseline=True, view=False)))
@@ -947,7 +1010,7 @@ def only(parts: set, bag: Path | None = None) -> int:
     if "replay" in parts:
         measured["replay"] += f", on {replay_source}"
     if parts:
-        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS,
+        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **SETTLE_UNITS, **SWEEP_UNITS,
                                       **WEB_UNITS},
                      notes=NOTES + WEB_NOTES,
                      extra={"measured": measured})
@@ -968,6 +1031,7 @@ def main() -> int:
             runs = live_scan(tmp)
             # medians of REPLAYS runs (each in a fresh process): one run is at the mercy of the host's noise
             replays = replay_figures(Path(runs["recording"]["result"].output_dir) / "bag")
+            replays.update(replay_before_figures(Path(runs["recording"]["result"].output_dir) / "bag"))
             unavailable = why_unavailable()
             walls = two_host_runs(tmp) if unavailable is None else {}
             settle = settle_figures(tmp)
@@ -978,7 +1042,7 @@ def main() -> int:
     write_result(
         "scan",
         {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web},
-        {**LIVE_UNITS, **REPLAY_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS},
+        {**LIVE_UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS},
         notes=NOTES + WEB_NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in (*PARTS, "web")
                                                      if part != "two_host" or unavailable is None}})
     return 0

@@ -318,3 +318,37 @@ def test_the_bag_places_the_laser_at_every_snap_for_a_plain_rosbags_reader(graph
         laser = in_base(parent, t, r)  # the laser frame's origin in the rig's base frame
         expected = np.array([0.0, (235.0 - snap["position_steps"]) * 0.00042333, 0.0])
         assert np.allclose(laser, expected, atol=1e-6), (snap["index"], laser, expected)
+
+
+@pytest.mark.fault("scan: disk full while recording")
+def test_a_full_disk_stops_the_scan_with_every_captured_pair_in_its_bag(graph, fault_report, tmp_path):
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0:
+        pytest.skip("a full disk needs a small tmpfs, and mounting one needs root")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m", "tmpfs", str(disk)], capture_output=True,
+                             text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here: {mounted.stderr.strip()}")
+    try:
+        scanner = graph["scanner"]
+        if not scanner.is_task_complete():
+            scanner.cancel_task()
+            scanner.get_result(timeout_s=60)
+        # 101 snaps of two ~0.9 MB images do not fit on 48 MiB
+        scanner.start_scan(start=100, end=300, step=2, settle_s=0.05, output_dir=str(disk), record_bag=True)
+        result = scanner.get_result(timeout_s=180)
+        assert result.partial and "nearly full" in result.status, result.status
+        assert not laser_on(graph)
+        record = scan_json(result)  # the record fits in the space kept
+        assert record["partial"] and 3 <= record["snaps_captured"] < 101, record["status"]
+        lost = snaps_lost(result)  # the bag opens, with both images of every captured snap
+        assert not lost, lost
+        assert not [p for p in Path(result.output_dir).rglob("*") if p.name.endswith(".tmp")]
+        fault_report.note(error_shown=result.status, snaps_captured=result.snaps, snaps_lost=len(lost),
+                          laser_on_after_s=0.0,
+                          data_kept=f"scan.json, a closed bag with the {result.snaps} captured image pairs")
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)

@@ -23,6 +23,7 @@ the cause and what to do.
 
 from __future__ import annotations
 
+import errno
 import os
 import queue
 import re
@@ -295,6 +296,12 @@ class _WriterThread:
             self._thread.join()
 
 
+# a message that would leave less free on the bag's disk is not written and the bag stops there (`BagWriter.error`):
+# the open chunk (up to ~2 MiB with an image), the index and metadata.yaml must still fit when it is closed, or
+# the whole bag could not be opened
+LOW_SPACE_BYTES = 8 << 20
+
+
 class BagWriter:
     """A new rosbag2 folder, written while topics appear; thread-safe.
 
@@ -324,6 +331,8 @@ class BagWriter:
         self.counts: dict[str, int] = {}
         self._error: BaseException | None = None
         self._open = False
+        self._kept_fd: int | None = None  # the storage file, read-only: its data outlives a deleted folder
+        self.free_bytes: int | None = None  # free on the bag's disk at the last write (None before the first)
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         mode = (CompressionMode.STORAGE if storage == "mcap" else CompressionMode.MESSAGE) if compress else None
         try:
@@ -338,7 +347,16 @@ class BagWriter:
         if mode is not None:
             writer.set_compression(mode, CompressionFormat.ZSTD)
         writer.open()
+        storage = getattr(writer.storage, "path", None)
+        if storage is not None and self.storage == "mcap":  # sqlite keeps journals beside its file: not kept
+            self._kept_fd = os.open(storage, os.O_RDONLY)
         return writer
+
+    @property
+    def error(self) -> str | None:
+        """Why the bag stopped taking messages (a write failed, the disk is nearly full), or None: said at once
+        so that a caller stops capturing data that cannot be stored (`close` raises it too)."""
+        return None if self._error is None else str(self._error)
 
     def __enter__(self) -> BagWriter:
         return self
@@ -390,9 +408,27 @@ class BagWriter:
         if self._error is not None:
             return
         try:
+            vfs = os.statvfs(self.path) if self._kept_fd is None else os.fstatvfs(self._kept_fd)
+            free = self.free_bytes = vfs.f_bavail * vfs.f_frsize
+            if free - len(data) < LOW_SPACE_BYTES:
+                raise OSError(errno.ENOSPC, f"the disk of {self.path} is full ({free / 1e6:.1f} MB free, "
+                                            f"{LOW_SPACE_BYTES >> 20} MiB are kept to close the bag); the bag holds "
+                                            "the messages before")
             self._writer.write(connection, timestamp_ns, data)
         except Exception as exc:  # kept and raised by close(): a write has no caller left to tell
             self._error = exc
+
+    def _restore(self) -> None:
+        """The storage file, deleted with its folder while open and finished since, copied back beside the new
+        metadata.yaml (atomically: a copy cut short is never taken for the bag)."""
+        assert self._kept_fd is not None
+        target = self.path / f"{self.path.name}.mcap"
+        tmp = target.with_suffix(".mcap.tmp")
+        with open(os.dup(self._kept_fd), "rb") as src, open(tmp, "wb") as dst:
+            src.seek(0)
+            while chunk := src.read(1 << 20):
+                dst.write(chunk)
+        tmp.replace(target)
 
     def close(self) -> None:
         """Write what is queued, finish the storage file and write metadata.yaml; idempotent.
@@ -404,12 +440,20 @@ class BagWriter:
             if not self._open:
                 return
             self._open = False
+        deleted = self._kept_fd is not None and os.fstat(self._kept_fd).st_nlink == 0
         try:
+            if deleted:  # deleted while recording (the folder, or the file): the data is still in the open file
+                self.path.mkdir(parents=True, exist_ok=True)
             self._io.submit(self._writer.close).result()
+            if deleted:
+                self._restore()
         except (WriterError, OSError) as exc:
             raise BagError(f"bag {self.path}: cannot finish the bag ({exc})") from None
         finally:
             self._io.shutdown(wait=True)
+            if self._kept_fd is not None:
+                os.close(self._kept_fd)
+                self._kept_fd = None
         if self._error is not None:
             raise BagError(f"bag {self.path}: writing a message failed ({self._error}); the bag was closed "
                            f"with the messages before it")
@@ -448,7 +492,9 @@ def open_bag(bag_dir: Path | str) -> Iterator[Reader]:
         raise BagError(f"bag {path} does not exist (give the folder `lsu bag record -o` created)")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         raise BagError(f"{path / 'metadata.yaml'} is missing: not a rosbag2 folder, or its recording was killed "
-                       f"before it could close (stop `lsu bag record` with Ctrl-C or SIGTERM)")
+                       f"before it could close (stop `lsu bag record` with Ctrl-C or SIGTERM; a killed recording "
+                       f"is made whole by `lsu_bags.bags.recover_bag`, which the scan coordinator runs on its scans "
+                       f"when it starts)")
     try:
         reader = Reader(path)
         reader.open()
@@ -634,6 +680,104 @@ def _mcap_views(file: Path, wanted: dict[str, Connection]) -> list[BagMessage] |
         return True
 
     return out if records(8, len(buffer)) else None
+
+
+def unfinished(bag_dir: Path | str) -> bool:
+    """A bag folder whose recording never closed (killed): one MCAP file and no metadata.yaml."""
+    path = Path(bag_dir)
+    return path.is_dir() and not (path / "metadata.yaml").exists() and len(list(path.glob("*.mcap"))) == 1
+
+
+def recover_bag(bag_dir: Path | str, types: BagTypes | None = None) -> dict[str, int]:
+    """Make the bag of a killed recording (`unfinished`) a complete one: every message whose record is whole
+    in the MCAP file, the file's index and metadata.yaml; returns the messages per topic.
+
+    A killed writer leaves records up to its last write and no summary or footer, which rosbags needs to open
+    the file. The complete records are read in file order (stopping at the first one cut short), written into a
+    new bag beside it with the channels' types and QoS, and the new bag replaces the folder (renamed: the folder
+    is never half recovered). Hand-written: rosbags reads only finished files and the `mcap` library is no
+    dependency; the record layout is the one `_mcap_views` reads.
+
+    Raises:
+        BagError: not an unfinished bag, or not an MCAP file.
+    """
+    import shutil
+
+    from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, get_qos
+
+    path = Path(bag_dir)
+    if not unfinished(path):
+        raise BagError(f"{path} is not the bag of a killed recording (one .mcap file, no metadata.yaml)")
+    import mmap
+
+    with open(next(path.glob("*.mcap")), "rb") as handle:
+        data: Any = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) if handle.seek(0, 2) else b""
+    if data[:8] != _MCAP_MAGIC:
+        raise BagError(f"{path}: not an MCAP file, cannot recover it")
+    u16, u32, u64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str, list[Qos]]] = {}  # id -> topic, type, offered QoS
+    messages: list[tuple[int, int, bytes]] = []  # channel, log time, data
+
+    def string(at: int) -> tuple[str, int]:
+        n = u32.unpack_from(data, at)[0]
+        return data[at + 4:at + 4 + n].decode(), at + 4 + n
+
+    def records(pos: int, stop: int) -> None:
+        while pos + 9 <= stop:
+            op, length = data[pos], u64.unpack_from(data, pos + 1)[0]
+            body, pos = pos + 9, pos + 9 + length
+            if pos > stop:
+                return  # cut short by the kill: nothing after it was stored
+            if op == 0x03:  # Schema: id, name, encoding, data
+                schemas[u16.unpack_from(data, body)[0]] = string(body + 2)[0]
+            elif op == _MCAP_CHANNEL:  # id, schema id, topic, message encoding, metadata
+                topic, at = string(body + 4)
+                _encoding, at = string(at)
+                size = u32.unpack_from(data, at)[0]
+                channels[u16.unpack_from(data, body)[0]] = (topic, schemas.get(u16.unpack_from(data, body + 2)[0], ""),
+                                                            get_qos(data[at + 4:at + 4 + size]))
+            elif op == _MCAP_MESSAGE:
+                messages.append((u16.unpack_from(data, body)[0], u64.unpack_from(data, body + 6)[0],
+                                 data[body + 22:pos]))
+            elif op == _MCAP_CHUNK:
+                compression, at = string(body + 28)
+                size = u64.unpack_from(data, at)[0]
+                if at + 8 + size > pos:
+                    return
+                inner = data[at + 8:at + 8 + size]
+                if compression:
+                    inner = DECOMPRESSORS[compression](inner, u64.unpack_from(data, body + 16)[0])
+                records_in(inner)
+            elif op == _MCAP_DATA_END:
+                return
+
+    def records_in(chunk: bytes) -> None:
+        nonlocal data
+        outer, data = data, chunk
+        try:
+            records(0, len(chunk))
+        finally:
+            data = outer
+
+    records(8, len(data))
+    staging = path.parent / f".{path.name}.recovering"
+    shutil.rmtree(staging, ignore_errors=True)
+    counts: dict[str, int] = {}
+    with BagWriter(staging / path.name, "mcap", types=types) as out:
+        for topic, msgtype, qos in channels.values():
+            out.add_topic(topic, msgtype, qos)
+            counts[topic] = 0
+        for channel, stamp, payload in messages:
+            if channel in channels:
+                out.write(channels[channel][0], stamp, payload)
+                counts[channels[channel][0]] += 1
+    aside = path.parent / f".{path.name}.unfinished"
+    path.rename(aside)
+    (staging / path.name).rename(path)
+    shutil.rmtree(aside, ignore_errors=True)
+    shutil.rmtree(staging, ignore_errors=True)
+    return counts
 
 
 def _select(reader: Reader, path: Path, topics: Iterable[str] | None) -> list[Connection]:

@@ -156,9 +156,17 @@ def write_ply(path: str | Path, vertices: Mapping[str, AnyArray], comments: Sequ
     header = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {n}",
               *(f"property {_PLY_NAMES[col.dtype.str[1:]]} {name}" for name, col in columns.items()), "end_header", ""]
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as fh:
-        fh.write("\n".join(header).encode("ascii"))
-        fh.write(rec.tobytes())
+    # written beside and renamed: a write cut short (a full disk) never leaves a PLY whose header promises
+    # vertices it does not hold
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write("\n".join(header).encode("ascii"))
+            fh.write(rec.tobytes())
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

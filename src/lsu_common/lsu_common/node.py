@@ -6,18 +6,25 @@
 node is built inside the ``try`` (opening a simulated rig takes seconds, and a Ctrl-C meanwhile is
 a normal end too); ``destroy_node()`` always runs, so each node's own safe state (laser off,
 motion stopped, scan data on disk) is reached on every way out.
+
+The way out has one order (`close_nodes`, also `lsu run`'s): the executor takes no new work, the
+callbacks its threads still run end, then the nodes are destroyed, then the context is shut down.
+A node destroyed, or a context shut down, under a running callback fails that callback's remaining
+work (a reply, the laser off, a file) on destroyed handles, and tears the middleware down under a
+thread still inside it.
 """
 
 from __future__ import annotations
 
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import qos_policy_name_from_kind
@@ -25,6 +32,9 @@ from rclpy.subscription import Subscription
 
 EXIT_OK = 0
 EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); the message says why
+# how long a way out waits for the callbacks still running (a scan's end, a mesh being written) before the nodes
+# go: below `lsu launch`'s SIGINT grace (2.5 s), so that a node that ends in time is not SIGTERMed
+CALLBACK_GRACE_S = 2.0
 
 
 class LsuNode(Node):
@@ -101,10 +111,49 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
         # the context was shut down (SIGTERM) while the node was being built: its rclpy calls
         # fail because of that, a normal end
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        close_nodes(executor, [node] if node is not None else [])
     return EXIT_OK
+
+
+def stop_executor(executor: Executor, grace_s: float = CALLBACK_GRACE_S) -> bool:
+    """``executor`` takes no new work, and the callbacks its threads still run end (waited for at most
+    ``grace_s``); True when none is left running.
+
+    rclpy's own ``Executor.shutdown`` does not do it: it returns without waiting (rclpy 7.1 checks its
+    shutdown flag after setting it), and a `MultiThreadedExecutor` never stops its thread pool, whose
+    callbacks go on after the nodes they use are gone. So this waits for rclpy's count of running
+    callbacks, then stops the pool (queued callbacks cancelled) and joins its threads.
+    """
+    import concurrent.futures
+
+    deadline = time.monotonic() + grace_s
+    executor.shutdown(timeout_sec=0.0)  # no new work; "don't wait" where rclpy would
+    tracker = getattr(executor, "_work_tracker", None)
+    done = bool(tracker.wait(grace_s)) if tracker is not None else True
+    pool = getattr(executor, "_executor", None)
+    if isinstance(pool, concurrent.futures.ThreadPoolExecutor):
+        pool.shutdown(wait=False, cancel_futures=True)
+        for thread in list(getattr(pool, "_threads", ())):
+            thread.join(max(0.0, deadline - time.monotonic()))
+            done = done and not thread.is_alive()
+    return done
+
+
+def close_nodes(executor: Executor, nodes: Sequence[Node], context: Any = None,
+                grace_s: float = CALLBACK_GRACE_S) -> None:
+    """The way out of a process's nodes (module doc): `stop_executor`, every node destroyed (each reaches
+    its safe state in ``destroy_node``), then ``context`` (None: the default one) shut down."""
+    try:
+        if not stop_executor(executor, grace_s):
+            for node in nodes[:1]:
+                node.get_logger().warning(f"a callback was still running {grace_s:g} s after the shutdown began; "
+                                          "destroying the nodes anyway")
+    finally:
+        try:
+            for node in nodes:
+                node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
 
 
 def main_of(node_class: type[Node], *, multi_threaded: bool = False,

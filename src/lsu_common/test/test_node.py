@@ -17,6 +17,8 @@ PROBE = textwrap.dedent("""
     class Probe(Node):
         def __init__(self):
             super().__init__("runner_probe", namespace="/lsu_runner_test")
+            if sys.argv[1] == "working":  # a callback still at work when the signal comes (a scan's end)
+                self.timer = self.create_timer(0.05, self.work)
             if sys.argv[1] == "busy":
                 raise RuntimeError("port 8765 is taken; choose another")
             if sys.argv[1] == "bug":
@@ -27,11 +29,19 @@ PROBE = textwrap.dedent("""
                 from std_msgs.msg import Empty
                 self.create_publisher(Empty, "x", 1)
 
+        def work(self):
+            self.timer.cancel()
+            print("working", flush=True)
+            time.sleep(1.0)
+            self.get_clock().now()  # a handle of the node, in use to the end of the callback
+            print("work done", flush=True)
+
         def destroy_node(self):
             print("destroyed", flush=True)
             super().destroy_node()
 
     sys.exit(run_node(Probe, ["probe"], startup_errors=(RuntimeError,), program="probe",
+                      multi_threaded=sys.argv[1] == "working",
                       on_started=lambda node: print("ready", flush=True)))
 """)
 
@@ -41,18 +51,25 @@ def _start(mode: str) -> subprocess.Popen:
                             text=True)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_ends_the_node_cleanly(sig):
-    proc = _start("run")
+def _signal_after(mode: str, lines: list[str], sig: int) -> tuple[subprocess.Popen, str, str]:
+    """The probe in ``mode``, sent ``sig`` once it printed ``lines``; (process, rest of stdout, stderr)."""
+    proc = _start(mode)
     try:
-        assert proc.stdout.readline().strip() == "ready"
+        for line in lines:
+            assert proc.stdout.readline().strip() == line
         proc.send_signal(sig)
         out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+    return proc, out, err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_node_cleanly(sig):
+    proc, out, err = _signal_after("run", ["ready"], sig)
     assert proc.returncode == 0, err
     assert "destroyed" in out, "destroy_node must run on every way out (the node's safe state)"
     assert "Traceback" not in err
@@ -61,17 +78,20 @@ def test_a_signal_ends_the_node_cleanly(sig):
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
-    proc = _start("slow")
-    try:
-        assert proc.stdout.readline().strip() == "building"
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    proc, out, err = _signal_after("slow", ["building"], sig)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "ready" not in out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_callback_still_running_ends_before_the_node_is_destroyed(sig):
+    # the executor's threads must not run a callback of a destroyed node in a shut-down context (what ended
+    # face_processor in a segmentation fault inside the middleware at shutdown)
+    proc, out, err = _signal_after("working", ["ready", "working"], sig)
+    assert proc.returncode == 0, err
+    assert out.split() == ["work", "done", "destroyed"], (out, err)
+    assert "Traceback" not in err
 
 
 @pytest.mark.slow

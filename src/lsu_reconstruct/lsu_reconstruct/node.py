@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import struct
 import sys
+import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -529,7 +530,9 @@ class StereoMatcherNode(LsuNode):
             if msg.type == ScanEvent.FINISHED and msg.snaps_captured:
                 self.scan.expected = int(msg.snaps_captured)
             self.scan.end_reason = msg.reason
-            self.scan.end_time_s = stamps.ns_to_seconds(self.get_clock().now().nanoseconds)
+            # monotonic, not the ROS clock: a step of the system clock (NTP, a user) must neither cut the wait
+            # for the last snaps short nor stretch it
+            self.scan.end_time_s = time.monotonic()
             self._check_scan_end()
 
     def _look_for_texture(self) -> None:
@@ -560,7 +563,7 @@ class StereoMatcherNode(LsuNode):
         scan = self.scan
         if scan is None or scan.end_type is None or scan.published:
             return
-        waited = stamps.ns_to_seconds(self.get_clock().now().nanoseconds) - scan.end_time_s
+        waited = time.monotonic() - scan.end_time_s
         timeout_s = float(self.get_parameter("scan_timeout_s").value)
         if self.sweep is not None:
             # FINISHED may overtake the sweep's last frames: the extractor's lines come later than the events

@@ -49,7 +49,7 @@ from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState, StereoExposur
 from lsu_interfaces.srv import CaptureStereo, MoveTo, StreamStereo
 
 from .laser_guard import LaserGuard
-from .scan_bag import ScanBag
+from .scan_bag import ScanBag, recover_killed_scans, storage_problem
 from .scan_calls import ScanAborted, ScanCanceled, _key
 from .scan_params import PARAMETERS, ScanParameters
 from .scan_run import ScanRun, ScanRunSteps
@@ -106,6 +106,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         self._cloud_serial = 0
         self._cond = threading.Condition()
         self._stopping = False
+        self._storage_check = None
         # read when a goal starts, not followed: as an executor-run subscription it woke the
         # multi-threaded executor 300-1300 times a second during a scan (the reader kept reporting
         # ready with nothing to take), 10-15 % of a core taken from the scan's own processes
@@ -123,6 +124,9 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         self._server = ActionServer(self, Scan, "scan", execute_callback=self._execute,
                                     goal_callback=self._on_goal, cancel_callback=lambda _h: CancelResponse.ACCEPT,
                                     callback_group=group)
+        # scans a killed coordinator left (its bag never closed): made whole beside the start-up, not delaying it
+        threading.Thread(target=recover_killed_scans, args=(self.output_dir, self.get_logger()),
+                         name="lsu-scan-recover", daemon=True).start()
 
     # ------------------------------------------------------------------------------ inputs
     @property
@@ -194,6 +198,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         with self._cond:
             self._acks.clear()  # left from an earlier scan, or from a capture that was taken again
         self.guard.start_scan()
+        self._storage_check = lambda: storage_problem(recorder, run.folder)
         try:
             (self._snap_loop if run.sweep is None else self._sweep_loop)(goal_handle, run)
         except ScanCanceled as exc:
@@ -207,6 +212,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
                 run.abort_reason = f"internal error: {exc.__class__.__name__}: {exc}"
                 self.get_logger().error(run.abort_reason)
         finally:
+            self._storage_check = None
             self.guard.clear()
             self._guarded_ack = None
             self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)

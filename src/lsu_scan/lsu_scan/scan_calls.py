@@ -52,6 +52,7 @@ class ScanCalls(LsuNode):
     # adaptive settle: the laser_extractor's left lines by image stamp, subscribed at the first adaptive scan
     _left_lines: OrderedDict[int, LaserLine]
     _left_line_sub: Any
+    _storage_check: Callable[[], str | None] | None  # during a scan: why its data can no longer be stored, or None
 
     @property
     def shutting_down(self) -> bool:
@@ -209,6 +210,8 @@ class ScanCalls(LsuNode):
             raise ScanCanceled("canceled by the user")
         if self.shutting_down:
             raise ScanAborted("scan_coordinator is shutting down")
+        if self._storage_check is not None and (problem := self._storage_check()):
+            raise ScanAborted(problem)  # capturing on would only lose what is captured
 
     def _since_stop_s(self, stamp: Any) -> float | None:
         """Seconds since the driver saw the carriage stop (``MoveTo.Response.stopped_stamp``), or None.

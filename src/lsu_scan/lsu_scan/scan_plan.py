@@ -112,8 +112,12 @@ class ScanRecord:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / "scan.json"
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(asdict(self), indent=2) + "\n")
-        tmp.replace(path)
+        try:
+            tmp.write_text(json.dumps(asdict(self), indent=2) + "\n")
+            tmp.replace(path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)  # a full disk: no half-written record left behind
+            raise
         return path
 
 

@@ -127,7 +127,14 @@ class ScanRunSteps(ScanCalls):
         self._event(kind, run.scan_id, folder, expected_snaps=total, snaps_captured=len(run.captured),
                     partial=partial, reason=abort_reason)
         record.timings_s["scan"] = time.monotonic() - run.started
-        cloud_points = self._save_cloud(folder, cloud_serial_before, record) if run.captured else 0
+        try:
+            cloud_points = self._save_cloud(folder, cloud_serial_before, record) if run.captured else 0
+        except OSError as exc:  # a full disk, the folder gone: the points are still in the bag if one was recorded
+            cloud_points = 0
+            cloud_error = f"cloud.ply could not be written: {exc}"
+            self.get_logger().error(cloud_error)
+            abort_reason = f"{abort_reason}; {cloud_error}" if abort_reason else cloud_error
+            partial = True
         if recorder is not None:
             try:
                 record.files.append(recorder.stop())
@@ -147,7 +154,12 @@ class ScanRunSteps(ScanCalls):
         record.status = (f"partial: {abort_reason}" if partial else
                          f"finished: {len(run.captured)} {'frames' if run.sweep else 'snaps'}, {record.points} points")
         record.timings_s["total"] = time.monotonic() - run.started
-        record.files.append(str(record.write(folder)))
+        try:
+            record.files.append(str(record.write(folder)))
+        except OSError as exc:  # told in the result, since scan.json cannot say it
+            record.partial = partial = True
+            record.status = f"partial: scan.json could not be written ({exc}); {record.status}"
+            self.get_logger().error(f"scan {run.scan_id}: scan.json could not be written in {folder}: {exc}")
         result = Scan.Result(scan_id=run.scan_id, output_dir=str(folder), success=not partial, partial=partial,
                              snaps=len(run.captured), points=int(record.points),
                              seconds=float(record.timings_s["scan"]), files=[str(f) for f in record.files],

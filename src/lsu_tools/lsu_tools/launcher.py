@@ -122,6 +122,7 @@ class Launcher:
     def _stop_all(self) -> None:
         for child in self.children:
             child.stopping = True
+        sent: set[int] = set()  # signals the launcher sent: a node they ended did not crash
         for sig, grace in ((signal.SIGINT, self.sigint_timeout_s), (signal.SIGTERM, self.sigterm_timeout_s),
                            (signal.SIGKILL, 2.0)):
             if not self._alive():
@@ -129,6 +130,7 @@ class Launcher:
             if sig != signal.SIGINT:
                 self.say(f"{', '.join(c.spec.label for c in self._alive())} still running: sending {sig.name}")
             self._signal_all(sig)
+            sent.add(int(sig))
             deadline = time.monotonic() + grace
             while self._alive() and time.monotonic() < deadline:
                 time.sleep(0.02)
@@ -140,6 +142,22 @@ class Launcher:
             self.say(f"could not stop: {', '.join(f'{c.spec.label} pid {c.process.pid}' for c in left if c.process)}")
         else:
             self.say("all nodes stopped")
+        self._report_stopped(sent)
+
+    def _report_stopped(self, sent: set[int]) -> None:
+        """How each node ended while stopping; one that ended by a signal the launcher did not send crashed
+        (a segmentation fault in a library at shutdown): said, and the launch's exit code is 1."""
+        for child in self.children:
+            proc = child.process
+            code = None if proc is None else proc.poll()
+            if proc is None or code is None or code == 0:
+                continue
+            if code < 0 and -code not in sent:
+                self._failed = True
+                self.say(f"{child.spec.label} crashed while stopping (signal {signal.Signals(-code).name}, pid "
+                         f"{proc.pid})")
+            elif code > 0:
+                self.say(f"{child.spec.label} ended with exit code {code} while stopping")
 
     def _reap(self, child: _Child, now: float) -> None:
         proc = child.process

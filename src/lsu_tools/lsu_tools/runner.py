@@ -61,24 +61,23 @@ def spinning_nodes(description: LaunchDescription, out: TextIO | None = None,
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 
+    from lsu_common.node import close_nodes
+
     rclpy.init()
+    # before the nodes, as `run_node` does: a signal while they are built leaves a context nothing can be made in
+    spinner = MultiThreadedExecutor() if executor == "multi" else SingleThreadedExecutor()
     nodes: list[Any] = []
     try:
         with tempfile.TemporaryDirectory(prefix="lsu-run-") as tmp:
             nodes = build_nodes(description, Path(tmp), out=out)
-            spinner = MultiThreadedExecutor() if executor == "multi" else SingleThreadedExecutor()
             for node in nodes:
                 spinner.add_node(node)
             try:
                 yield nodes, spinner
             except (KeyboardInterrupt, ExternalShutdownException):
                 pass
-            finally:
-                spinner.shutdown(timeout_sec=2.0)
     finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        close_nodes(spinner, nodes)  # the callbacks still running end before the nodes go
 
 
 def run_in_process(description: LaunchDescription, out: TextIO | None = None, executor: str = "multi") -> int:

@@ -1,0 +1,59 @@
+"""`lsu launch`'s way out says how each node ended: a node that crashes while stopping (a signal the launcher did
+not send) is named and fails the launch; one that ends cleanly is not mentioned."""
+
+from __future__ import annotations
+
+import io
+import sys
+import textwrap
+import threading
+import time
+
+from lsu_tools.launch_file import LaunchDescription, NodeSpec
+from lsu_tools.launcher import Launcher
+
+# a stand-in node: on SIGINT it ends cleanly ("clean") or dies of a segmentation fault ("crash")
+NODE = textwrap.dedent("""
+    import os, signal, sys, time
+    def on_int(*_):
+        if sys.argv[1] == "crash":
+            signal.signal(signal.SIGSEGV, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGSEGV)
+        sys.exit(0)
+    signal.signal(signal.SIGINT, on_int)
+    print("up", flush=True)
+    while True:
+        time.sleep(0.05)
+""")
+
+
+def _run(tmp_path, modes: list[str]) -> tuple[int, str]:
+    script = tmp_path / "node.py"
+    script.write_text(NODE)
+    specs = [NodeSpec("lsu_tools", "selftest_talker", name=f"{mode}_node") for mode in modes]
+    out = io.StringIO()
+    launcher = Launcher(LaunchDescription(tmp_path / "x.launch.yaml", {}, specs), out=out)
+    for child, mode in zip(launcher.children, modes):
+        child.command = [sys.executable, str(script), mode]
+
+    def stop_when_up() -> None:  # the launcher's run() is the main thread's (it installs signal handlers)
+        end = time.monotonic() + 60
+        while out.getvalue().count("] up") < len(modes) and time.monotonic() < end:
+            time.sleep(0.05)
+        launcher.request_shutdown("test")
+
+    threading.Thread(target=stop_when_up, daemon=True).start()
+    code = launcher.run()
+    return code, out.getvalue()
+
+
+def test_a_node_crashing_while_stopping_is_named_and_fails_the_launch(tmp_path):
+    code, text = _run(tmp_path, ["clean", "crash"])
+    assert code == 1, text
+    assert "crash_node crashed while stopping (signal SIGSEGV" in text, text
+    assert "clean_node" not in text.split("shutting down")[-1], text
+
+
+def test_nodes_ending_cleanly_leave_the_launch_successful(tmp_path):
+    code, text = _run(tmp_path, ["clean", "clean"])
+    assert code == 0 and "while stopping" not in text, text
