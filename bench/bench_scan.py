@@ -644,13 +644,15 @@ SETTLE_NOTES = (
 def settle_figures(tmp: Path) -> dict:
     """Fixed vs adaptive stop-snap settle on the same scene and physics: scan time and accuracy.
 
-    LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which).
+    LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which);
+    LSU_BENCH_SETTLE_SCENE another scene (default head:7).
     """
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
     from lsu_tools.demo import accuracy_against_scene
 
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/settle"])
+    scene = os.environ.get("LSU_BENCH_SETTLE_SCENE", "head:7")
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", f"scene:={scene}", f"output_dir:={tmp}/settle"])
     runs: dict = {"fixed": [], "adaptive": []}
     try:
         graph.wait_for_line(r"homed: track", timeout_s=120)
@@ -677,7 +679,7 @@ def settle_figures(tmp: Path) -> dict:
                     raise RuntimeError(f"scan.json says settle {record['parameters'].get('settle')}, not {mode}")
                 captures = [s.get("settle", {}).get("captures", 1) for s in record["snaps"]]
                 runs[mode].append({"range": f"{start}..{end} step {step}", "seconds": result.seconds, "captures": sum(captures) / max(1, len(captures)),
-                                   "rms_mm": accuracy_against_scene(folder / "cloud.ply", "head:7")["rms_mm"]})
+                                   "rms_mm": accuracy_against_scene(folder / "cloud.ply", scene)["rms_mm"]})
     finally:
         graph.stop(timeout_s=30)
 
