@@ -633,7 +633,8 @@ SETTLE_UNITS = {"stopsnap_adaptive_settle_scan_s": "s", "stopsnap_fixed_settle_s
                 "stopsnap_adaptive_rms_over_fixed": "x", "stopsnap_adaptive_captures_per_snap": "captures",
                 "stopsnap_settle_scan_snaps": "snaps"}
 SETTLE_NOTES = (
-    "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm), after a warm-up scan, scans of "
+    "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm, or the scene LSU_BENCH_SETTLE_SCENE named: the "
+    "measured entry says which), after a warm-up scan, scans of "
     "stopsnap_settle_scan_snaps snaps (0..470 step 2 unless LSU_BENCH_SETTLE_SCAN said otherwise) with the settle parameter of scan_coordinator fixed (settle_s 0.1) and adaptive (lsu_scan.settle, "
     "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s and laser_pause_s 1.5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
     "two scans: stopsnap_*_settle_scan_s the action's wall time, *_rms_mm the cloud's RMS distance to the true head "
@@ -1018,6 +1019,8 @@ def only(parts: set, bag: Path | None = None) -> int:
     measured = {**old.get("measured", {}), **{part: note for part in done}}
     if "replay" in parts:
         measured["replay"] += f", on {replay_source}"
+    if "settle" in parts:
+        measured["settle"] += f", scene {os.environ.get('LSU_BENCH_SETTLE_SCENE', 'head:7')}"
     if parts:
         write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **SETTLE_UNITS, **SWEEP_UNITS,
                                       **WEB_UNITS, **PERSON_UNITS},
