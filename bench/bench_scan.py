@@ -6,6 +6,7 @@
     .venv/bin/python bench/bench_scan.py --only sweep_live      (only part 6's live sweeps, no accuracy study)
     .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 6's accuracy figures, no ROS)
     .venv/bin/python bench/bench_scan.py --only web             (only part 7: the web page's cost)
+    .venv/bin/python bench/bench_scan.py --only person_stopsnap (only part 8: stop-snap of a realistic person, no ROS)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -44,6 +45,9 @@
 7. Web page (`--only web`): `lsu launch sim web:=true`, default scans 0..470 step 2 without a page, with the
    page open in headless Chromium (live images, laser lines and points streaming to it), and without again:
    web_overhead_pct = the watched scan's wall time over the mean of the two without, minus 1.
+8. Person stop-snap (`--only person_stopsnap`, no ROS): a realistic person rendered stop-snap, points more than 1 mm
+   off the true surface (stopsnap_points_over_1mm_pct), and the adaptive settle against the fixed one on the same
+   scene and frames (adaptive_settle_rms_over_fixed, adaptive_settle_time_over_fixed).
 """
 
 from __future__ import annotations
@@ -690,7 +694,8 @@ SETTLE_UNITS = {"stopsnap_adaptive_settle_scan_s": "s", "stopsnap_fixed_settle_s
                 "stopsnap_adaptive_rms_over_fixed": "x", "stopsnap_adaptive_captures_per_snap": "captures",
                 "stopsnap_settle_scan_snaps": "snaps"}
 SETTLE_NOTES = (
-    "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm), after a warm-up scan, scans of "
+    "settle: in one `lsu launch sim` graph (synthetic head 7 at 300 mm, or the scene LSU_BENCH_SETTLE_SCENE named: the "
+    "measured entry says which), after a warm-up scan, scans of "
     "stopsnap_settle_scan_snaps snaps (0..470 step 2 unless LSU_BENCH_SETTLE_SCAN said otherwise) with the settle parameter of scan_coordinator fixed (settle_s 0.1) and adaptive (lsu_scan.settle, "
     "tolerance 0.15 px, at most settle_s), capture_timeout_s 5 s and laser_pause_s 1.5 s for both, in the order fixed, adaptive, adaptive, fixed; each figure the mean of its "
     "two scans: stopsnap_*_settle_scan_s the action's wall time, *_rms_mm the cloud's RMS distance to the true head "
@@ -701,13 +706,15 @@ SETTLE_NOTES = (
 def settle_figures(tmp: Path) -> dict:
     """Fixed vs adaptive stop-snap settle on the same scene and physics: scan time and accuracy.
 
-    LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which).
+    LSU_BENCH_SETTLE_SCAN=START,END,STEP scans part of the range (a loaded host; the notes say which);
+    LSU_BENCH_SETTLE_SCENE another scene (default head:7).
     """
     from lsu_scan.scanner import LsuScanner
     from lsu_testing.plugin import LaunchedProcess
     from lsu_tools.demo import accuracy_against_scene
 
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/settle"])
+    scene = os.environ.get("LSU_BENCH_SETTLE_SCENE", "head:7")
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", f"scene:={scene}", f"output_dir:={tmp}/settle"])
     runs: dict = {"fixed": [], "adaptive": []}
     try:
         graph.wait_for_line(r"homed: track", timeout_s=120)
@@ -734,7 +741,7 @@ def settle_figures(tmp: Path) -> dict:
                     raise RuntimeError(f"scan.json says settle {record['parameters'].get('settle')}, not {mode}")
                 captures = [s.get("settle", {}).get("captures", 1) for s in record["snaps"]]
                 runs[mode].append({"range": f"{start}..{end} step {step}", "seconds": result.seconds, "captures": sum(captures) / max(1, len(captures)),
-                                   "rms_mm": accuracy_against_scene(folder / "cloud.ply", "head:7")["rms_mm"]})
+                                   "rms_mm": accuracy_against_scene(folder / "cloud.ply", scene)["rms_mm"]})
     finally:
         graph.stop(timeout_s=30)
 
@@ -958,9 +965,73 @@ def sweep_accuracy() -> dict:
             "sweep_rms_over_stopsnap_checked_50ms_per_frame": rms["late_per_frame"] / rms["stop_checked"]}
 
 
+
+PERSON_SCENE = "person:7"
+PERSON_FRAME_PERIOD_S = 0.033  # the adaptive settle's frames: a 30 fps camera (the coordinator's exposure_s)
+PERSON_UNITS = {"stopsnap_points_over_1mm_pct": "%", "stopsnap_points_over_1mm_pct_unfiltered": "%",
+                "person_stopsnap_rms_mm": "mm", "person_stopsnap_rms_mm_unfiltered": "mm",
+                "person_stopsnap_points": "points", "person_stopsnap_points_unfiltered": "points",
+                "adaptive_settle_rms_over_fixed": "x", "adaptive_settle_time_over_fixed": "x",
+                "adaptive_settle_rms_mm": "mm", "fixed_settle_rms_mm": "mm", "adaptive_settle_frames_per_snap": "frames"}
+PERSON_NOTES = (
+    f" person_stopsnap (`--only person_stopsnap`, no ROS: lsu_accuracy.sweep_sim.stopsnap_scene): the realistic person "
+    f"{PERSON_SCENE} at the subject distance, stop-snap 0..470 step 2 rendered by the simulated rig with the emulator's "
+    "post-stop vibration, extracted and matched as the graph does, the cloud as the matcher node publishes it; distances "
+    "to the rendered meshes (skin and hair: the sim's truth). stopsnap_points_over_1mm_pct: points farther than 1 mm "
+    "from the true surface, % of the cloud (settle fixed 0.1 s); _unfiltered: the same frames matched without the "
+    "matcher's piece-length rule (min_run_rows 0) and without the grazing-view rule (max_view_angle_deg 90). "
+    "adaptive_settle_*: the same scan taken with the adaptive settle (lsu_scan.settle.rendered_settle: frames every "
+    f"{PERSON_FRAME_PERIOD_S} s from a probe at a phase of the first frame period that differs per snap, the fixed "
+    "settle as its bound), same sensor noise seeds for the snaps that agree at once: rms_over_fixed = the clouds' RMS "
+    "distance to the true surface, adaptive / fixed; time_over_fixed = mean snap exposure start after the stop, "
+    "adaptive / fixed (simulated time: what a 30 fps camera gives, not the sim graph's wall time, where each capture is "
+    "a ~40 ms render: stopsnap_adaptive_over_fixed).")
+
+
+def person_stopsnap_figures() -> dict:
+    """Stop-snap accuracy on a realistic person without ROS: far points (filters on and off) and adaptive vs fixed settle."""
+    import numpy as np
+
+    from lsu_accuracy.accuracy import surface_distances_m
+    from lsu_accuracy.sweep_sim import stopsnap_scene
+    from lsu_config import config_dir
+    from lsu_reconstruct.matching import MatchParams
+    from lsu_reconstruct.stereo import StereoModel
+    from lsu_scan.settle import rendered_settle
+    from lsu_sim import build_scene, load_rig
+
+    geometry = load_rig()
+    person = build_scene(PERSON_SCENE, geometry)
+    model = StereoModel.from_folder(config_dir() / "calibration" / "sim")
+
+    def adaptive(rig, state, index):
+        first = (index * 0.618034) % 1.0 * PERSON_FRAME_PERIOD_S
+        frame, t_snap, rendered, _trace = rendered_settle(
+            lambda t, seed: rig.render(state, capture_time_s=t, seed=seed), first, PERSON_FRAME_PERIOD_S, 0.1,
+            seed=7 + index)
+        return frame, t_snap, rendered
+
+    scans = {"fixed": stopsnap_scene(model, geometry, person, seed=7),
+             "unfiltered": stopsnap_scene(model, geometry, person, seed=7, params=MatchParams(min_run_rows=0),
+                                          max_view_angle_deg=90.0),
+             "adaptive": stopsnap_scene(model, geometry, person, seed=7, capture=adaptive)}
+    dist = {name: surface_distances_m(person, scan.xyz) * 1000.0 for name, scan in scans.items()}
+    rms = {name: float(np.sqrt(np.mean(d * d))) for name, d in dist.items()}
+    times = {name: float(np.mean(scans[name].snap_after_stop_s)) for name in ("fixed", "adaptive")}
+    return {"stopsnap_points_over_1mm_pct": float(100.0 * np.mean(dist["fixed"] > 1.0)),
+            "stopsnap_points_over_1mm_pct_unfiltered": float(100.0 * np.mean(dist["unfiltered"] > 1.0)),
+            "person_stopsnap_rms_mm": rms["fixed"], "person_stopsnap_rms_mm_unfiltered": rms["unfiltered"],
+            "person_stopsnap_points": float(len(dist["fixed"])),
+            "person_stopsnap_points_unfiltered": float(len(dist["unfiltered"])),
+            "adaptive_settle_rms_over_fixed": rms["adaptive"] / rms["fixed"],
+            "adaptive_settle_time_over_fixed": times["adaptive"] / times["fixed"],
+            "adaptive_settle_rms_mm": rms["adaptive"], "fixed_settle_rms_mm": rms["fixed"],
+            "adaptive_settle_frames_per_snap": scans["adaptive"].captures / len(scans["adaptive"].snap_after_stop_s)}
+
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the named parts (`PARTS`; sweep = sweep_live + sweep_accuracy) and merge them into the existing scan.json."""
-    unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy", "web"}
+    unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy", "web",
+                       "person_stopsnap"}
     if unknown:
         raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy, web (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
@@ -990,6 +1061,8 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(sweep_live(tmp))
             if parts & {"sweep", "sweep_accuracy"}:
                 figures.update(sweep_accuracy())
+            if "person_stopsnap" in parts:
+                figures.update(person_stopsnap_figures())
             if "two_host" in parts:
                 unavailable = why_unavailable()
                 if unavailable is not None:
@@ -1009,10 +1082,12 @@ def only(parts: set, bag: Path | None = None) -> int:
     measured = {**old.get("measured", {}), **{part: note for part in done}}
     if "replay" in parts:
         measured["replay"] += f", on {replay_source}"
+    if "settle" in parts:
+        measured["settle"] += f", scene {os.environ.get('LSU_BENCH_SETTLE_SCENE', 'head:7')}"
     if parts:
-        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **SETTLE_UNITS, **SWEEP_UNITS,
-                                      **WEB_UNITS},
-                     notes=NOTES + WEB_NOTES,
+        write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS,
+                                      **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS, **PERSON_UNITS},
+                     notes=NOTES + WEB_NOTES + PERSON_NOTES,
                      extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -1037,13 +1112,16 @@ def main() -> int:
             settle = settle_figures(tmp)
             sweep = {**sweep_live(tmp), **sweep_accuracy()}
             web = web_figures(tmp)
+            web.update(person_stopsnap_figures())
     finally:
         claim.release()
     write_result(
         "scan",
         {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web},
-        {**LIVE_UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS},
-        notes=NOTES + WEB_NOTES, extra={"measured": {part: measured_note("make bench-scan") for part in (*PARTS, "web")
+        {**LIVE_UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS,
+         **PERSON_UNITS},
+        notes=NOTES + WEB_NOTES + PERSON_NOTES,
+        extra={"measured": {part: measured_note("make bench-scan") for part in (*PARTS, "web", "person_stopsnap")
                                                      if part != "two_host" or unavailable is None}})
     return 0
 

@@ -45,6 +45,8 @@ class SweepScan:
     seconds: float                      # simulated carriage time of the scan [s]
     stats: dict[str, int] = field(default_factory=dict)
     checked_xyz: AnyArray | None = None  # stop-snap with a sheet: the points that pass the sweep's sheet check
+    snap_after_stop_s: AnyArray | None = None  # stop-snap: each snap's exposure start after its stop [s]
+    captures: int = 0                   # stop-snap: frames rendered (an adaptive settle's probes included)
 
 
 def sweep_frame_count(start: int, end: int, rate_steps_s: float, fps: float) -> int:
@@ -131,35 +133,52 @@ def sweep_scene(model, sheet, geometry, objects: Sequence, rate_steps_s: float, 
 
 
 def stopsnap_scene(model, geometry, objects: Sequence, start: int = 0, end: int = 470, step: int = 2,
-                   settle_s: float = 0.1, seed: int = 0, params=None, sheet=None) -> SweepScan:
+                   settle_s: float = 0.1, seed: int = 0, params=None, sheet=None, capture=None,
+                   max_view_angle_deg: float | None = None) -> SweepScan:
     """Render and reconstruct a stop-snap scan of the same scene (settled ``settle_s`` after each stop).
 
     With ``sheet``, ``checked_xyz`` also holds the stop-snap points that pass the sweep's check against
     the sheet at the snap's position (what the sweep's stereo path keeps), for a like-for-like comparison.
+    ``capture(rig, state, index)`` -> (the snap's StereoFrame, its exposure start after the stop [s], frames
+    rendered) takes the snap instead of the fixed settle's render at ``settle_s`` (an adaptive settle: lsu_scan's
+    tests and bench_scan compose it with `lsu_scan.settle`). The cloud is what the matcher node publishes:
+    the snaps' points without those seen at a grazing angle (`lsu_reconstruct.pipeline.drop_grazing`,
+    ``max_view_angle_deg``, default the node's).
     """
     from lsu_reconstruct.matching import MatchParams
-    from lsu_reconstruct.pipeline import reconstruct_snap
+    from lsu_reconstruct.pipeline import MAX_VIEW_ANGLE_DEG, drop_grazing, merge_snaps, reconstruct_snap
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame, SweepParams, reconstruct_sweep_frame
     from lsu_sim import CarriageState, SimulatedRig
 
     rig = SimulatedRig(geometry, objects, seed=seed)
-    xyz: list[AnyArray] = []
+    snaps = []
     checked: list[AnyArray] = []
+    after_stop: list[float] = []
+    captures = 0
     positions = list(range(start, end + 1, step))
     for index, position in enumerate(positions):
         state = CarriageState(float(position), True, stopped_at_s=0.0,
                               vibration_amplitude_steps=VIBRATION_AMPLITUDE_STEPS, vibration_tau_s=VIBRATION_TAU_S,
                               vibration_freq_hz=VIBRATION_FREQ_HZ)
-        frame = rig.render(state, capture_time_s=settle_s, seed=seed + index)
+        if capture is None:
+            frame, t_snap, rendered = rig.render(state, capture_time_s=settle_s, seed=seed + index), settle_s, 1
+        else:
+            frame, t_snap, rendered = capture(rig, state, index)
+        after_stop.append(float(t_snap))
+        captures += int(rendered)
         left, right = _lines(frame.left), _lines(frame.right)
         snap = reconstruct_snap(model, left, right, params or MatchParams(), snap=index)
         if len(snap):
-            xyz.append(snap.xyz)
+            snaps.append(snap)
         if sheet is not None:
             at_rest = CarriageTrack(np.array([0.0, 1.0]), np.array([float(position)] * 2), moving=np.zeros(2, bool))
             out = reconstruct_sweep_frame(model, sheet, at_rest, SweepFrame(index, left, right, 0.0, 0.0, 0.02),
                                           SweepParams(match=params or MatchParams()))
             checked.append(out.points.xyz)
-    points = np.concatenate(xyz) if xyz else np.zeros((0, 3))
-    return SweepScan(points, len(xyz), len(positions), 0.0, {"stereo": int(len(points))},
-                     np.concatenate(checked) if checked else (np.zeros((0, 3)) if sheet is not None else None))
+    cloud = drop_grazing(merge_snaps(snaps), model,
+                         MAX_VIEW_ANGLE_DEG if max_view_angle_deg is None else float(max_view_angle_deg))
+    points = np.asarray(cloud.xyz)
+    return SweepScan(points, len(snaps), len(positions), 0.0,
+                     {"stereo": int(len(points)), "rejected_grazing": int(cloud.stats.get("rejected_grazing", 0))},
+                     np.concatenate(checked) if checked else (np.zeros((0, 3)) if sheet is not None else None),
+                     np.asarray(after_stop), captures)

@@ -91,6 +91,7 @@ class MatchParams:
     max_order_dev: float = 3.0       # [segments] ordering tolerance for resolving ambiguous crossings
     min_quality: float = 0.0         # drop rows whose extractor quality is below this
     smooth_window_rows: int = 9      # odd >= 5: local quadratic fit of u(v) along each run; 0 = off
+    min_run_rows: int = 9            # both samples of a match must lie in continuous pieces this long; 0 = off
     max_reproj_px: float = 0.5       # reject triangulated points whose reprojection error exceeds this
     method: str = "midpoint"         # triangulation: midpoint | dlt | optimal
 
@@ -192,11 +193,28 @@ def _links(u: AnyArray, v: AnyArray, params: MatchParams) -> tuple:
     return linked, int(np.count_nonzero(shared))
 
 
+PIECE_GAP_ROWS = 2.0  # a piece of line bridges one missed row (the extractor's occasional miss)
+
+
+def _in_long_pieces(u: AnyArray, v: AnyArray, params: MatchParams) -> AnyArray:
+    """Per sample (sorted by row): whether its piece of line holds at least ``params.min_run_rows`` samples.
+
+    A piece: samples at most ``PIECE_GAP_ROWS`` rows apart whose column moves at most ``max_step_px`` per
+    row. A stray detection (a lit hairline, a glint, a line broken up beside a silhouette) forms short
+    pieces; a laser line on a surface is continuous over many rows. A stereo point is only as good as
+    both of its samples: short pieces on either side give none (the sweep's sheet points use the same rule).
+    """
+    dv, du = v[1:] - v[:-1], np.abs(u[1:] - u[:-1])
+    linked = (dv > 1e-6) & (dv <= PIECE_GAP_ROWS) & (du <= params.max_step_px * np.maximum(dv, 1.0))
+    piece = np.r_[0, np.cumsum(~linked)]
+    return np.bincount(piece)[piece] >= int(params.min_run_rows)
+
+
 def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
                params: MatchParams = MatchParams()) -> Matches:
     """Match every left sample to the right polyline by sub-pixel epipolar intersection (vectorised)."""
     stats = {"left_rows": len(left), "right_rows": len(right), "no_crossing": 0, "out_of_range": 0,
-             "ambiguous_resolved": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
+             "ambiguous_resolved": 0, "short_piece_rows": 0, "ambiguous_rejected": 0, "invalid_rows": 0}
     lidx = left.valid(params.min_quality).nonzero()[0]
     ridx = right.valid(params.min_quality).nonzero()[0]
     stats["invalid_rows"] = len(left) - lidx.size + len(right) - ridx.size
@@ -205,6 +223,8 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     vr = vr[order]
     ur = right.u[ridx[order]]
     joined, stats["right_shared_rows"] = _links(ur, vr, params)
+    if params.min_run_rows > 1:
+        joined = joined & _in_long_pieces(ur, vr, params)[:-1]
     if lidx.size == 0 or ur.size < 2:
         stats["no_crossing"] = int(lidx.size)
         return _no_matches(stats)
@@ -212,9 +232,21 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     if window:
         lidx = lidx[left.v[lidx].argsort(kind="stable")]
     ul, vl = left.u[lidx], left.v[lidx]
+    left_links = None
+    if params.min_run_rows > 1 and lidx.size:
+        if not window:  # pieces are found along the rows
+            order = vl.argsort(kind="stable")
+            lidx, ul, vl = lidx[order], ul[order], vl[order]
+        long = _in_long_pieces(ul, vl, params)
+        stats["short_piece_rows"] = int(lidx.size - np.count_nonzero(long))
+        if not long.all():
+            lidx, ul, vl = lidx[long], ul[long], vl[long]
+        left_links = _links(ul, vl, params)[0]
+        if lidx.size == 0:
+            return _no_matches(stats)
     if window >= 5:  # smooth_line leaves lines shorter than the window alone: no links needed then
         if len(ul) >= window:
-            ul = smooth_line(ul, vl, window, _links(ul, vl, params)[0])
+            ul = smooth_line(ul, vl, window, left_links if left_links is not None else _links(ul, vl, params)[0])
         ur = smooth_line(ur, vr, window, joined)
     x1 = model.undistort_left(ul, vl)
     p = model.undistort_right(ur, vr)

@@ -50,7 +50,7 @@ from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExp
 
 from .laser_sheet import LaserSheet, LaserSheetError, read_laser_yaml
 from .matching import LineArrays, MatchParams, prepare
-from .pipeline import SnapPoints, colour_at, merge_snaps, reconstruct_snap
+from .pipeline import MAX_VIEW_ANGLE_DEG, SnapPoints, colour_at, drop_grazing, merge_snaps, reconstruct_snap
 from .stereo import CalibrationError, StereoModel
 from .sweep import SweepParams
 from .sweep_live import SWEEP_MATCHING, Exposure, LiveSweep, SweepPoints
@@ -131,6 +131,11 @@ def parameter_table() -> dict[str, Param]:
         "min_quality": Param(p.min_quality, "drop laser rows whose extractor quality is below this (0..1)", (0.0, 1.0)),
         "smooth_window_rows": Param(p.smooth_window_rows, "rows of the local quadratic fit along each laser line (odd, "
                                     ">= 5; 0 = no smoothing)", (0, 1001)),
+        "min_run_rows": Param(p.min_run_rows, "a match needs both samples in continuous pieces of line this long "
+                              "(stray detections form short pieces; 0 = off)", (0, 1001)),
+        "max_view_angle_deg": Param(MAX_VIEW_ANGLE_DEG, "scan cloud: drop points whose surface (normal from the cloud) "
+                                    "either camera sees flatter than this from its normal [deg]; 90 = keep all",
+                                    (1.0, 90.0)),
         "max_reproj_px": Param(p.max_reproj_px, "reject points whose reprojection error exceeds this [px]",
                                (1e-3, 1000.0)),
         "triangulation": Param(p.method, "triangulation method: midpoint, dlt or optimal"),
@@ -254,6 +259,7 @@ class StereoMatcherNode(LsuNode):
                            max_gap_rows=float(g("max_gap_rows")), max_step_px=float(g("max_step_px")),
                            max_order_dev=float(g("max_order_dev")),
                            min_quality=float(g("min_quality")), smooth_window_rows=int(g("smooth_window_rows")),
+                           min_run_rows=int(g("min_run_rows")),
                            max_reproj_px=float(g("max_reproj_px")), method=str(g("triangulation")))
 
     def _use_params(self, params: MatchParams) -> None:
@@ -586,6 +592,8 @@ class StereoMatcherNode(LsuNode):
             for s in snaps:
                 s.rgb = colour_at(scan.texture, s.u, s.v)
         cloud = merge_snaps(snaps)
+        if self.model is not None:
+            cloud = drop_grazing(cloud, self.model, float(self.get_parameter("max_view_angle_deg").value))
         header = Header(stamp=self.get_clock().now().to_msg(),
                         frame_id=self.model.left_frame_id if self.model else "lsu_left_optical")
         self.cloud_pub.publish(cloud_to_msg(encode(cloud.fields()), header))

@@ -19,7 +19,14 @@ from .matching import LineArrays, MatchParams, match_line, match_thesis
 from .stereo import StereoModel
 from .triangulate import accept_points, midpoint_of_rays, triangulate
 
-__all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps"]
+__all__ = ["SnapPoints", "reconstruct_snap", "colour_at", "merge_snaps", "drop_grazing", "MAX_VIEW_ANGLE_DEG"]
+
+# A surface seen flatter than this by either camera (angle between its normal and the line of sight) gives
+# biased points: near a silhouette the line is foreshortened to a pixel or two and partly hidden, so its
+# centre is off by a pixel or more (millimetres in depth) while both views still agree with each other.
+MAX_VIEW_ANGLE_DEG = 75.0
+NORMAL_NEIGHBOURS = 16  # points of the cloud a normal is fitted to (a few snaps' lines around the point)
+PLANAR_SPREAD = 0.05    # their second spread (eigenvalue) at least this share of the first: a surface, not a line
 
 
 @dataclass
@@ -103,3 +110,34 @@ def merge_snaps(snaps: list[SnapPoints]) -> SnapPoints:
     return SnapPoints(xyz=np.concatenate([s.xyz for s in snaps]), u=np.concatenate([s.u for s in snaps]),
                       v=np.concatenate([s.v for s in snaps]), snap=np.concatenate([s.snap for s in snaps]),
                       rgb=np.concatenate(rgb).astype(np.float32))
+
+
+def drop_grazing(cloud: SnapPoints, model: StereoModel, max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG) -> SnapPoints:
+    """The scan cloud without the points either camera sees at more than ``max_view_angle_deg`` from the surface normal.
+
+    The normal comes from the cloud itself (open3d's plane fit to the ``NORMAL_NEIGHBOURS`` nearest points,
+    across snaps), the lines of sight from the calibration: only what the scanner measured. 90 keeps all.
+    """
+    if max_view_angle_deg >= 90.0 or len(cloud) < NORMAL_NEIGHBOURS:
+        return cloud
+    import open3d as o3d  # only the scan cloud needs it
+
+    xyz = np.asarray(cloud.xyz, dtype=np.float64)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.estimate_covariances(o3d.geometry.KDTreeSearchParamKNN(NORMAL_NEIGHBOURS))
+    values, vectors = np.linalg.eigh(np.asarray(pc.covariances))  # ascending: the normal is the first vector
+    normals = vectors[:, :, 0]
+    # neighbours along one line only (snaps far apart, a lone line) span no surface: no normal, kept
+    spread = values[:, 1] >= PLANAR_SPREAD * values[:, 2]
+    limit = np.cos(np.radians(max_view_angle_deg))
+    seen = np.ones(len(xyz), bool)
+    for centre in (np.zeros(3), np.asarray(model.right_centre, dtype=np.float64).reshape(3)):
+        sight = xyz - centre
+        sight /= np.linalg.norm(sight, axis=1, keepdims=True)
+        seen &= np.abs(np.einsum("ij,ij->i", normals, sight)) >= limit
+    keep = seen | ~spread
+    if keep.all():
+        return cloud
+    stats = {**cloud.stats, "rejected_grazing": int(len(keep) - np.count_nonzero(keep))}
+    return SnapPoints(xyz=cloud.xyz[keep], u=cloud.u[keep], v=cloud.v[keep], snap=cloud.snap[keep],
+                      rgb=None if cloud.rgb is None else cloud.rgb[keep], stats=stats)

@@ -278,13 +278,14 @@ def test_every_matcher_parameter_takes_effect_when_set_or_is_refused(ros_node):
     ns = "/lsu_rt_params"
     node = start(ros_node, ns)
     new = {"depth_min_m": 0.2, "depth_max_m": 0.6, "max_gap_rows": 2.5, "max_step_px": 3.0, "max_order_dev": 2.0,
-           "min_quality": 0.2, "smooth_window_rows": 7, "max_reproj_px": 0.8}
+           "min_quality": 0.2, "smooth_window_rows": 7, "max_reproj_px": 0.8, "min_run_rows": 5}
     cases = {name: (value, lambda name=name, value=value: getattr(node.params, name) == value)
              for name, value in new.items()}
     cases["triangulation"] = ("dlt", lambda: node.params.method == "dlt")
     # read where they are used (the pairing buffer's trim, the end-of-scan wait)
     cases["pair_buffer"] = (8, lambda: node.get_parameter("pair_buffer").value == 8)
     cases["scan_timeout_s"] = (1.5, lambda: node.get_parameter("scan_timeout_s").value == 1.5)
+    cases["max_view_angle_deg"] = (60.0, lambda: node.get_parameter("max_view_angle_deg").value == 60.0)
     # read at a sweep's start (a change while a sweep runs is refused, below)
     cases["sweep_matching"] = ("per_frame", lambda: node.get_parameter("sweep_matching").value == "per_frame")
     ros_node.check_parameters(node, cases)

@@ -40,7 +40,7 @@ import numpy as np
 from lsu_common.arrays import AnyArray
 
 __all__ = ["SETTLE_MODES", "DEFAULT_TOLERANCE_PX", "MIN_ROWS", "SettleTrace", "line_profile", "profile_from_line",
-           "line_shift_px", "settle_from_images"]
+           "line_shift_px", "settle_from_images", "rendered_settle"]
 
 SETTLE_MODES = ("fixed", "adaptive")
 # How far from rest the snap's line may be [px]; frames agree within half of it. At 0.3 m one
@@ -129,3 +129,30 @@ def settle_from_images(probe: Callable[[], AnyArray], capture: Callable[[], tupl
         previous = current
     trace.reason = "limit"
     return response, trace
+
+
+def rendered_settle(render: Callable[[float, int], Any], first_frame_s: float, frame_period_s: float,
+                    fixed_settle_s: float, seed: int = 0,
+                    tolerance_px: float = DEFAULT_TOLERANCE_PX) -> tuple[Any, float, int, SettleTrace]:
+    """The adaptive settle on frames a renderer makes (no ROS): a camera frame every ``frame_period_s`` from
+    ``first_frame_s`` after the stop, ``render(t, seed)`` -> a frame with ``.left`` exposed from ``t``.
+
+    Returns (the snap's frame, its exposure start after the stop, frames rendered with the probe, trace);
+    the simulated scans of lsu_accuracy and the settle's tests and benchmark take the snap this way.
+    """
+    frames: list[tuple[float, Any]] = []
+
+    def grab() -> Any:
+        t = first_frame_s + len(frames) * frame_period_s
+        frames.append((t, render(t, seed + len(frames))))
+        return frames[-1][1]
+
+    def capture() -> tuple[int, AnyArray]:
+        frame = grab()
+        return len(frames) - 1, frame.left
+
+    snap, trace = settle_from_images(lambda: grab().left, capture,
+                                     lambda: first_frame_s + len(frames) * frame_period_s >= fixed_settle_s,
+                                     tolerance_px=tolerance_px)
+    t_snap, frame = frames[int(snap)]
+    return frame, t_snap, len(frames), trace
