@@ -81,7 +81,10 @@ def test_explain_names_a_reason_for_every_model_used():
     plain, _, _ = render_line(CASES["thin_sharp"][0])
     result = extract_laser_line(plain, params)
     assert result.saturated is None
-    assert set(explain_rows(result, params)[1]) == {"blais_rioux4"}
+    codes, why = explain_rows(result, params)
+    assert not any(m.startswith("flanks") for m in why)
+    # a thin symmetric line: Blais-Rioux 4; a rare row that noise makes look skewed takes the centre of mass
+    assert np.count_nonzero(codes == ROW_MODELS.index("blais_rioux4")) >= 0.98 * codes.size
 
 
 def test_a_line_widening_beyond_max_width_is_followed_only_with_grow_wide():
