@@ -100,8 +100,9 @@ CONTINUITY_PX_PER_ROW = 3.0
 # surface and the occluding contour clips one flank) or merged with a patch beside it is not. The adaptive method
 # measures this per row as the distance between the Blais-Rioux centre and the centroid of the whole refinement
 # window above the straight line through its ends; beyond SKEW_PX such a row is centred by the centre of mass above
-# half height, whose estimate a cut flank moves the least (bench_reconstruct's sphere: the limb rows' bias).
-SKEW_PX = 0.5
+# half height, which on the simulated sphere's limb rows is the less biased of the two (bench_reconstruct's
+# sphere_radius_err_mm); a smaller SKEW_PX flags noise on weak narrow rows (bench_reconstruct's plane sigma).
+SKEW_PX = 0.8
 
 
 class ExtractorConfigError(ValueError):

@@ -118,22 +118,24 @@ def test_grow_wide_does_not_follow_into_a_patch_without_the_line():
     assert np.count_nonzero(grown.v >= 242) <= np.count_nonzero(default.v >= 242) + 2
 
 
-def test_a_line_cut_at_one_flank_is_centred_no_worse_and_said_to_be_skewed():
-    # the 4 px line with everything beyond 1.5 px right of its analytic centre replaced by the laser-off frame: one
-    # flank cut, as at a silhouette. The centre is then biased for every estimator; rows the adaptive method finds
-    # asymmetric (SKEW_PX) take the centre of mass, which a cut flank moves less, and say so
+
+def test_a_profile_not_symmetric_about_its_centre_is_flagged_and_explained():
+    # the 4 px line with a weaker patch (60 DN, FWHM 3.5 px) 5 px to its right, inside the refinement window: the
+    # window's centroid leaves the Blais-Rioux centre by more than SKEW_PX, so the rows are centred by the centre of
+    # mass above half height (which leaves the patch out) and say so; truth: the analytic centre. (The limb rows of
+    # bench_reconstruct's sphere are what the rule is for; at 4 px the patch merges above half height and moves
+    # both estimators.)
     scene = LineScene(textured=False, seed=7)
     image, truth, _ = render_line(scene)
-    off, _, _ = render_line(scene.with_(amplitude_dn=0.0))
-    cut = np.where((np.arange(image.shape[1])[None, :] > truth[:, None] + 1.5)[..., None], off, image)
-    rms = {}
-    for method in ("adaptive", "blais_rioux4"):
-        params = ExtractorParams(method=method)
-        result = extract_laser_line(cut, params)
-        assert len(result) == image.shape[0]
-        rms[method] = float(np.sqrt(np.mean((result.u - truth[result.v.astype(int)]) ** 2)))
-        if method == "adaptive":
-            assert result.skewed is not None and np.count_nonzero(result.skewed) > 0
-            codes, why = explain_rows(result, params)
-            assert np.all(codes[result.skewed] == ROW_MODELS.index("com")) and "symmetric" in why["com"]
-    assert rms["adaptive"] <= rms["blais_rioux4"]
+    cols = np.arange(image.shape[1])[None, :]
+    patched = image.astype(np.float64)
+    patched[..., 2] += 60.0 * np.exp(-0.5 * ((cols - truth[:, None] - 5.0) / 1.5) ** 2)
+    patched = np.clip(patched, 0, 255).astype(np.uint8)
+    params = ExtractorParams(method="adaptive")
+    result = extract_laser_line(patched, params)
+    assert len(result) == image.shape[0]
+    assert result.skewed is not None and np.count_nonzero(result.skewed) >= 0.9 * len(result)
+    codes, why = explain_rows(result, params)
+    assert np.all(codes[result.skewed] == ROW_MODELS.index("com")) and "symmetric" in why["com"]
+    err = result.u - truth[result.v.astype(int)]
+    assert float(np.sqrt(np.mean(err ** 2))) <= 0.1
