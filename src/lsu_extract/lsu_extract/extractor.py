@@ -96,6 +96,13 @@ NOISE_FLOOR_DN = 12.0
 ISOLATED_WEAK = 2.0
 CONTINUITY_ROWS = 2
 CONTINUITY_PX_PER_ROW = 3.0
+# A line profile is symmetric about its centre; one cut by a silhouette (a sphere's limb, where the laser grazes the
+# surface and the occluding contour clips one flank) or merged with a patch beside it is not. The adaptive method
+# measures this per row as the distance between the Blais-Rioux centre and the centroid of the whole refinement
+# window above the straight line through its ends; beyond SKEW_PX such a row is centred by the centre of mass above
+# half height, which on the simulated sphere's limb rows is the less biased of the two (bench_reconstruct's
+# sphere_radius_err_mm); a smaller SKEW_PX flags noise on weak narrow rows (bench_reconstruct's plane sigma).
+SKEW_PX = 0.8
 
 
 class ExtractorConfigError(ValueError):
@@ -191,12 +198,14 @@ class LaserLineResult:
     rows_full_search: int = 0  # rows searched in full (coarse + fallback)
     extra: dict[str, int] = field(default_factory=dict)
     saturated: AnyArray | None = None  # per detected row: its peak was a clipped plateau (None: no row clipped)
+    skewed: AnyArray | None = None     # per detected row: adaptive, centred as an asymmetric profile (`SKEW_PX`)
 
     def __len__(self) -> int:
         return int(self.u.size)
 
 
-_FIELDS = ("u", "peak", "width", "quality")  # per-row outputs; plus "saturated" (None: no row clipped) and "valid"
+_FIELDS = ("u", "peak", "width", "quality")  # per-row outputs; plus the `_FLAGS` and "valid"
+_FLAGS = ("saturated", "skewed")  # per-row flags, None where no row has them: a clipped peak; centred as skewed (`SKEW_PX`)
 
 
 def _mid(params: ExtractorParams) -> float:
@@ -294,7 +303,8 @@ def _linear_features(method: str, half: int, min_width: float, max_width: float)
     `_fit`, all > 0 when it holds: 4 x row 0 - 3 x row 1 and 4 x row 1 - 3 x row 0 (the end
     means differ by less than a quarter of the peak), row 2 - ``min_width`` x row 3 and
     ``max_width`` x row 3 - row 2 (the width is within those bounds); then, for Blais-Rioux,
-    -g(0), g(0) - g(-1) and g(+1) - g(0) of its filter g (`blais_rioux_crossing`).
+    -g(0), g(0) - g(-1) and g(+1) - g(0) of its filter g (`blais_rioux_crossing`); for the adaptive method last
+    the first moment above that line over `GAUSSIAN_AREA_PER_FWHM` (divided by row 2: the window's centroid, `SKEW_PX`).
 
     Each would be a few numpy calls of its own; the per-call cost of numpy, not the
     arithmetic, is what a 480-row frame pays for. Rows 0, 1, 4 and 5 have weights that are
@@ -318,6 +328,14 @@ def _linear_features(method: str, half: int, min_width: float, max_width: float)
     for order in BLAIS_RIOUX_ORDER.get(method, ()):
         g = blais_rioux_kernel(order, size).T.astype(np.float64)  # g(-1), g(0), g(+1)
         rows = np.concatenate([rows, [-g[1], g[1] - g[0], g[2] - g[1]]])
+    if method == ADAPTIVE:
+        # first moment about the centre above the straight line through the two end means (`SKEW_PX`): the
+        # line's constant part has no moment about the centre, its slope (R - L) / (size - 2) has sum x^2 x slope
+        x = np.arange(-half, half + 1, dtype=np.float64)
+        moment = x.copy()
+        moment[:2] += np.sum(x * x) / (size - 2) * 0.5
+        moment[-2:] -= np.sum(x * x) / (size - 2) * 0.5
+        rows = np.concatenate([rows, [moment / GAUSSIAN_AREA_PER_FWHM]])
     matrix = rows.astype(np.float32)
     matrix.setflags(write=False)
     return matrix
@@ -421,12 +439,16 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
                 ok &= ~((col < margin) | (col > image_width - 1 - margin) |
                         (col + left < 0.0) | (col + right > image_width - 1.0))
             valid[sub] = ok
+    skewed = None
     if params.method == ADAPTIVE:
         # `adaptive_offset`'s choice on the final width (crossings where walked): the unclipped rows wider than
-        # adaptive_width_px take the centre of mass above half height, of the profile less its background
-        wide = width > params.adaptive_width_px
+        # adaptive_width_px take the centre of mass above half height, of the profile less its background; so do
+        # the rows whose profile is not symmetric about the Blais-Rioux centre (`SKEW_PX`)
+        skewed = np.abs(features[-1] - offset * features[2]) > SKEW_PX * np.abs(features[2])
+        wide = (width > params.adaptive_width_px) | skewed
         if saturated is not None:
             wide &= ~saturated
+            skewed &= ~saturated
         rows_wide = np.flatnonzero(wide)
         if rows_wide.size:
             part = profile[rows_wide]
@@ -443,7 +465,7 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     quality = np.minimum((peak - params.min_contrast) * (0.5 / params.min_contrast), 1.0)
     if saturated is not None:
         quality = np.where(saturated, 0.8 * quality, quality)
-    return {"u": u, "peak": peak, "width": width, "quality": quality, "saturated": saturated,
+    return {"u": u, "peak": peak, "width": width, "quality": quality, "saturated": saturated, "skewed": skewed,
             "valid": None if all_valid else valid}
 
 
@@ -548,7 +570,7 @@ def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
           uniqueness: AnyArray | None = None) -> dict[str, Any]:
     """The valid rows of one refinement, with quality scaled by ``uniqueness`` when given.
 
-    Every entry is an array except "saturated", None when no row clipped.
+    Every entry is an array except the `_FLAGS`, None where no row has the flag.
     """
     kept: dict[str, Any]
     ok = fit["valid"]
@@ -558,8 +580,9 @@ def _keep(rows: AnyArray, fit: dict[str, AnyArray | None],
     else:
         kept = {name: fit[name][ok] for name in _FIELDS}  # type: ignore[index]  # _FIELDS are never None
         kept["v"] = rows[ok]
-    saturated = fit["saturated"]
-    kept["saturated"] = saturated if saturated is None or ok is None else saturated[ok]
+    for flag in _FLAGS:
+        value = fit.get(flag)
+        kept[flag] = value if value is None or ok is None else value[ok]
     if uniqueness is not None:
         kept["quality"] = kept["quality"] * (uniqueness if ok is None else uniqueness[ok])
     return kept
@@ -769,12 +792,13 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         grown = sum(c["v"].size for c in more)
         chunks += more
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
-    clipped = saturated > 0
-    if clipped:  # the per-row flag travels with the rows only when some row clipped (`explain_rows`)
+    # a per-row flag travels with the rows only when some row has it (`explain_rows`)
+    flags = tuple(f for f in _FLAGS if any(c.get(f) is not None and np.any(c[f]) for c in chunks))
+    for flag in flags:
         for c in chunks:
-            if c["saturated"] is None:
-                c["saturated"] = np.zeros(c["v"].size, bool)
-    names = ("v", *_FIELDS, "saturated") if clipped else ("v", *_FIELDS)
+            if c.get(flag) is None:
+                c[flag] = np.zeros(c["v"].size, bool)
+    names = ("v", *_FIELDS, *flags)
     if len(chunks) == 1:
         found = chunks[0]
     elif chunks:
@@ -791,7 +815,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
         extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {})},
-        saturated=found["saturated"].astype(bool, copy=False) if clipped else None)
+        saturated=found["saturated"].astype(bool, copy=False) if "saturated" in flags else None,
+        skewed=found["skewed"].astype(bool, copy=False) if "skewed" in flags else None)
 
 
 # The model each detected row was centred with (`explain_rows`), and why; the codes index this tuple.
@@ -817,6 +842,8 @@ def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
     if result.method in ("blais_rioux", ADAPTIVE):
         wide = ROW_MODELS.index("blais_rioux8" if result.method == "blais_rioux" else "com")
         codes = np.where(result.width > params.adaptive_width_px, wide, 0).astype(np.uint8)
+        if result.skewed is not None:
+            codes[result.skewed] = ROW_MODELS.index("com")
     else:
         codes = np.full(n, ROW_MODELS.index("method"), np.uint8)
     if result.saturated is not None:
@@ -830,8 +857,9 @@ def explain_rows(result: LaserLineResult, params: ExtractorParams | None = None,
         "flanks_red": f"red clipped (>= {params.saturation_level} DN) at the peak: centre midway between red's own "
                       "half-maximum crossings (colour crosstalk bends the signal's clipped top)",
         "method": f"{result.method}: the configured estimator on every unclipped row",
-        "com": f"FWHM > {params.adaptive_width_px:g} px: wider than a zero-crossing filter's model; centre of mass of the "
-               "part above half height",
+        "com": f"FWHM > {params.adaptive_width_px:g} px: wider than a zero-crossing filter's model, or a profile not "
+               f"symmetric about its Blais-Rioux centre (the window's centroid > {SKEW_PX:g} px off: one flank cut by a "
+               "silhouette, a patch beside it); centre of mass of the part above half height",
     }
     used = {ROW_MODELS[int(c)] for c in np.unique(codes)}
     return codes, {name: why[name] for name in ROW_MODELS if name in used}
