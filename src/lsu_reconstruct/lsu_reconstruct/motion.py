@@ -11,7 +11,8 @@ points' centre and translation, robust loss) per measured frame gives the head's
 reference frame's (`estimate_motion`). Poses between measured frames are interpolated linearly in time.
 
 Correction (`MotionEstimate.correct`): each point moved from its frame's pose back to the reference
-frame's, so that every line lies on one head before meshing.
+frame's, so that every line lies on one head before meshing. A measured motion within the measurement's
+noise (`MotionParams.min_motion_mm`) leaves the scan as it is.
 
 Beyond what can be corrected (`MotionParams`): a fit that does not explain the flow (few inliers or a large
 residual: the face turned so far that its image changed, a blink, an occlusion), a rotation beyond
@@ -52,10 +53,13 @@ class MotionParams:
     mask_px: int = 12                  # pixels either side of a laser line left out of the flow
     model_points: int = 4000           # scan points (seeded subsample) whose image motion is fitted
     inlier_px: float = 1.0             # a point's fit residual below this is an inlier
-    max_residual_px: float = 0.9       # RMS of the inliers' residuals beyond which a frame is unreliable
+    max_residual_px: float = 0.8       # RMS of the inliers' residuals beyond which a frame is unreliable
     min_inlier_share: float = 0.5      # share of the points that must be inliers
     max_rotation_deg: float = 5.0      # rotation from the reference frame beyond which a frame is unreliable
     max_speed_mm_s: float = 40.0       # fastest point speed between measured frames beyond which it is unreliable
+    # a measured motion whose fitted points move less than this over the scan is the measurement's noise
+    # (~0.3-0.7 mm on a still face): the scan is left as it is
+    min_motion_mm: float = 1.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -85,6 +89,8 @@ class MotionEstimate:
     speed_mm_s: AnyArray              # (M,) fastest point speed from the previous measured frame
     reliable: AnyArray                # (M,) bool
     reasons: list[str] = field(default_factory=list)  # per measured frame: why unreliable ('' when reliable)
+    measured_mm: float = 0.0          # the largest displacement of the fitted points over the scan, as measured
+    significant: bool = True          # beyond the noise (`MotionParams.min_motion_mm`); else the poses are zeroed
 
     @property
     def flagged(self) -> bool:
@@ -136,6 +142,15 @@ def _line_mask(line: LineArrays, shape: tuple[int, int], half_px: int) -> AnyArr
     return mask.astype(bool)
 
 
+def _flow(ref: AnyArray, img: AnyArray) -> AnyArray:
+    """Dense flow (H,W,2) from ``ref`` to ``img``: OpenCV's DIS (coarse-to-fine patches, follows a sway's ~20 px).
+
+    Farneback's flow was 10x quieter on a still face but did not follow a swaying one on the simulated skin.
+    """
+    engine = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
+    return engine.calc(ref, img, None)
+
+
 def _sample(field2: AnyArray, uv: AnyArray) -> AnyArray:
     """Bilinear samples (N,2) of a 2-channel float32 image at pixels ``uv`` (N,2)."""
     maps = np.ascontiguousarray(uv.astype(np.float32).reshape(-1, 1, 2))
@@ -172,7 +187,6 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     uv = [model.project_left(X), model.project_right(X)]
     inside = np.all([(p[:, 0] >= 1) & (p[:, 0] <= W - 2) & (p[:, 1] >= 1) & (p[:, 1] <= H - 2) for p in uv], axis=0)
     X, uv = X[inside], [p[inside] for p in uv]
-    flow_engine = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)  # type: ignore[attr-defined]
     ref_gray = [_gray(images[ref][k]) for k in range(2)]
     ref_masks = [_line_mask(lines[ref][k], (H, W), params.mask_px) for k in range(2)]
     measured = sorted(set(range(0, n, params.every_frames)) | {n - 1, ref})
@@ -194,7 +208,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
             continue
         targets, keep = [], np.ones(len(X), bool)
         for cam in range(2):
-            flow = flow_engine.calc(ref_gray[cam], _gray(images[k][cam]), None)
+            flow = _flow(ref_gray[cam], _gray(images[k][cam]))
             mask = ref_masks[cam] | _line_mask(lines[k][cam], (H, W), params.mask_px)
             pix = np.rint(uv[cam]).astype(np.int64)
             keep &= ~mask[pix[:, 1], pix[:, 0]]
@@ -252,7 +266,13 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
         reasons.append("; ".join(why))
     vectors = np.where(np.isfinite(vectors), vectors, 0.0)
     reliable = np.array([not r for r in reasons])
-    return MotionEstimate(frames, t_m, vectors, centre, ref, residual, share, speed, reliable, reasons)
+    moved = max(float(np.max(np.linalg.norm((box - centre) @ _rotation(v[:3]).T + centre + v[3:] - box, axis=1)))
+                for v in vectors) * 1e3
+    significant = moved >= params.min_motion_mm
+    if not significant and reliable.all():
+        vectors = np.zeros_like(vectors)
+    return MotionEstimate(frames, t_m, vectors, centre, ref, residual, share, speed, reliable, reasons,
+                          measured_mm=moved, significant=significant)
 
 
 def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | None = None,
@@ -274,7 +294,9 @@ def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | N
         "reliable": [bool(r) for r in estimate.reliable],
         "max_translation_mm": float(1e3 * np.max(np.linalg.norm(estimate.vectors[:, 3:], axis=1))),
         "max_rotation_deg": float(np.degrees(np.max(np.linalg.norm(estimate.vectors[:, :3], axis=1)))),
-        "corrected": bool(corrected),
+        "measured_motion_mm": round(float(estimate.measured_mm), 3),
+        "beyond_noise": bool(estimate.significant),
+        "corrected": bool(corrected and estimate.significant),
         "flagged": estimate.flagged,
         "unreliable_frames": bad,
         "reasons": {str(f): r for f, r in zip(estimate.frames, estimate.reasons) if r},
