@@ -58,8 +58,8 @@ class MotionParams:
     max_rotation_deg: float = 5.0      # rotation from the reference frame beyond which a frame is unreliable
     max_speed_mm_s: float = 40.0       # fastest point speed between measured frames beyond which it is unreliable
     # a measured motion whose fitted points move less than this over the scan is the measurement's noise
-    # (~0.3-0.7 mm on a still face): the scan is left as it is
-    min_motion_mm: float = 1.0
+    # (up to ~1 mm on a still simulated face): the scan is left as it is
+    min_motion_mm: float = 1.5
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -113,6 +113,8 @@ class MotionEstimate:
     def correct(self, xyz: AnyArray, t_s: AnyArray) -> AnyArray:
         """Points (N,3) seen at times ``t_s`` (N,) moved back to the reference frame's pose."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        if not np.any(self.vectors):
+            return xyz.copy()  # no motion (within the noise): the points exactly as they were
         t = np.broadcast_to(np.asarray(t_s, dtype=np.float64), (len(xyz),))
         out = np.empty_like(xyz)
         # points of one frame share its time: one rotation per distinct time
