@@ -7,6 +7,8 @@
     .venv/bin/python bench/bench_scan.py --only sweep_accuracy  (only part 6's accuracy figures, no ROS)
     .venv/bin/python bench/bench_scan.py --only web             (only part 7: the web page's cost)
     .venv/bin/python bench/bench_scan.py --only person_stopsnap (only part 8: stop-snap of a realistic person, no ROS)
+    .venv/bin/python bench/bench_scan.py --only motion          (only part 9: a living subject, no ROS)
+    .venv/bin/python bench/bench_scan.py --only motion_live     (only part 9's live 60 fps sweep)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -48,6 +50,7 @@
 8. Person stop-snap (`--only person_stopsnap`, no ROS): a realistic person rendered stop-snap, points more than 1 mm
    off the true surface (stopsnap_points_over_1mm_pct), and the adaptive settle against the fixed one on the same
    scene and frames (adaptive_settle_rms_over_fixed, adaptive_settle_time_over_fixed).
+9. A living subject (`--only motion`, `--only motion_live`): see MOTION_NOTES.
 """
 
 from __future__ import annotations
@@ -1028,12 +1031,144 @@ def person_stopsnap_figures() -> dict:
             "adaptive_settle_rms_mm": rms["adaptive"], "fixed_settle_rms_mm": rms["fixed"],
             "adaptive_settle_frames_per_snap": scans["adaptive"].captures / len(scans["adaptive"].snap_after_stop_s)}
 
+# ---------------------------------------------------------------- a living subject (issue 36)
+MOTION_SUBJECTS = ("person:2",)      # every kind of motion scanned on each (one person: the bench takes ~20 min)
+MOTION_KINDS_BENCH = ("still", "seated", "standing", "turn")
+MOTION_FPS_60, MOTION_RATE_60 = 60.0, 2 * FACE_SWEEP_RATE
+MOTION_NOTES = (
+    " motion (`--only motion`, no ROS; lsu_accuracy.motion_sim): sweeps over each person's face (the carriage "
+    "positions whose sheet crosses the true landmarks, +-4 mm) at the face sweep's rate and 30 fps of "
+    f"{', '.join(MOTION_SUBJECTS)} moving as lsu_sim.motion's still, seated, standing and turn (standing sway plus a "
+    "15 deg turn in 0.4 s a third into the sweep: beyond the stated limit of 5 deg / 40 mm/s), motion seed = person "
+    "seed, the subject's pose updated at 15 Hz; the motion measured from the frames' texture and the points "
+    "corrected (lsu_reconstruct.motion). motion_rms_mm_<kind>_raw/_corrected: RMS distance of the cloud (raw: each line "
+    "where it was seen; corrected: moved back to the middle frame's pose) to the person's meshes at the middle "
+    "frame's true pose, mean over the people; motion_rms_standing_corrected_over_still the corrected standing RMS "
+    "over the still one; motion_flagged_pct_<kind>: scans flagged as beyond correction (beyond_limit = turn); "
+    "motion_pose_error_mm_<kind>: median distance between the measured and true displacement of the fitted points' "
+    "centre. 60 fps (sweep at twice the rate, same lines): sweep_60fps_rms_mm beside sweep_30fps_rms_mm, still "
+    "person, raw points; motion_rms_mm_standing_corrected_60fps. motion_bench_s: this part's wall time. "
+    "sweep_scan_s_60fps (`--only motion_live`): live on lsu launch sim (person 2), a face sweep at "
+    f"{MOTION_RATE_60:g} steps/s and {MOTION_FPS_60:g} fps over the face range of sweep_face_start/end_steps, action "
+    "wall time, beside a 30 fps one at the face rate (sweep_scan_s_30fps_motion_live).")
+MOTION_UNITS = {"motion_rms_standing_corrected_over_still": "x", "motion_rms_standing_raw_over_still": "x",
+                "motion_flagged_pct_beyond_limit": "%", "motion_flagged_pct_still": "%",
+                "motion_flagged_pct_seated": "%", "motion_flagged_pct_standing": "%", "sweep_scan_s_60fps": "s",
+                "sweep_scan_s_30fps_motion_live": "s", "sweep_60fps_rms_mm": "mm", "sweep_30fps_rms_mm": "mm",
+                "sweep_60fps_rms_over_30fps": "x", "motion_rms_mm_standing_corrected_60fps": "mm",
+                "motion_bench_s": "s", "sweep_60fps_frames_dropped_pct": "%", "sweep_60fps_camera_lag_s": "s",
+                **{f"motion_rms_mm_{k}_{c}": "mm" for k in MOTION_KINDS_BENCH for c in ("raw", "corrected")},
+                **{f"motion_pose_error_mm_{k}": "mm" for k in MOTION_KINDS_BENCH}}
+
+
+def motion_figures() -> dict:
+    """A living subject without ROS: accuracy still / seated / standing, raw and corrected, flagging, 60 fps."""
+    import numpy as np
+
+    from lsu_accuracy.accuracy import surface_rms_mm
+    from lsu_accuracy.motion_sim import face_range_steps, motion_scan
+    from lsu_accuracy.sweep_sim import reconstruct_rendered, render_sweep
+    from lsu_config import config_dir
+    from lsu_reconstruct.laser_sheet import read_laser_yaml
+    from lsu_reconstruct.stereo import StereoModel
+    from lsu_sim import build_scene, load_rig
+
+    started = time.monotonic()
+    calib = config_dir() / "calibration" / "sim"
+    model, sheet = StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml")
+    geometry = load_rig()
+    rms: dict = {}
+    flagged: dict = {}
+    pose_err: dict = {}
+    out: dict = {}
+    for subject in MOTION_SUBJECTS:
+        objects = build_scene(subject, geometry)
+        seed = int(subject.rsplit(":", 1)[1])
+        for kind in MOTION_KINDS_BENCH:
+            scan = motion_scan(model, sheet, geometry, objects, kind, seed=seed, rate_steps_s=FACE_SWEEP_RATE)
+            rms.setdefault(kind, []).append((scan.rms_mm(objects, corrected=False), scan.rms_mm(objects)))
+            flagged.setdefault(kind, []).append(scan.estimate.flagged)
+            pose_err.setdefault(kind, []).append(_pose_error_mm(scan))
+            print(f"[motion] {subject} {kind}: raw {rms[kind][-1][0]:.3f} mm, corrected {rms[kind][-1][1]:.3f} mm, "
+                  f"flagged {scan.estimate.flagged}, {scan.frames} frames", flush=True)
+        if subject == MOTION_SUBJECTS[0]:
+            lo, hi = face_range_steps(geometry, objects)
+            for fps, rate in ((SWEEP_FPS, FACE_SWEEP_RATE), (MOTION_FPS_60, MOTION_RATE_60)):
+                still = reconstruct_rendered(model, sheet, render_sweep(geometry, objects, rate, fps, lo, hi, seed=seed))
+                out[f"sweep_{fps:g}fps_rms_mm"] = surface_rms_mm(objects, still.xyz)
+            fast = motion_scan(model, sheet, geometry, objects, "standing", seed=seed, rate_steps_s=MOTION_RATE_60,
+                               fps=MOTION_FPS_60)
+            out["motion_rms_mm_standing_corrected_60fps"] = fast.rms_mm(objects)
+    for kind in MOTION_KINDS_BENCH:
+        out[f"motion_rms_mm_{kind}_raw"] = float(np.mean([r[0] for r in rms[kind]]))
+        out[f"motion_rms_mm_{kind}_corrected"] = float(np.mean([r[1] for r in rms[kind]]))
+        out[f"motion_pose_error_mm_{kind}"] = float(np.mean(pose_err[kind]))
+        name = "beyond_limit" if kind == "turn" else kind
+        out[f"motion_flagged_pct_{name}"] = 100.0 * float(np.mean(flagged[kind]))
+    out["motion_rms_standing_corrected_over_still"] = out["motion_rms_mm_standing_corrected"] / out["motion_rms_mm_still_corrected"]
+    out["motion_rms_standing_raw_over_still"] = out["motion_rms_mm_standing_raw"] / out["motion_rms_mm_still_corrected"]
+    out["sweep_60fps_rms_over_30fps"] = out["sweep_60fps_rms_mm"] / out["sweep_30fps_rms_mm"]
+    out["motion_bench_s"] = time.monotonic() - started
+    return out
+
+
+def _pose_error_mm(scan) -> float:
+    """Median distance [mm] between the measured and the true displacement of the fitted points' centre."""
+    import cv2
+    import numpy as np
+
+    from lsu_sim.motion import SubjectPose
+
+    est = scan.estimate
+
+    def pose(v):  # noqa: ANN001, ANN202
+        R, _ = cv2.Rodrigues(np.asarray(v[:3], dtype=np.float64).reshape(3, 1))
+        return SubjectPose(R, np.asarray(v[3:]), scan.pivot)
+
+    ref = pose(scan.true_poses[est.reference_frame])
+    c = est.centre[None]
+    errors = [np.linalg.norm(pose(scan.true_poses[f]).apply(ref.inverse_apply(c))[0] - c[0] - est.vectors[k, 3:])
+              for k, f in enumerate(est.frames)]
+    return 1e3 * float(np.median(errors))
+
+
+def motion_live(tmp: Path) -> dict:
+    """sweep_scan_s_60fps: a face sweep at 60 fps and twice the rate, live, beside one at 30 fps."""
+    from lsu_scan.scanner import LsuScanner
+    from lsu_testing.plugin import LaunchedProcess
+
+    old = json.loads((Path(__file__).resolve().parent / "results" / "scan.json").read_text())["figures"]
+    lo, hi = int(old.get("sweep_face_start_steps", 82)), int(old.get("sweep_face_end_steps", 438))
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32m", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    runs: dict = {}
+    try:
+        graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
+        graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
+        with LsuScanner(wait_s=60) as scanner:
+            scanner.scan(start=200, end=230, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # warm-up
+            for name, rate, fps in (("30", FACE_SWEEP_RATE, SWEEP_FPS), ("60", MOTION_RATE_60, MOTION_FPS_60)):
+                scanner.scan(start=lo, end=lo + 1, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # to the range's start
+                result = scanner.scan(start=lo, end=hi, mode="sweep", sweep_rate_steps_s=rate, frame_rate_hz=fps)
+                if not result.success:
+                    raise RuntimeError(f"the {name} fps sweep failed: {result.status}")
+                runs[name] = result
+                graph.wait_for_line(rf"\[face_processor\].*scan {re.escape(Path(result.output_dir).name)}: \d+ points",
+                                    timeout_s=120)
+    finally:
+        graph.stop(timeout_s=20)
+    sweep60 = json.loads((Path(runs["60"].output_dir) / "scan.json").read_text()).get("sweep", {})
+    return {"sweep_scan_s_60fps": runs["60"].seconds, "sweep_scan_s_30fps_motion_live": runs["30"].seconds,
+            "sweep_60fps_frames_dropped_pct": float(sweep60.get("frames_dropped_pct", float("nan"))),
+            "sweep_60fps_camera_lag_s": float(sweep60.get("camera_lag_s", float("nan")))}
+
+
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the named parts (`PARTS`; sweep = sweep_live + sweep_accuracy) and merge them into the existing scan.json."""
     unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy", "web",
-                       "person_stopsnap"}
+                       "person_stopsnap", "motion", "motion_live"}
     if unknown:
-        raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy, web (comma-separated); "
+        raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy, web, "
+                         "person_stopsnap, motion, motion_live (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
@@ -1063,6 +1198,10 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(sweep_accuracy())
             if "person_stopsnap" in parts:
                 figures.update(person_stopsnap_figures())
+            if "motion" in parts:
+                figures.update(motion_figures())
+            if "motion_live" in parts:
+                figures.update(motion_live(tmp))
             if "two_host" in parts:
                 unavailable = why_unavailable()
                 if unavailable is not None:
@@ -1086,8 +1225,8 @@ def only(parts: set, bag: Path | None = None) -> int:
         measured["settle"] += f", scene {os.environ.get('LSU_BENCH_SETTLE_SCENE', 'head:7')}"
     if parts:
         write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS,
-                                      **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS, **PERSON_UNITS},
-                     notes=NOTES + WEB_NOTES + PERSON_NOTES,
+                                      **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS, **PERSON_UNITS, **MOTION_UNITS},
+                     notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES,
                      extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -1113,16 +1252,19 @@ def main() -> int:
             sweep = {**sweep_live(tmp), **sweep_accuracy()}
             web = web_figures(tmp)
             web.update(person_stopsnap_figures())
+            motion = {**motion_figures(), **motion_live(tmp)}
     finally:
         claim.release()
     write_result(
         "scan",
-        {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web},
+        {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web,
+         **motion},
         {**LIVE_UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS,
-         **PERSON_UNITS},
-        notes=NOTES + WEB_NOTES + PERSON_NOTES,
-        extra={"measured": {part: measured_note("make bench-scan") for part in (*PARTS, "web", "person_stopsnap")
-                                                     if part != "two_host" or unavailable is None}})
+         **PERSON_UNITS, **MOTION_UNITS},
+        notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES,
+        extra={"measured": {part: measured_note("make bench-scan")
+                            for part in (*PARTS, "web", "person_stopsnap", "motion", "motion_live")
+                            if part != "two_host" or unavailable is None}})
     return 0
 
 

@@ -69,17 +69,31 @@ class RenderedSweep:
     frames: list[SweepFrame]
     track: CarriageTrack
     seconds: float
+    # a living subject (``motion``): per frame, the true pose (rotation vector [rad], displacement [m] about the
+    # motion's pivot, `lsu_sim.motion.SubjectPose`) at the left camera's mid-exposure, and the images
+    poses: AnyArray | None = None
+    images: list[tuple[AnyArray, AnyArray]] | None = None
 
 
 def render_sweep(geometry, objects: Sequence, rate_steps_s: float, fps: float = 30.0, start: int = 0,
                  end: int = 470, offset_s: float = 0.0, jitter_s: float = 0.0, position_rate_hz: float = 20.0,
-                 seed: int = 0, frames: int | None = None) -> RenderedSweep:
-    """Render a sweep (module doc) and extract both lines of every frame; ``frames`` limits the count (tests)."""
+                 seed: int = 0, frames: int | None = None, motion=None, motion_t0_s: float = 0.0,
+                 keep_images: bool = False, rig=None, motion_hz: float = 15.0) -> RenderedSweep:
+    """Render a sweep (module doc) and extract both lines of every frame; ``frames`` limits the count (tests).
+
+    ``motion``: a `lsu_sim.motion.SubjectMotion`; every frame is rendered with the subject at its pose at
+    ``motion_t0_s`` + the left camera's mid-exposure, updated at ``motion_hz`` (a new pose re-casts the whole
+    image, the costly part of a frame; sway moves < 0.5 mm in 1/15 s), its ``poses`` hold the pose each
+    frame was rendered at. ``keep_images``: keep every
+    frame's pair (the motion estimate reads their texture). ``rig``: a rig of these objects to reuse.
+    """
     from lsu_reconstruct.sweep import CarriageTrack, SweepFrame
     from lsu_sim import CarriageState, SimulatedRig
 
-    rig = SimulatedRig(geometry, objects, seed=seed)
+    rig = rig if rig is not None else SimulatedRig(geometry, objects, seed=seed)
     rig.set_capture_timing(offset_s, jitter_s)
+    poses: list[AnyArray] = []
+    images: list[tuple[AnyArray, AnyArray]] = []
     direction = 1.0 if end >= start else -1.0
     duration = abs(end - start) / rate_steps_s
     # the driver's stamped positions: the counter at every 1/R s from the start, and the stop
@@ -93,11 +107,19 @@ def render_sweep(geometry, objects: Sequence, rate_steps_s: float, fps: float = 
         state = CarriageState(float(start), True, velocity_steps_per_s=direction * rate_steps_s, position_time_s=0.0)
         if t + exposure > duration:  # the carriage stopped at the end: the last frames see it there
             state = CarriageState(float(end), True)
+        if motion is not None:
+            if index % max(1, int(round(fps / motion_hz))) == 0:
+                pose = motion.pose(motion_t0_s + t + 0.5 * exposure)
+                rig.set_subject_pose(pose.R, pose.translation)
+            poses.append(pose.as_vector())
         frame = rig.render(state, capture_time_s=t, seed=seed + index)
         assert frame.exposure_start_s[0] is not None and frame.exposure_start_s[1] is not None  # given capture_time_s
         out.append(SweepFrame(index, _lines(frame.left), _lines(frame.right), float(frame.exposure_start_s[0]),
                               float(frame.exposure_start_s[1]), exposure))
-    return RenderedSweep(out, track, duration)
+        if keep_images:
+            images.append((frame.left, frame.right))
+    return RenderedSweep(out, track, duration, np.array(poses) if motion is not None else None,
+                         images if keep_images else None)
 
 
 def reconstruct_rendered(model, sheet, rendered: RenderedSweep, params=None, cross_frame: bool = True) -> SweepScan:

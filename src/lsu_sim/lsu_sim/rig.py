@@ -275,6 +275,11 @@ class SimulatedRig:
             view.speckle = SpeckleField(geometry.speckle, geometry.laser.wavelength_nm * 1e-9, geometry.sensor.f_number,
                                         geometry.magnification, geometry.sensor.pixel_size_m, geometry.image_size[1], k)
         self.objects: list[SceneObject] = []
+        # the subject's rigid pose (a living subject, `motion`): the scene as built maps to where it is now by
+        # X_now = R X + t; ray casts go into the scene's own frame instead, so a new pose re-casts the views
+        # without rebuilding the ray-casting structure
+        self._pose_R = np.eye(3)
+        self._pose_t = np.zeros(3)
         self.set_scene(objects)
 
     # ------------------------------------------------------------------ scene
@@ -296,7 +301,30 @@ class SimulatedRig:
         for view in self._views:
             self._cache_view(view)
 
+    def set_subject_pose(self, R: AnyArray, t: AnyArray) -> None:
+        """Move the whole scene rigidly to ``X_now = R X + t`` (X: the scene as built) and recompute the views.
+
+        Rigid: hit distances, triangles and the surface's texture (evaluated in the scene's own frame, so it
+        moves with the skin) are those of the scene as built; positions and normals turn with the pose.
+        """
+        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise ValueError("the subject pose needs a finite rotation matrix and translation")
+        if np.array_equal(R, self._pose_R) and np.array_equal(t, self._pose_t):
+            return
+        self._pose_R, self._pose_t = R, t
+        for view in self._views:
+            self._cache_view(view)
+
+    def _to_scene(self, origins: AnyArray, dirs: AnyArray) -> tuple[AnyArray, AnyArray]:
+        """Rays (left frame) in the scene's own frame (the inverse of the subject pose)."""
+        if not self._pose_t.any() and np.array_equal(self._pose_R, np.eye(3)):
+            return origins, dirs
+        return (np.asarray(origins) - self._pose_t) @ self._pose_R, np.asarray(dirs) @ self._pose_R
+
     def _cast(self, origins: AnyArray, dirs: AnyArray) -> dict[str, AnyArray]:
+        origins, dirs = self._to_scene(origins, dirs)
         rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in result.items()}
@@ -325,6 +353,7 @@ class SimulatedRig:
         t = np.where(hit, t, 0.0)
         points = view.origin + view.dirs * t[:, None]
         normals = self._smooth_normals(geom, cast["primitive_ids"].astype(np.int64), cast["primitive_uvs"], hit)
+        normals = normals @ self._pose_R.T  # the scene's normals as the subject is turned now
         flip = np.einsum("ij,ij->i", normals, view.dirs) > 0  # face the camera: both sides of a mesh are visible
         normals[flip] *= -1.0
         ok = hit.reshape(H, W)
@@ -337,7 +366,9 @@ class SimulatedRig:
         for gid, obj in enumerate(self.objects):
             sel = geom == gid
             if np.any(sel):
-                albedo[sel] = obj.albedo(points[sel], du[sel], dv[sel])
+                # the texture is the scene's own: evaluated where the point is on the subject as built
+                albedo[sel] = obj.albedo((points[sel] - self._pose_t) @ self._pose_R, du[sel] @ self._pose_R,
+                                         dv[sel] @ self._pose_R)
                 spec[sel] = obj.specularity
         light = g.lighting
         to_lamp = light.key_light_m - points
@@ -402,8 +433,7 @@ class SimulatedRig:
             dist = np.linalg.norm(to, axis=1)
         if any_hit:
             rays = np.empty((len(to), 6), np.float32)
-            rays[:, :3] = origin
-            rays[:, 3:] = to
+            rays[:, :3], rays[:, 3:] = self._to_scene(origin, to)
             tfar = float(1.0 - 1e-5 - 1e-5 / dist.max())
             return ~self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=tfar).numpy().astype(bool)
         cast = self._cast(origin, to / dist[:, None])

