@@ -84,6 +84,7 @@ class FaceParams:
     candidates: int = 12               # template stage: distinct candidates verified
     min_confidence: float = 0.45       # below this the best candidate is "no face"
     max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: a warning, never a refusal
+    max_model_weight: float = 2.3      # face model fit at a candidate: RMS prior-normalised weight above this is no nose
 
     def __post_init__(self) -> None:
         if self.nose_method not in NOSE_METHODS:
@@ -111,6 +112,7 @@ class NoseResult:
     warnings: list[str] = field(default_factory=list)   # what is unusual but no reason to refuse (asymmetry)
     runner_up_confidence: float = 0.0   # the best face fit more than 20 mm from this one (template method)
     runner_up_distance_mm: float = 0.0
+    model_weight: float = float("nan")  # RMS prior-normalised weight of the face-model fit at this nose (template method)
 
 
 @dataclass
@@ -417,16 +419,30 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
     rough.sort(key=lambda r: (r[0], r[1]))
     best = None
     verified = []
+    layout_best = 0.0
     for _, _, T0, q in rough[:3]:
         conf, reg, cover = verify(T0, np.arange(len(tpl.points)), (0.008, 0.004))
         verified.append((conf, reg.T[:3, 3]))
-        if best is None or conf > best[0]:
-            best = (conf, reg, q)
-    if best is None or best[0] < params.min_confidence:
-        got = 0.0 if best is None else best[0]
-        raise NotAFaceError(f"no face: the best nose candidate matches a face's layout with confidence {got:.2f} "
-                            f"(a face: >= {params.min_confidence:.2f}); is a face turned towards the scanner?")
-    conf, reg, q = best
+        layout_best = max(layout_best, conf)
+        if conf < params.min_confidence:
+            continue
+        # the layout fits loosely on a cheek or brow of a turned head too: the face model must explain the
+        # surface around the candidate with the weights of a plausible person (see _model_weight)
+        weight = _model_weight(p, reg.T, noise_m, params)
+        factor = 1.0 if weight <= params.max_model_weight else 0.0
+        if best is None or conf * factor > best[0] * best[3]:
+            best = (conf, reg, q, factor, weight)
+    if best is None or best[0] * best[3] < params.min_confidence:
+        if best is not None:
+            raise NotAFaceError(f"no face: the best nose candidate matches a face's layout (confidence {best[0]:.2f}) "
+                                f"but the face model explains its surroundings only with implausible shape weights "
+                                f"(RMS {best[4]:.2f} prior sigmas, a face: <= {params.max_model_weight:.2f}): a nose on "
+                                f"a chin, cheek or collar? Turn the face towards the scanner and capture again")
+        raise NotAFaceError(f"no face: the best nose candidate matches a face's layout with confidence "
+                            f"{layout_best:.2f} (a face: >= {params.min_confidence:.2f}); is a face turned towards the "
+                            f"scanner?")
+    conf, reg, q, factor, weight = best
+    conf *= factor
     axes = reg.T[:3, :3].T
     origin = reg.T[:3, 3]
     local = (p - origin) @ axes.T
@@ -443,7 +459,33 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
     others = [(c, float(np.linalg.norm(o - origin))) for c, o in verified if np.linalg.norm(o - origin) > 0.02]
     runner = max(others) if others else (0.0, 0.0)
     return NoseResult(tip, axes[2].copy(), float(q), "template", float(conf), float(sym), frame, float(noise_m),
-                      warnings, float(runner[0]), runner[1] * 1000.0)
+                      warnings, float(runner[0]), runner[1] * 1000.0, float(weight))
+
+
+MODEL_CHECK_NOISE_M = 0.0014   # depth noise the face-model check assumes at least (a time-of-flight camera's)
+
+
+def _model_weight(points: AnyArray, T: AnyArray, noise_m: float, params: FaceParams) -> float:
+    """RMS prior-normalised weight of the face-model fit (`lsu_faces.identity`) around a nose candidate.
+
+    A real nose is explained by identity weights of about one prior sigma each and a moderate expression;
+    the surface around a cheek, brow or chin taken for a nose needs extreme weights to look like a face
+    there. The fit sees the candidate's depth map in the frame of the registered generic face.
+    """
+    from .identity import EXPRESSION_SIGMA, BasisError, fit_signature, load_basis
+    from .signature import SignatureError, make_signature
+
+    frame = FaceFrame(T[:3, 3].copy(), T[:3, :3].T.copy())
+    crop = points[np.linalg.norm(points - frame.origin, axis=1) <= params.crop_radius_m]
+    try:
+        # the same regularisation for every sensor (the threshold was set on time-of-flight scans): a
+        # low-noise scan would otherwise buy fine detail with larger weights
+        fit = fit_signature(make_signature(crop, frame, noise_m=max(float(noise_m), MODEL_CHECK_NOISE_M)))
+    except (SignatureError, BasisError):
+        return float("inf")
+    b = load_basis()
+    return float(np.sqrt(np.sum(fit.identity ** 2) / len(b.identity) + np.sum(fit.expression ** 2)
+                         / (len(b.expression) * EXPRESSION_SIGMA ** 2)))
 
 
 def nose_tip(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
