@@ -25,6 +25,10 @@ from pathlib import Path
 __all__ = ["RayNodes", "free_ports"]
 
 NODE_START_S = 90.0  # a node that has not said it started by then is reported (a loaded host takes ~10-30 s)
+# Ray gives a raylet a fixed 30 s to register with the GCS (ray/_private/node.py, not configurable); a busy host can
+# miss it. That one failure is retried with a fresh node; any other ends the start.
+RAY_REGISTER_TIMEOUT = "timed out during startup"
+NODE_START_ATTEMPTS = 3
 
 
 def free_ports(count: int) -> list[int]:
@@ -39,6 +43,14 @@ def free_ports(count: int) -> list[int]:
     finally:
         for s in sockets:
             s.close()
+
+
+class NodeStartError(RuntimeError):
+    """A Ray node that did not start; ``output`` is the end of what it printed."""
+
+    def __init__(self, what: str, lines: list[str]) -> None:
+        self.output = "\n".join(lines[-20:])
+        super().__init__(f"{what}:\n{self.output}")
 
 
 class RayNodes:
@@ -62,6 +74,17 @@ class RayNodes:
         return str(Path(sys.executable).with_name("ray"))
 
     def _start_node(self, head: bool) -> None:
+        for attempt in range(1, NODE_START_ATTEMPTS + 1):
+            try:
+                self._start_node_once(head)
+                return
+            except NodeStartError as e:
+                if RAY_REGISTER_TIMEOUT not in e.output or attempt == NODE_START_ATTEMPTS:
+                    raise
+                self._stop_process(self.processes.pop())
+                self.output.pop()
+
+    def _start_node_once(self, head: bool) -> None:
         ports = free_ports(9)
         args = [self._ray(), "start", "--block", "--node-ip-address=127.0.0.1", f"--num-cpus={self.cpus}",
                 f"--object-store-memory={self.object_store_bytes}", f"--node-manager-port={ports[1]}",
@@ -95,9 +118,9 @@ class RayNodes:
         deadline = time.monotonic() + NODE_START_S
         while not started.wait(0.2):
             if time.monotonic() > deadline:
-                raise RuntimeError(f"Ray node did not start within {NODE_START_S:.0f} s:\n" + "\n".join(lines[-20:]))
+                raise NodeStartError(f"Ray node did not start within {NODE_START_S:.0f} s", lines)
         if not ok.is_set():
-            raise RuntimeError(f"Ray node ended with status {process.wait()}:\n" + "\n".join(lines[-20:]))
+            raise NodeStartError(f"Ray node ended with status {process.wait()}", lines)
 
     def start(self) -> str:
         """Start the head, then the workers; returns the head's address (host:port)."""
@@ -110,23 +133,28 @@ class RayNodes:
             raise
         return self.address
 
+    @staticmethod
+    def _stop_process(process: subprocess.Popen[str]) -> None:
+        """End the process group of one node this object started."""
+        for sig, wait_s in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
+            try:
+                os.killpg(process.pid, sig)  # the group this object started, by its id
+            except ProcessLookupError:
+                return
+            try:
+                process.wait(wait_s)
+            except subprocess.TimeoutExpired:
+                continue
+            try:  # `ray start` ended its node on SIGTERM; anything of the group still there goes too
+                os.killpg(process.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            return
+
     def stop(self) -> None:
         """End every node's process group (workers first), then remove the temporary folder."""
         for process in reversed(self.processes):
-            for sig, wait_s in ((signal.SIGTERM, 15.0), (signal.SIGKILL, 5.0)):
-                try:
-                    os.killpg(process.pid, sig)  # the group this object started, by its id
-                except ProcessLookupError:
-                    break
-                try:
-                    process.wait(wait_s)
-                except subprocess.TimeoutExpired:
-                    continue
-                try:  # `ray start` ended its node on SIGTERM; anything of the group still there goes too
-                    os.killpg(process.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                break
+            self._stop_process(process)
         self.processes = []
         shutil.rmtree(self.temp, ignore_errors=True)
 
