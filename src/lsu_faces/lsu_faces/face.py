@@ -33,7 +33,8 @@ of the tip, pointing out of the face (towards the camera). Spherical embedding (
 sphere of radius ``sphere_radius_m`` whose surface touches the nose tip, centred behind it on the
 radial vector; each point gets its unit direction from the centre and its radial distance. The 2D
 parametric map (ch. 11.2.3) bins the points by elevation (angle from the radial vector) and azimuth
-(angle about it) and stores the mean radial height above the sphere.
+(angle about it) and stores the mean radial height above the sphere. The frame, the parameters and the two
+maps are `lsu_faces.frame`'s (the signatures need them too), re-exported here.
 """
 
 from __future__ import annotations
@@ -47,54 +48,12 @@ from scipy.spatial import cKDTree
 
 from lsu_common.arrays import AnyArray
 
+from .frame import NOSE_METHODS, FaceError, FaceFrame, FaceParams, NotAFaceError, parametric_map, spherical_embedding
+
 __all__ = ["FaceError", "NotAFaceError", "FaceParams", "NoseResult", "FaceFrame", "depth_window", "nose_tip_svd",
            "nose_tip_protrusion", "nose_tip_template", "nose_tip", "radial_vector", "face_frame", "crop_face",
            "spherical_embedding",
            "parametric_map", "NOSE_METHODS"]
-
-NOSE_METHODS = ("template", "protrusion", "svd")
-
-
-class FaceError(ValueError):
-    """The face cannot be processed (too few points, bad parameters); the message says what to do."""
-
-
-class NotAFaceError(FaceError):
-    """The cloud holds no face: nothing protrudes like a nose (a plane, a ball, a box...)."""
-
-
-@dataclass(frozen=True)
-class FaceParams:
-    """Settings of the face geometry (node parameters of the same names)."""
-
-    nose_method: str = "template"
-    depth_window_m: float = 0.20       # keep points within this depth of the nearest surface (drops background)
-    svd_sphere_m: float = 0.07         # thesis: radius of the reduced cloud around the centroid
-    ring_inner_m: float = 0.015        # protrusion ring around a candidate: inner radius
-    ring_outer_m: float = 0.035        # and outer radius
-    candidate_voxel_m: float = 0.005   # nose candidates: one per voxel of this size
-    sample_voxel_m: float = 0.003      # surface samples for the ring statistics
-    min_prominence_m: float = 0.006    # a nose protrudes at least this above its quadric ring
-    radial_radius_m: float = 0.04      # plane fit around the tip for the radial vector
-    crop_radius_m: float = 0.085       # face region: points within this of the nose tip
-    sphere_radius_m: float = 0.09      # spherical embedding radius (about a head's half depth)
-    max_symmetry_shift_m: float = 0.003  # the symmetry plane may move the nose tip at most this far
-    min_points: int = 200
-    ring_min_fraction: float = 0.5     # a nose candidate needs this much of its ring present (crop edges, rims)
-    candidates: int = 12               # template stage: distinct candidates verified
-    min_confidence: float = 0.45       # below this the best candidate is "no face"
-    max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: a warning, never a refusal
-    max_model_weight: float = 2.3      # face model fit at a candidate: RMS prior-normalised weight above this is no nose
-
-    def __post_init__(self) -> None:
-        if self.nose_method not in NOSE_METHODS:
-            raise FaceError(f"nose_method must be one of {', '.join(NOSE_METHODS)} (got '{self.nose_method}')")
-        if not 0 < self.ring_inner_m < self.ring_outer_m:
-            raise FaceError("ring_inner_m must be positive and smaller than ring_outer_m")
-        for name in ("depth_window_m", "svd_sphere_m", "candidate_voxel_m", "sample_voxel_m", "radial_radius_m", "crop_radius_m",
-                     "sphere_radius_m"):
-            if not getattr(self, name) > 0:
-                raise FaceError(f"{name} must be positive (got {getattr(self, name)})")
 
 
 @dataclass
@@ -113,18 +72,6 @@ class NoseResult:
     runner_up_confidence: float = 0.0   # the best face fit more than 20 mm from this one (template method)
     runner_up_distance_mm: float = 0.0
     model_weight: float = float("nan")  # RMS prior-normalised weight of the face-model fit at this nose (template method)
-
-
-@dataclass
-class FaceFrame:
-    """Pose-normalising frame of a face: origin at the nose tip, rows = (right, down, out of the face)."""
-
-    origin: AnyArray
-    axes: AnyArray          # (3, 3) rows e1, e2, radial; local = (p - origin) @ axes.T
-
-    def to_local(self, points: AnyArray) -> AnyArray:
-        """Points in the face frame (z = height along the radial vector, <= 0 behind the tip)."""
-        return (np.asarray(points, dtype=np.float64) - self.origin) @ self.axes.T
 
 
 def _check(points: AnyArray, params: FaceParams) -> AnyArray:
@@ -592,42 +539,6 @@ def _profile_pitch(points: AnyArray, frame: FaceFrame, params: FaceParams) -> Fa
 def crop_face(points: AnyArray, tip: AnyArray, params: FaceParams = FaceParams()) -> AnyArray:
     """Mask of the points within ``crop_radius_m`` of the nose tip (the face, without hair, ears and neck)."""
     return np.linalg.norm(np.asarray(points) - tip, axis=1) <= params.crop_radius_m
-
-
-def spherical_embedding(points: AnyArray, frame: FaceFrame,
-                        radius_m: float = FaceParams().sphere_radius_m) -> tuple[AnyArray, AnyArray, AnyArray]:
-    """Map points onto the sphere touching the nose tip (thesis ch. 11.2.2).
-
-    Returns (elevation [rad] from the radial vector, azimuth [rad] about it in (-pi, pi], radial
-    distance from the sphere centre [m]).
-    """
-    centre = frame.origin - radius_m * frame.axes[2]
-    d = (np.asarray(points, dtype=np.float64) - centre) @ frame.axes.T
-    rho = np.linalg.norm(d, axis=1)
-    unit = d / np.maximum(rho[:, None], 1e-12)
-    elevation = np.arccos(np.clip(unit[:, 2], -1.0, 1.0))
-    azimuth = np.arctan2(unit[:, 1], unit[:, 0])
-    return elevation, azimuth, rho
-
-
-def parametric_map(elevation: AnyArray, azimuth: AnyArray, rho: AnyArray, radius_m: float,
-                   shape: tuple[int, int] = (24, 64), max_elevation_rad: float = np.radians(60.0)) -> AnyArray:
-    """2D map (elevation rows x azimuth columns) of the mean height above the sphere [m]; NaN = no data.
-
-    Row 0 is the ring around the nose tip (thesis Figure 56: "the bottom row represents all the points
-    on a circle directly on top of the nose"); a roll about the radial vector shifts the columns cyclically.
-    """
-    rows, cols = shape
-    r = np.floor(elevation / max_elevation_rad * rows).astype(np.int64)
-    c = np.floor((azimuth + np.pi) / (2 * np.pi) * cols).astype(np.int64) % cols
-    ok = (r >= 0) & (r < rows)
-    flat = r[ok] * cols + c[ok]
-    total = np.bincount(flat, weights=rho[ok] - radius_m, minlength=rows * cols)
-    count = np.bincount(flat, minlength=rows * cols)
-    out = np.full(rows * cols, np.nan)
-    has = count > 0
-    out[has] = total[has] / count[has]
-    return out.reshape(rows, cols)
 
 
 def embed_face(points: AnyArray, params: FaceParams = FaceParams(),

@@ -32,7 +32,7 @@ from scipy.special import ndtr, ndtri
 
 from lsu_common.arrays import AnyArray
 
-from .face import FaceFrame, FaceParams, parametric_map, spherical_embedding
+from .frame import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
 
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
