@@ -72,14 +72,26 @@ from lsu_scan import rosenv
 from lsu_tools.twohosts import TwoHosts, split_scan, why_unavailable
 
 
-def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
-    from lsu_scan.scanner import LsuScanner
+def start_sim_graph(tmp: Path, port: str, output_dir: str, *args: str, scene: str = "head:7"):
+    """`lsu launch sim` on ``scene`` with its GP32 port and scans under ``tmp``, returned once the carriage is
+    homed and the simulated cameras are open (the caller stops it)."""
     from lsu_testing.plugin import LaunchedProcess
 
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/{port}", f"scene:={scene}", f"output_dir:={tmp}/{output_dir}",
+                             *args])
     try:
-        graph.wait_for_line(r"homed: track", timeout_s=120)
-        graph.wait_for_line(r"source 'sim' open", timeout_s=120)
+        graph.wait_for_line(r"\[gp32_driver\].*homed: track", timeout_s=120)
+        graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=120)
+    except BaseException:
+        graph.stop()
+        raise
+    return graph
+
+def live_scan(tmp: Path, baseline: bool = True, view: bool = True) -> dict:
+    from lsu_scan.scanner import LsuScanner
+
+    graph = start_sim_graph(tmp, "gp32", "scans")
+    try:
         runs = {}
         with LsuScanner(wait_s=60) as scanner:
             # one short warm-up scan: first-call costs (imports, caches) are not the steady state we measure
@@ -637,17 +649,13 @@ def web_figures(tmp: Path) -> dict:
     from playwright.sync_api import sync_playwright
 
     from lsu_scan.scanner import LsuScanner
-    from lsu_testing.plugin import LaunchedProcess
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = int(s.getsockname()[1])
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32w", "scene:=head:7", f"output_dir:={tmp}/web_scans",
-                             "web:=true", f"web_port:={port}", *LAUNCH_ARGS])
+    graph = start_sim_graph(tmp, "gp32w", "web_scans", "web:=true", f"web_port:={port}", *LAUNCH_ARGS)
     walls: dict[str, float] = {}
     try:
-        graph.wait_for_line(r"homed: track", timeout_s=120)
-        graph.wait_for_line(r"source 'sim' open", timeout_s=120)
         graph.wait_for_line(r"\[web_server\] lsu web: open", timeout_s=120)
         web_pid = graph.started_pids()["web_server"]
         with LsuScanner(wait_s=60) as scanner:
@@ -713,15 +721,12 @@ def settle_figures(tmp: Path) -> dict:
     LSU_BENCH_SETTLE_SCENE another scene (default head:7).
     """
     from lsu_scan.scanner import LsuScanner
-    from lsu_testing.plugin import LaunchedProcess
     from lsu_tools.demo import accuracy_against_scene
 
     scene = os.environ.get("LSU_BENCH_SETTLE_SCENE", "head:7")
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", f"scene:={scene}", f"output_dir:={tmp}/settle"])
+    graph = start_sim_graph(tmp, "gp32s", "settle", scene=scene)
     runs: dict = {"fixed": [], "adaptive": []}
     try:
-        graph.wait_for_line(r"homed: track", timeout_s=120)
-        graph.wait_for_line(r"source 'sim' open", timeout_s=120)
         with LsuScanner(wait_s=60) as scanner:
             scanner.scan(start=230, end=240, step=5, settle_s=0.1, output_dir=str(tmp / "warmup-settle"))
             lsu = str(Path(sys.executable).parent / "lsu")
@@ -865,14 +870,11 @@ def lines_on_face(folder: Path, scene: str = "head:7") -> dict[int, int]:
 def sweep_live(tmp: Path) -> dict:
     """Part 6, live: the default stop-snap scan's lines on the face, then sweeps over that range and the whole track."""
     from lsu_scan.scanner import LsuScanner
-    from lsu_testing.plugin import LaunchedProcess
     from lsu_tools.demo import accuracy_against_scene
 
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32s", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    graph = start_sim_graph(tmp, "gp32s", "scans")
     runs: dict = {}
     try:
-        graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
-        graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
         with LsuScanner(wait_s=60) as scanner:
             scanner.scan(start=200, end=230, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # warm-up
 
@@ -1135,15 +1137,12 @@ def _pose_error_mm(scan) -> float:
 def motion_live(tmp: Path) -> dict:
     """sweep_scan_s_60fps: a face sweep at 60 fps and twice the rate, live, beside one at 30 fps."""
     from lsu_scan.scanner import LsuScanner
-    from lsu_testing.plugin import LaunchedProcess
 
     old = json.loads((Path(__file__).resolve().parent / "results" / "scan.json").read_text())["figures"]
     lo, hi = int(old.get("sweep_face_start_steps", 82)), int(old.get("sweep_face_end_steps", 438))
-    graph = LaunchedProcess(["launch", "sim", f"port:={tmp}/gp32m", "scene:=head:7", f"output_dir:={tmp}/scans"])
+    graph = start_sim_graph(tmp, "gp32m", "scans")
     runs: dict = {}
     try:
-        graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
-        graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
         with LsuScanner(wait_s=60) as scanner:
             scanner.scan(start=200, end=230, mode="sweep", sweep_rate_steps_s=SWEEP_RATE)  # warm-up
             for name, rate, fps in (("30", FACE_SWEEP_RATE, SWEEP_FPS), ("60", MOTION_RATE_60, MOTION_FPS_60)):
