@@ -11,7 +11,7 @@ radial vector, y from the camera's down direction), so a turned or nodding head 
   of a face (nose, eye sockets, forehead) count more than the parts that move with expressions
   (mouth, chin); see ``REGION_WEIGHTS``. Missing cells (occlusion, hair, a hand) simply do not count.
 - ``fft`` (the thesis' proposal): the spherical parametric map (elevation x azimuth, see
-  `lsu_faces.face.parametric_map`) and the magnitudes of its Fourier coefficients along the azimuth,
+  `lsu_faces.frame.parametric_map`) and the magnitudes of its Fourier coefficients along the azimuth,
   which do not change when the face rolls about the radial vector. Compared by the RMS difference.
 
 Scores are calibrated, not fixed: `ImpostorModel` is a log-normal fitted to the distances between
