@@ -3,7 +3,8 @@
 
 Ground truth: the simulator's true pose per frame (`lsu_sim.motion`, the poses the frames were rendered at)
 and the person's meshes at the reference frame's true pose. The sweeps cover the middle of the face
-(nose and mouth) at the face sweep's rate, fewer frames than a whole face to keep the tests short.
+(nose and mouth) at the face sweep's rate, fewer frames than a whole face to keep the tests short; the turn's
+sweep is shorter still, as it only has to show the flag.
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from lsu_sim import build_scene, load_rig
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]
 
 SCENE, START, END = "person:2", 190, 280
+# the turn's sweep: the first 60 steps of that range (1.05 s, 32 frames, the reference the middle one at ~0.55 s);
+# the head turns at 0.1..0.5 s, wholly before the reference: the frames before and during it are the far side
+TURN_START, TURN_END, TURN_AT_S = 190, 250, 0.1
 
 
 @pytest.fixture(scope="module")
@@ -31,9 +35,9 @@ def setting():
     return StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml"), geometry, build_scene(SCENE, geometry)
 
 
-def _scan(setting, kind: str, seed: int = 2, **kw) -> MotionScan:
+def _scan(setting, kind: str, seed: int = 2, start: int = START, end: int = END, **kw) -> MotionScan:
     model, sheet, geometry, objects = setting
-    return motion_scan(model, sheet, geometry, objects, kind, seed=seed, start=START, end=END, **kw)
+    return motion_scan(model, sheet, geometry, objects, kind, seed=seed, start=start, end=end, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -86,12 +90,15 @@ def _rt(v: AnyArray) -> tuple[AnyArray, AnyArray]:
 
 
 def test_a_sudden_turn_is_flagged_with_the_part_that_is_unreliable(setting):
-    turn = _scan(setting, "turn", seed=2, turn_at_s=0.5)
+    turn = _scan(setting, "turn", seed=2, start=TURN_START, end=TURN_END, turn_at_s=TURN_AT_S)
     assert turn.estimate.flagged
     record = turn.record
     assert record["message"] == HOLD_STILL
     assert record["reasons"] and all(record["reasons"].values())
     lo, hi = record["unreliable_positions_steps"]
-    assert START <= lo <= hi <= END
-    # the frames on the far side of the turn from the reference are the unreliable ones, not every frame
-    assert 0 < len(record["unreliable_frames"]) < len(record["frames"])
+    assert TURN_START <= lo <= hi <= TURN_END
+    # the frames on the far side of the turn from the reference are the unreliable ones, not every frame: with
+    # the turn before the reference, none after it (measured: measured frames 0, 3, .., 12 of 0..31, steps 190.6..213.6)
+    bad = record["unreliable_frames"]
+    assert 0 < len(bad) < len(record["frames"])
+    assert max(bad) <= record["reference_frame"], bad
