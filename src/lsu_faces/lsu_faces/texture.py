@@ -14,12 +14,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import open3d as o3d
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:  # open3d is imported where it is used: its import (~0.8 s CPU with its plotting packages) would
+    import open3d as o3d  # otherwise be paid by every start of the face processor, which needs it once a cloud arrives
 
 from .mesh import FaceMesh, vertex_normals
 
@@ -53,6 +56,8 @@ def unpack_rgb(packed: AnyArray) -> AnyArray:
 
 def to_open3d(mesh: FaceMesh) -> o3d.geometry.TriangleMesh:
     """The mesh as an open3d TriangleMesh with vertex normals and (if any) vertex colours in [0, 1]."""
+    import open3d as o3d
+
     out = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices),
                                     o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)))
     out.vertex_normals = o3d.utility.Vector3dVector(vertex_normals(mesh.vertices, mesh.triangles))
@@ -63,6 +68,8 @@ def to_open3d(mesh: FaceMesh) -> o3d.geometry.TriangleMesh:
 
 def write_mesh(mesh: FaceMesh, path: str | Path) -> Path:
     """Write ``mesh`` as binary PLY (``.ply``, vertex colours + normals) or OBJ (``.obj``); returns the path."""
+    import open3d as o3d
+
     path = Path(path)
     if mesh.n_triangles == 0:
         raise TextureError(f"cannot write {path}: the mesh has no triangles")
@@ -97,6 +104,8 @@ def render_view(mesh: FaceMesh, yaw_deg: float = 0.0, pitch_deg: float = 0.0, si
     virtual camera about the vertical axis through the mesh centre (positive: from the subject's
     left as the scanner sees it, i.e. from +x), ``pitch_deg`` from above (positive).
     """
+    import open3d as o3d
+
     if mesh.n_triangles == 0:
         raise TextureError("cannot render a mesh without triangles")
     if size_px < 16:

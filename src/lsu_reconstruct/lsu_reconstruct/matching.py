@@ -110,24 +110,35 @@ class Matches:
     rays: tuple | None = None
 
 
+def savgol_weights(window: int, pos: int) -> AnyArray:
+    """Weights of the quadratic least-squares fit over ``window`` samples, evaluated at sample ``pos``
+    (``weights @ y`` is the fitted value there): scipy.signal.savgol_coeffs(window, 2, pos=pos, use="dot").
+
+    The same least-squares problem solved the same way (scipy.linalg.lstsq, scipy's rcond), so the weights are
+    scipy's to the bit, without importing scipy.signal: that costs ~1.3 s CPU in every process that matches
+    (each start of stereo_matcher and of a replay). A test compares them with scipy's.
+    """
+    from scipy.linalg import lstsq
+
+    x = np.arange(-pos, window - pos, dtype=np.float64)
+    a = x ** np.arange(3, dtype=np.float64).reshape(-1, 1)
+    coeffs, _, _, _ = lstsq(a, np.array([1.0, 0.0, 0.0]), cond=np.finfo(np.float64).eps * max(a.shape))
+    return np.asarray(coeffs)
+
+
 @lru_cache(maxsize=16)
 def _savgol_matrices(window: int) -> tuple:
     """Savitzky-Golay (quadratic) weights: centre kernel and the fits for the first/last half-window rows."""
-    from scipy.signal import savgol_coeffs  # only needed when smoothing is on
-
     half = window // 2
-    centre = savgol_coeffs(window, 2, use="dot")
-    head = np.stack([savgol_coeffs(window, 2, pos=k, use="dot") for k in range(half)])
-    tail = np.stack([savgol_coeffs(window, 2, pos=window - half + k, use="dot") for k in range(half)])
+    centre = savgol_weights(window, half)
+    head = np.stack([savgol_weights(window, k) for k in range(half)])
+    tail = np.stack([savgol_weights(window, window - half + k) for k in range(half)])
     return centre, head, tail
 
 
 def prepare(params: MatchParams) -> None:
-    """Fill the caches ``match_line`` needs for ``params`` ahead of the first snap.
-
-    The first Savitzky-Golay fit imports scipy.signal (1-2 s here); a node calls this at start-up
-    and on a parameter change so the first snap of a scan is not acknowledged seconds late.
-    """
+    """Fill the caches ``match_line`` needs for ``params`` ahead of the first snap (the node calls this at
+    start-up and on a parameter change)."""
     window = params.smooth_window_rows
     if window >= 5:
         _savgol_matrices(window + 1 if window % 2 == 0 else window)

@@ -5,7 +5,15 @@ import pytest
 
 from lsu_bags.pointcloud2 import unpack_rgb
 from lsu_reconstruct import synthetic as S
-from lsu_reconstruct.matching import LaserLineError, LineArrays, MatchParams, match_line, match_thesis, smooth_line
+from lsu_reconstruct.matching import (
+    LaserLineError,
+    LineArrays,
+    MatchParams,
+    match_line,
+    match_thesis,
+    savgol_weights,
+    smooth_line,
+)
 from lsu_reconstruct.pipeline import colour_at, merge_snaps, reconstruct_snap
 from lsu_reconstruct.stereo import CalibrationSizeError, StereoModel
 from lsu_reconstruct.triangulate import TriangulationError, accept_points, midpoint_of_rays, triangulate
@@ -77,6 +85,14 @@ def test_smoothing_along_the_line_reduces_noise_without_bias(rig, model):
     d_smooth = smooth.xyz @ plane.normal - plane.offset
     assert d_smooth.std() < 0.75 * d_raw.std()
     assert abs(d_smooth.mean()) < 3e-5
+
+
+def test_savgol_weights_are_scipys_to_the_bit():
+    from scipy.signal import savgol_coeffs
+
+    for window in range(5, 32):
+        for pos in range(window):
+            assert np.array_equal(savgol_weights(window, pos), savgol_coeffs(window, 2, pos=pos, use="dot")), (window, pos)
 
 
 def test_smoothing_follows_a_curved_line():
