@@ -23,14 +23,34 @@ mesh file path.
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .geometry import CameraModel, RigConfigError, RigGeometry, load_rig, rig_from_dict, write_true_calibration
-from .head import Head, HeadIdentity, head_object, make_head
-from .rig import CameraTruth, CarriageState, LaserTruth, SimulatedRig, StereoFrame
-from .scenes import SceneError, SceneObject, load_mesh_file, make_board, make_plane, make_sphere
+
+if TYPE_CHECKING:
+    from .head import Head, HeadIdentity, head_object, make_head
+    from .rig import CameraTruth, CarriageState, LaserTruth, SimulatedRig, StereoFrame
+    from .scenes import SceneError, SceneObject, load_mesh_file, make_board, make_plane, make_sphere
+
+# names of the modules that need open3d, imported on first use (PEP 562): every `lsu` command imports this
+# package to register `lsu render`, and open3d's import (~0.8 s CPU) would otherwise be paid by each of them
+_LAZY = {**dict.fromkeys(("Head", "HeadIdentity", "head_object", "make_head"), ".head"),
+         **dict.fromkeys(("CameraTruth", "CarriageState", "LaserTruth", "SimulatedRig", "StereoFrame"), ".rig"),
+         **dict.fromkeys(("SceneError", "SceneObject", "load_mesh_file", "make_board", "make_plane", "make_sphere"),
+                         ".scenes")}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lsu_sim' has no attribute '{name}'")
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
 
 __all__ = ["CameraModel", "RigConfigError", "RigGeometry", "load_rig", "rig_from_dict", "write_true_calibration",
            "Head", "HeadIdentity", "head_object", "make_head", "CameraTruth", "CarriageState", "LaserTruth",
@@ -49,6 +69,7 @@ def _ict_model():  # noqa: ANN202 - ict.IctModel
     from lsu_extract.devdata import DevDataMissing, devdata_dir
 
     from .ict import load_ict
+    from .scenes import SceneError
 
     try:
         folder = devdata_dir() / "face_model_ict_mit"
@@ -59,6 +80,8 @@ def _ict_model():  # noqa: ANN202 - ict.IctModel
 
 def _seed_of(name: str, kind: str) -> int:
     """The SEED of ``kind`` or ``kind:SEED`` (0 without one)."""
+    from .scenes import SceneError
+
     text = name[len(kind) + 1:] if name.startswith(kind + ":") else "0"
     try:
         return int(text)
@@ -76,6 +99,9 @@ def build_scene(name: str, geometry: RigGeometry, distance_m: float | None = Non
     seed's identity and hair; the skin object carries the true landmarks); yaw/pitch turn heads and people;
     anything else is read as a PLY/OBJ/STL file (metres) centred on the subject point.
     """
+    from .head import head_object, make_head
+    from .scenes import SceneError, load_mesh_file, make_board, make_plane, make_sphere
+
     axes = geometry.rig_axes
     dist = geometry.subject_distance_m if distance_m is None else float(distance_m)
     center = geometry.rig_center + dist * axes[2]
