@@ -243,7 +243,6 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
     if window:
         lidx = lidx[left.v[lidx].argsort(kind="stable")]
     ul, vl = left.u[lidx], left.v[lidx]
-    left_links = None
     if params.min_run_rows > 1 and lidx.size:
         if not window:  # pieces are found along the rows
             order = vl.argsort(kind="stable")
@@ -252,12 +251,11 @@ def match_line(model: StereoModel, left: LineArrays, right: LineArrays,
         stats["short_piece_rows"] = int(lidx.size - np.count_nonzero(long))
         if not long.all():
             lidx, ul, vl = lidx[long], ul[long], vl[long]
-        left_links = _links(ul, vl, params)[0]
         if lidx.size == 0:
             return _no_matches(stats)
     if window >= 5:  # smooth_line leaves lines shorter than the window alone: no links needed then
         if len(ul) >= window:
-            ul = smooth_line(ul, vl, window, left_links if left_links is not None else _links(ul, vl, params)[0])
+            ul = smooth_line(ul, vl, window, _links(ul, vl, params)[0])
         ur = smooth_line(ur, vr, window, joined)
     x1 = model.undistort_left(ul, vl)
     p = model.undistort_right(ur, vr)
