@@ -623,16 +623,72 @@ def read_message_views(bag_dir: Path | str, topics: Iterable[str] | None = None)
 
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
-_MCAP_CHANNEL, _MCAP_MESSAGE, _MCAP_CHUNK, _MCAP_DATA_END = 0x04, 0x05, 0x06, 0x0F
+_MCAP_SCHEMA, _MCAP_CHANNEL, _MCAP_MESSAGE, _MCAP_CHUNK, _MCAP_DATA_END = 0x03, 0x04, 0x05, 0x06, 0x0F
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+
+
+class _McapCut(Exception):
+    """A record runs past the end of its buffer (the file is cut short or corrupt there); ``at``: its offset."""
+
+    def __init__(self, at: int) -> None:
+        super().__init__(at)
+        self.at = at
+
+
+class _McapCompressed(Exception):
+    """A compressed chunk, met where the records are wanted in place (no view can point into it)."""
+
+
+def _mcap_records(buffer: Any, start: int, stop: int, decompress: bool = False) -> Iterator[tuple[int, Any, int, int]]:
+    """Every record of ``buffer[start:stop]`` as (opcode, buffer, body start, body end), in file order, with the
+    records of each chunk in its place, up to the Data End record.
+
+    MCAP: magic, then records (opcode u8, length u64, content); Chunk records hold start/end time, uncompressed
+    size, crc, compression (string) and records. A compressed chunk is decompressed (rosbags' decompressors)
+    with ``decompress``, else raises `_McapCompressed`; a record that runs past ``stop`` raises `_McapCut`.
+    Hand-written: rosbags reads only finished files, and neither reader hands out views of the mapped file.
+    """
+    pos = start
+    while pos + 9 <= stop:
+        op, length = buffer[pos], _U64.unpack_from(buffer, pos + 1)[0]
+        body, pos = pos + 9, pos + 9 + length
+        if op == _MCAP_CHUNK and pos <= stop:
+            compression_length = _U32.unpack_from(buffer, body + 28)[0]
+            if compression_length and not decompress:
+                raise _McapCompressed()
+            inner = body + 32 + compression_length
+            size = _U64.unpack_from(buffer, inner)[0]
+            if inner + 8 + size > pos:
+                raise _McapCut(body - 9)
+            if not compression_length:
+                yield from _mcap_records(buffer, inner + 8, inner + 8 + size, decompress)
+                continue
+            from rosbags.rosbag2.storage_mcap import DECOMPRESSORS
+
+            compression = bytes(buffer[body + 32:inner]).decode()
+            records = DECOMPRESSORS[compression](buffer[inner + 8:inner + 8 + size],
+                                                 _U64.unpack_from(buffer, body + 16)[0])
+            yield from _mcap_records(records, 0, len(records), decompress)
+            continue
+        if pos > stop:
+            raise _McapCut(body - 9)
+        if op == _MCAP_DATA_END:
+            return
+        yield op, buffer, body, pos
+
+
+def _mcap_string(buffer: Any, at: int) -> tuple[str, int]:
+    """The MCAP string (u32 length, UTF-8) at ``at`` and the offset after it."""
+    n = _U32.unpack_from(buffer, at)[0]
+    return bytes(buffer[at + 4:at + 4 + n]).decode(), at + 4 + n
 
 
 def _mcap_views(file: Path, wanted: dict[str, Connection]) -> list[BagMessage] | None:
     """The messages of ``wanted`` topics in one MCAP file as views of the mapped file, in file order;
     None where a chunk is compressed (the caller then reads with rosbags).
 
-    MCAP: magic, then records (opcode u8, length u64, content); Channel records name a channel's
-    topic; Message records hold channel id u16, sequence u32, log time u64, publish time u64 and the
-    data; Chunk records hold start/end time, uncompressed size, crc, compression (string) and records.
+    Channel records name a channel's topic; Message records hold channel id u16, sequence u32, log time u64,
+    publish time u64 and the data (`_mcap_records` walks the file).
     """
     import mmap
 
@@ -641,45 +697,23 @@ def _mcap_views(file: Path, wanted: dict[str, Connection]) -> list[BagMessage] |
     buffer = memoryview(mapped)
     if buffer[:8] != _MCAP_MAGIC:
         return None
-    u16, u32, u64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
     topics: dict[int, Connection | None] = {}
     out: list[BagMessage] = []
-
-    def truncated(at: int) -> BagError:
-        return BagError(f"{file}: cannot read a message, the file is truncated or corrupt (record at byte {at} "
-                        f"runs past the end)")
-
-    def records(start: int, stop: int) -> bool:
-        pos = start
-        while pos + 9 <= stop:
-            op, length = buffer[pos], u64.unpack_from(buffer, pos + 1)[0]
-            body, pos = pos + 9, pos + 9 + length
-            if pos > stop:
-                raise truncated(body - 9)
+    try:
+        for op, data, body, end in _mcap_records(buffer, 8, len(buffer)):
             if op == _MCAP_MESSAGE:
-                connection = topics.get(u16.unpack_from(buffer, body)[0])
+                connection = topics.get(_U16.unpack_from(data, body)[0])
                 if connection is not None:
-                    out.append(BagMessage(connection.topic, connection.msgtype, u64.unpack_from(buffer, body + 6)[0],
-                                          buffer[body + 22:pos]))  # type: ignore[arg-type]  # a view, not bytes
+                    out.append(BagMessage(connection.topic, connection.msgtype, _U64.unpack_from(data, body + 6)[0],
+                                          data[body + 22:end]))  # a view, not bytes
             elif op == _MCAP_CHANNEL:
-                name_length = u32.unpack_from(buffer, body + 4)[0]
-                topics[u16.unpack_from(buffer, body)[0]] = wanted.get(
-                    bytes(buffer[body + 8:body + 8 + name_length]).decode())
-            elif op == _MCAP_CHUNK:
-                compression_length = u32.unpack_from(buffer, body + 28)[0]
-                if compression_length:
-                    return False
-                inner = body + 32 + compression_length
-                size = u64.unpack_from(buffer, inner)[0]
-                if inner + 8 + size > pos:
-                    raise truncated(body - 9)
-                if not records(inner + 8, inner + 8 + size):
-                    return False
-            elif op == _MCAP_DATA_END:
-                break
-        return True
-
-    return out if records(8, len(buffer)) else None
+                topics[_U16.unpack_from(data, body)[0]] = wanted.get(_mcap_string(data, body + 4)[0])
+    except _McapCut as cut:
+        raise BagError(f"{file}: cannot read a message, the file is truncated or corrupt (record at byte {cut.at} "
+                       f"runs past the end)") from None
+    except _McapCompressed:
+        return None
+    return out
 
 
 def unfinished(bag_dir: Path | str) -> bool:
@@ -696,14 +730,14 @@ def recover_bag(bag_dir: Path | str, types: BagTypes | None = None) -> dict[str,
     the file. The complete records are read in file order (stopping at the first one cut short), written into a
     new bag beside it with the channels' types and QoS, and the new bag replaces the folder (renamed: the folder
     is never half recovered). Hand-written: rosbags reads only finished files and the `mcap` library is no
-    dependency; the record layout is the one `_mcap_views` reads.
+    dependency; `_mcap_records` walks the file, as for `_mcap_views`.
 
     Raises:
         BagError: not an unfinished bag, or not an MCAP file.
     """
     import shutil
 
-    from rosbags.rosbag2.storage_mcap import DECOMPRESSORS, get_qos
+    from rosbags.rosbag2.storage_mcap import get_qos
 
     path = Path(bag_dir)
     if not unfinished(path):
@@ -714,53 +748,25 @@ def recover_bag(bag_dir: Path | str, types: BagTypes | None = None) -> dict[str,
         data: Any = mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) if handle.seek(0, 2) else b""
     if data[:8] != _MCAP_MAGIC:
         raise BagError(f"{path}: not an MCAP file, cannot recover it")
-    u16, u32, u64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str, list[Qos]]] = {}  # id -> topic, type, offered QoS
     messages: list[tuple[int, int, bytes]] = []  # channel, log time, data
-
-    def string(at: int) -> tuple[str, int]:
-        n = u32.unpack_from(data, at)[0]
-        return data[at + 4:at + 4 + n].decode(), at + 4 + n
-
-    def records(pos: int, stop: int) -> None:
-        while pos + 9 <= stop:
-            op, length = data[pos], u64.unpack_from(data, pos + 1)[0]
-            body, pos = pos + 9, pos + 9 + length
-            if pos > stop:
-                return  # cut short by the kill: nothing after it was stored
-            if op == 0x03:  # Schema: id, name, encoding, data
-                schemas[u16.unpack_from(data, body)[0]] = string(body + 2)[0]
+    try:
+        for op, buffer, body, end in _mcap_records(data, 8, len(data), decompress=True):
+            if op == _MCAP_SCHEMA:  # id, name, encoding, data
+                schemas[_U16.unpack_from(buffer, body)[0]] = _mcap_string(buffer, body + 2)[0]
             elif op == _MCAP_CHANNEL:  # id, schema id, topic, message encoding, metadata
-                topic, at = string(body + 4)
-                _encoding, at = string(at)
-                size = u32.unpack_from(data, at)[0]
-                channels[u16.unpack_from(data, body)[0]] = (topic, schemas.get(u16.unpack_from(data, body + 2)[0], ""),
-                                                            get_qos(data[at + 4:at + 4 + size]))
+                topic, at = _mcap_string(buffer, body + 4)
+                _encoding, at = _mcap_string(buffer, at)
+                size = _U32.unpack_from(buffer, at)[0]
+                channels[_U16.unpack_from(buffer, body)[0]] = (
+                    topic, schemas.get(_U16.unpack_from(buffer, body + 2)[0], ""),
+                    get_qos(bytes(buffer[at + 4:at + 4 + size])))
             elif op == _MCAP_MESSAGE:
-                messages.append((u16.unpack_from(data, body)[0], u64.unpack_from(data, body + 6)[0],
-                                 data[body + 22:pos]))
-            elif op == _MCAP_CHUNK:
-                compression, at = string(body + 28)
-                size = u64.unpack_from(data, at)[0]
-                if at + 8 + size > pos:
-                    return
-                inner = data[at + 8:at + 8 + size]
-                if compression:
-                    inner = DECOMPRESSORS[compression](inner, u64.unpack_from(data, body + 16)[0])
-                records_in(inner)
-            elif op == _MCAP_DATA_END:
-                return
-
-    def records_in(chunk: bytes) -> None:
-        nonlocal data
-        outer, data = data, chunk
-        try:
-            records(0, len(chunk))
-        finally:
-            data = outer
-
-    records(8, len(data))
+                messages.append((_U16.unpack_from(buffer, body)[0], _U64.unpack_from(buffer, body + 6)[0],
+                                 bytes(buffer[body + 22:end])))
+    except _McapCut:
+        pass  # cut short by the kill: nothing after it was stored
     staging = path.parent / f".{path.name}.recovering"
     shutil.rmtree(staging, ignore_errors=True)
     counts: dict[str, int] = {}
