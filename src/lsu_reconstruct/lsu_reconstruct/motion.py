@@ -72,6 +72,12 @@ def _rotation(rvec: AnyArray) -> AnyArray:
     return R
 
 
+def _moved(points: AnyArray, vector: AnyArray, centre: AnyArray) -> AnyArray:
+    """``points`` (reference pose) where the pose ``vector`` (rotation vector [rad], d [m]) puts them:
+    R (X - c) + c + d (`MotionEstimate`)."""
+    return (points - centre) @ _rotation(vector[:3]).T + centre + vector[3:]
+
+
 @dataclass
 class MotionEstimate:
     """The head's pose per measured frame relative to the reference frame's: ``X_frame = R (X_ref - c) + c + d``.
@@ -195,7 +201,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
 
     def project(x: AnyArray, Xw: AnyArray) -> list[AnyArray]:
         # x: rotation [mrad] and d [mm]: the scales of a head's sway, for a well-conditioned fit
-        moved = (Xw - centre) @ _rotation(x[:3] * 1e-3).T + centre + x[3:] * 1e-3
+        moved = _moved(Xw, x * 1e-3, centre)
         return [model.project_left(moved), model.project_right(moved)]
 
     vectors = np.zeros((len(measured), 6))
@@ -243,13 +249,11 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], float)
     lo_b, hi_b = X.min(axis=0), X.max(axis=0)
     box = lo_b + corners * (hi_b - lo_b)   # the fitted points' bounding box: its corners move fastest
-    moved_prev = None
-    for i in range(len(measured)):
-        v = vectors[i]
-        moved = None if not np.all(np.isfinite(v)) else (box - centre) @ _rotation(v[:3]).T + centre + v[3:]
-        if moved is not None and moved_prev is not None and t_m[i] > t_m[i - 1]:
-            speed[i] = float(np.max(np.linalg.norm(moved - moved_prev, axis=1)) / (t_m[i] - t_m[i - 1]) * 1e3)
-        moved_prev = moved
+    boxes = [_moved(box, v, centre) if np.all(np.isfinite(v)) else None for v in vectors]
+    for i in range(1, len(measured)):
+        now, before = boxes[i], boxes[i - 1]
+        if now is not None and before is not None and t_m[i] > t_m[i - 1]:
+            speed[i] = float(np.max(np.linalg.norm(now - before, axis=1)) / (t_m[i] - t_m[i - 1]) * 1e3)
     for i in range(len(measured)):
         why = []
         if not np.all(np.isfinite(vectors[i])):
@@ -268,8 +272,8 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
         reasons.append("; ".join(why))
     vectors = np.where(np.isfinite(vectors), vectors, 0.0)
     reliable = np.array([not r for r in reasons])
-    moved = max(float(np.max(np.linalg.norm((box - centre) @ _rotation(v[:3]).T + centre + v[3:] - box, axis=1)))
-                for v in vectors) * 1e3
+    # a frame without a fit counts as unmoved (its pose is zero from here on)
+    moved = max(float(np.max(np.linalg.norm(b - box, axis=1))) if b is not None else 0.0 for b in boxes) * 1e3
     significant = moved >= params.min_motion_mm
     if not significant and reliable.all():
         vectors = np.zeros_like(vectors)
