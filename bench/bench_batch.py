@@ -154,11 +154,11 @@ def main() -> int:
             print(f"round {r + 1}/{ROUNDS}: direct {direct_wall:.1f} s for {len(bags)} bags, {snaps} snaps; "
                   f"1 worker {wall1:.1f} s, 2 workers {wall2:.1f} s (Ray started in {start1:.1f} / {start2:.1f} s)",
                   flush=True)
+            direct_cpu = sum(c for _, c, _ in direct)
             rounds.append({"direct": direct, "direct_wall": direct_wall, "wall1": wall1, "wall2": wall2,
                            "start1": start1, "start2": start2, "summary1": summary1, "summary2": summary2,
                            "speedup": wall1 / wall2, "overhead_pct": 100.0 * (wall1 - direct_wall) / direct_wall,
-                           "overhead_cpu_pct": 100.0 * (summary1["cpu_s"] - sum(c for _, c, _ in direct))
-                           / sum(c for _, c, _ in direct)})
+                           "overhead_cpu_pct": 100.0 * (summary1["cpu_s"] - direct_cpu) / direct_cpu})
         # the per-bag figures from the round whose speedup is the median
         mid = sorted(rounds, key=lambda x: x["speedup"])[len(rounds) // 2]
         direct, direct_wall, wall1, wall2 = mid["direct"], mid["direct_wall"], mid["wall1"], mid["wall2"]
