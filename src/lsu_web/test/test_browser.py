@@ -10,13 +10,13 @@ import json
 import os
 import socket
 import time
-import urllib.error
 import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from lsu_testing.http import http
 from lsu_testing.plugin import LaunchedProcess
 
 pytestmark = pytest.mark.slow
@@ -211,31 +211,20 @@ def test_a_closed_tab_leaves_the_laser_off(graph):
     assert status["laser"]["why_off"] == "the page that switched the laser on was closed"
 
 
-def _http(url, method="GET", body=None, headers=None):
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method,
-                                 headers={"Content-Type": "application/json", **(headers or {})})
-    try:
-        with urllib.request.urlopen(req, timeout=20) as r:
-            return r.status, r.read()
-    except urllib.error.HTTPError as exc:
-        return exc.code, exc.read()
-
-
 def test_malformed_requests_get_a_reason_and_change_nothing(graph):
     url = graph["url"]
     before = sorted(p.name for p in graph["scans"].iterdir()) if graph["scans"].is_dir() else []
-    code, body = _http(url + "api/scan", "POST", {"mode": "stopsnap", "step": 0})
+    code, body = http(url + "api/scan", "POST", {"mode": "stopsnap", "step": 0})
     assert code == 422 and b"step" in body
-    code, body = _http(url + "api/scan", "POST", {"mode": "spiral"})
+    code, body = http(url + "api/scan", "POST", {"mode": "spiral"})
     assert code == 422 and b"mode" in body
-    code, body = _http(url + "api/scan", "POST", {"start": 300, "end": 100})
+    code, body = http(url + "api/scan", "POST", {"start": 300, "end": 100})
     assert code == 422 and b"before start" in body
-    code, _ = _http(url + "api/scans/..%2F..%2Fetc/files/passwd")
+    code, _ = http(url + "api/scans/..%2F..%2Fetc/files/passwd")
     assert 400 <= code < 500
-    code, _ = _http(url + "api/hardware/laser", "POST", {"on": True, "seconds": 3600, "client": 1})
+    code, _ = http(url + "api/hardware/laser", "POST", {"on": True, "seconds": 3600, "client": 1})
     assert code == 422
-    code, _ = _http(url + "api/scan", "POST", {}, headers={"Origin": "http://evil.example"})
+    code, _ = http(url + "api/scan", "POST", {}, headers={"Origin": "http://evil.example"})
     assert code == 403
     time.sleep(1.0)
     after = sorted(p.name for p in graph["scans"].iterdir()) if graph["scans"].is_dir() else []
@@ -254,9 +243,9 @@ def test_a_wrong_token_is_refused(graph):
         assert oct(token_file.stat().st_mode & 0o777) == "0o600"
         assert token in proc.output  # shown once, when it was made
         url = f"http://127.0.0.1:{port}/"
-        assert _http(url + "api/status")[0] == 401
-        assert _http(url + "api/status", headers={"Authorization": "Bearer " + "x" * len(token)})[0] == 401
-        assert _http(url + "api/status", headers={"Authorization": "Bearer " + token})[0] == 200
+        assert http(url + "api/status")[0] == 401
+        assert http(url + "api/status", headers={"Authorization": "Bearer " + "x" * len(token)})[0] == 401
+        assert http(url + "api/status", headers={"Authorization": "Bearer " + token})[0] == 200
         page = graph["browser"].new_page()
         response = page.goto(url + "?token=wrong")
         assert response.status == 401 and "wrong token" in page.content()
@@ -275,14 +264,14 @@ def test_a_wrong_token_is_refused(graph):
 def test_calibration_capture_judges_real_pairs(graph):
     """The sim scene is a head: a captured pair is judged and refused for the reason that holds (no board)."""
     url = graph["url"]
-    assert _http(url + "api/calibration/start", "POST", {"board": "9y6"})[0] == 422
-    code, body = _http(url + "api/calibration/start", "POST", {"board": "9x6", "square_mm": 25, "min_views": 8})
+    assert http(url + "api/calibration/start", "POST", {"board": "9y6"})[0] == 422
+    code, body = http(url + "api/calibration/start", "POST", {"board": "9x6", "square_mm": 25, "min_views": 8})
     assert code == 200 and json.loads(body)["views"] == 0
-    code, body = _http(url + "api/calibration/capture", "POST", {})
+    code, body = http(url + "api/calibration/capture", "POST", {})
     status = json.loads(body)
     assert code == 200 and status["captures"] == 1 and status["views"] == 0
     assert status["last"] == {"accepted": False, "reason": "board not found in left image"}
-    code, body = _http(url + "api/calibration/solve", "POST", {})
+    code, body = http(url + "api/calibration/solve", "POST", {})
     assert code == 422 and b"capture pairs" in body
 
 
@@ -349,7 +338,7 @@ def test_calibration_in_the_page_says_why_a_pair_is_refused(graph):
     page.wait_for_function("document.querySelector('#cal-message').textContent.includes('not calibrated')",
                            timeout=60000)
     assert "capture pairs" in page.inner_text("#cal-message"), page.inner_text("#cal-message")
-    code, body = _http(graph["url"] + "api/calibration")
+    code, body = http(graph["url"] + "api/calibration")
     status = json.loads(body)
     assert code == 200 and status["captures"] == 1 and status["views"] == 0
     page.close()

@@ -133,11 +133,10 @@ def test_a_gallery_closed_to_enrolment_refuses_enrol_and_remove_and_lists_no_nam
     import socket
     import threading
     import time
-    import urllib.error
-    import urllib.request
 
     import uvicorn
 
+    from lsu_testing.http import http
     from lsu_web.app import WebConfig, create_app
 
     gallery = tmp_path / "gallery.db"
@@ -151,15 +150,9 @@ def test_a_gallery_closed_to_enrolment_refuses_enrol_and_remove_and_lists_no_nam
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
 
-    def http(path, method="GET", body=None):
-        req = urllib.request.Request(f"http://127.0.0.1:{port}{path}", method=method,
-                                     data=None if body is None else json.dumps(body).encode(),
-                                     headers={"Content-Type": "application/json"})
-        try:
-            with urllib.request.urlopen(req, timeout=20) as r:
-                return r.status, json.loads(r.read())
-        except urllib.error.HTTPError as exc:
-            return exc.code, json.loads(exc.read())
+    def ask(path, method="GET", body=None):
+        code, answer = http(f"http://127.0.0.1:{port}{path}", method, body)
+        return code, json.loads(answer)
 
     try:
         for _ in range(200):
@@ -167,10 +160,10 @@ def test_a_gallery_closed_to_enrolment_refuses_enrol_and_remove_and_lists_no_nam
                 break
             time.sleep(0.05)
         assert server.started
-        assert http("/api/faces") == (200, {"enrolment": False, "names": []})
-        code, answer = http("/api/faces/enroll", "POST", {"scan_id": "any", "name": "alice"})
+        assert ask("/api/faces") == (200, {"enrolment": False, "names": []})
+        code, answer = ask("/api/faces/enroll", "POST", {"scan_id": "any", "name": "alice"})
         assert code == 403 and "allow_enrolment" in answer["detail"]
-        code, answer = http("/api/faces/alice", "DELETE")
+        code, answer = ask("/api/faces/alice", "DELETE")
         assert code == 403 and "does not allow" in answer["detail"]
         assert graph.asked and set(graph.asked) == {"/lsu/face_processor"}
     finally:
