@@ -1090,7 +1090,7 @@ def motion_figures() -> dict:
             scan = motion_scan(model, sheet, geometry, objects, kind, seed=seed, rate_steps_s=FACE_SWEEP_RATE)
             rms.setdefault(kind, []).append((scan.rms_mm(objects, corrected=False), scan.rms_mm(objects)))
             flagged.setdefault(kind, []).append(scan.estimate.flagged)
-            pose_err.setdefault(kind, []).append(_pose_error_mm(scan))
+            pose_err.setdefault(kind, []).append(float(np.median(scan.pose_errors_mm())))
             print(f"[motion] {subject} {kind}: raw {rms[kind][-1][0]:.3f} mm, corrected {rms[kind][-1][1]:.3f} mm, "
                   f"flagged {scan.estimate.flagged}, {scan.frames} frames", flush=True)
         if subject == MOTION_SUBJECTS[0]:
@@ -1112,26 +1112,6 @@ def motion_figures() -> dict:
     out["sweep_60fps_rms_over_30fps"] = out["sweep_60fps_rms_mm"] / out["sweep_30fps_rms_mm"]
     out["motion_bench_s"] = time.monotonic() - started
     return out
-
-
-def _pose_error_mm(scan) -> float:
-    """Median distance [mm] between the measured and the true displacement of the fitted points' centre."""
-    import cv2
-    import numpy as np
-
-    from lsu_sim.motion import SubjectPose
-
-    est = scan.estimate
-
-    def pose(v):  # noqa: ANN001, ANN202
-        R, _ = cv2.Rodrigues(np.asarray(v[:3], dtype=np.float64).reshape(3, 1))
-        return SubjectPose(R, np.asarray(v[3:]), scan.pivot)
-
-    ref = pose(scan.true_poses[est.reference_frame])
-    c = est.centre[None]
-    errors = [np.linalg.norm(pose(scan.true_poses[f]).apply(ref.inverse_apply(c))[0] - c[0] - est.vectors[k, 3:])
-              for k, f in enumerate(est.frames)]
-    return 1e3 * float(np.median(errors))
 
 
 def motion_live(tmp: Path) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -43,11 +44,20 @@ class MotionScan:
         xyz = self.corrected_xyz if corrected else self.raw_xyz
         if reliable_only:
             xyz = xyz[self.point_reliable]
-        import cv2
+        reference = self.true_poses[int(self.estimate.reference_frame)]  # type: ignore[attr-defined]
+        return surface_rms_mm(objects, SubjectPose.from_vector(reference, self.pivot).inverse_apply(xyz))
 
-        v = self.true_poses[int(self.estimate.reference_frame)]  # type: ignore[attr-defined]
-        R, _ = cv2.Rodrigues(v[:3].reshape(3, 1))
-        return surface_rms_mm(objects, SubjectPose(R, v[3:], self.pivot).inverse_apply(xyz))
+    def pose_errors_mm(self) -> list[float]:
+        """Per measured frame, the distance [mm] between the measured and the true displacement of the fitted
+        points' centre relative to the reference frame (the truth: the poses the frames were rendered at)."""
+        from lsu_sim.motion import SubjectPose
+
+        est: Any = self.estimate
+        ref = SubjectPose.from_vector(self.true_poses[est.reference_frame], self.pivot)
+        centre = est.centre[None]
+        return [float(np.linalg.norm(SubjectPose.from_vector(self.true_poses[f], self.pivot)
+                                     .apply(ref.inverse_apply(centre))[0] - est.centre - est.vectors[k, 3:]) * 1e3)
+                for k, f in enumerate(est.frames)]
 
 
 def subject_motion(kind: str, seed: int, geometry, objects: Sequence, turn_at_s: float = 3.0):

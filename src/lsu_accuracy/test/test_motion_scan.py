@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from lsu_accuracy.motion_sim import MotionScan, motion_scan
-from lsu_common.arrays import AnyArray
 from lsu_config import config_dir
 from lsu_reconstruct.laser_sheet import read_laser_yaml
 from lsu_reconstruct.motion import HOLD_STILL
@@ -70,23 +69,8 @@ def test_a_standing_scan_is_corrected_to_the_still_accuracy(still, setting):
     # rule) and the ratio 1.60 x: the bound leaves that margin and a little more, no more
     assert corrected <= 1.7 * base, (corrected, raw, base)
     # the measured pose follows the true one: the fitted points' centre moves as the truth moves it
-    from lsu_sim.motion import SubjectPose
-
-    est = standing.estimate
-    truth = standing.true_poses
-    ref = SubjectPose(*_rt(truth[est.reference_frame]), standing.pivot)
-    errors = []
-    for k, f in enumerate(est.frames):
-        true_c = SubjectPose(*_rt(truth[f]), standing.pivot).apply(ref.inverse_apply(est.centre[None]))[0] - est.centre
-        errors.append(np.linalg.norm(true_c - est.vectors[k, 3:]) * 1e3)
+    errors = standing.pose_errors_mm()
     assert np.median(errors) < 0.3, errors
-
-
-def _rt(v: AnyArray) -> tuple[AnyArray, AnyArray]:
-    import cv2
-
-    R, _ = cv2.Rodrigues(np.asarray(v[:3], dtype=np.float64).reshape(3, 1))
-    return R, np.asarray(v[3:], dtype=np.float64)
 
 
 def test_a_sudden_turn_is_flagged_with_the_part_that_is_unreliable(setting):

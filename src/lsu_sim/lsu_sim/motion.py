@@ -104,6 +104,13 @@ class SubjectPose:
         rvec, _ = cv2.Rodrigues(np.asarray(self.R, dtype=np.float64))
         return np.r_[rvec.ravel(), self.d]
 
+    @classmethod
+    def from_vector(cls, vector: AnyArray, pivot: AnyArray) -> SubjectPose:
+        """The pose of an `as_vector` vector about ``pivot``."""
+        v = np.asarray(vector, dtype=np.float64).reshape(6)
+        R, _ = cv2.Rodrigues(v[:3].reshape(3, 1))
+        return cls(R, v[3:].copy(), pivot)
+
 
 def pivot_of(head_center_m: AnyArray, down_axis: AnyArray) -> AnyArray:
     """The rotations' pivot: ``NECK_BELOW_CENTRE_M`` below the head centre along the rig's down axis."""
@@ -159,6 +166,4 @@ class SubjectMotion:
 
     def pose(self, t_s: float) -> SubjectPose:
         """The head's pose at ``t_s`` seconds after the motion's start."""
-        v = self.vectors(float(t_s))[0]
-        R, _ = cv2.Rodrigues(v[:3].reshape(3, 1))
-        return SubjectPose(R, v[3:].copy(), self.pivot)
+        return SubjectPose.from_vector(self.vectors(float(t_s))[0], self.pivot)
