@@ -92,9 +92,10 @@ class IdentityFit:
 
 
 def basis_path() -> Path:
-    from lsu_sim.people import heads_dir
+    """``config/heads`` of this workspace, where the basis ships (as the simulator's head assets)."""
+    from lsu_config import config_dir
 
-    return heads_dir() / BASIS_FILE
+    return config_dir() / "heads" / BASIS_FILE
 
 
 _BASIS: dict[str, FaceBasis] = {}
