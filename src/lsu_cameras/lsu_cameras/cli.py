@@ -7,12 +7,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .calib_io import write_calibration_dir
-from .calibration import BoardSpec, CalibrationError, calibrate_stereo, load_pairs
+# OpenCV (calib_io, calibration) is imported when `lsu calibrate` runs, not by every `lsu` command
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate from a folder of pairs and write left/right/stereo.yaml (nothing on failure)."""
+    from .calib_io import write_calibration_dir
+    from .calibration import BoardSpec, CalibrationError, calibrate_stereo, load_pairs
+
     if getattr(args, "live", False):
         if args.pairs:
             raise CalibrationError("give either --live or --pairs DIR, not both")
@@ -35,6 +37,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_live(args: argparse.Namespace) -> int:
     """Guided calibration from the running camera node; writes left/right/stereo.yaml when it calibrates."""
+    from .calib_io import write_calibration_dir
+    from .calibration import BoardSpec, CalibrationError
     from .live import CaptureClient, CoverageTracker, run_live_calibration
 
     board = BoardSpec.parse(args.board, args.square)
@@ -98,6 +102,8 @@ def _guard(func: Any) -> Any:
     """Turn this package's expected errors into the one-line errors `lsu` prints (ValueError family)."""
 
     def run(args: argparse.Namespace) -> int:
+        from .calibration import CalibrationError
+
         try:
             return func(args)
         except CalibrationError as exc:

@@ -40,13 +40,14 @@ maps are `lsu_faces.frame`'s (the signatures need them too), re-exported here.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy import sparse
-from scipy.spatial import cKDTree
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 from .frame import NOSE_METHODS, FaceError, FaceFrame, FaceParams, NotAFaceError, parametric_map, spherical_embedding
 
@@ -130,6 +131,8 @@ def _voxel_means(points: AnyArray, voxel: float) -> AnyArray:
 
 def _ring_planes(centres: AnyArray, samples: AnyArray, inner: float, outer: float) -> tuple[AnyArray, ...]:
     """For every centre: mean, unit normal (least spread) and count of the samples in the ring inner..outer."""
+    from scipy import sparse
+    from scipy.spatial import cKDTree
     tree_c, tree_s = cKDTree(centres), cKDTree(samples)
     dist = tree_c.sparse_distance_matrix(tree_s, outer, output_type="coo_matrix")
     keep = dist.data > inner
@@ -167,6 +170,7 @@ def nose_tip_protrusion(points: AnyArray, params: FaceParams = FaceParams(), top
     Raises:
         NotAFaceError: nothing protrudes at least ``min_prominence_m`` above its quadric ring.
     """
+    from scipy.spatial import cKDTree
     p = _check(points, params)
     p = p[depth_window(p, params)]
     samples = _voxel_means(p, params.sample_voxel_m)
@@ -210,6 +214,7 @@ def nose_tip_protrusion(points: AnyArray, params: FaceParams = FaceParams(), top
 
 def _candidates(p: AnyArray, samples: AnyArray, params: FaceParams) -> tuple[AnyArray, AnyArray, AnyArray]:
     """Nose candidates: (centres, ring normals, quadric protrusion) best first, one per 15 mm."""
+    from scipy.spatial import cKDTree
     candidates = _voxel_means(p, params.candidate_voxel_m)
     # ring statistics on candidate-sized samples: the ring's plane and quadric need no finer surface
     samples = _voxel_means(p, params.candidate_voxel_m / 1.5)
@@ -292,6 +297,7 @@ def _relief(local: AnyArray, inner: float = 0.025, outer: float = 0.045) -> floa
 
 def _symmetry_mm(local: AnyArray) -> float:
     """Median distance of the mirrored face (x -> -x) to the face, over the mirrored points that overlap it."""
+    from scipy.spatial import cKDTree
     near = local[np.linalg.norm(local[:, :2], axis=1) < 0.06]
     if len(near) < 30:
         return float("inf")
@@ -317,6 +323,8 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         NotAFaceError: no candidate reaches ``min_confidence`` (a plane, a ball, a hand alone, a back
             of a head, a profile whose face is hidden).
     """
+    from scipy.spatial import cKDTree
+
     from .register import estimate_normals, icp_point_to_plane
     from .template import REGIONS, face_template
 

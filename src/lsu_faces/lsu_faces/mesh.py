@@ -20,11 +20,14 @@ Neighbour lists come from the unique edges of the kept triangles (thesis ch. 8.2
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import Delaunay, QhullError
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:
+    pass
 
 __all__ = ["MeshError", "MeshParams", "FaceMesh", "Neighbours", "triangulate_image_plane", "unique_edges",
            "neighbours", "vertex_normals", "face_normals", "boundary_vertices", "is_closed"]
@@ -186,6 +189,7 @@ def triangulate_image_plane(xyz: AnyArray, uv: AnyArray, colors: AnyArray | None
     Raises:
         MeshError: too few points, mismatched arrays, non-finite values, or all pixels on a line.
     """
+    from scipy.spatial import Delaunay, QhullError
     xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     if len(uv) != len(xyz):

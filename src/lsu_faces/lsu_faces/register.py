@@ -10,11 +10,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = ["Registration", "icp_point_to_plane", "rotation_from_vector", "estimate_normals", "apply"]
 
@@ -50,6 +53,7 @@ def estimate_normals(points: AnyArray, k: int = 12, towards: AnyArray | None = N
 
     (a viewpoint; default the origin, i.e. the camera of a cloud in its optical frame).
     """
+    from scipy.spatial import cKDTree
     p = np.asarray(points, dtype=np.float64)
     tree = tree or cKDTree(p)
     _, idx = tree.query(p, k=min(k, len(p)))
@@ -76,6 +80,7 @@ def icp_point_to_plane(source: AnyArray, target: AnyArray, target_normals: AnyAr
     (rotation vector, translation) solved in closed form. ``weights`` (per source point) scale the
     pairs' influence. Stops early when a step moves less than 1 micrometre.
     """
+    from scipy.spatial import cKDTree
     src = np.asarray(source, dtype=np.float64)
     tgt = np.asarray(target, dtype=np.float64)
     nrm = np.asarray(target_normals, dtype=np.float64)

@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.special import ndtr, ndtri
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:
+    pass
 
 from .frame import FaceFrame, FaceParams, parametric_map, spherical_embedding
 from .register import apply, rotation_from_vector
@@ -380,6 +382,7 @@ class ImpostorModel:
 
     def false_accept(self, distance_m: float) -> float:
         """Chance that a different person comes within ``distance_m`` of a face."""
+        from scipy.special import ndtr
         if not np.isfinite(distance_m):
             return 1.0
         if distance_m <= 0:
@@ -392,6 +395,7 @@ class ImpostorModel:
 
     def threshold_m(self, false_accept_rate: float) -> float:
         """Distance below which a single comparison falsely accepts with ``false_accept_rate``."""
+        from scipy.special import ndtri
         return float(np.exp(self.log_mu + self.log_sigma * ndtri(false_accept_rate)))
 
 

@@ -16,11 +16,14 @@ iteration is one sparse product over all vertices.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import sparse
 
 from lsu_common.arrays import AnyArray
+
+if TYPE_CHECKING:
+    from scipy import sparse
 
 from .mesh import _edge_counts, boundary_vertices, face_normals, is_closed, neighbours
 
@@ -67,6 +70,7 @@ def umbrella_operator(triangles: AnyArray, n_vertices: int, boundary_as_curve: b
     the rim of an open scan is smoothed as a curve instead of being pulled into the surface (the
     one-sided pull the thesis blamed for the contraction of the edges, ch. 9.3.1).
     """
+    from scipy import sparse
     nb = neighbours(triangles, n_vertices)
     rows = np.repeat(np.arange(n_vertices), nb.counts)
     cols = nb.indices

@@ -29,16 +29,17 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .geometry import CameraModel, RigConfigError, RigGeometry, load_rig, rig_from_dict, write_true_calibration
-
 if TYPE_CHECKING:
+    from .geometry import CameraModel, RigConfigError, RigGeometry, load_rig, rig_from_dict, write_true_calibration
     from .head import Head, HeadIdentity, head_object, make_head
     from .rig import CameraTruth, CarriageState, LaserTruth, SimulatedRig, StereoFrame
     from .scenes import SceneError, SceneObject, load_mesh_file, make_board, make_plane, make_sphere
 
-# names of the modules that need open3d, imported on first use (PEP 562): every `lsu` command imports this
-# package to register `lsu render`, and open3d's import (~0.8 s CPU) would otherwise be paid by each of them
-_LAZY = {**dict.fromkeys(("Head", "HeadIdentity", "head_object", "make_head"), ".head"),
+# every name of a module that needs OpenCV, scipy or open3d, imported on first use (PEP 562): every `lsu`
+# command imports this package to register `lsu render`, and would otherwise pay those imports (~1.2 s CPU)
+_LAZY = {**dict.fromkeys(("CameraModel", "RigConfigError", "RigGeometry", "load_rig", "rig_from_dict",
+                          "write_true_calibration"), ".geometry"),
+         **dict.fromkeys(("Head", "HeadIdentity", "head_object", "make_head"), ".head"),
          **dict.fromkeys(("CameraTruth", "CarriageState", "LaserTruth", "SimulatedRig", "StereoFrame"), ".rig"),
          **dict.fromkeys(("SceneError", "SceneObject", "load_mesh_file", "make_board", "make_plane", "make_sphere"),
                          ".scenes")}

@@ -7,11 +7,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import cv2
-
 
 def cmd_render(args: argparse.Namespace) -> int:
     """Render one simulated pair (+ ground truth) into a folder."""
+    import cv2
+
     from . import CarriageState, SimulatedRig, build_scene, load_rig
 
     geometry = load_rig(args.rig)
