@@ -12,7 +12,7 @@ from rosbags.typesys import Stores, get_typestore
 from lsu_bags.bags import read_messages
 from lsu_common.arrays import AnyArray
 from lsu_testing.plugin import LSU
-from lsu_view.wsclient import FoxgloveClient
+from lsu_view.wsclient import FoxgloveClient, ProtocolError
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
@@ -40,14 +40,18 @@ def test_foxglove_client_gets_the_recorded_scan_cloud_through_the_bridge(launch)
         channels = client.wait_for_topics(["/lsu/scan/cloud", "/lsu/points"], timeout_s=60)
         assert channels["/lsu/scan/cloud"].schema_encoding == "ros2msg"
         client.subscribe(["/lsu/scan/cloud", "/lsu/points"])
-        play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "20",
+        play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "60",
                                "--expect", "/lsu/scan/events=2", "--expect", "/lsu/stereo/left/image_raw=2"],
-                              capture_output=True, text=True, timeout=120)
+                              capture_output=True, text=True, timeout=180)
         assert play.returncode == 0, play.stdout + play.stderr
         received = {"/lsu/scan/cloud": [], "/lsu/points": []}
-        while not received["/lsu/scan/cloud"]:
-            topic, _, payload = client.next_message(timeout_s=60)
-            received[topic].append(payload)
+        try:
+            while not received["/lsu/scan/cloud"]:
+                topic, _, payload = client.next_message(timeout_s=60)
+                received[topic].append(payload)
+        except ProtocolError as exc:  # what the graph and the player said tells why (a node's error, a late reader)
+            raise AssertionError(f"{exc}\n--- lsu bag play:\n{play.stdout}{play.stderr}\n--- lsu launch replay:\n"
+                                 f"{graph.output[-6000:]}") from None
         replayed = xyz(received["/lsu/scan/cloud"][0], store)
         assert replayed.shape == expected.shape
         assert np.max(np.abs(replayed - expected)) <= 1e-6

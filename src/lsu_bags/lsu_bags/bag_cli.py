@@ -278,6 +278,12 @@ class BagPlayer:
         waited = False
         while not all(p.get_subscription_count() >= self.expect.get(t, 1) for t, p in self.publishers.items()):
             if time.monotonic() >= end or stop.is_set():
+                if not stop.is_set():  # playing on: the messages before a reader matches are lost to it
+                    short = [f"{t} ({p.get_subscription_count()} of {self.expect.get(t, 1)})"
+                             for t, p in self.publishers.items() if p.get_subscription_count() < self.expect.get(t, 1)]
+                    self.log(f"warning: after {self.wait_subscribers_s:g} s still too few subscribers on "
+                             f"{', '.join(short)}; playing anyway (volatile messages published before a reader "
+                             f"matches never reach it: --wait-subscribers S waits longer)")
                 return False
             waited = True
             time.sleep(0.02)

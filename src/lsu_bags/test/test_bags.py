@@ -547,3 +547,18 @@ threading.Thread(target=finish).start()
     got = list(bags.read_messages(path))
     assert [m.timestamp_ns for m in got] == [1_000, 1_001, 1_002]
     assert bags.deserialize(got[2]).data == "C"
+
+
+def test_player_says_which_topic_lacked_subscribers_when_it_plays_on(ros_node, tmp_path):
+    from lsu_bags.bag_cli import BagPlayer
+
+    path = tmp_path / "bag"
+    write_third_party_bag(path)
+    lines: list[str] = []
+    player = BagPlayer(ros_node.node, path, topics=["/chatter"], expect={"/chatter": 2}, wait_subscribers_s=0.2,
+                       log=lines.append)
+    try:
+        assert not player.wait_for_subscribers()  # nobody subscribes to /chatter here
+    finally:
+        player.destroy()
+    assert len(lines) == 1 and "/chatter (0 of 2)" in lines[0] and "playing anyway" in lines[0], lines

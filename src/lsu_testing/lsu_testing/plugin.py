@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import time
 from collections.abc import Callable, Iterator
@@ -32,7 +33,7 @@ from typing import Any
 import pytest
 
 from lsu_scan import rosenv
-from lsu_tools.processes import LSU, LaunchedProcess, ProcessWaitError  # noqa: F401  (re-exported for tests)
+from lsu_tools.processes import LSU, LaunchedProcess, ProcessWaitError, pid_alive  # noqa: F401  (re-exported for tests)
 
 _claim: rosenv.DomainClaim | None = None
 
@@ -258,9 +259,22 @@ def ros_node(ros_context: Any) -> Iterator[NodeHarness]:
         harness.close()
 
 
+def _node_running(pid: int) -> bool:
+    """A node `lsu launch` started still runs: alive and still the leader of its own session (the launcher
+    starts each node in a new session), so a pid taken over by an unrelated process does not count."""
+    try:
+        return pid_alive(pid) and os.getsid(pid) == pid
+    except ProcessLookupError:
+        return False
+
+
 @pytest.fixture
 def launch() -> Iterator[Callable[..., LaunchedProcess]]:
-    """Factory: ``launch("launch", "file.yaml", "a:=1")`` starts `lsu launch ...`; torn down always."""
+    """Factory: ``launch("launch", "file.yaml", "a:=1")`` starts `lsu launch ...`; torn down always.
+
+    A node still running after its launcher stopped is an error of the test: it would stay on the
+    worker's ROS domain and confuse every later test there (it is killed and named).
+    """
     started: list[LaunchedProcess] = []
 
     def start(*args: str, cwd: str | None = None) -> LaunchedProcess:
@@ -271,6 +285,19 @@ def launch() -> Iterator[Callable[..., LaunchedProcess]]:
     yield start
     for proc in started:
         proc.stop(timeout_s=8.0)
+    nodes = {f"{label} (pid {pid}) of `lsu {' '.join(proc.args)}`": pid
+             for proc in started for label, pid in proc.started_pids().items()}
+    end = time.monotonic() + 10.0  # a node the launcher's death signalled (SIGTERM) may still be ending
+    while any(_node_running(pid) for pid in nodes.values()) and time.monotonic() < end:
+        time.sleep(0.1)
+    left = [name for name, pid in nodes.items() if _node_running(pid)]
+    for name in left:
+        try:
+            os.kill(nodes[name], signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    if left:
+        pytest.fail(f"still running after the launcher stopped (now killed): {', '.join(left)}")
 
 
 @pytest.fixture

@@ -84,17 +84,20 @@ class GraphClient:
         return (tuple(sorted(n.get_node_names_and_namespaces())), topics, counts,
                 tuple(sorted((name, tuple(types)) for name, types in n.get_service_names_and_types())))
 
-    def endpoints_without_node(self) -> int:
-        """Publishers and subscriptions seen whose node is not known yet.
+    def endpoints_without_node(self) -> list[str]:
+        """Publishers and subscriptions seen whose node is not known yet, each as
+        ``"publisher on /topic [type] (pid N: command)"``.
 
         An endpoint comes with DDS discovery, its node's name with the node's ros_discovery_info sample,
         which arrives separately and, on a loaded host, seconds later: until then the node is running
-        but missing from every listing.
+        but missing from every listing. One that stays is a process's leftover endpoint: the pid says whose.
         """
-        n, missing = self.node, 0
+        n, missing = self.node, []
         for topic, _ in n.get_topic_names_and_types():
-            for info in (*n.get_publishers_info_by_topic(topic), *n.get_subscriptions_info_by_topic(topic)):
-                missing += info.node_name == UNKNOWN_NODE
+            for kind, infos in (("publisher", n.get_publishers_info_by_topic(topic)),
+                                ("subscription", n.get_subscriptions_info_by_topic(topic))):
+                missing += [f"{kind} on {topic} [{i.topic_type}]{_owner(i.endpoint_gid)}"
+                            for i in infos if i.node_name == UNKNOWN_NODE]
         return missing
 
     def wait_for_discovery(self, max_s: float, quiet_s: float = DISCOVERY_QUIET_S,
@@ -143,6 +146,26 @@ class GraphClient:
         if len(types) != 1:
             raise GraphError(f"{what} '{name}' has several types ({', '.join(types)}); give the type explicitly")
         return types[0]
+
+
+def _owner(gid: Sequence[int]) -> str:
+    """`` (pid N: command)`` of the local process that owns a Fast DDS endpoint, else ``""``.
+
+    Fast DDS writes the low 16 bits of the owner's process id into bytes 4-5 of every GUID (after the
+    vendor id 1.15 and two bytes of host id), so a pid at most 65535 is found from the gid alone.
+    """
+    import os
+
+    if len(gid) < 6 or list(gid[:2]) != [1, 15]:
+        return ""
+    low = gid[4] | gid[5] << 8
+    for pid in range(low, 1 << 22, 1 << 16):
+        try:
+            command = open(f"/proc/{pid}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        return f" (pid {pid}{' (this process)' if pid == os.getpid() else ''}: {command.strip()[:160]})"
+    return f" (pid {low} or another with those low 16 bits, not running here)"
 
 
 def _domain() -> str:

@@ -58,6 +58,7 @@ def test_listing_does_not_stop_before_the_first_other_participant_is_seen(ros_co
             return (tuple(sorted(nodes)), (), (), ())
 
         monkeypatch.setattr(g, "graph_snapshot", snapshot)
+        monkeypatch.setattr(g, "endpoints_without_node", lambda: [])
         waited = g.wait_for_discovery(max_s=120.0)
     # it waited for the other node, then for the quiet period after it, and not for the maximum
     assert appear_after_s + DISCOVERY_QUIET_S <= waited < 120.0
@@ -81,7 +82,7 @@ def test_listing_waits_for_the_node_of_every_endpoint_seen(ros_context, monkeypa
             return (tuple(sorted(nodes)), (("/graphtest3/topic", ("std_msgs/msg/Empty",)),), (), ())
 
         monkeypatch.setattr(g, "graph_snapshot", snapshot)
-        monkeypatch.setattr(g, "endpoints_without_node", lambda: 0 if named() else 1)
+        monkeypatch.setattr(g, "endpoints_without_node", lambda: [] if named() else ["publisher on /t [T]"])
         waited = g.wait_for_discovery(max_s=120.0)
     assert named_after_s + DISCOVERY_QUIET_S <= waited < 120.0
 
@@ -96,6 +97,27 @@ def test_a_settled_graph_has_no_endpoint_without_its_node(ros_context):
         with GraphClient() as g:
             g.wait_for_discovery(max_s=60.0)
             assert ("named_owner", "/graphtest4") in g.node.get_node_names_and_namespaces()
-            assert g.endpoints_without_node() == 0
+            assert g.endpoints_without_node() == []
     finally:
         node.destroy_node()
+
+
+def test_an_endpoint_names_the_process_that_owns_it(ros_context):
+    # what a leftover endpoint without a node is reported with: the pid and command of its process
+    import os
+
+    import rclpy
+    from std_msgs.msg import Empty
+
+    from lsu_tools.graph import _owner
+
+    node = rclpy.create_node("pid_owner", namespace="/graphtest5", context=ros_context)
+    node.create_publisher(Empty, "/graphtest5/topic", 1)
+    try:
+        with GraphClient() as g:
+            assert g.spin_until(lambda: bool(g.node.get_publishers_info_by_topic("/graphtest5/topic")), 60.0)
+            owner = _owner(g.node.get_publishers_info_by_topic("/graphtest5/topic")[0].endpoint_gid)
+    finally:
+        node.destroy_node()
+    assert owner.startswith(f" (pid {os.getpid()} (this process): ")
+    assert _owner([1, 16, 0, 0, 1, 0]) == ""  # not a Fast DDS endpoint: nothing to say

@@ -62,6 +62,7 @@ class FoxgloveClient:
         self.messages_received = 0
         self._subscriptions: dict[int, int] = {}  # subscription id -> channel id
         self._next_sub = 1
+        self.closed: str | None = None  # why the connection ended (set by the reader), None while open
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._queue: queue.Queue[tuple[str, int, bytes]] = queue.Queue(maxsize=max_queue)
@@ -88,8 +89,12 @@ class FoxgloveClient:
                     self._on_text(json.loads(frame))
                 else:
                     self._on_binary(frame)
-        except ConnectionClosed:
-            pass
+            why = "the server closed the connection"
+        except ConnectionClosed as exc:
+            why = f"the connection closed ({exc})"
+        with self._changed:
+            self.closed = why
+            self._changed.notify_all()
 
     def _on_text(self, msg: dict[str, Any]) -> None:
         op = msg.get("op")
@@ -133,6 +138,8 @@ class FoxgloveClient:
                 if wanted <= set(have):
                     return {t: have[t] for t in wanted}
                 left = end - time.monotonic()
+                if self.closed is not None:
+                    raise ProtocolError(f"{self.url}: {self.closed} before it advertised {sorted(wanted - set(have))}")
                 if left <= 0:
                     raise ProtocolError(f"{self.url} did not advertise {sorted(wanted - set(have))} within "
                                         f"{timeout_s:g} s (advertised: {sorted(have)})")
@@ -161,8 +168,11 @@ class FoxgloveClient:
                 raise ProtocolError(f"no message{f' on {topic}' if topic else ''} from {self.url} "
                                     f"within {timeout_s:g} s")
             try:
-                item = self._queue.get(timeout=left)
+                item = self._queue.get(timeout=min(left, 0.2))
             except queue.Empty:
+                if self.closed is not None:  # what came before the end was delivered first
+                    raise ProtocolError(f"no message{f' on {topic}' if topic else ''} from {self.url}: "
+                                        f"{self.closed}") from None
                 continue
             if topic is None or item[0] == topic:
                 return item

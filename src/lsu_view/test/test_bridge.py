@@ -17,7 +17,7 @@ from sensor_msgs.msg import Image, PointCloud2, PointField
 from lsu_common.arrays import AnyArray
 from lsu_view.channels import RateLimiter, topic_kind
 from lsu_view.node import FoxgloveBridgeNode
-from lsu_view.wsclient import FoxgloveClient
+from lsu_view.wsclient import FoxgloveClient, ProtocolError
 
 CENTRE = np.array([0.01, -0.02, 0.30])
 RADIUS = 0.05
@@ -196,3 +196,15 @@ def test_the_server_settings_are_read_only_and_the_image_rate_is_applied(bridge)
         assert not result.successful and "read-only" in result.reason, name
     assert bridge.set_parameters([Parameter("image_max_hz", value=2.5)])[0].successful
     assert bridge._image_limiter.max_hz == 2.5
+
+
+def test_a_server_that_goes_away_is_reported_as_such_not_as_silence(bridge):
+    # a bridge that crashed or stopped: the waiting client says the connection ended (a respawned bridge has
+    # another port), instead of waiting out its timeout and reporting "no message"
+    with FoxgloveClient(bridge.url) as client:
+        bridge.server.stop()
+        with pytest.raises(ProtocolError, match="closed") as caught:
+            client.next_message(timeout_s=600)
+        assert "within" not in str(caught.value)
+        with pytest.raises(ProtocolError, match="closed"):
+            client.wait_for_topics(["/never/advertised"], timeout_s=600)
