@@ -86,6 +86,9 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
             exceptions propagate after the clean shutdown.
         program: the name in that message (default: the node class's name).
     """
+    from .o3d import defer_plotly_viewer
+
+    defer_plotly_viewer()
     rclpy.init(args=list(sys.argv if args is None else args))
     # before the node: a SIGTERM while the node is built shuts the context down, and nothing
     # (no executor, no guard condition) can be created in it afterwards

@@ -39,8 +39,12 @@ _claim: rosenv.DomainClaim | None = None
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    """Isolate DDS for the whole session before any test module imports rclpy."""
+    """Isolate DDS for the whole session before any test module imports rclpy (and open3d without its
+    plotly viewer, as every LSU process)."""
     global _claim
+    from lsu_common.o3d import defer_plotly_viewer
+
+    defer_plotly_viewer()
     # one forced domain cannot keep the graphs of two xdist workers apart: workers always claim
     forced = None if os.environ.get("PYTEST_XDIST_WORKER") else os.environ.get("LSU_TEST_DOMAIN_ID")
     os.environ[rosenv.DISCOVERY_VAR] = rosenv.LOCALHOST

@@ -125,6 +125,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Console script `lsu`."""
+    from lsu_common.o3d import defer_plotly_viewer
+
+    defer_plotly_viewer()
     report = rosenv.apply_defaults()
     parser = build_parser()
     args = parser.parse_args(argv)
