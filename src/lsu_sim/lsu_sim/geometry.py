@@ -58,14 +58,16 @@ class CameraModel:
         px, _ = cv2.projectPoints(pts, rvec, self.t.astype(np.float64), self.K, self.D)
         return px.reshape(-1, 2)
 
-    def pixel_rays(self, pixels: AnyArray, iterations: int = 60) -> AnyArray:
+    def pixel_rays(self, pixels: AnyArray, iterations: int = 60, tolerance_px: float = 1e-12) -> AnyArray:
         """Unit ray directions (N,3) in the left frame through distorted pixels (N,2).
 
         OpenCV's iterative undistortion, run to convergence (not its 5-iteration default) so a ray
-        re-projects onto its pixel to ~1e-9 px: the ground truth relies on it.
+        re-projects onto its pixel to ``tolerance_px``: the ground truth relies on it. OpenCV's EPS
+        criterion is that re-projection error, per point, so each point stops once it is met
+        (``iterations`` is the cap for a point that never converges).
         """
         pix = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-15)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, tolerance_px)
         norm = cv2.undistortPoints(pix, self.K, self.D, None, None, None, criteria).reshape(-1, 2)
         rays_cam = np.concatenate([norm, np.ones((len(norm), 1))], axis=1)
         rays = rays_cam @ self.R  # R^T applied to row vectors: camera -> left frame

@@ -233,7 +233,7 @@ PN_BIN_M = 0.5e-3
 
 
 def _grid_rays(camera: CameraModel) -> AnyArray:
-    """Rays of every pixel centre; cached per camera model because converged undistortion costs ~0.3 s."""
+    """Rays of every pixel centre; cached per camera model (converged undistortion of every pixel)."""
     key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes()
                    for a in (camera.K, camera.D, camera.R, camera.t, np.array([camera.width, camera.height])))
     if key not in _RAY_CACHE:

@@ -224,3 +224,15 @@ def test_lsu_render_writes_pairs_and_truth(tmp_path):
     # every truth point lies on the 6 cm sphere at the subject point
     centre = load_rig().subject_center
     assert np.abs(np.linalg.norm(truth.left.points_m - centre, axis=1) - 0.06).max() < 2e-4
+
+
+def test_every_pixel_ray_reprojects_onto_its_pixel():
+    # the ground truth of every render starts at these rays: each must land back on its own pixel centre
+    # (through OpenCV's forward model, independent of the iterative undistortion that made it)
+    geometry = load_rig()
+    for camera in (geometry.left, geometry.right):
+        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float64), np.arange(camera.height, dtype=np.float64))
+        pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+        rays = camera.pixel_rays(pixels)
+        back = camera.project(camera.center + 0.3 * rays)
+        assert np.abs(back - pixels).max() < 1e-9
