@@ -32,6 +32,11 @@ PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "settle": ("fixed", "after each stop: 'fixed' waits the goal's settle_s; 'adaptive' captures as soon as the "
                         "laser line stopped moving (two frames agree), at the latest once settle_s has passed "
                         "(lsu_scan.settle)", None),
+    "motion_rescans": (1, "a sweep whose subject moved beyond correction (stereo_matcher's scan/motion says so) is "
+                          "scanned again this many times within the goal, saying 'hold still, scanning again'; "
+                          "0 = delivered flagged (applies from the next scan's end)", (0, 5)),
+    "motion_timeout_s": (5.0, "after a sweep's cloud, wait this long for stereo_matcher's scan/motion record [s]",
+                         (0.0, 600.0)),
     "settle_tolerance_px": (DEFAULT_TOLERANCE_PX, "adaptive settle: the line counts as still when it moved less "
                                                   "than this between two frames [px]", (0.01, 5.0)),
 }
@@ -63,6 +68,8 @@ class ScanParameters(LsuNode):
                 self.output_dir = Path(value) if value else Path.cwd() / "scans"
             elif param.name in ("calibration_dir", "settle"):
                 setattr(self, param.name, str(value))
+            elif param.name == "motion_rescans":
+                self.motion_rescans = int(value)
             else:
                 setattr(self, param.name, float(value))
                 if param.name == "laser_pause_s":
