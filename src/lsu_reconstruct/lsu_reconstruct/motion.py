@@ -332,6 +332,7 @@ class SweepMotion:
         self.times_s: dict[int, float] = {}
         self.positions_steps: dict[int, float] = {}
         self._measured: dict[int, tuple[AnyArray, AnyArray, LineArrays, LineArrays]] = {}
+        self._lines: dict[int, tuple[LineArrays, LineArrays]] = {}  # measured frames still without their images
 
     def wants(self, index: int) -> bool:
         """Whether frame ``index``'s images are measured."""
@@ -345,6 +346,16 @@ class SweepMotion:
             self.positions_steps[int(index)] = float(position_steps)
         if images is not None:
             self._measured[int(index)] = (images[0], images[1], left, right)
+        elif self.wants(index):
+            self._lines[int(index)] = (left, right)
+
+    def add_images(self, index: int, images: tuple[AnyArray, AnyArray]) -> bool:
+        """The images of a frame added before them (they came after its lines); False if it is not waiting for them."""
+        lines = self._lines.pop(int(index), None)
+        if lines is None:
+            return False
+        self._measured[int(index)] = (images[0], images[1], *lines)
+        return True
 
     @property
     def measured_frames(self) -> int:

@@ -264,6 +264,7 @@ class StereoMatcherNode(LsuNode):
         self.take_right_images: Callable[[], Iterable[Any]] = lambda: take_all(self._right_image_sub)
         # a measured sweep's serialized images by stamp, per side, until their frame is placed (`_hold_images`)
         self._held: dict[str, OrderedDict[int, Any]] = {"left": OrderedDict(), "right": OrderedDict()}
+        self._waiting_images: dict[int, int] = {}  # stamp -> index of measured frames placed before their images
         if self.get_parameter("calibration_source").value == "topics":
             # camera_info comes with every image (volatile, like the images); a volatile reader also
             # matches latched publishers (older bags), so either kind of camera is heard
@@ -531,6 +532,26 @@ class StereoMatcherNode(LsuNode):
                 held[key] = raw
                 while len(held) > SWEEP_IMAGES_HELD:
                     held.popitem(last=False)
+        # a frame placed before its images came (the matcher reads them on its own schedule)
+        for key in [k for k in self._waiting_images if k in self._held["left"] and k in self._held["right"]]:
+            images = self._read_images(key)
+            if images is not None:
+                scan.motion.add_images(self._waiting_images[key], images)
+            del self._waiting_images[key]
+
+    def _read_images(self, key: int) -> tuple[AnyArray, AnyArray] | None:
+        """The held pair stamped ``key`` (let go) as one channel each: the blue one, where the red laser adds little
+        (lsu_reconstruct.motion); None when either is missing or unreadable (said)."""
+        if key not in self._held["left"] or key not in self._held["right"]:
+            return None  # the one that came stays held for the other
+        left_raw, right_raw = self._held["left"].pop(key), self._held["right"].pop(key)
+        try:
+            left, right = (np.ascontiguousarray(image_to_array(deserialize_message(bytes(raw), Image))[..., 0])
+                           for raw in (left_raw, right_raw))
+        except ValueError as exc:
+            self._error(f"sweep frame stamped {key / 1e9:.3f}: its images cannot be read for the motion: {exc}")
+            return None
+        return left, right
 
     def _frames_to_motion(self, frames: list[tuple[int, Any]], track: Any) -> None:
         """Each placed sweep frame's time, lines and (every Nth) images to the scan's motion measurement."""
@@ -541,16 +562,15 @@ class StereoMatcherNode(LsuNode):
         for key, frame in frames:
             t = exposure_mid_s(frame.left_start_s, frame.exposure_s)
             images = None
-            left_raw, right_raw = self._held["left"].pop(key, None), self._held["right"].pop(key, None)
-            if scan.motion.wants(frame.index) and left_raw is not None and right_raw is not None:
-                try:
-                    # the blue channel: the red laser adds little there (lsu_reconstruct.motion)
-                    images = tuple(np.ascontiguousarray(image_to_array(deserialize_message(bytes(raw), Image))[..., 0])
-                                   for raw in (left_raw, right_raw))
-                except ValueError as exc:
-                    self._error(f"sweep frame stamped {key / 1e9:.3f}: its images cannot be read for the motion: {exc}")
+            if scan.motion.wants(frame.index):
+                images = self._read_images(key)
+                if images is None:
+                    self._waiting_images[key] = frame.index
+            else:
+                for held in self._held.values():
+                    held.pop(key, None)
             position = float(track.position_at(t)) if track is not None else None
-            scan.motion.add_frame(frame.index, t, frame.left, frame.right, images, position)  # type: ignore[arg-type]
+            scan.motion.add_frame(frame.index, t, frame.left, frame.right, images, position)
 
     def _file_snap(self, index: int, snap: SnapPoints, header: Header) -> None:
         assert self.scan is not None
@@ -582,6 +602,7 @@ class StereoMatcherNode(LsuNode):
             self.sweep, self.sweep_points, self.sweep_stats = None, None, {}
             for held in self._held.values():
                 held.clear()
+            self._waiting_images.clear()
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
@@ -692,6 +713,7 @@ class StereoMatcherNode(LsuNode):
         assert scan.motion is not None and self.model is not None
         for held in self._held.values():
             held.clear()
+        self._waiting_images.clear()
         started = time.monotonic()
         try:
             cloud.xyz, record = scan.motion.correct(self.model, cloud.xyz, cloud.snap,
