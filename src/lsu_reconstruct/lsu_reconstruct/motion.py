@@ -327,6 +327,10 @@ class SweepMotion:
     by its frame index, back to the reference frame's pose when the motion is measured and within limits.
     """
 
+    # fewer measured frames than this: the sweep is too short to follow the motion (its points all lie near the
+    # laser lines masked out of the flow), it is said so rather than flagged
+    MIN_FRAMES = 6
+
     def __init__(self, params: MotionParams = MotionParams()) -> None:
         self.params = params
         self.times_s: dict[int, float] = {}
@@ -361,6 +365,14 @@ class SweepMotion:
     def measured_frames(self) -> int:
         return len(self._measured)
 
+    @classmethod
+    def for_sweep(cls, expected_frames: int, params: MotionParams = MotionParams(),
+                  max_frames: int = 24) -> SweepMotion:
+        """A sweep of ``expected_frames`` measured on every ``params.every_frames``-th frame, fewer if that would be
+        more than ``max_frames`` frames (each costs two dense flows at the scan's end, before its cloud is out)."""
+        every = max(params.every_frames, -(-int(expected_frames) // max(1, int(max_frames))))
+        return cls(dataclasses.replace(params, every_frames=every))
+
     def correct(self, model: StereoModel, xyz: AnyArray, frame_index: AnyArray,
                 apply: bool = True) -> tuple[AnyArray, dict]:
         """The points (N,3) of frames ``frame_index`` (N,) corrected, and the scan.json ``motion`` record.
@@ -372,10 +384,11 @@ class SweepMotion:
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         index = np.asarray(frame_index, dtype=np.int64).reshape(-1)
         keys = sorted(self._measured)
-        if len(keys) < 3:
+        if len(keys) < self.MIN_FRAMES:
             return xyz.copy(), {"measured": False, "flagged": False, "corrected": False,
-                                "why": f"{len(keys)} frames with images: too few to follow the subject's motion "
-                                       "(a sweep of at least 3 x every_frames frames is needed)"}
+                                "why": f"{len(keys)} frames with images, every {self.params.every_frames}th: too few to "
+                                       f"follow the subject's motion (a sweep of at least {self.MIN_FRAMES} x "
+                                       f"{self.params.every_frames} frames is needed)"}
         missing = sorted(set(np.unique(index).tolist()) - set(self.times_s))
         if missing:
             raise MotionError(f"points of frames {missing[:5]} without a frame time: add_frame every frame first")

@@ -165,6 +165,9 @@ def parameter_table() -> dict[str, Param]:
                                    "measured motion is within limits (applies at the next scan's end)"),
         "motion_every_frames": Param(MotionParams().every_frames, "sweep scans: measure the motion on every Nth "
                                      "frame (applies from the next sweep)", (1, 100)),
+        "motion_max_frames": Param(24, "sweep scans: measure the motion on at most this many frames (a longer sweep "
+                                   "on every Nth frame accordingly; each costs two dense flows before the scan's cloud "
+                                   "is out; applies from the next sweep)", (6, 10000)),
     }
 
 
@@ -477,7 +480,9 @@ class StereoMatcherNode(LsuNode):
             left, right = self.waiting.pop(key)
             sweep.add_pair(key, left.arrays, right.arrays)
         if self.scan is not None and bool(self.get_parameter("motion_measure").value):
-            self.scan.motion = SweepMotion(MotionParams(every_frames=int(self.get_parameter("motion_every_frames").value)))
+            self.scan.motion = SweepMotion.for_sweep(
+                int(msg.expected_snaps), MotionParams(every_frames=int(self.get_parameter("motion_every_frames").value)),
+                int(self.get_parameter("motion_max_frames").value))
         self._hold_images()
         if self.sheet is None:
             self.get_logger().warning(f"sweep: {self.sheet_note}; its frames are matched stereo only")

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from lsu_cameras.sources import SourceContext, StereoPair, StereoSource
+from lsu_cameras.sources import CameraError, SourceContext, StereoPair, StereoSource
 from lsu_cameras.stream import frame_seed
 from lsu_common import stamps
 from lsu_common.stamps import ns_to_seconds, seconds_to_ns
@@ -148,7 +148,7 @@ def open_sim_source(context: SourceContext) -> SimSource:
     (``sim_motion_seed``, ``sim_motion_turn_at_s``, ``sim_motion_hz``) and, until ``sim/truth`` arrives, ``carriage_position_steps``
     and ``laser_on``."""
     from . import build_scene, load_rig
-    from .motion import scene_motion
+    from .motion import MotionError, scene_motion
 
     param = context.parameter
     geometry = load_rig(str(param("sim_rig")) or None)
@@ -161,8 +161,11 @@ def open_sim_source(context: SourceContext) -> SimSource:
         return carriage_from_truth(truth, later, fallback)
 
     kind = str(param("sim_motion") or "still")
-    motion = None if kind == "still" else scene_motion(kind, int(param("sim_motion_seed")), geometry, scene,
-                                                       float(param("sim_motion_turn_at_s")))
+    try:
+        motion = None if kind == "still" else scene_motion(kind, int(param("sim_motion_seed")), geometry, scene,
+                                                           float(param("sim_motion_turn_at_s")))
+    except MotionError as exc:
+        raise CameraError(f"sim_motion: {exc}") from None
     return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed, motion=motion,
                      motion_hz=float(param("sim_motion_hz")))
 
