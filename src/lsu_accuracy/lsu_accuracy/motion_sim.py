@@ -122,7 +122,7 @@ def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int 
                       estimate, motion_record(estimate, positions, corrected=correct), len(rendered.frames),
                       rendered.seconds)
     if live:
-        sweep = SweepMotion(params or MotionParams(seed=seed))
+        sweep = SweepMotion.for_sweep(len(rendered.frames), params or MotionParams(seed=seed))
         for k, frame in enumerate(rendered.frames):
             sweep.add_frame(k, times[k], frame.left, frame.right, rendered.images[k] if sweep.wants(k) else None,
                             positions[k])

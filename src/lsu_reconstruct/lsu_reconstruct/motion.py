@@ -367,7 +367,7 @@ class SweepMotion:
 
     @classmethod
     def for_sweep(cls, expected_frames: int, params: MotionParams = MotionParams(),
-                  max_frames: int = 24) -> SweepMotion:
+                  max_frames: int = 16) -> SweepMotion:
         """A sweep of ``expected_frames`` measured on every ``params.every_frames``-th frame, fewer if that would be
         more than ``max_frames`` frames (each costs two dense flows at the scan's end, before its cloud is out)."""
         every = max(params.every_frames, -(-int(expected_frames) // max(1, int(max_frames))))

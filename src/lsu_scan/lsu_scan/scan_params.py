@@ -24,7 +24,8 @@ PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "laser_pause_s": (0.2, "a move, capture or snap acknowledgement this late switches the laser off until the "
                            "scan goes on [s] (applies from the next deadline)", (0.02, 1.5)),
     "move_timeout_s": (0.0, "carriage/move_to timeout [s]; 0 = the driver's own", (0.0, 600.0)),
-    "cloud_timeout_s": (15.0, "wait for the matcher's scan/cloud after the scan [s]", (0.0, 600.0)),
+    "cloud_timeout_s": (30.0, "wait for the matcher's scan/cloud after the scan (a sweep's comes once the subject's "
+                              "motion is measured: seconds of CPU) [s]", (0.0, 600.0)),
     "exposure_s": (0.033, "camera exposure: the mechanical lower bound in scan.json, when a capture is due [s]",
                    (0.0, 1.0)),
     "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
