@@ -18,7 +18,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-__all__ = ["MotionScan", "motion_scan", "face_range_steps", "subject_motion"]
+__all__ = ["MotionScan", "motion_scan", "face_range_steps"]
 
 
 @dataclass
@@ -35,16 +35,28 @@ class MotionScan:
     record: dict                 # lsu_reconstruct.motion.motion_record
     frames: int
     seconds: float
+    # ``live``: the cloud and motion record as the live graph's matcher makes them (`lsu_reconstruct.motion.SweepMotion`:
+    # every Nth frame's images handed over as the frames are placed, corrected only within limits)
+    live_xyz: AnyArray | None = None
+    live_record: dict | None = None
 
     def rms_mm(self, objects: Sequence, corrected: bool = True, reliable_only: bool = False) -> float:
         """RMS distance [mm] of the cloud to the subject's true surface at the reference frame's pose."""
-        from lsu_accuracy.accuracy import surface_rms_mm
-        from lsu_sim.motion import SubjectPose
-
         xyz = self.corrected_xyz if corrected else self.raw_xyz
         if reliable_only:
             xyz = xyz[self.point_reliable]
-        reference = self.true_poses[int(self.estimate.reference_frame)]  # type: ignore[attr-defined]
+        return self._rms_mm(objects, xyz, int(self.estimate.reference_frame))  # type: ignore[attr-defined]
+
+    def live_rms_mm(self, objects: Sequence) -> float:
+        """`rms_mm` of the live graph's cloud (``live``), at its own reference frame's true pose."""
+        assert self.live_xyz is not None and self.live_record is not None, "motion_scan(live=True) makes it"
+        return self._rms_mm(objects, self.live_xyz, int(self.live_record.get("reference_frame", 0)))
+
+    def _rms_mm(self, objects: Sequence, xyz: AnyArray, reference_frame: int) -> float:
+        from lsu_accuracy.accuracy import surface_rms_mm
+        from lsu_sim.motion import SubjectPose
+
+        reference = self.true_poses[reference_frame]
         return surface_rms_mm(objects, SubjectPose.from_vector(reference, self.pivot).inverse_apply(xyz))
 
     def pose_errors_mm(self) -> list[float]:
@@ -58,17 +70,6 @@ class MotionScan:
         return [float(np.linalg.norm(SubjectPose.from_vector(self.true_poses[f], self.pivot)
                                      .apply(ref.inverse_apply(centre))[0] - est.centre - est.vectors[k, 3:]) * 1e3)
                 for k, f in enumerate(est.frames)]
-
-
-def subject_motion(kind: str, seed: int, geometry, objects: Sequence, turn_at_s: float = 3.0):
-    """The `lsu_sim.motion.SubjectMotion` of a person scene (pivot below its head centre, the rig's axes)."""
-    from lsu_sim.motion import SubjectMotion, pivot_of
-
-    centre = next((o.extra["head_center_m"] for o in objects if "head_center_m" in o.extra), None)
-    if centre is None:  # not a person: the scene's centre
-        centre = np.mean([np.asarray(o.mesh.get_axis_aligned_bounding_box().get_center()) for o in objects], axis=0)
-    axes = geometry.rig_axes
-    return SubjectMotion(kind, seed, pivot_of(centre, axes[1]), axes, turn_at_s=turn_at_s)
 
 
 def face_range_steps(geometry, objects: Sequence, margin_m: float = 0.004) -> tuple[int, int]:
@@ -88,14 +89,15 @@ def face_range_steps(geometry, objects: Sequence, margin_m: float = 0.004) -> tu
 
 def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int = 0, rate_steps_s: float = 57.1,
                 fps: float = 30.0, start: int | None = None, end: int | None = None, params=None,
-                turn_at_s: float | None = None, correct: bool = True) -> MotionScan:
+                turn_at_s: float | None = None, correct: bool = True, live: bool = False) -> MotionScan:
     """Render, reconstruct, measure and correct a sweep of ``objects`` moving as ``kind`` (module doc).
 
     ``start``/``end`` default to the face's range (`face_range_steps`); ``turn_at_s`` (``turn``): when the head
-    turns, default a third into the sweep.
+    turns, default a third into the sweep. ``live``: also the live graph's cloud and record (`MotionScan.live_xyz`).
     """
-    from lsu_reconstruct.motion import MotionParams, estimate_motion, motion_record
+    from lsu_reconstruct.motion import MotionParams, SweepMotion, estimate_motion, motion_record
     from lsu_reconstruct.sweep import SweepParams, exposure_mid_s, reconstruct_sweep
+    from lsu_sim.motion import scene_motion
 
     from .sweep_sim import render_sweep
 
@@ -103,7 +105,7 @@ def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int 
         lo, hi = face_range_steps(geometry, objects)
         start, end = (lo if start is None else start), (hi if end is None else end)
     duration = abs(end - start) / rate_steps_s
-    motion = subject_motion(kind, seed, geometry, objects, duration / 3 if turn_at_s is None else turn_at_s)
+    motion = scene_motion(kind, seed, geometry, objects, duration / 3 if turn_at_s is None else turn_at_s)
     rendered = render_sweep(geometry, objects, rate_steps_s, fps, start, end, seed=seed, motion=motion,
                             keep_images=True)
     results = reconstruct_sweep(model, sheet, rendered.track, rendered.frames, SweepParams())
@@ -116,6 +118,13 @@ def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int 
                                params or MotionParams(seed=seed))
     corrected = estimate.correct(raw, times[frame_of]) if correct else raw.copy()
     positions = [float(rendered.track.position_at(t)) for t in times]
-    return MotionScan(raw, corrected, frame_of, estimate.reliable_at(times[frame_of]), rendered.poses, motion.pivot,
+    scan = MotionScan(raw, corrected, frame_of, estimate.reliable_at(times[frame_of]), rendered.poses, motion.pivot,
                       estimate, motion_record(estimate, positions, corrected=correct), len(rendered.frames),
                       rendered.seconds)
+    if live:
+        sweep = SweepMotion.for_sweep(len(rendered.frames), params or MotionParams(seed=seed))
+        for k, frame in enumerate(rendered.frames):
+            sweep.add_frame(k, times[k], frame.left, frame.right, rendered.images[k] if sweep.wants(k) else None,
+                            positions[k])
+        scan.live_xyz, scan.live_record = sweep.correct(model, raw, frame_of, apply=correct)
+    return scan

@@ -1,5 +1,7 @@
 """Sweeps of a living subject (`lsu_accuracy.motion_sim`): the motion measured from the frames' texture
-(`lsu_reconstruct.motion`) corrects a swaying scan, leaves a still one alone and flags a sudden turn.
+(`lsu_reconstruct.motion`) corrects a swaying scan, leaves a still one alone and flags a sudden turn; the same
+for the live graph's measurement (`SweepMotion`, as stereo_matcher runs it: every third frame's images handed
+over as the frames are placed), on the same rendered sweeps.
 
 Ground truth: the simulator's true pose per frame (`lsu_sim.motion`, the poses the frames were rendered at)
 and the person's meshes at the reference frame's true pose. The sweeps cover the middle of the face
@@ -41,7 +43,7 @@ def _scan(setting, kind: str, seed: int = 2, start: int = START, end: int = END,
 
 @pytest.fixture(scope="module")
 def still(setting) -> MotionScan:
-    return _scan(setting, "still")
+    return _scan(setting, "still", live=True)
 
 
 def test_a_still_scan_is_left_as_it_is(still, setting):
@@ -54,11 +56,16 @@ def test_a_still_scan_is_left_as_it_is(still, setting):
     objects = setting[3]
     assert still.rms_mm(objects, corrected=True) == pytest.approx(still.rms_mm(objects, corrected=False), rel=0.05)
     assert "message" not in still.record and still.record["flagged"] is False
+    # the live graph's measurement: not flagged, within the noise, the cloud exactly as it was
+    live = still.live_record
+    assert live is not None and live["measured"] and not live["flagged"] and not live["beyond_noise"], live
+    assert not live["corrected"] and "message" not in live
+    assert np.array_equal(still.live_xyz, still.raw_xyz)
 
 
 def test_a_standing_scan_is_corrected_to_the_still_accuracy(still, setting):
     objects = setting[3]
-    standing = _scan(setting, "standing", seed=5)
+    standing = _scan(setting, "standing", seed=5, live=True)
     assert not standing.estimate.flagged, standing.estimate.reasons
     base = still.rms_mm(objects)
     raw, corrected = standing.rms_mm(objects, corrected=False), standing.rms_mm(objects)
@@ -71,10 +78,14 @@ def test_a_standing_scan_is_corrected_to_the_still_accuracy(still, setting):
     # the measured pose follows the true one: the fitted points' centre moves as the truth moves it
     errors = standing.pose_errors_mm()
     assert np.median(errors) < 0.3, errors
+    # the live graph's measurement (a third of the frames, another reference frame) corrects it as well
+    live = standing.live_record
+    assert live is not None and live["corrected"] and not live["flagged"], live
+    assert standing.live_rms_mm(objects) <= 1.7 * base, (standing.live_rms_mm(objects), raw, base)
 
 
 def test_a_sudden_turn_is_flagged_with_the_part_that_is_unreliable(setting):
-    turn = _scan(setting, "turn", seed=2, start=TURN_START, end=TURN_END, turn_at_s=TURN_AT_S)
+    turn = _scan(setting, "turn", seed=2, start=TURN_START, end=TURN_END, turn_at_s=TURN_AT_S, live=True)
     assert turn.estimate.flagged
     record = turn.record
     assert record["message"] == HOLD_STILL
@@ -86,3 +97,8 @@ def test_a_sudden_turn_is_flagged_with_the_part_that_is_unreliable(setting):
     bad = record["unreliable_frames"]
     assert 0 < len(bad) < len(record["frames"])
     assert max(bad) <= record["reference_frame"], bad
+    # the live graph's measurement flags it too and leaves the sheared cloud as it is (it is scanned again)
+    live = turn.live_record
+    assert live is not None and live["flagged"] and live["message"] == HOLD_STILL and not live["corrected"], live
+    assert 0 < len(live["unreliable_frames"]) < len(live["frames"])
+    assert np.array_equal(turn.live_xyz, turn.raw_xyz)

@@ -95,6 +95,14 @@ PARAMETERS: dict[str, Param] = {
     "sim_scene": Param("head", "sim: plane | sphere | board | head | head:SEED | person | person:SEED | mesh file", read_only=R),
     "sim_rig": Param("", "sim: rig geometry YAML (default config/sim_rig.yaml)", read_only=R),
     "sim_seed": Param(0, "sim: sensor noise seed", read_only=R),
+    "sim_motion": Param("still", "sim: the subject's motion (lsu_sim.motion, docs/MOTION.md): still | seated | standing "
+                        "| turn (standing, then a sudden turn of the head); its clock starts at the first frame",
+                        read_only=R),
+    "sim_motion_seed": Param(0, "sim: the subject motion's seed", read_only=R),
+    "sim_motion_turn_at_s": Param(1.0, "sim: sim_motion turn: when the head turns, after the first frame [s]",
+                                  (0.0, 1e6), read_only=R),
+    "sim_motion_hz": Param(5.0, "sim: how often the moving subject's pose is updated (each update re-casts both "
+                           "views: the simulated camera falls behind real time) [Hz]", (0.1, 1000.0), read_only=R),
     "carriage_position_steps": Param(235.0, "sim: carriage position used until /lsu/sim/truth arrives [steps]"),
     "laser_on": Param(True, "sim: laser state used until /lsu/sim/truth arrives"),
     "stream_max_lag_s": Param(120.0, "stream: a pair published later than this after its stamp ends the stream with "

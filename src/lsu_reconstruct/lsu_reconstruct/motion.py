@@ -24,7 +24,8 @@ measured frames no longer holds). Those frames are unreliable; a scan with any i
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -36,7 +37,8 @@ from lsu_common.arrays import AnyArray
 from .matching import LineArrays
 from .stereo import StereoModel
 
-__all__ = ["MotionParams", "MotionEstimate", "estimate_motion", "motion_record", "HOLD_STILL", "MotionError"]
+__all__ = ["MotionParams", "MotionEstimate", "estimate_motion", "motion_record", "HOLD_STILL", "MotionError",
+           "SweepMotion"]
 
 HOLD_STILL = "hold still, scanning again"
 
@@ -281,7 +283,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
                           measured_mm=moved, significant=significant)
 
 
-def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | None = None,
+def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | Mapping[int, float] | None = None,
                   corrected: bool = True) -> dict:
     """What scan.json (and the bag's record) says of the motion: per measured frame its time, pose, fit and
     reliability; the verdict; the unreliable frames' carriage positions when ``positions_steps`` (per frame)."""
@@ -313,3 +315,98 @@ def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | N
     if estimate.flagged:
         record["message"] = HOLD_STILL
     return record
+
+
+class SweepMotion:
+    """A sweep's frames as the live graph hands them over, for `estimate_motion` and the correction (pure).
+
+    The matcher node gives every frame placed (`add_frame`: its index, its time, its laser lines) and, for
+    the frames `wants` (every ``params.every_frames``-th index), the pair's images (one channel is enough:
+    `_gray`). At the scan's end `correct` measures the motion on those frames alone (their decimation is the
+    measurement's, so `estimate_motion` runs with ``every_frames`` 1) and moves the cloud's points, each
+    by its frame index, back to the reference frame's pose when the motion is measured and within limits.
+    """
+
+    # fewer measured frames than this: the sweep is too short to follow the motion (its points all lie near the
+    # laser lines masked out of the flow), it is said so rather than flagged
+    MIN_FRAMES = 6
+
+    def __init__(self, params: MotionParams = MotionParams()) -> None:
+        self.params = params
+        self.times_s: dict[int, float] = {}
+        self.positions_steps: dict[int, float] = {}
+        self._measured: dict[int, tuple[AnyArray, AnyArray, LineArrays, LineArrays]] = {}
+        self._lines: dict[int, tuple[LineArrays, LineArrays]] = {}  # measured frames still without their images
+
+    def wants(self, index: int) -> bool:
+        """Whether frame ``index``'s images are measured."""
+        return index % self.params.every_frames == 0
+
+    def add_frame(self, index: int, time_s: float, left: LineArrays, right: LineArrays,
+                  images: tuple[AnyArray, AnyArray] | None = None, position_steps: float | None = None) -> None:
+        """One frame placed: its time (left mid-exposure), lines and, when `wants` it, its images."""
+        self.times_s[int(index)] = float(time_s)
+        if position_steps is not None:
+            self.positions_steps[int(index)] = float(position_steps)
+        if images is not None:
+            self._measured[int(index)] = (images[0], images[1], left, right)
+        elif self.wants(index):
+            self._lines[int(index)] = (left, right)
+
+    def add_images(self, index: int, images: tuple[AnyArray, AnyArray]) -> bool:
+        """The images of a frame added before them (they came after its lines); False if it is not waiting for them."""
+        lines = self._lines.pop(int(index), None)
+        if lines is None:
+            return False
+        self._measured[int(index)] = (images[0], images[1], *lines)
+        return True
+
+    @property
+    def measured_frames(self) -> int:
+        return len(self._measured)
+
+    @classmethod
+    def for_sweep(cls, expected_frames: int, params: MotionParams = MotionParams(),
+                  max_frames: int = 16) -> SweepMotion:
+        """A sweep of ``expected_frames`` measured on every ``params.every_frames``-th frame, fewer if that would be
+        more than ``max_frames`` frames (each costs two dense flows at the scan's end, before its cloud is out)."""
+        every = max(params.every_frames, -(-int(expected_frames) // max(1, int(max_frames))))
+        return cls(dataclasses.replace(params, every_frames=every))
+
+    def correct(self, model: StereoModel, xyz: AnyArray, frame_index: AnyArray,
+                apply: bool = True) -> tuple[AnyArray, dict]:
+        """The points (N,3) of frames ``frame_index`` (N,) corrected, and the scan.json ``motion`` record.
+
+        Left as they are when the motion cannot be measured (the record says why), when it is within the
+        measurement's noise, when some of it is beyond correction (flagged: the record says which frames and
+        why; a sheared scan is better rescanned than bent) or when ``apply`` is false.
+        """
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        index = np.asarray(frame_index, dtype=np.int64).reshape(-1)
+        keys = sorted(self._measured)
+        if len(keys) < self.MIN_FRAMES:
+            return xyz.copy(), {"measured": False, "flagged": False, "corrected": False,
+                                "why": f"{len(keys)} frames with images, every {self.params.every_frames}th: too few to "
+                                       f"follow the subject's motion (a sweep of at least {self.MIN_FRAMES} x "
+                                       f"{self.params.every_frames} frames is needed)"}
+        missing = sorted(set(np.unique(index).tolist()) - set(self.times_s))
+        if missing:
+            raise MotionError(f"points of frames {missing[:5]} without a frame time: add_frame every frame first")
+        try:
+            estimate = estimate_motion(model, [self._measured[k][:2] for k in keys], [self.times_s[k] for k in keys],
+                                       [self._measured[k][2:] for k in keys], xyz,
+                                       dataclasses.replace(self.params, every_frames=1))
+        except MotionError as exc:
+            return xyz.copy(), {"measured": False, "flagged": False, "corrected": False, "why": str(exc)}
+        usable = apply and not estimate.flagged
+        times = np.array([self.times_s[int(k)] for k in index]) if len(index) else np.zeros(0)
+        out = estimate.correct(xyz, times) if usable else xyz.copy()
+        # the estimate's frames are positions in the measured list: the record names the sweep's frame indices
+        estimate.frames = np.asarray([keys[int(i)] for i in estimate.frames])
+        estimate.reference_frame = keys[int(estimate.reference_frame)]
+        positions = None
+        if all(k in self.positions_steps for k in keys):
+            positions = {k: self.positions_steps[k] for k in keys}
+        record = {"measured": True, **motion_record(estimate, positions, corrected=usable),
+                  "measured_frames": len(keys), "every_frames": self.params.every_frames}
+        return out, record

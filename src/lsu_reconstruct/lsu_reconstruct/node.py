@@ -18,11 +18,18 @@ A thin adapter over :mod:`lsu_reconstruct.pipeline`:
   cross_frame``, `SweepSequence`: the left line matched to the right lines exposed around it, so a
   frame's points may come one frame later, still stamped with its pair's stamp; the sweep's last
   frame, or the scan's end, flushes the rest), or ``per_frame`` (`reconstruct_sweep_frame`: each
-  camera's line on the sheet at its own mid-exposure); without a sheet, stereo only (said once).
+  camera's line on the sheet at its own mid-exposure); without a sheet, stereo only (said once);
+- a sweep's subject motion (``motion_correction``, docs/MOTION.md): every ``every_frames``-th sweep frame's
+  image pair (``stereo/{left,right}/image_raw``, one channel kept) goes to
+  :class:`lsu_reconstruct.motion.SweepMotion`; at the scan's end the subject's rigid motion is measured from
+  their texture, the scan cloud's points are moved back to the middle frame's pose when it is within limits,
+  and the ``motion`` record (per measured frame its pose, fit and reliability; flagged or not and why) is
+  published on ``scan/motion`` (std_msgs/String, JSON, latched) before the cloud.
 """
 
 from __future__ import annotations
 
+import json
 import struct
 import sys
 import time
@@ -37,7 +44,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from sensor_msgs.msg import PointField as RosPointField
-from std_msgs.msg import Header
+from std_msgs.msg import Header, String
 
 from lsu_bags.pointcloud2 import Cloud, decode, encode, from_msg
 from lsu_cameras.polled import PolledGroup, take_all
@@ -50,9 +57,10 @@ from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExp
 
 from .laser_sheet import LaserSheet, LaserSheetError, read_laser_yaml
 from .matching import LineArrays, MatchParams, prepare
+from .motion import MotionParams, SweepMotion
 from .pipeline import MAX_VIEW_ANGLE_DEG, SnapPoints, colour_at, drop_grazing, merge_snaps, reconstruct_snap
 from .stereo import CalibrationError, StereoModel
-from .sweep import SweepParams
+from .sweep import SweepParams, exposure_mid_s
 from .sweep_live import SWEEP_MATCHING, Exposure, LiveSweep, SweepPoints
 from .triangulate import METHODS
 
@@ -63,6 +71,9 @@ RELIABLE_DATA = qos.reliable(50)
 EVENTS = qos.EVENTS
 LATCHED = qos.LATCHED
 IMAGES_KEPT = 8  # newest left frames kept for the texture: its TEXTURE event may come a few frames late
+# a sweep's image pairs held (serialized, per side) until their frame is placed and the motion keeps them or not:
+# a frame is placed once the lines and the carriage track cover it, some frames after its images came
+SWEEP_IMAGES_HELD = 32
 CARRIAGE_KEPT = 400  # newest carriage positions kept between sweeps (the stop before a sweep's start)
 EXPOSURES_KEPT = 64  # exposures kept before their sweep's SWEEP_START event (the stream starts first)
 # carriage reports a sweep is placed by: the device-stamped ones (a status reply is stamped at the middle
@@ -148,6 +159,15 @@ def parameter_table() -> dict[str, Param]:
         "sweep_matching": Param(SWEEP_MATCHING[0], "sweep frames to points: 'cross_frame' (each left line matched to "
                                 "the right lines exposed around it) or 'per_frame' (each frame alone); refused "
                                 "while a sweep runs"),
+        "motion_measure": Param(True, "sweep scans: measure the subject's motion from the frames' texture and publish "
+                                "it on scan/motion (applies from the next sweep)"),
+        "motion_correction": Param(True, "sweep scans: move the scan cloud's points back to one head pose when the "
+                                   "measured motion is within limits (applies at the next scan's end)"),
+        "motion_every_frames": Param(MotionParams().every_frames, "sweep scans: measure the motion on every Nth "
+                                     "frame (applies from the next sweep)", (1, 100)),
+        "motion_max_frames": Param(16, "sweep scans: measure the motion on at most this many frames (a longer sweep "
+                                   "on every Nth frame accordingly; each costs two dense flows before the scan's cloud "
+                                   "is out; applies from the next sweep)", (6, 10000)),
     }
 
 
@@ -180,6 +200,7 @@ class _Scan:
     end_reason: str = ""
     end_time_s: float = 0.0
     published: bool = False
+    motion: SweepMotion | None = None    # a sweep's frames for the motion measurement (motion_measure)
 
 
 class StereoMatcherNode(LsuNode):
@@ -213,10 +234,13 @@ class StereoMatcherNode(LsuNode):
         self.sheet: LaserSheet | None = None
         self.sheet_note = ""
         self._camera_info: dict[str, CameraInfo] = {}
+        # left images taken while holding a sweep's and not held, not yet looked at for the texture
+        self._left_seen: deque[Any] = deque(maxlen=IMAGES_KEPT)
         self._extrinsics: StereoExtrinsics | None = None
 
         self.points_pub = self.create_publisher(PointCloud2, "points", 10)
         self.cloud_pub = self.create_publisher(PointCloud2, "scan/cloud", LATCHED)
+        self.motion_pub = self.create_publisher(String, "scan/motion", LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # kept so that a direct replay, which hands lines and events over itself, can remove them
         self.input_subscriptions = [
@@ -233,9 +257,17 @@ class StereoMatcherNode(LsuNode):
         # busiest thread). Raw: only the texture pair's image is ever decoded.
         self._image_sub = self.create_subscription(Image, "stereo/left/image_raw", lambda _raw: None, qos.reliable(IMAGES_KEPT),
             callback_group=PolledGroup(), raw=True)
+        # the right images: read only during a sweep whose motion is measured
+        self._right_image_sub = self.create_subscription(Image, "stereo/right/image_raw", lambda _raw: None,
+                                                         qos.reliable(IMAGES_KEPT), callback_group=PolledGroup(),
+                                                         raw=True)
         # where the texture image is looked for: serialized left images not yet looked at (a direct
-        # replay, which has no image topic, gives its own source)
+        # replay, which has no image topic, gives its own source; it gives no right images: no motion measured)
         self.take_left_images: Callable[[], Iterable[Any]] = lambda: take_all(self._image_sub)
+        self.take_right_images: Callable[[], Iterable[Any]] = lambda: take_all(self._right_image_sub)
+        # a measured sweep's serialized images by stamp, per side, until their frame is placed (`_hold_images`)
+        self._held: dict[str, OrderedDict[int, Any]] = {"left": OrderedDict(), "right": OrderedDict()}
+        self._waiting_images: dict[int, int] = {}  # stamp -> index of measured frames placed before their images
         if self.get_parameter("calibration_source").value == "topics":
             # camera_info comes with every image (volatile, like the images); a volatile reader also
             # matches latched publishers (older bags), so either kind of camera is heard
@@ -379,6 +411,7 @@ class StereoMatcherNode(LsuNode):
             self._error(f"laser lines arrive but there is no calibration: {self.calibration_error}")
             return
         if self.sweep is not None and self.sweep.is_frame(key):
+            self._hold_images()
             self.sweep.add_pair(key, left.arrays, right.arrays)
             self._sweep_progress()
             return
@@ -446,6 +479,11 @@ class StereoMatcherNode(LsuNode):
         for key in [k for k in self.waiting if sweep.is_frame(k)]:
             left, right = self.waiting.pop(key)
             sweep.add_pair(key, left.arrays, right.arrays)
+        if self.scan is not None and bool(self.get_parameter("motion_measure").value):
+            self.scan.motion = SweepMotion.for_sweep(
+                int(msg.expected_snaps), MotionParams(every_frames=int(self.get_parameter("motion_every_frames").value)),
+                int(self.get_parameter("motion_max_frames").value))
+        self._hold_images()
         if self.sheet is None:
             self.get_logger().warning(f"sweep: {self.sheet_note}; its frames are matched stereo only")
         self.get_logger().info(f"sweep: {msg.expected_snaps} frames from the pair stamped {first / 1e9:.3f}")
@@ -460,6 +498,7 @@ class StereoMatcherNode(LsuNode):
             self.sweep_points = SweepPoints(self.model, self.sheet, SweepParams(match=self.params),
                                             str(self.get_parameter("sweep_matching").value))
         frames, track = sweep.finish() if finish else sweep.ready()
+        self._frames_to_motion(frames, track)
         done = self.sweep_points.add(frames, track)
         if finish or sweep.complete:  # no later frame to match with: the frames still waiting come out
             done += self.sweep_points.flush()
@@ -479,6 +518,64 @@ class StereoMatcherNode(LsuNode):
             for name, value in sweep.counts.items():
                 self.sweep_stats[name] = value
             self.sweep, self.sweep_points = None, None
+
+    def _hold_images(self) -> None:
+        """A measured sweep's new images held by stamp until their frame is placed; images of frames the motion does
+        not measure (their exposure says which slot they are) are let go at once."""
+        scan, sweep = self.scan, self.sweep
+        if scan is None or scan.motion is None or sweep is None:
+            return
+        for side, take in (("left", self.take_left_images), ("right", self.take_right_images)):
+            held = self._held[side]
+            for raw in take():
+                key = _cdr_stamp_key(raw)
+                exposure = sweep.exposures.get(key)
+                if not sweep.is_frame(key) or (exposure is not None and not scan.motion.wants(exposure.frame_index)):
+                    if side == "left":
+                        self._left_seen.append(raw)  # the texture may be among them
+                    continue
+                held[key] = raw
+                while len(held) > SWEEP_IMAGES_HELD:
+                    held.popitem(last=False)
+        # a frame placed before its images came (the matcher reads them on its own schedule)
+        for key in [k for k in self._waiting_images if k in self._held["left"] and k in self._held["right"]]:
+            images = self._read_images(key)
+            if images is not None:
+                scan.motion.add_images(self._waiting_images[key], images)
+            del self._waiting_images[key]
+
+    def _read_images(self, key: int) -> tuple[AnyArray, AnyArray] | None:
+        """The held pair stamped ``key`` (let go) as one channel each: the blue one, where the red laser adds little
+        (lsu_reconstruct.motion); None when either is missing or unreadable (said)."""
+        if key not in self._held["left"] or key not in self._held["right"]:
+            return None  # the one that came stays held for the other
+        left_raw, right_raw = self._held["left"].pop(key), self._held["right"].pop(key)
+        try:
+            left, right = (np.ascontiguousarray(image_to_array(deserialize_message(bytes(raw), Image))[..., 0])
+                           for raw in (left_raw, right_raw))
+        except ValueError as exc:
+            self._error(f"sweep frame stamped {key / 1e9:.3f}: its images cannot be read for the motion: {exc}")
+            return None
+        return left, right
+
+    def _frames_to_motion(self, frames: list[tuple[int, Any]], track: Any) -> None:
+        """Each placed sweep frame's time, lines and (every Nth) images to the scan's motion measurement."""
+        scan = self.scan
+        if scan is None or scan.motion is None or not frames:
+            return
+        self._hold_images()
+        for key, frame in frames:
+            t = exposure_mid_s(frame.left_start_s, frame.exposure_s)
+            images = None
+            if scan.motion.wants(frame.index):
+                images = self._read_images(key)
+                if images is None:
+                    self._waiting_images[key] = frame.index
+            else:
+                for held in self._held.values():
+                    held.pop(key, None)
+            position = float(track.position_at(t)) if track is not None else None
+            scan.motion.add_frame(frame.index, t, frame.left, frame.right, images, position)
 
     def _file_snap(self, index: int, snap: SnapPoints, header: Header) -> None:
         assert self.scan is not None
@@ -508,6 +605,9 @@ class StereoMatcherNode(LsuNode):
             self.snap_of_stamp.clear()
             self.waiting.clear()
             self.sweep, self.sweep_points, self.sweep_stats = None, None, {}
+            for held in self._held.values():
+                held.clear()
+            self._waiting_images.clear()
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
@@ -549,7 +649,10 @@ class StereoMatcherNode(LsuNode):
             return
         # only the frames waiting now can hold it: the ones taken earlier were checked against the same key
         raw = None
-        for candidate in self.take_left_images():
+        self._hold_images()
+        seen = list(self._left_seen)
+        self._left_seen.clear()
+        for candidate in [*seen, *self.take_left_images()]:
             key = _cdr_stamp_key(candidate)
             if key == scan.texture_key:
                 raw = candidate
@@ -592,10 +695,12 @@ class StereoMatcherNode(LsuNode):
             for s in snaps:
                 s.rgb = colour_at(scan.texture, s.u, s.v)
         cloud = merge_snaps(snaps)
-        if self.model is not None:
-            cloud = drop_grazing(cloud, self.model, float(self.get_parameter("max_view_angle_deg").value))
         header = Header(stamp=self.get_clock().now().to_msg(),
                         frame_id=self.model.left_frame_id if self.model else "lsu_left_optical")
+        if scan.motion is not None and self.model is not None:
+            self._measure_motion(scan, cloud)
+        if self.model is not None:
+            cloud = drop_grazing(cloud, self.model, float(self.get_parameter("max_view_angle_deg").value))
         self.cloud_pub.publish(cloud_to_msg(encode(cloud.fields()), header))
         scan.published = True
         what = f"scan {scan.scan_id}: {len(cloud)} points from {len(snaps)} of {scan.expected} snaps"
@@ -607,6 +712,32 @@ class StereoMatcherNode(LsuNode):
             self.get_logger().warning(f"{what}; PARTIAL cloud published ({cause})")
         else:
             self.get_logger().info(f"{what}; cloud published")
+
+    def _measure_motion(self, scan: _Scan, cloud: SnapPoints) -> None:
+        """The sweep's motion measured, the cloud corrected in place when within limits, ``scan/motion`` published."""
+        assert scan.motion is not None and self.model is not None
+        for held in self._held.values():
+            held.clear()
+        self._waiting_images.clear()
+        started = time.monotonic()
+        try:
+            cloud.xyz, record = scan.motion.correct(self.model, cloud.xyz, cloud.snap,
+                                                    apply=bool(self.get_parameter("motion_correction").value))
+        except Exception as exc:  # noqa: BLE001 - the scan's cloud must still come out, saying what failed
+            record = {"measured": False, "flagged": False, "corrected": False,
+                      "why": f"the motion measurement failed: {exc.__class__.__name__}: {exc}"}
+            self._error(record["why"])
+        scan.motion = None  # its images are let go
+        record = {"scan_id": scan.scan_id, **record, "compute_s": round(time.monotonic() - started, 3)}
+        self.motion_pub.publish(String(data=json.dumps(record)))
+        if record.get("flagged"):
+            self.get_logger().warning(f"scan {scan.scan_id}: subject motion beyond correction in frames "
+                                      f"{record.get('unreliable_frames')}: {record.get('message', '')}")
+        else:
+            self.get_logger().info(f"scan {scan.scan_id}: subject motion "
+                                   + (f"{record.get('measured_motion_mm', 0.0):.2f} mm, "
+                                      f"{'corrected' if record.get('corrected') else 'left as it is'}"
+                                      if record.get("measured") else f"not measured: {record.get('why')}"))
 
     # ------------------------------------------------------------------ diagnostics
     def publish_diagnostics(self) -> None:

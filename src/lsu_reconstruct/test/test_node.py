@@ -288,6 +288,11 @@ def test_every_matcher_parameter_takes_effect_when_set_or_is_refused(ros_node):
     cases["max_view_angle_deg"] = (60.0, lambda: node.get_parameter("max_view_angle_deg").value == 60.0)
     # read at a sweep's start (a change while a sweep runs is refused, below)
     cases["sweep_matching"] = ("per_frame", lambda: node.get_parameter("sweep_matching").value == "per_frame")
+    # the motion's: read at a sweep's start (measure, every Nth frame) and at the scan's end (correction)
+    cases["motion_measure"] = (False, lambda: node.get_parameter("motion_measure").value is False)
+    cases["motion_correction"] = (False, lambda: node.get_parameter("motion_correction").value is False)
+    cases["motion_every_frames"] = (4, lambda: node.get_parameter("motion_every_frames").value == 4)
+    cases["motion_max_frames"] = (12, lambda: node.get_parameter("motion_max_frames").value == 12)
     ros_node.check_parameters(node, cases)
     for name, value in (("smooth_window_rows", 6), ("triangulation", "best"), ("min_quality", 2.0)):
         refused = ros_node.set_parameter(f"{ns}/stereo_matcher", name, value)

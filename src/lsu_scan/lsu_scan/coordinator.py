@@ -11,6 +11,10 @@ motion's and the stream's end -> stream stop -> SWEEP_END -> laser off -> textur
 carriage stands still; the matcher meanwhile processes the last frames) -> the matcher's points of
 every published frame (keyed on the pairs' stamps) -> FINISHED. No call per frame; frames dropped
 are counted from the stamps (`sweep_plan.count_frames`). A cancel stops the carriage and the stream.
+The matcher measures the subject's motion over the sweep (``scan/motion``, docs/MOTION.md), which goes
+into scan.json; a sweep it flags (moved beyond correction) is scanned again within the goal, up to
+``motion_rescans`` times, with the feedback stage and the result's status saying "hold still, scanning
+again".
 
 Safety: the laser is switched off in a `finally` on every way out (success, cancel, driver
 fault, capture timeout, lost snap, node shutdown); what was captured is kept and the scan is
@@ -27,6 +31,7 @@ bag) and `scan_params` (parameters).
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections import OrderedDict
@@ -38,6 +43,7 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import String
 from std_srvs.srv import SetBool, Trigger
 
 from lsu_cameras.polled import PolledGroup, take_latest
@@ -117,6 +123,9 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
             depth=50, reliability=ReliabilityPolicy.RELIABLE))
         # on the main node: latched, and it must be current when the next scan starts
         self.create_subscription(PointCloud2, "scan/cloud", self._on_cloud, LATCHED, callback_group=group)
+        # stereo_matcher's motion record of each sweep (published before its cloud), by scan id
+        self._motion: OrderedDict[str, dict] = OrderedDict()
+        self.create_subscription(String, "scan/motion", self._on_motion, LATCHED, callback_group=group)
         self._busy = threading.Lock()      # held by the scan thread while a scan runs
         self._goal_lock = threading.Lock()  # makes "is a scan running or accepted?" and "accept" one step
         self._goal_active = False
@@ -159,6 +168,18 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
             self._cloud_serial += 1
             self._cond.notify_all()
 
+    def _on_motion(self, msg: String) -> None:
+        try:
+            record = json.loads(msg.data)
+        except ValueError:
+            self.get_logger().error(f"scan/motion: not a JSON record: {msg.data[:80]!r}")
+            return
+        with self._cond:
+            self._motion[str(record.get("scan_id", ""))] = record
+            while len(self._motion) > 8:
+                self._motion.popitem(last=False)
+            self._cond.notify_all()
+
     def _on_goal(self, _goal: Scan.Goal) -> GoalResponse:
         # One step under one lock: two goals sent at the same moment are not both accepted (the
         # second would otherwise be queued behind the first instead of refused).
@@ -173,16 +194,44 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
     def _execute(self, goal_handle: Any) -> Scan.Result:
         try:
             with self._busy:
-                return self._scan(goal_handle)
+                return self._run_goal(goal_handle)
         finally:
             with self._goal_lock:
                 self._goal_active = False
 
-    def _scan(self, goal_handle: Any) -> Scan.Result:
-        """plan -> snap loop -> finish; the laser is off and the files are on disk on every way out."""
+    def _run_goal(self, goal_handle: Any) -> Scan.Result:
+        """The goal's scan, again while its subject moved beyond correction (``motion_rescans``); ends the goal."""
+        result, run = self._scan(goal_handle)
+        if run is None:
+            return result  # refused (the goal is ended)
+        rescans, moved = int(self.motion_rescans), []
+        while run.record.motion.get("flagged") and rescans > 0 and not run.canceled \
+                and not run.record.partial and not self.shutting_down:
+            rescans -= 1
+            message = str(run.record.motion.get("message", "hold still, scanning again"))
+            moved.append(f"{message}: scan {run.scan_id} moved beyond correction "
+                         f"({_motion_reasons(run.record.motion)})")
+            self.get_logger().warning(moved[-1])
+            self._feedback(goal_handle, message, 0, run.record.snaps_expected,
+                           int(run.sweep.end if run.sweep else 0), 0, [])
+            first = result
+            result, again = self._scan(goal_handle, rescan_of=run.scan_id)
+            result.files = [*first.files, *result.files]
+            if again is None:
+                return result
+            run = again
+        if moved:
+            result.status = "; ".join([*moved, result.status])
+        self._end_goal(goal_handle, run, result)
+        return result
+
+    def _scan(self, goal_handle: Any, rescan_of: str = "") -> tuple[Scan.Result, ScanRun | None]:
+        """plan -> snap loop -> finish; the laser is off and the files are on disk on every way out. The goal is
+        left running (`_end_goal`) unless the scan was refused (run None)."""
         run = self._plan(goal_handle)
         if isinstance(run, Scan.Result):
-            return run  # refused before anything moved
+            return run, None  # refused before anything moved
+        run.record.rescan_of = rescan_of
         recorder = self._start_bag_or_warn(run) if goal_handle.request.record_bag else None
         if run.sweep is None:
             self.get_logger().info(f"scan {run.scan_id}: {len(run.plan.positions)} snaps {run.plan.positions[0]}.."
@@ -217,7 +266,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
             self._guarded_ack = None
             self._off_future = None  # superseded by this off (a left-over one would disarm the next scan's guard)
             laser_error = self._laser_off_safely()
-        return self._finish(goal_handle, run, laser_error, cloud_serial_before, recorder)
+        return self._finish(goal_handle, run, laser_error, cloud_serial_before, recorder), run
 
     def _start_bag_or_warn(self, run: ScanRun) -> Any:
         try:
@@ -239,6 +288,16 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         self._io_executor.shutdown(timeout_sec=1.0)
         self._io.destroy_node()
         super().destroy_node()
+
+
+def _motion_reasons(motion: dict) -> str:
+    """The unreliable frames of a flagged motion record and why, in one line."""
+    reasons = motion.get("reasons") or {}
+    where = motion.get("unreliable_positions_steps")
+    text = "; ".join(f"frame {frame}: {why}" for frame, why in list(reasons.items())[:3])
+    if len(reasons) > 3:
+        text += f"; {len(reasons) - 3} more frames"
+    return text + (f" (carriage {where[0]:.0f}..{where[1]:.0f} steps)" if where else "")
 
 
 main = main_of(ScanCoordinatorNode, multi_threaded=True)

@@ -18,6 +18,7 @@ from lsu_bags.bags import LOW_SPACE_BYTES
 TOPICS = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw",
           "/lsu/stereo/left/camera_info", "/lsu/stereo/right/camera_info", "/lsu/stereo/extrinsics",
           "/lsu/stereo/left/laser_line", "/lsu/stereo/right/laser_line", "/lsu/points", "/lsu/scan/cloud",
+          "/lsu/scan/motion",
           "/lsu/driver/state", "/lsu/stereo/exposure", "/lsu/driver/carriage", "/tf", "/tf_static"]
 
 

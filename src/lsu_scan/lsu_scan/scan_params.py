@@ -24,7 +24,8 @@ PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "laser_pause_s": (0.2, "a move, capture or snap acknowledgement this late switches the laser off until the "
                            "scan goes on [s] (applies from the next deadline)", (0.02, 1.5)),
     "move_timeout_s": (0.0, "carriage/move_to timeout [s]; 0 = the driver's own", (0.0, 600.0)),
-    "cloud_timeout_s": (15.0, "wait for the matcher's scan/cloud after the scan [s]", (0.0, 600.0)),
+    "cloud_timeout_s": (30.0, "wait for the matcher's scan/cloud after the scan (a sweep's comes once the subject's "
+                              "motion is measured: seconds of CPU) [s]", (0.0, 600.0)),
     "exposure_s": (0.033, "camera exposure: the mechanical lower bound in scan.json, when a capture is due [s]",
                    (0.0, 1.0)),
     "calibration_dir": ("", "calibration folder used (its checksum goes in scan.json; applies from the next scan)",
@@ -32,6 +33,11 @@ PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     "settle": ("fixed", "after each stop: 'fixed' waits the goal's settle_s; 'adaptive' captures as soon as the "
                         "laser line stopped moving (two frames agree), at the latest once settle_s has passed "
                         "(lsu_scan.settle)", None),
+    "motion_rescans": (1, "a sweep whose subject moved beyond correction (stereo_matcher's scan/motion says so) is "
+                          "scanned again this many times within the goal, saying 'hold still, scanning again'; "
+                          "0 = delivered flagged (applies from the next scan's end)", (0, 5)),
+    "motion_timeout_s": (5.0, "after a sweep's cloud, wait this long for stereo_matcher's scan/motion record [s]",
+                         (0.0, 600.0)),
     "settle_tolerance_px": (DEFAULT_TOLERANCE_PX, "adaptive settle: the line counts as still when it moved less "
                                                   "than this between two frames [px]", (0.01, 5.0)),
 }
@@ -63,6 +69,8 @@ class ScanParameters(LsuNode):
                 self.output_dir = Path(value) if value else Path.cwd() / "scans"
             elif param.name in ("calibration_dir", "settle"):
                 setattr(self, param.name, str(value))
+            elif param.name == "motion_rescans":
+                self.motion_rescans = int(value)
             else:
                 setattr(self, param.name, float(value))
                 if param.name == "laser_pause_s":

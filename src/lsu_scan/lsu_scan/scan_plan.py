@@ -106,6 +106,10 @@ class ScanRecord:
     files: list[str] = field(default_factory=list)
     # a sweep scan: its rate, frame rate and the frames expected, captured and dropped (empty: stop-snap)
     sweep: dict[str, object] = field(default_factory=dict)
+    # a sweep scan: the subject's motion as stereo_matcher measured it (its scan/motion record; docs/MOTION.md)
+    motion: dict[str, object] = field(default_factory=dict)
+    # the scan this one repeats: its subject moved beyond correction ("hold still, scanning again")
+    rescan_of: str = ""
 
     def write(self, folder: Path) -> Path:
         """Write ``folder/scan.json`` atomically (a partial scan is always described on disk)."""

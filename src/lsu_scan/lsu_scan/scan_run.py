@@ -146,13 +146,22 @@ class ScanRunSteps(ScanCalls):
         record.snaps = [snap.as_json() for snap in run.captured]
         if run.sweep is not None:
             record.sweep = {**run.sweep.record(run.frames), **run.stream}
+        if run.sweep is not None and cloud_points:
+            record.motion = self._motion_record(run.scan_id)
+            if record.motion.get("flagged"):
+                partial_note = f"; subject moved beyond correction: {record.motion.get('message', '')}"
+            else:
+                partial_note = ""
+        else:
+            partial_note = ""
         record.laser_pauses = [pause.as_json() for pause in self.guard.pauses]
         record.snaps_captured = len(run.captured)
         record.snaps_acknowledged = sum(1 for snap in run.captured if snap.acknowledged)
         record.points = cloud_points or run.points_total
         record.partial = partial
         record.status = (f"partial: {abort_reason}" if partial else
-                         f"finished: {len(run.captured)} {'frames' if run.sweep else 'snaps'}, {record.points} points")
+                         f"finished: {len(run.captured)} {'frames' if run.sweep else 'snaps'}, {record.points} points"
+                         f"{partial_note}")
         record.timings_s["total"] = time.monotonic() - run.started
         try:
             record.files.append(str(record.write(folder)))
@@ -169,13 +178,28 @@ class ScanRunSteps(ScanCalls):
             self.get_logger().warning(summary)
         else:
             self.get_logger().info(summary)
+        return result
+
+    def _end_goal(self, goal_handle: Any, run: ScanRun, result: Scan.Result) -> None:
+        """The goal ends as its (last) scan did: canceled, aborted (partial) or succeeded."""
         if run.canceled:
             goal_handle.canceled()
-        elif partial:
+        elif result.partial:
             goal_handle.abort()
         else:
             goal_handle.succeed()
-        return result
+
+    def _motion_record(self, scan_id: str) -> dict:
+        """stereo_matcher's motion record of the sweep ``scan_id`` (published before its cloud), or why there is none."""
+        with self._cond:
+            self._cond.wait_for(lambda: scan_id in self._motion or self.shutting_down, float(self.motion_timeout_s))
+            record = self._motion.pop(scan_id, None)
+        if record is None:
+            return {"measured": False, "flagged": False, "corrected": False,
+                    "why": f"no scan/motion record from stereo_matcher within {self.motion_timeout_s:g} s after the "
+                           "cloud (its motion_measure parameter off, or a matcher without it)"}
+        record.pop("scan_id", None)
+        return record
 
     def _save_cloud(self, folder: Path, serial_before: int, record: ScanRecord) -> int:
         """Wait for the matcher's scan cloud and write cloud.ply; returns its point count (0 if none came)."""

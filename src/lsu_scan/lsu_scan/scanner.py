@@ -25,6 +25,9 @@ from typing import Any
 
 from . import rosenv
 
+# feedback stages that are notices to the user rather than progress (scan_coordinator's motion rescan)
+NOTICE_PREFIXES = ("hold still",)
+
 
 class ScannerError(RuntimeError):
     """The scanner graph is not there or did not answer; one line for the user."""
@@ -98,6 +101,8 @@ class LsuScanner:
         self._goal_handle: Any | None = None
         self._result_future: Any | None = None
         self._feedback: Any | None = None
+        # feedback stages that are notices to the user, not progress ("hold still, scanning again"), in order
+        self.notices: list[str] = []
         self._closed = False
         # A script that never calls close() must still end cleanly: at interpreter exit the spin
         # thread would be inside rclpy's C++ wait set while the context is destroyed (abort, exit 134).
@@ -193,6 +198,7 @@ class LsuScanner:
             raise ScannerError("the /lsu/scan action server (scan_coordinator) is not available; is the graph "
                                "running (lsu launch sim)?")
         self._feedback = None  # feedback of an earlier scan must not pass for this one's
+        self.notices = []
         goal = self._Scan.Goal(start_steps=start, end_steps=end, step_steps=step, settle_s=float(settle_s),
                                texture=texture, record_bag=record_bag, output_dir=output_dir, label=label,
                                mode=mode, sweep_rate_steps_s=float(sweep_rate_steps_s),
@@ -207,6 +213,8 @@ class LsuScanner:
 
     def _on_feedback(self, message: Any) -> None:
         self._feedback = message.feedback
+        if message.feedback.stage.startswith(NOTICE_PREFIXES):
+            self.notices.append(message.feedback.stage)
 
     def is_task_complete(self) -> bool:
         """True when the running scan has a result."""
@@ -258,8 +266,11 @@ def cmd_scan(args: argparse.Namespace) -> int:
                            label=args.label, mode=args.mode, sweep_rate_steps_s=args.rate,
                            frame_rate_hz=args.fps)
         try:
-            shown = None
+            shown, told = None, 0
             while not scanner.is_task_complete():
+                for notice in scanner.notices[told:]:
+                    sys.stderr.write(f"\n{notice}\n")
+                told = len(scanner.notices)
                 fb = scanner.get_feedback()
                 if fb is not None and fb is not shown:
                     _progress(fb, "snap" if args.mode == "stopsnap" else "frame")

@@ -122,7 +122,7 @@ def make_coordinator(context: Any, tmp_path: Any, **params: Any) -> ScanCoordina
 
 def scan_with(coordinator: ScanCoordinatorNode) -> SimpleNamespace:
     handle = FakeGoalHandle(start_steps=100, end_steps=104, step_steps=2, settle_s=0.0, texture=True)
-    result = coordinator._scan(handle)
+    result = coordinator._run_goal(handle)
     return SimpleNamespace(result=result, ended=handle.ended, pauses=[p.as_json() for p in coordinator.guard.pauses])
 
 

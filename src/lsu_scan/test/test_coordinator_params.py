@@ -29,6 +29,8 @@ NUMERIC = [name for name, (default, _d, bounds) in PARAMETERS.items() if bounds 
 def test_a_numeric_parameter_set_at_run_time_is_what_the_scan_reads(coordinator, name):
     low, high = PARAMETERS[name][2]
     value = round(low + 0.37 * (high - low), 3)
+    if isinstance(PARAMETERS[name][0], int):  # a count (motion_rescans)
+        value = max(int(low) + 1, int(value))
     result = coordinator.set_parameters([Parameter(name, value=value)])[0]
     assert result.successful, result.reason
     assert getattr(coordinator, name) == pytest.approx(value)
@@ -70,8 +72,9 @@ def test_every_parameter_is_described_with_its_range(coordinator):
         descriptor = coordinator.describe_parameter(name)
         assert descriptor.description
         if bounds is not None:
-            assert descriptor.floating_point_range[0].from_value == bounds[0]
-            assert descriptor.floating_point_range[0].to_value == bounds[1]
+            ranges = descriptor.integer_range if isinstance(_default, int) else descriptor.floating_point_range
+            assert ranges[0].from_value == bounds[0]
+            assert ranges[0].to_value == bounds[1]
 
 
 def test_of_two_goals_sent_at_the_same_moment_exactly_one_is_accepted(coordinator):

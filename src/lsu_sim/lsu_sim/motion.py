@@ -32,7 +32,7 @@ import numpy as np
 from lsu_common.arrays import AnyArray
 
 __all__ = ["MOTION_KINDS", "MotionSpec", "SubjectMotion", "SubjectPose", "MotionError", "motion_spec",
-           "pivot_of", "SWAY_BAND_HZ", "TURN_DEG", "TURN_S"]
+           "pivot_of", "scene_motion", "SWAY_BAND_HZ", "TURN_DEG", "TURN_S"]
 
 MOTION_KINDS = ("still", "seated", "standing", "turn")
 # the sway's band [Hz]: trends below it are the drift, above it the body's inertia leaves ~nothing
@@ -167,3 +167,13 @@ class SubjectMotion:
     def pose(self, t_s: float) -> SubjectPose:
         """The head's pose at ``t_s`` seconds after the motion's start."""
         return SubjectPose.from_vector(self.vectors(float(t_s))[0], self.pivot)
+
+
+def scene_motion(kind: str, seed: int, geometry, objects, turn_at_s: float = 3.0) -> SubjectMotion:
+    """The `SubjectMotion` of a scene's subject: the pivot below a person's head centre (else below the scene's
+    centre), the rig's axes (``geometry.rig_axes``)."""
+    centre = next((o.extra["head_center_m"] for o in objects if "head_center_m" in o.extra), None)
+    if centre is None:  # not a person: the scene's centre
+        centre = np.mean([np.asarray(o.mesh.get_axis_aligned_bounding_box().get_center()) for o in objects], axis=0)
+    axes = geometry.rig_axes
+    return SubjectMotion(kind, seed, pivot_of(centre, axes[1]), axes, turn_at_s=turn_at_s)

@@ -7,11 +7,13 @@ the GP32 emulator's ``sim/truth`` samples (lsu_interfaces/SimTruth, read by the 
 
 from __future__ import annotations
 
+import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from lsu_cameras.sources import SourceContext, StereoPair, StereoSource
+from lsu_cameras.sources import CameraError, SourceContext, StereoPair, StereoSource
 from lsu_cameras.stream import frame_seed
 from lsu_common import stamps
 from lsu_common.stamps import ns_to_seconds, seconds_to_ns
@@ -22,6 +24,10 @@ from .rig import CarriageState, SimulatedRig
 # exact samples of a motion's start or stop from its executor, on a busy host tens of ms after they happened,
 # and a pair rendered before they are in shows the carriage where it was not
 TRUTH_DELAY_S = 0.1
+# a moving subject's pose is updated at this rate by default: a new pose re-casts both views (~0.5-2 s of CPU for a
+# person on a small host), so the simulated camera falls behind real time by that much per update (its frames
+# keep their slots' stamps); sway moves < 1 mm in 1/5 s. `lsu_accuracy.sweep_sim.render_sweep` (no ROS) uses 15 Hz.
+MOTION_HZ = 5.0
 
 
 class SimSource(StereoSource):
@@ -32,11 +38,18 @@ class SimSource(StereoSource):
     render_delay_s = TRUTH_DELAY_S
 
     def __init__(self, rig: SimulatedRig, carriage: Callable[[int], CarriageState],
-                 clock: Callable[[], float] = time.time, seed: int = 0) -> None:
+                 clock: Callable[[], float] = time.time, seed: int = 0, motion: Any = None,
+                 motion_hz: float = MOTION_HZ) -> None:
         self.rig = rig
         self.carriage = carriage
         self.clock = clock
         self.seed = int(seed)
+        # a living subject (`lsu_sim.motion.SubjectMotion`): its clock starts at the first frame rendered
+        self.motion = motion
+        self.motion_hz = float(motion_hz)
+        self._motion_t0: float | None = None
+        self._motion_slot: int | None = None
+        self._render_lock = threading.Lock()  # a pose holds for the whole render of a pair
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -54,12 +67,27 @@ class SimSource(StereoSource):
 
     def _pair(self, t_ns: int, seed: int | None, parallel: bool | None = None) -> StereoPair:
         t = ns_to_seconds(t_ns)
-        # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
-        # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
-        frame = self.rig.render(self.carriage(t_ns), capture_time_s=t, seed=seed, parallel=parallel)
+        carriage = self.carriage(t_ns)
+        with self._render_lock:
+            self._place_subject(t)
+            # both exposures start at t unless the rig models a capture discrepancy (capture_offset_s/_jitter_s);
+            # the carriage is looked up by the exact stamp (float seconds of a wall-clock time are 256 ns coarse)
+            frame = self.rig.render(carriage, capture_time_s=t, seed=seed, parallel=parallel)
         left_start, right_start = frame.exposure_start_s
         assert left_start is not None and right_start is not None  # a capture time gives both starts
         return StereoPair(frame.left, frame.right, t, right_start - left_start, left_offset_s=left_start - t)
+
+    def _place_subject(self, t_s: float) -> None:
+        """The moving subject at its pose of the frame exposed from ``t_s`` (mid-exposure, in ``motion_hz`` slots)."""
+        if self.motion is None:
+            return
+        if self._motion_t0 is None:
+            self._motion_t0 = t_s
+        slot = math.floor((t_s - self._motion_t0 + 0.5 * self.exposure_s) * self.motion_hz)
+        if slot != self._motion_slot:
+            pose = self.motion.pose(slot / self.motion_hz)
+            self.rig.set_subject_pose(pose.R, pose.translation)
+            self._motion_slot = slot
 
     def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
         """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
@@ -116,9 +144,11 @@ def carriage_from_truth(truth: Any, later: Sequence[Any], fallback: CarriageStat
 
 
 def open_sim_source(context: SourceContext) -> SimSource:
-    """The node's ``sim`` source from its parameters ``sim_rig``, ``sim_scene``, ``sim_seed`` and, until
-    ``sim/truth`` arrives, ``carriage_position_steps`` and ``laser_on``."""
+    """The node's ``sim`` source from its parameters ``sim_rig``, ``sim_scene``, ``sim_seed``, ``sim_motion``
+    (``sim_motion_seed``, ``sim_motion_turn_at_s``, ``sim_motion_hz``) and, until ``sim/truth`` arrives, ``carriage_position_steps``
+    and ``laser_on``."""
     from . import build_scene, load_rig
+    from .motion import MotionError, scene_motion
 
     param = context.parameter
     geometry = load_rig(str(param("sim_rig")) or None)
@@ -130,7 +160,14 @@ def open_sim_source(context: SourceContext) -> SimSource:
         fallback = CarriageState(float(param("carriage_position_steps")), bool(param("laser_on")))
         return carriage_from_truth(truth, later, fallback)
 
-    return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed)
+    kind = str(param("sim_motion") or "still")
+    try:
+        motion = None if kind == "still" else scene_motion(kind, int(param("sim_motion_seed")), geometry, scene,
+                                                           float(param("sim_motion_turn_at_s")))
+    except MotionError as exc:
+        raise CameraError(f"sim_motion: {exc}") from None
+    return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed, motion=motion,
+                     motion_hz=float(param("sim_motion_hz")))
 
 
 __all__ = ["SimSource", "carriage_from_truth", "open_sim_source", "TRUTH_DELAY_S"]

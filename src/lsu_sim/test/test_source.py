@@ -78,7 +78,8 @@ def test_the_carriage_follows_the_truth_sample_that_held_and_a_stop_within_the_e
 
 def test_the_camera_node_finds_the_simulator_by_name_and_names_the_sources_when_one_is_missing():
     assert "sim" in plugin_source_names()
-    params = {"sim_rig": "", "sim_scene": "sphere", "sim_seed": 3, "carriage_position_steps": 150.0, "laser_on": True}
+    params = {"sim_rig": "", "sim_scene": "sphere", "sim_seed": 3, "carriage_position_steps": 150.0, "laser_on": True,
+              "sim_motion": "still", "sim_motion_seed": 0, "sim_motion_turn_at_s": 1.0, "sim_motion_hz": 5.0}
     context = SourceContext(parameter=params.__getitem__, clock=lambda: 1000.0, truth_at=lambda t_ns: (None, []))
     source = open_plugin_source("sim", context)
     assert isinstance(source, SimSource) and source.seed == 3 and source.stamps_on_node_clock
@@ -87,3 +88,26 @@ def test_the_camera_node_finds_the_simulator_by_name_and_names_the_sources_when_
     assert source.carriage(0).position_steps == 90.0
     with pytest.raises(CameraError, match=r"unknown source 'lidar': use one of v4l2, folder, .*sim"):
         open_plugin_source("lidar", context)
+
+
+def test_a_moving_subject_is_rendered_at_its_pose_from_the_first_frame_on():
+    """``sim_motion``: the rig holds the motion's pose of each frame's mid-exposure, its clock started at the first
+    frame, updated in ``sim_motion_hz`` slots (truth: `lsu_sim.motion.scene_motion` of the same scene and seed)."""
+    from lsu_sim.motion import scene_motion
+
+    params = {"sim_rig": "", "sim_scene": "sphere", "sim_seed": 3, "carriage_position_steps": 150.0, "laser_on": True,
+              "sim_motion": "standing", "sim_motion_seed": 4, "sim_motion_turn_at_s": 1.0, "sim_motion_hz": 5.0}
+    context = SourceContext(parameter=params.__getitem__, clock=lambda: 1000.0, truth_at=lambda t_ns: (None, []))
+    source = open_plugin_source("sim", context)
+    assert isinstance(source, SimSource)
+    truth = scene_motion("standing", 4, source.rig.geometry, source.rig.objects)
+    t0 = 1_000_000_000_000
+    half = 0.5 * source.exposure_s
+    for index, after_s in ((0, 0.0), (1, 0.1), (7, 0.7)):
+        source.pair_at(t0 + stamps.seconds_to_ns(after_s), index)
+        pose = truth.pose(math.floor((after_s + half) * 5.0) / 5.0)
+        assert np.allclose(source.rig._pose_R, pose.R) and np.allclose(source.rig._pose_t, pose.translation)
+    assert not np.allclose(source.rig._pose_t, 0.0)  # it moved (standing sway: millimetres)
+    params["sim_motion"] = "dancing"
+    with pytest.raises(CameraError, match="unknown subject motion 'dancing': use one of still, seated, standing, turn"):
+        open_plugin_source("sim", context)
