@@ -140,3 +140,33 @@ def test_a_profile_not_symmetric_about_its_centre_is_flagged_and_explained():
     assert np.all(codes[result.skewed] == ROW_MODELS.index("com")) and "symmetric" in why["com"]
     err = result.u - truth[result.v.astype(int)]
     assert float(np.sqrt(np.mean(err ** 2))) <= 0.1
+
+
+def test_red_print_whose_red_does_not_rise_is_not_taken_for_the_laser():
+    # A light grey-white ground (BGR 200/205/195) with a printed red stripe 4 px wide in rows 0..239: ink that takes
+    # green and blue away (-110 DN) and leaves red as it was, so red - max(green, blue) rises as a laser's would. In rows
+    # 240..479 a laser line of the same width adds 120 DN of red (and its 6/4 % crosstalk) to the same ground. Truth:
+    # where each was drawn. A person tells them apart by red: the laser's rises, the print's does not
+    # (`red_rise_ratio`); without the rule the print's rows are taken for the laser.
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    ground = np.empty((height, width, 3))
+    ground[...] = (200.0, 205.0, 195.0)
+    rng = np.random.default_rng(11)
+    print_u, laser_u = 201.3, 402.6
+    ink = np.exp(-0.5 * ((cols - print_u) / (4.0 / 2.3548)) ** 2)
+    light = np.exp(-0.5 * ((cols - laser_u) / (4.0 / 2.3548)) ** 2)
+    ground[:240, :, :2] -= 110.0 * ink[None, :, None]
+    ground[240:, :, 2] += 120.0 * light[None, :] * 0.45  # red stays below clipping: 195 + 54
+    ground[240:, :, 1] += 0.06 * 120.0 * light[None, :]
+    ground[240:, :, 0] += 0.04 * 120.0 * light[None, :]
+    image = np.clip(ground + rng.normal(0.0, 1.0, ground.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    print_rows = result.v < 240
+    assert np.count_nonzero(print_rows) == 0
+    laser = result.v >= 240
+    assert np.count_nonzero(laser) >= 0.99 * 240
+    assert float(np.sqrt(np.mean((result.u[laser] - laser_u) ** 2))) <= 0.1
+    # the rule switched off: the print is taken (what the rule is for)
+    off = extract_laser_line(image, ExtractorParams(red_rise_ratio=0.0))
+    assert np.count_nonzero(np.abs(off.u[off.v < 240] - print_u) <= 1.0) >= 0.9 * 240
