@@ -645,6 +645,20 @@ GROW_STEP_PX = 3.0  # a grown row's centre is at most this far from its neighbou
 GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every front by one row)
 
 
+# With a laser-off frame the signal is red's rise over it: texture, red print and lit patches cancel, which is what
+# max_width_px guards against in a single frame. A line wider than that (grazing light, a defocused or near part:
+# the turntable globe's 20-60 px runs) is then accepted up to this width in every search. The cost: where the scene
+# changed between the two frames (a person walking behind), wide differences pass too (bench/results/extract.json:
+# *_laser_off, false_rows_pct_ambient_diff_moving_person).
+LASER_OFF_MAX_WIDTH_PX = 48.0
+
+
+@lru_cache(maxsize=16)
+def _laser_off_params(params: ExtractorParams) -> ExtractorParams:
+    """``params`` with the width range of a frame given with its laser-off frame (`LASER_OFF_MAX_WIDTH_PX`)."""
+    return replace(params, max_width_px=LASER_OFF_MAX_WIDTH_PX)
+
+
 @lru_cache(maxsize=16)
 def _grow_params(params: ExtractorParams) -> ExtractorParams:
     """``params`` with the width range of the rows grown along the line (`_grow_along`)."""
@@ -729,6 +743,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     params = params or ExtractorParams()
     sig = LaserSignal(image, texture)
     height, width = sig.height, sig.width
+    if sig.texture is not None and params.max_width_px < LASER_OFF_MAX_WIDTH_PX and params.method != THESIS:
+        params = _laser_off_params(params)
     if params.method == THESIS:
         line = thesis_detector(sig.image, params.red_threshold, params.blue_threshold)
         return LaserLineResult(method=THESIS, image_width=width, image_height=height, u=line.u, v=line.v,

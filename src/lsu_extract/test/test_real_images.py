@@ -69,10 +69,19 @@ def test_the_laser_off_frame_leaves_no_false_rows_on_static_pairs():
 
 
 def test_a_person_walking_behind_between_the_two_frames_gives_few_false_rows():
-    # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met)
+    # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met). With a
+    # laser-off frame lines up to LASER_OFF_MAX_WIDTH_PX wide are accepted (the globe's wide rows, below), and so are
+    # the wide differences the person leaves where they moved (1.8 % of these rows with the single-frame width limit)
     moving = devdata.box_images(pairs=devdata.BOX_MOVING_PAIRS)
     diff = score(moving, texture=True)
-    assert diff.false_pct <= 2.5
+    assert diff.false_pct <= 5.0
+
+
+def test_laser_off_frame_finds_the_globe_line_where_it_is_wide(globe):
+    # the reference's clear rows (laser-on minus laser-off: a run >= 12 DN peaking >= 25 DN), 20-70 px wide where
+    # the line grazes the globe or nears the camera: a single frame's width limit (16 px) misses ~14 % of them
+    s = score(globe, texture=True)
+    assert s.missed_pct <= 3.0
 
 
 def test_laser_off_frame_keeps_the_globe_line_centred(globe):
