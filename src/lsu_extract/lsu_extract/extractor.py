@@ -104,12 +104,12 @@ CONTINUITY_PX_PER_ROW = 3.0
 # sphere_radius_err_mm); a smaller SKEW_PX flags noise on weak narrow rows (bench_reconstruct's plane sigma).
 SKEW_PX = 0.8
 # red_rise_ratio. Laser light adds to a surface: red rises over the surface around the line, green and blue by
-# their crosstalk (>= 0).
-# The signal red - max(green, blue) also rises where green and blue fall: red print, a sticker, a label on a lighter
-# ground, whose red does not rise (or less than the signal). So on a colour frame without a laser-off frame a row is
-# accepted only where red itself rises over the window's lower end by at least red_rise_ratio x the signal's contrast
-# (a laser: ~1.1x it; red print on white or yellow: ~0; bench/results/extract.json); a row whose red clips at the
-# peak cannot show its rise and is exempt. With a laser-off frame the signal is red's rise already.
+# their crosstalk (>= 0). The signal red - max(green, blue) also rises where green and blue fall: red print, a
+# sticker, a label on a lighter ground, whose red does not rise (or less than the signal). So on a colour frame
+# without a laser-off frame a row is accepted only where red itself rises over the window's lower end by at least
+# red_rise_ratio x the signal's contrast (a laser's red rises by about that contrast or more, such print's hardly at
+# all; bench/results/extract.json, *_red_rise_off); a row whose red clips at the peak cannot show its rise and is
+# exempt. With a laser-off frame the signal is red's rise already.
 
 
 class ExtractorConfigError(ValueError):
@@ -647,7 +647,7 @@ GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every fr
 
 # With a laser-off frame the signal is red's rise over it: texture, red print and lit patches cancel, which is what
 # max_width_px guards against in a single frame. A line wider than that (grazing light, a defocused or near part:
-# the turntable globe's 20-60 px runs) is then accepted up to this width in every search. The cost: where the scene
+# the turntable globe's grazing rows) is then accepted up to this width in every search. The cost: where the scene
 # changed between the two frames (a person walking behind), wide differences pass too (bench/results/extract.json:
 # *_laser_off, false_rows_pct_ambient_diff_moving_person).
 LASER_OFF_MAX_WIDTH_PX = 48.0
