@@ -186,3 +186,22 @@ def test_a_line_wider_than_max_width_is_found_with_its_laser_off_frame():
     assert len(paired) >= 0.99 * image.shape[0]
     err = paired.u - truth[paired.v.astype(int)]
     assert float(np.sqrt(np.mean(err ** 2))) <= 0.4 and abs(float(np.mean(err))) <= 0.05
+
+
+def test_a_line_on_a_surface_whose_blue_clips_is_found():
+    # A bluish-white ground (blue 255: clipped; green 200, red 165) and a 4 px laser line that adds 90 DN of red and 6 %
+    # of it to green (blue cannot rise): red - max(green, blue) is <= 0 under the line, red - green rises 90 DN. Truth:
+    # where the line was drawn.
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    rng = np.random.default_rng(14)
+    line_u = 300.4
+    light = np.exp(-0.5 * ((cols - line_u) / (4.0 / 2.3548)) ** 2)
+    image = np.empty((height, width, 3))
+    image[..., 0] = 262.0  # clipped with its noise
+    image[..., 1] = 200.0 + 0.06 * 90.0 * light[None, :]
+    image[..., 2] = 165.0 + 90.0 * light[None, :]
+    image = np.clip(image + rng.normal(0.0, 1.0, image.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    assert len(result) >= 0.99 * height
+    assert float(np.sqrt(np.mean((result.u - line_u) ** 2))) <= 0.1
