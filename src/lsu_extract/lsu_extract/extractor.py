@@ -9,7 +9,8 @@ rejected as ambiguous (competing peaks) and found saturated. Pixel convention (O
 Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixels):
 
 1. coarse: every ``coarse_step_rows``-th row is searched in full for its strongest peak (on
-   the signal clipped at 0, in uint8); competing peaks are resolved by continuity with clear
+   the signal clipped at 0, in uint8; on a mono frame the peak highest above its own surroundings,
+   `tracking.local_candidates`); competing peaks are resolved by continuity with clear
    neighbouring rows (tracking.py);
 2. tracking window: every row within ``coarse_step_rows`` of a coarse row that found the
    line looks for its peak within ``window_px`` of the line interpolated from the coarse
@@ -775,7 +776,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     if params.window_px > 0:
         w = params.window_px
         assert coarse is not None  # sampled whenever window_px > 0
-        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
+        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast, local=not sig.colour)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)
         rows_w, guess = coarse_track(height, coarse_rows, pick.column, step)
@@ -810,7 +811,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         # strong rows only: on a frame where the line has left the object, most pending rows are lit
         # skin or background without it, and they need no second-peak search nor a decision
         cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True,
-                              scratch=True)
+                              scratch=True, local=not sig.colour)
         known_rows = chunks[0]["v"] if chunks else _NO_ROWS
         known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),

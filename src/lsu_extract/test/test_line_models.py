@@ -205,3 +205,22 @@ def test_a_line_on_a_surface_whose_blue_clips_is_found():
     result = extract_laser_line(image)
     assert len(result) >= 0.99 * height
     assert float(np.sqrt(np.mean((result.u - line_u) ** 2))) <= 0.1
+
+
+def test_a_mono_stripe_beside_a_brighter_broad_patch_is_found():
+    # A mono frame (weld camera): a 4 px stripe 60 DN over a 60 DN ground, and 80 px to its left, in rows 100..379, a
+    # lit patch (FWHM 40 px) that reaches 220 DN: brighter than the stripe in the same rows. Truth: where the stripe was
+    # drawn. Chosen by raw height the patch wins those rows and fails as a line (too wide); above its own
+    # surroundings the stripe stands out (`tracking.local_candidates`).
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    rng = np.random.default_rng(15)
+    stripe_u = 350.3
+    image = np.full((height, width), 60.0)
+    image += 60.0 * np.exp(-0.5 * ((cols - stripe_u) / (4.0 / 2.3548)) ** 2)[None, :]
+    image[100:380] += 160.0 * np.exp(-0.5 * ((cols - stripe_u + 80.0) / (40.0 / 2.3548)) ** 2)[None, :]
+    image = np.clip(image + rng.normal(0.0, 1.5, image.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    assert np.count_nonzero((result.v >= 100) & (result.v < 380)) >= 0.99 * 280
+    assert len(result) >= 0.99 * height
+    assert float(np.sqrt(np.mean((result.u - stripe_u) ** 2))) <= 0.1
