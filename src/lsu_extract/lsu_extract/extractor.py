@@ -302,6 +302,13 @@ def _profiles(signal: AnyArray, peak_idx: AnyArray, half: int) -> AnyArray:
     return np.take_along_axis(signal, idx, axis=1)
 
 
+def _red_rise(centre: AnyArray, left: AnyArray, left_in: AnyArray, right_in: AnyArray, right: AnyArray) -> AnyArray:
+    """Red's height at a peak above the lower of the two window ends (each the mean of its two outer samples), as
+    rows 0 and 1 of `_linear_features` measure the signal's: from the five samples that enter it, float32."""
+    c = centre.astype(np.float32)
+    return np.maximum(c - 0.5 * (left.astype(np.float32) + left_in), c - 0.5 * (right.astype(np.float32) + right_in))
+
+
 @lru_cache(maxsize=32)
 def _linear_features(method: str, half: int, min_width: float, max_width: float) -> AnyArray:
     """(k, 2 * half + 1) matrix of linear features of a profile: ``matrix @ profile.T`` gives all of them.
@@ -364,7 +371,7 @@ def _shortcut_widths(params: ExtractorParams) -> tuple[float, float]:
 
 def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params: ExtractorParams,
          image_width: int, accept: AnyArray | None = None, inside: bool = False,
-         shape: AnyArray | None = None, red: AnyArray | None = None) -> dict[str, AnyArray | None]:
+         shape: AnyArray | None = None, red_rise: AnyArray | None = None) -> dict[str, AnyArray | None]:
     """Sub-pixel centre, peak, width and contrast quality of each row's profile around its integer peak.
 
     ``profile`` is (n, 2 * half + 1) float32, the signal around image column ``column`` (its
@@ -373,8 +380,8 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     ``inside``: the caller knows every column is at least ``half`` from both borders;
     ``shape``: the red channel around the same columns, given where red clips (``saturated``):
     those rows are centred on its flanks (`CLIPPED_CENTRE`); contrast, width and acceptance are
-    always the signal's; ``red``: the red channel around the same columns (n, 2 * half + 1), given
-    for a colour frame without a laser-off frame: rows where red does not rise (``red_rise_ratio``) are rejected.
+    always the signal's; ``red_rise``: red's own rise at each peak (`_red_rise`), given for a colour
+    frame without a laser-off frame: rows where red does not rise (``red_rise_ratio``) are rejected.
     Returns per-row arrays (see `_FIELDS`) and ``valid`` (None: every row is valid).
 
     Width: walking out to the half-maximum crossings costs a dozen numpy calls, so the usual
@@ -403,9 +410,8 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     strong = peak >= params.min_contrast
     if accept is not None:
         strong &= accept
-    if red is not None:
+    if red_rise is not None:
         # red's own rise over the lower window end (``red_rise_ratio``); a clipped red peak is exempt
-        red_rise = np.maximum.reduce(matrix[:2] @ red.T)
         rises = red_rise >= params.red_rise_ratio * peak
         strong &= rises if saturated is None else rises | saturated
     # Nearly level ends (then the height above the line is > 0 too) and the width well in range.
@@ -497,16 +503,19 @@ def _refine(signal: AnyArray, red: AnyArray, first: AnyArray, peak_idx: AnyArray
     profile = _profiles(signal, peak_idx, params.refine_half_px)
     shape = None
     saturated = None
-    red_profile = _profiles(red.astype(np.float32), peak_idx, params.refine_half_px) if check_red else None
+    half = params.refine_half_px
+    red_profile = _profiles(red.astype(np.float32), peak_idx, half) if check_red else None
+    red_rise = None if red_profile is None else _red_rise(red_profile[:, half], red_profile[:, 0], red_profile[:, 1],
+                                                          red_profile[:, -2], red_profile[:, -1])
     # The signal's argmax can sit just beside the clipped red pixels (green/blue noise), so look
     # at the peak's neighbours too; the exact test only runs when the windows clip at all.
     if red.size and red.max() >= params.saturation_level:
         near = _clamp(peak_idx[:, None] + np.arange(-1, 2)[None, :], 0, red.shape[1] - 1)
         saturated = np.take_along_axis(red, near, axis=1).max(axis=1) >= params.saturation_level
         if on_red:
-            shape = red_profile if red_profile is not None else _profiles(red.astype(np.float32), peak_idx,
-                                                                          params.refine_half_px)
-    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape, red=red_profile)
+            shape = red_profile if red_profile is not None else _profiles(red.astype(np.float32), peak_idx, half)
+    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape,
+                red_rise=red_rise)
 
 
 def _refine_columns(sig: LaserSignal, rows: AnyArray, column: AnyArray, params: ExtractorParams,
@@ -521,14 +530,15 @@ def _refine_columns(sig: LaserSignal, rows: AnyArray, column: AnyArray, params: 
     signal, red = sig.window_columns(rows * image_width + (column - half), 2 * half + 1)
     shape = None
     saturated = None
-    red_profile = red.astype(np.float32).T if check_red else None
+    # red is the profile window itself, column-major: its rows 0, 1, half, -2, -1 are the samples the rise needs
+    red_rise = _red_rise(red[half], red[0], red[1], red[-2], red[-1]) if check_red else None
     if red.max() >= params.saturation_level:
         # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
         saturated = np.maximum.reduce(red[half - 1:half + 2], axis=0) >= params.saturation_level
         if on_red:
-            shape = red_profile if red_profile is not None else red.astype(np.float32).T
+            shape = red.astype(np.float32).T
     return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True, shape=shape,
-                red=red_profile)
+                red_rise=red_rise)
 
 
 def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: ExtractorParams,
@@ -555,18 +565,22 @@ def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: Extractor
     shape = None
     column = centre + offset[flat]
     saturated = None
-    red_profile = _column_profiles(np.ascontiguousarray(red), flat, 2 * half + 1) if check_red else None
+    red_rise = None
+    if check_red:
+        # the profile of row i runs down window rows flat // n .. + 2 half of column i: five samples of it
+        start, cols = flat // n, np.arange(n)
+        red_rise = _red_rise(red[start + half, cols], red[start, cols], red[start + 1, cols],
+                             red[start + 2 * half - 1, cols], red[start + 2 * half, cols])
     if red.max() >= params.saturation_level:
         # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
         peak_row = flat // n + half
         near = red[peak_row[None, :] + np.arange(-1, 2)[:, None], np.arange(n)[None, :]]
         saturated = near.max(axis=0) >= params.saturation_level
         if on_red:
-            shape = red_profile if red_profile is not None else _column_profiles(np.ascontiguousarray(red), flat,
-                                                                                 2 * half + 1)
+            shape = _column_profiles(np.ascontiguousarray(red), flat, 2 * half + 1)
     # a peak on the region's edge may be a slope rising towards something outside: search the row
     return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True, shape=shape,
-                red=red_profile)
+                red_rise=red_rise)
 
 
 @lru_cache(maxsize=64)
