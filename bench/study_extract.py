@@ -70,7 +70,7 @@ def candidates() -> dict[str, ExtractorParams]:
     out["adaptive+clipped_centre=red"] = replace(adaptive, clipped_centre="red")
     out["adaptive+max_width_px=20"] = replace(adaptive, max_width_px=20.0)
     out["grow_wide=True"] = replace(base, grow_wide=True)
-    for name, values in (("contrast_sigmas", (0.0, 6.0, 10.0)), ("ambiguity_ratio", (0.5, 0.75)),
+    for name, values in (("red_rise_ratio", (0.0, 0.3, 0.7)), ("contrast_sigmas", (0.0, 6.0, 10.0)), ("ambiguity_ratio", (0.5, 0.75)),
                          ("clipped_centre", ("red",)), ("saturation_level", (255,)),
                          ("window_px", (8, 16)), ("adaptive_width_px", (4.0, 6.0, 7.0)), ("max_width_px", (12.0, 20.0, 24.0))):
         for value in values:

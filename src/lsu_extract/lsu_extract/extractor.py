@@ -9,7 +9,8 @@ rejected as ambiguous (competing peaks) and found saturated. Pixel convention (O
 Pipeline for the sub-pixel methods (all rows at once, no loop over rows or pixels):
 
 1. coarse: every ``coarse_step_rows``-th row is searched in full for its strongest peak (on
-   the signal clipped at 0, in uint8); competing peaks are resolved by continuity with clear
+   the signal clipped at 0, in uint8; on a mono frame the peak highest above its own surroundings,
+   `tracking.local_candidates`); competing peaks are resolved by continuity with clear
    neighbouring rows (tracking.py);
 2. tracking window: every row within ``coarse_step_rows`` of a coarse row that found the
    line looks for its peak within ``window_px`` of the line interpolated from the coarse
@@ -103,6 +104,13 @@ CONTINUITY_PX_PER_ROW = 3.0
 # half height, which on the simulated sphere's limb rows is the less biased of the two (bench_reconstruct's
 # sphere_radius_err_mm); a smaller SKEW_PX flags noise on weak narrow rows (bench_reconstruct's plane sigma).
 SKEW_PX = 0.8
+# red_rise_ratio. Laser light adds to a surface: red rises over the surface around the line, green and blue by
+# their crosstalk (>= 0). The signal red - max(green, blue) also rises where green and blue fall: red print, a
+# sticker, a label on a lighter ground, whose red does not rise (or less than the signal). So on a colour frame
+# without a laser-off frame a row is accepted only where red itself rises over the window's lower end by at least
+# red_rise_ratio x the signal's contrast (a laser's red rises by about that contrast or more, such print's hardly at
+# all; bench/results/extract.json, *_red_rise_off); a row whose red clips at the peak cannot show its rise and is
+# exempt. With a laser-off frame the signal is red's rise already.
 
 
 class ExtractorConfigError(ValueError):
@@ -125,6 +133,7 @@ class ExtractorParams:
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
     adaptive_width_px: float = ADAPTIVE_WIDTH_PX  # blais_rioux / adaptive: wider rows (FWHM) take the 8th order / com
     grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
+    red_rise_ratio: float = 0.5      # colour, no laser-off frame: red must rise this x the signal's contrast (0: off)
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
 
@@ -162,6 +171,7 @@ def param_problems(values: dict[str, object]) -> list[str]:
     number("contrast_sigmas", 0.0, 100.0)
     number("ambiguity_ratio", 0.05, 1.0)
     number("adaptive_width_px", 1.0, 64.0)
+    number("red_rise_ratio", 0.0, 2.0)
     number("min_width_px", 0.0, 64.0)
     number("max_width_px", 2.0, 64.0)
     number("window_px", 0, 128)
@@ -292,6 +302,13 @@ def _profiles(signal: AnyArray, peak_idx: AnyArray, half: int) -> AnyArray:
     return np.take_along_axis(signal, idx, axis=1)
 
 
+def _red_rise(centre: AnyArray, left: AnyArray, left_in: AnyArray, right_in: AnyArray, right: AnyArray) -> AnyArray:
+    """Red's height at a peak above the lower of the two window ends (each the mean of its two outer samples), as
+    rows 0 and 1 of `_linear_features` measure the signal's: from the five samples that enter it, float32."""
+    c = centre.astype(np.float32)
+    return np.maximum(c - 0.5 * (left.astype(np.float32) + left_in), c - 0.5 * (right.astype(np.float32) + right_in))
+
+
 @lru_cache(maxsize=32)
 def _linear_features(method: str, half: int, min_width: float, max_width: float) -> AnyArray:
     """(k, 2 * half + 1) matrix of linear features of a profile: ``matrix @ profile.T`` gives all of them.
@@ -354,7 +371,7 @@ def _shortcut_widths(params: ExtractorParams) -> tuple[float, float]:
 
 def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params: ExtractorParams,
          image_width: int, accept: AnyArray | None = None, inside: bool = False,
-         shape: AnyArray | None = None) -> dict[str, AnyArray | None]:
+         shape: AnyArray | None = None, red_rise: AnyArray | None = None) -> dict[str, AnyArray | None]:
     """Sub-pixel centre, peak, width and contrast quality of each row's profile around its integer peak.
 
     ``profile`` is (n, 2 * half + 1) float32, the signal around image column ``column`` (its
@@ -363,7 +380,8 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     ``inside``: the caller knows every column is at least ``half`` from both borders;
     ``shape``: the red channel around the same columns, given where red clips (``saturated``):
     those rows are centred on its flanks (`CLIPPED_CENTRE`); contrast, width and acceptance are
-    always the signal's.
+    always the signal's; ``red_rise``: red's own rise at each peak (`_red_rise`), given for a colour
+    frame without a laser-off frame: rows where red does not rise (``red_rise_ratio``) are rejected.
     Returns per-row arrays (see `_FIELDS`) and ``valid`` (None: every row is valid).
 
     Width: walking out to the half-maximum crossings costs a dozen numpy calls, so the usual
@@ -392,6 +410,10 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
     strong = peak >= params.min_contrast
     if accept is not None:
         strong &= accept
+    if red_rise is not None:
+        # red's own rise over the lower window end (``red_rise_ratio``); a clipped red peak is exempt
+        rises = red_rise >= params.red_rise_ratio * peak
+        strong &= rises if saturated is None else rises | saturated
     # Nearly level ends (then the height above the line is > 0 too) and the width well in range.
     # With peak = max(row 0, row 1) > 0, |end difference| = |row 0 - row 1| < peak / 4 is the
     # same as min(row 0, row 1) > 3/4 max(row 0, row 1): two linear rows > 0, like the width.
@@ -471,7 +493,7 @@ def _fit(profile: AnyArray, column: AnyArray, saturated: AnyArray | None, params
 
 def _refine(signal: AnyArray, red: AnyArray, first: AnyArray, peak_idx: AnyArray,
             params: ExtractorParams, image_width: int, accept: AnyArray | None = None,
-            on_red: bool = False) -> dict[str, AnyArray | None]:
+            on_red: bool = False, check_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of each row's peak within its window: ``signal``/``red`` are (n, L) windows from image column ``first``.
 
     ``peak_idx`` is the integer peak in each window; ``on_red``: rows where red clips are centred on
@@ -481,18 +503,23 @@ def _refine(signal: AnyArray, red: AnyArray, first: AnyArray, peak_idx: AnyArray
     profile = _profiles(signal, peak_idx, params.refine_half_px)
     shape = None
     saturated = None
+    half = params.refine_half_px
+    red_profile = _profiles(red.astype(np.float32), peak_idx, half) if check_red else None
+    red_rise = None if red_profile is None else _red_rise(red_profile[:, half], red_profile[:, 0], red_profile[:, 1],
+                                                          red_profile[:, -2], red_profile[:, -1])
     # The signal's argmax can sit just beside the clipped red pixels (green/blue noise), so look
     # at the peak's neighbours too; the exact test only runs when the windows clip at all.
     if red.size and red.max() >= params.saturation_level:
         near = _clamp(peak_idx[:, None] + np.arange(-1, 2)[None, :], 0, red.shape[1] - 1)
         saturated = np.take_along_axis(red, near, axis=1).max(axis=1) >= params.saturation_level
         if on_red:
-            shape = _profiles(red.astype(np.float32), peak_idx, params.refine_half_px)
-    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape)
+            shape = red_profile if red_profile is not None else _profiles(red.astype(np.float32), peak_idx, half)
+    return _fit(profile, first + peak_idx, saturated, params, image_width, accept=accept, shape=shape,
+                red_rise=red_rise)
 
 
 def _refine_columns(sig: LaserSignal, rows: AnyArray, column: AnyArray, params: ExtractorParams,
-                    image_width: int, on_red: bool = False) -> dict[str, AnyArray | None]:
+                    image_width: int, on_red: bool = False, check_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of the peak at ``column`` in each of ``rows`` (the fallback rows), every window inside the image.
 
     The window of +-half around the peak is the profile itself: gathered column-major, it is
@@ -503,16 +530,19 @@ def _refine_columns(sig: LaserSignal, rows: AnyArray, column: AnyArray, params: 
     signal, red = sig.window_columns(rows * image_width + (column - half), 2 * half + 1)
     shape = None
     saturated = None
+    # red is the profile window itself, column-major: its rows 0, 1, half, -2, -1 are the samples the rise needs
+    red_rise = _red_rise(red[half], red[0], red[1], red[-2], red[-1]) if check_red else None
     if red.max() >= params.saturation_level:
         # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
         saturated = np.maximum.reduce(red[half - 1:half + 2], axis=0) >= params.saturation_level
         if on_red:
             shape = red.astype(np.float32).T
-    return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True, shape=shape)
+    return _fit(signal.astype(np.float32).T, column, saturated, params, image_width, inside=True, shape=shape,
+                red_rise=red_rise)
 
 
 def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: ExtractorParams,
-           image_width: int, on_red: bool = False) -> dict[str, AnyArray | None]:
+           image_width: int, on_red: bool = False, check_red: bool = False) -> dict[str, AnyArray | None]:
     """`_fit` of the strongest peak within ``window_px`` of ``centre`` in each row (every window inside the image).
 
     The fast path of the tracking stage: the windows (search region +- window_px, plus the
@@ -535,6 +565,12 @@ def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: Extractor
     shape = None
     column = centre + offset[flat]
     saturated = None
+    red_rise = None
+    if check_red:
+        # the profile of row i runs down window rows flat // n .. + 2 half of column i: five samples of it
+        start, cols = flat // n, np.arange(n)
+        red_rise = _red_rise(red[start + half, cols], red[start, cols], red[start + 1, cols],
+                             red[start + 2 * half - 1, cols], red[start + 2 * half, cols])
     if red.max() >= params.saturation_level:
         # the peak's neighbours too: the signal's argmax can sit just beside the clipped red pixels
         peak_row = flat // n + half
@@ -543,7 +579,8 @@ def _track(sig: LaserSignal, rows: AnyArray, centre: AnyArray, params: Extractor
         if on_red:
             shape = _column_profiles(np.ascontiguousarray(red), flat, 2 * half + 1)
     # a peak on the region's edge may be a slope rising towards something outside: search the row
-    return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True, shape=shape)
+    return _fit(profile, column, saturated, params, image_width, accept=interior[flat], inside=True, shape=shape,
+                red_rise=red_rise)
 
 
 @lru_cache(maxsize=64)
@@ -623,6 +660,20 @@ GROW_STEP_PX = 3.0  # a grown row's centre is at most this far from its neighbou
 GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every front by one row)
 
 
+# With a laser-off frame the signal is red's rise over it: texture, red print and lit patches cancel, which is what
+# max_width_px guards against in a single frame. A line wider than that (grazing light, a defocused or near part:
+# the turntable globe's grazing rows) is then accepted up to this width in every search. The cost: where the scene
+# changed between the two frames (a person walking behind), wide differences pass too (bench/results/extract.json:
+# *_laser_off, false_rows_pct_ambient_diff_moving_person).
+LASER_OFF_MAX_WIDTH_PX = 48.0
+
+
+@lru_cache(maxsize=16)
+def _laser_off_params(params: ExtractorParams) -> ExtractorParams:
+    """``params`` with the width range of a frame given with its laser-off frame (`LASER_OFF_MAX_WIDTH_PX`)."""
+    return replace(params, max_width_px=LASER_OFF_MAX_WIDTH_PX)
+
+
 @lru_cache(maxsize=16)
 def _grow_params(params: ExtractorParams) -> ExtractorParams:
     """``params`` with the width range of the rows grown along the line (`_grow_along`)."""
@@ -630,7 +681,7 @@ def _grow_params(params: ExtractorParams) -> ExtractorParams:
 
 
 def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: ExtractorParams, image_width: int,
-                on_red: bool) -> list[dict[str, Any]]:
+                on_red: bool, check_red: bool = False) -> list[dict[str, Any]]:
     """Rows next to a detection and without one, fitted within ``window_px`` of that detection's column with the
     wider width range of `_grow_params`, centred within `GROW_STEP_PX` of it; repeated from the rows found, until a pass finds none (`GROW_MAX_WIDTH_PX`).
 
@@ -664,7 +715,8 @@ def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: Extracto
         rel = centre - first  # windows at a border were shifted inside the image
         region = np.abs(np.arange(s.shape[1])[None, :] - rel[:, None]) <= w
         peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
-        fit = _refine(s, red, first, peak_idx, wide, image_width, accept=np.abs(peak_idx - rel) < w, on_red=on_red)
+        fit = _refine(s, red, first, peak_idx, wide, image_width, accept=np.abs(peak_idx - rel) < w, on_red=on_red,
+                      check_red=check_red)
         kept = _keep(rows, fit)
         at = np.searchsorted(rows, kept["v"])
         step = (np.abs(kept["u"] - guess[at]) <= GROW_STEP_PX) & (kept["peak"] >= GROW_PEAK_RATIO * ref_peak[at])
@@ -706,6 +758,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     params = params or ExtractorParams()
     sig = LaserSignal(image, texture)
     height, width = sig.height, sig.width
+    if sig.texture is not None and params.max_width_px < LASER_OFF_MAX_WIDTH_PX and params.method != THESIS:
+        params = _laser_off_params(params)
     if params.method == THESIS:
         line = thesis_detector(sig.image, params.red_threshold, params.blue_threshold)
         return LaserLineResult(method=THESIS, image_width=width, image_height=height, u=line.u, v=line.v,
@@ -718,6 +772,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                                f"(or a smaller max_width_px)")
     step = params.coarse_step_rows
     on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
+    check_red = sig.colour and sig.texture is None and params.red_rise_ratio > 0.0  # see red_rise_ratio above
     coarse_rows = _coarse_rows(height, step)
     coarse = sig.rows_clipped(coarse_rows) if params.window_px > 0 else None
     if params.contrast_sigmas > 0.0:
@@ -735,7 +790,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     if params.window_px > 0:
         w = params.window_px
         assert coarse is not None  # sampled whenever window_px > 0
-        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast)
+        cand = row_candidates(coarse, coarse_rows, half, params.min_contrast, local=not sig.colour)
         full_searched += coarse_rows.size
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, w, _NO_ROWS, _NO_COLS, 2 * step)
         rows_w, guess = coarse_track(height, coarse_rows, pick.column, step)
@@ -744,7 +799,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
             reach = w + half  # the window holds the search region (+-w) and, beyond it, the refinement's +-half
             if reach <= centre.min() and centre.max() <= width - 1 - reach:
                 # no window reaches a border (the usual case): column-major windows, fewest calls
-                fit = _track(sig, rows_w, centre, params, width, on_red)
+                fit = _track(sig, rows_w, centre, params, width, on_red, check_red)
             else:
                 s, red, first = sig.windows(rows_w, centre - reach, 2 * reach + 1)
                 rel = centre - first  # windows at a border were shifted inside the image
@@ -752,7 +807,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                 peak_idx = np.argmax(np.where(region, s, BLANK), axis=1)
                 # a peak on the region's edge may be a slope rising towards something outside: search the row
                 fit = _refine(s, red, first, peak_idx, params, width, accept=np.abs(peak_idx - rel) < w,
-                              on_red=on_red)
+                              on_red=on_red, check_red=check_red)
             chunks.append(_keep(rows_w, fit))
         if chunks and chunks[0]["v"].size == height:
             pending = np.zeros(0, np.int64)
@@ -770,7 +825,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         # strong rows only: on a frame where the line has left the object, most pending rows are lit
         # skin or background without it, and they need no second-peak search nor a decision
         cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True,
-                              scratch=True)
+                              scratch=True, local=not sig.colour)
         known_rows = chunks[0]["v"] if chunks else _NO_ROWS
         known_cols = chunks[0]["u"] if chunks else _NO_COLS
         pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
@@ -781,14 +836,14 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         if rows_f.size:
             column = pick.column[ok]
             if half <= column.min() and column.max() <= width - 1 - half:
-                fit = _refine_columns(sig, rows_f, column, params, width, on_red)
+                fit = _refine_columns(sig, rows_f, column, params, width, on_red, check_red)
             else:  # some window is cut by the border: shifted inside the image, edge samples repeated
                 s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
-                fit = _refine(s, red, first, column - first, params, width, on_red=on_red)
+                fit = _refine(s, red, first, column - first, params, width, on_red=on_red, check_red=check_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
     grown = 0
     if params.grow_wide and chunks and sum(c["v"].size for c in chunks) < height:
-        more = _grow_along(sig, chunks, params, width, on_red)
+        more = _grow_along(sig, chunks, params, width, on_red, check_red)
         grown = sum(c["v"].size for c in more)
         chunks += more
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)

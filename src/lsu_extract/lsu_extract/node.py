@@ -63,6 +63,8 @@ _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
                           "the 8th-order filter / the centre of mass, narrower ones Blais-Rioux 4", (1.0, 64.0)),
     "grow_wide": ("follow the line row by row from its detections, accepting it up to 48 px wide there (a "
                   "full-row search keeps max_width_px)", None),
+    "red_rise_ratio": ("colour frame without a laser-off frame: accept a row only where red itself rises over the "
+                       "background by this fraction of the signal's contrast (red print does not); 0 = off", (0.0, 2.0)),
     "red_threshold": ("thesis method: a laser pixel has red above this [DN]", (0, 254)),
     "blue_threshold": ("thesis method: a laser pixel has blue below this [DN]", (1, 255)),
 }

@@ -2,7 +2,8 @@
 
 Laser light (671 nm) is almost pure red, white light is not (thesis 6.1.5). The signal is
 ``red - max(green, blue)`` for a colour frame: white and grey surfaces give ~0, the laser a
-strong positive peak, reddish skin a small offset. When a laser-off texture frame of the
+strong positive peak, reddish skin a small offset (where that maximum has clipped, the other channel:
+`other_channel`). When a laser-off texture frame of the
 same view is given, the signal is the rise of red between the two frames less the larger
 rise of green or blue (never less than 0): ``(red - red_off) - max(green - green_off,
 blue - blue_off, 0)``. A static scene cancels; the laser adds red (and the few per cent of it
@@ -101,7 +102,7 @@ class LaserSignal:
             return np.subtract(pixels, texture, out=signal, dtype=np.int16)
         blue, green, red = self._split(pixels, "planes")
         if texture is None:
-            return np.subtract(red, cv2.max(green, blue, dst=green), out=signal, dtype=np.int16)
+            return np.subtract(red, other_channel(green, blue), out=signal, dtype=np.int16)
         tex_blue, tex_green, tex_red = self._split(texture, "texture planes")
         np.subtract(red, tex_red, out=signal, dtype=np.int16)
         # max(green - green_off, blue - blue_off, 0), as `_other_rise`, in the planes' own memory
@@ -139,7 +140,7 @@ class LaserSignal:
             return np.zeros((0, self.width), np.uint8)
         blue, green, red = self._split(pixels, "planes")
         if self.texture is None:
-            return cv2.subtract(red, cv2.max(green, blue, dst=green))
+            return cv2.subtract(red, other_channel(green, blue))
         return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
                             self._other_rise(green, blue, self.texture[rows]))
 
@@ -200,7 +201,7 @@ class LaserSignal:
         n, length = pixels.shape[:2]
         planes = cv2.transpose(pixels.reshape(n, 3 * length)).reshape(length, 3, n)
         if texture is None:
-            return planes[:, 2], cv2.max(planes[:, 1], planes[:, 0])
+            return planes[:, 2], other_channel(planes[:, 1], planes[:, 0])
         return planes[:, 2], cv2.transpose(texture.reshape(n, 3 * length)).reshape(length, 3, n)[:, 2]
 
     @staticmethod
@@ -227,9 +228,26 @@ class LaserSignal:
             return pixels.astype(np.float32), pixels
         blue, green, red = cv2.split(pixels)
         if texture is None:
-            return cv2.subtract(red, cv2.max(green, blue), dtype=cv2.CV_32F), red
+            return cv2.subtract(red, other_channel(green, blue), dtype=cv2.CV_32F), red
         rise = cv2.subtract(red, cv2.extractChannel(texture, 2), dtype=cv2.CV_32F)
         return cv2.subtract(rise, self._other_rise(green, blue, texture), dtype=cv2.CV_32F), red
+
+
+CLIPPED_OTHER = 255  # green or blue at this value has clipped: it no longer says how bright the surface is
+
+
+def other_channel(green: AnyArray, blue: AnyArray) -> AnyArray:
+    """What red is compared with where there is no laser-off frame: max(green, blue), uint8, a new array.
+
+    Where that maximum has clipped (a bluish-white surface in daylight: blue at 255 while red and green are
+    not), it bounds the surface's brightness from below only and would hide a laser on it (red - 255 <= 0
+    under the line); the other, unclipped channel is taken there. Where both clip, the pixel stays 255.
+    """
+    most = cv2.max(green, blue)
+    if int(most.max()) >= CLIPPED_OTHER:
+        clipped = most >= CLIPPED_OTHER
+        np.copyto(most, cv2.min(green, blue), where=clipped)
+    return most
 
 
 def contrast_noise(clipped: AnyArray, half: int) -> float:

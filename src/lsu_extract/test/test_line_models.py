@@ -140,3 +140,87 @@ def test_a_profile_not_symmetric_about_its_centre_is_flagged_and_explained():
     assert np.all(codes[result.skewed] == ROW_MODELS.index("com")) and "symmetric" in why["com"]
     err = result.u - truth[result.v.astype(int)]
     assert float(np.sqrt(np.mean(err ** 2))) <= 0.1
+
+
+def test_red_print_whose_red_does_not_rise_is_not_taken_for_the_laser():
+    # A light grey-white ground (BGR 200/205/195) with a printed red stripe 4 px wide in rows 0..239: ink that takes
+    # green and blue away (-110 DN) and leaves red as it was, so red - max(green, blue) rises as a laser's would. In rows
+    # 240..479 a laser line of the same width adds 120 DN of red (and its 6/4 % crosstalk) to the same ground. Truth:
+    # where each was drawn. A person tells them apart by red: the laser's rises, the print's does not
+    # (`red_rise_ratio`); without the rule the print's rows are taken for the laser.
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    ground = np.empty((height, width, 3))
+    ground[...] = (200.0, 205.0, 195.0)
+    rng = np.random.default_rng(11)
+    print_u, laser_u = 201.3, 402.6
+    ink = np.exp(-0.5 * ((cols - print_u) / (4.0 / 2.3548)) ** 2)
+    light = np.exp(-0.5 * ((cols - laser_u) / (4.0 / 2.3548)) ** 2)
+    ground[:240, :, :2] -= 110.0 * ink[None, :, None]
+    ground[240:, :, 2] += 120.0 * light[None, :] * 0.45  # red stays below clipping: 195 + 54
+    ground[240:, :, 1] += 0.06 * 120.0 * light[None, :]
+    ground[240:, :, 0] += 0.04 * 120.0 * light[None, :]
+    image = np.clip(ground + rng.normal(0.0, 1.0, ground.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    print_rows = result.v < 240
+    assert np.count_nonzero(print_rows) == 0
+    laser = result.v >= 240
+    assert np.count_nonzero(laser) >= 0.99 * 240
+    assert float(np.sqrt(np.mean((result.u[laser] - laser_u) ** 2))) <= 0.1
+    # the rule switched off: the print is taken (what the rule is for)
+    off = extract_laser_line(image, ExtractorParams(red_rise_ratio=0.0))
+    assert np.count_nonzero(np.abs(off.u[off.v < 240] - print_u) <= 1.0) >= 0.9 * 240
+
+
+def test_a_line_wider_than_max_width_is_found_with_its_laser_off_frame():
+    # FWHM 36 px (beyond max_width_px 16, as where the turntable globe's line grazes the surface or nears the camera)
+    # at 50 % ambient; the laser-off frame of the same view (new noise) cancels the background, so the width limit
+    # that keeps red print out of a single frame is lifted to LASER_OFF_MAX_WIDTH_PX. Truth: the analytic centre. (A
+    # uniform surface: on the mottled one the laser's own reflection is mottled, and so is a wide line's centroid.)
+    scene = LineScene(fwhm_px=36.0, amplitude_dn=120.0, ambient=0.5, textured=False, seed=12)
+    image, truth, _ = render_line(scene)
+    off, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=13))
+    alone = extract_laser_line(image)
+    paired = extract_laser_line(image, texture=off)
+    assert len(alone) < 0.05 * image.shape[0]
+    assert len(paired) >= 0.99 * image.shape[0]
+    err = paired.u - truth[paired.v.astype(int)]
+    assert float(np.sqrt(np.mean(err ** 2))) <= 0.4 and abs(float(np.mean(err))) <= 0.05
+
+
+def test_a_line_on_a_surface_whose_blue_clips_is_found():
+    # A bluish-white ground (blue 255: clipped; green 200, red 165) and a 4 px laser line that adds 90 DN of red and 6 %
+    # of it to green (blue cannot rise): red - max(green, blue) is <= 0 under the line, red - green rises 90 DN. Truth:
+    # where the line was drawn.
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    rng = np.random.default_rng(14)
+    line_u = 300.4
+    light = np.exp(-0.5 * ((cols - line_u) / (4.0 / 2.3548)) ** 2)
+    image = np.empty((height, width, 3))
+    image[..., 0] = 262.0  # clipped with its noise
+    image[..., 1] = 200.0 + 0.06 * 90.0 * light[None, :]
+    image[..., 2] = 165.0 + 90.0 * light[None, :]
+    image = np.clip(image + rng.normal(0.0, 1.0, image.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    assert len(result) >= 0.99 * height
+    assert float(np.sqrt(np.mean((result.u - line_u) ** 2))) <= 0.1
+
+
+def test_a_mono_stripe_beside_a_brighter_broad_patch_is_found():
+    # A mono frame (weld camera): a 4 px stripe 60 DN over a 60 DN ground, and 80 px to its left, in rows 100..379, a
+    # lit patch (FWHM 40 px) that reaches 220 DN: brighter than the stripe in the same rows. Truth: where the stripe was
+    # drawn. Chosen by raw height the patch wins those rows and fails as a line (too wide); above its own
+    # surroundings the stripe stands out (`tracking.local_candidates`).
+    height, width = 480, 640
+    cols = np.arange(width, dtype=np.float64)
+    rng = np.random.default_rng(15)
+    stripe_u = 350.3
+    image = np.full((height, width), 60.0)
+    image += 60.0 * np.exp(-0.5 * ((cols - stripe_u) / (4.0 / 2.3548)) ** 2)[None, :]
+    image[100:380] += 160.0 * np.exp(-0.5 * ((cols - stripe_u + 80.0) / (40.0 / 2.3548)) ** 2)[None, :]
+    image = np.clip(image + rng.normal(0.0, 1.5, image.shape), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image)
+    assert np.count_nonzero((result.v >= 100) & (result.v < 380)) >= 0.99 * 280
+    assert len(result) >= 0.99 * height
+    assert float(np.sqrt(np.mean((result.u - stripe_u) ** 2))) <= 0.1

@@ -16,7 +16,7 @@ except devdata.DevDataMissing as exc:
     pytestmark = pytest.mark.skip(reason=str(exc))
 
 # the defaults before the extractor met real photographs: blais_rioux4, a fixed 30 DN threshold, clipping at 255 only
-PREVIOUS = ExtractorParams(method="blais_rioux4", contrast_sigmas=0.0, saturation_level=255)
+PREVIOUS = ExtractorParams(method="blais_rioux4", contrast_sigmas=0.0, saturation_level=255, red_rise_ratio=0.0)
 
 
 def score(images, params=None, texture=False):
@@ -69,13 +69,33 @@ def test_the_laser_off_frame_leaves_no_false_rows_on_static_pairs():
 
 
 def test_a_person_walking_behind_between_the_two_frames_gives_few_false_rows():
-    # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met)
+    # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met). With a
+    # laser-off frame lines up to LASER_OFF_MAX_WIDTH_PX wide are accepted (the globe's wide rows, below), and so are
+    # the wide differences the person leaves where they moved (1.8 % of these rows with the single-frame width limit)
     moving = devdata.box_images(pairs=devdata.BOX_MOVING_PAIRS)
     diff = score(moving, texture=True)
-    assert diff.false_pct <= 2.5
+    assert diff.false_pct <= 5.0
+
+
+def test_laser_off_frame_finds_the_globe_line_where_it_is_wide(globe):
+    # the reference's clear rows (laser-on minus laser-off: a run >= 12 DN peaking >= 25 DN), 20-70 px wide where
+    # the line grazes the globe or nears the camera: a single frame's width limit (16 px) misses ~14 % of them
+    s = score(globe, texture=True)
+    assert s.missed_pct <= 3.0
 
 
 def test_laser_off_frame_keeps_the_globe_line_centred(globe):
     s = score(globe, texture=True)
     assert s.false_pct <= 0.5
     assert s.rms_px <= 0.3
+
+
+def test_the_tape_roll_line_on_a_blue_clipped_surface_is_found_and_its_red_print_is_not():
+    # the hand-checked polyline (devdata.HAND_REFERENCES): red rises ~90 DN under the line over a tape whose blue is
+    # clipped at 255, so red - max(green, blue) stays <= 0 there unless the clipped channel gives way to green; the
+    # red print inside the roll beside it lowers green and blue, not red (red_rise_ratio). Many rows of the line
+    # carry a 1 px dark notch at its centre (128 DN in every channel), which splits their peak.
+    photo = [d for d in devdata.photo_images() if d.name.startswith("jlaserscanner")]
+    s = score(photo)
+    assert s.clear_rows >= 200
+    assert s.missed_pct <= 50.0 and s.false == 0

@@ -29,9 +29,16 @@ def test_clipped_row_signal_is_red_minus_the_brighter_other_channel_floored_at_z
     image = rng.integers(0, 256, (20, 50, 3), dtype=np.uint8)
     sig = LaserSignal(image)
     b, g, r = (image[..., k].astype(int) for k in range(3))
-    expected = np.clip(r - np.maximum(g, b), 0, 255)
+    # the brighter of green and blue, unless it has clipped (255): then the other one
+    other = np.where(np.maximum(g, b) == 255, np.minimum(g, b), np.maximum(g, b))
+    assert np.count_nonzero(other != np.maximum(g, b)) > 0  # the frame holds clipped pixels
+    expected = np.clip(r - other, 0, 255)
     np.testing.assert_array_equal(sig.rows_clipped(slice(1, 20, 4)), expected[1::4])
-    np.testing.assert_array_equal(sig.rows(np.array([2, 7])), (r - np.maximum(g, b))[[2, 7]])
+    np.testing.assert_array_equal(sig.rows(np.array([2, 7])), (r - other)[[2, 7]])
+    signal, red, first = sig.windows(np.array([3, 9]), np.array([5, 20]), 12)
+    np.testing.assert_array_equal(signal, np.stack([(r - other)[3, 5:17], (r - other)[9, 20:32]]))
+    cols, _ = sig.window_columns(np.array([3 * 50 + 5, 9 * 50 + 20]), 12)
+    np.testing.assert_array_equal(cols.T, signal)
 
 
 def test_signal_with_a_laser_off_frame_is_the_red_rise_less_the_larger_green_or_blue_rise():
