@@ -43,6 +43,7 @@ from lsu_faces.signature import (  # noqa: E402
     Signature,
     SignatureParams,
     compare,
+    compare_many,
     make_signature,
 )
 from lsu_faces.synthetic import fast_scan  # noqa: E402
@@ -237,10 +238,13 @@ def _code_tag() -> str:
     import hashlib
     import importlib
 
+    from lsu_faces.identity import basis_path
+
     h = hashlib.sha256()
-    for mod in ("lsu_faces.face", "lsu_faces.signature", "lsu_faces.template", "lsu_faces.register",
-                "lsu_faces.synthetic", "lsu_sim.ict", "lsu_sim.tof", "lsu_sim.people"):
+    for mod in ("lsu_faces.face", "lsu_faces.frame", "lsu_faces.identity", "lsu_faces.signature", "lsu_faces.template",
+                "lsu_faces.register", "lsu_faces.synthetic", "lsu_sim.ict", "lsu_sim.tof", "lsu_sim.people"):
         h.update(Path(importlib.import_module(mod).__file__ or "").read_bytes())
+    h.update(basis_path().read_bytes())      # the nose check's face-model basis
     return h.hexdigest()[:16]
 
 
@@ -352,7 +356,9 @@ def _parallel(fn, jobs: list) -> list:  # noqa: ANN001
 
 
 def _fine(probe: Signature, entries: list[tuple[int, Signature]]) -> list[tuple[float, int]]:
-    return sorted((compare(probe, s)[1], i) for i, s in entries)
+    """The gallery's fine stage (`compare_many` over the first stage's candidates), nearest first."""
+    found = compare_many(probe, [s for _, s in entries])
+    return sorted((d, i) for (i, _), (_, d, _) in zip(entries, found))
 
 
 def population(figures: dict[str, float], t_start: float) -> dict[str, object]:

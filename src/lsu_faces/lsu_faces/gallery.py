@@ -16,8 +16,9 @@ stays in the file (free pages are zeroed and dropped).
 1:N (`identify`) runs in two stages. First, a faiss index (``IndexFlatL2``: exact, deterministic, no
 training, so it is valid for any gallery size) over the compact vectors of the entries
 (`lsu_faces.signature.compact_vector`, stored in each row beside the full signature) gives the
-``first_stage`` nearest entries; then the full comparison (`lsu_faces.signature.compare`: alignment
-and region-weighted trimmed RMS) ranks those. The SQLite file stays the source of truth: the index
+``first_stage`` nearest entries (one query on one thread: a memory-bound scan that OpenMP threads only
+slow down); then the full comparison (`lsu_faces.signature.compare_many`: alignment and region-weighted
+trimmed RMS, the probe aligned onto all candidates in one pass of stacked arrays) ranks those. The SQLite file stays the source of truth: the index
 lives in memory only (no second copy of biometric data on disk), is built from the rows on first use
 and is checked against the file before every identification: the file's identity, size, modification
 time and SQLite's own file change counter (header bytes 24-27, bumped by every committed write of any
@@ -51,7 +52,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-from .signature import ImpostorModel, Signature, SignatureError, compact_vector, compare
+from .signature import ImpostorModel, Signature, SignatureError, compact_vector, compare, compare_many
 
 __all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryPermissionError", "GalleryEntry",
            "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT"]
@@ -72,7 +73,7 @@ CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
 """
 # columns added after the first release: added to older galleries on their first write
 _NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
-FIRST_STAGE = 10         # entries the compact index hands to the full comparison (each ~5-10 ms)
+FIRST_STAGE = 10         # entries the compact index hands to the full comparison (compared in one batch)
 IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
 
 
@@ -363,14 +364,15 @@ class Gallery:
         return {int(i): self._signatures[int(i)] for i in ids if int(i) in self._signatures}
 
     # ------------------------------------------------------------------ open set
-    def impostor_model(self, method: str = "depthmap") -> ImpostorModel:
+    def impostor_model(self, method: str = "depthmap", idx: _Index | None = None) -> ImpostorModel:
         """Impostor distances of this gallery (pairs of different names) fitted as a log-normal.
 
         Every pair of a gallery with at most ``impostor_pairs`` of them, else a fixed sample of that many
         (seeded: the same gallery gives the same model in every process), shrunk towards the prior for
-        the median depth noise of the enrolled scans. Kept until the gallery changes.
+        the median depth noise of the enrolled scans. Kept until the gallery changes. ``idx``: the index
+        just checked against the file (`index`), so one identification checks the file once.
         """
-        idx = self.index()
+        idx = idx or self.index()
         key = (method, idx.fingerprint, idx.count)
         if key in self._impostor:
             return self._impostor[key]
@@ -391,7 +393,7 @@ class Gallery:
                 if len(pairs) >= self.impostor_pairs:
                     break
         sigs = self.signatures([ids[a] for a, _ in pairs] + [ids[b] for _, b in pairs])
-        distances = [compare(sigs[ids[a]], sigs[ids[b]])[1] for a, b in pairs]
+        distances = [compare(sigs[ids[a]], sigs[ids[b]])[1] for a, b in pairs]   # each pair its own probe
         model = ImpostorModel.fit(distances, method, idx.noise_m)
         self._impostor.clear()    # one model per gallery state: never grows with the scans
         self._impostor[key] = model
@@ -420,11 +422,11 @@ class Gallery:
         if not cand:
             return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method),
                                   f"no entry of the gallery has a '{probe.method}' signature", probe_noise)
-        model = self.impostor_model(probe.method)
+        model = self.impostor_model(probe.method, idx)
         sigs = self.signatures([i for i, _ in cand])
         best: dict[str, Match] = {}
-        for entry_id, name in cand:
-            _, dist, _ = compare(probe, sigs[entry_id], model)
+        found = compare_many(probe, [sigs[entry_id] for entry_id, _ in cand], model)
+        for (entry_id, name), (_, dist, _) in zip(cand, found):
             if name not in best or dist < best[name].distance_m:
                 best[name] = Match(name, model.score(dist), entry_id, dist, model.false_accept(dist))
         ranked = sorted(best.values(), key=lambda m: (m.distance_m, m.name))
@@ -460,6 +462,7 @@ class _Index:
         self.other: builtins.list[tuple[int, str]] = []   # entries without a compact vector (fft signatures)
         self.faiss: Any = None                          # faiss.IndexFlatL2 once built
         self._people: set[str] = set()
+        self._noise_m: float | None = None                # median of noise_mm [m], kept until an entry is added
 
     def build(self, ids: builtins.list[int], names: builtins.list[str], vectors: AnyArray,
               noise_mm: builtins.list[float]) -> None:
@@ -471,6 +474,7 @@ class _Index:
         self.names = list(names)
         self.noise_mm = list(noise_mm)
         self._people = set(names)
+        self._noise_m = None
 
     def add(self, entry_id: int, name: str, vector: AnyArray, noise_mm: float, fingerprint: tuple) -> None:
         if self.faiss is None:
@@ -481,6 +485,7 @@ class _Index:
             self.names.append(name)
             self.noise_mm.append(noise_mm)
             self._people.add(name)
+            self._noise_m = None
         self.count += 1
         self.fingerprint = fingerprint
 
@@ -492,15 +497,27 @@ class _Index:
     @property
     def noise_m(self) -> float:
         """Median depth noise of the enrolled scans [m] (NaN: none recorded)."""
-        known = [x for x in self.noise_mm if np.isfinite(x)]
-        return float(np.median(known)) / 1000.0 if known else float("nan")
+        if self._noise_m is None:
+            noise = np.asarray(self.noise_mm, dtype=np.float64)
+            known = noise[np.isfinite(noise)]
+            self._noise_m = float(np.median(known)) / 1000.0 if len(known) else float("nan")
+        return self._noise_m
 
     def search(self, vector: AnyArray, k: int) -> builtins.list[tuple[int, str]]:
         """(entry id, name) of the ``k`` nearest entries, nearest first (ties by entry id: deterministic)."""
         if self.faiss is None or self.faiss.ntotal == 0:
             return []
+        import faiss
+
         k = min(int(k), int(self.faiss.ntotal))
-        d, pos = self.faiss.search(np.ascontiguousarray(vector[None, :], dtype=np.float32), k)
+        # one query scans the vectors once, a memory-bound loop: faiss's OpenMP threads only wait on each
+        # other there (on a loaded host many times slower than one thread), so one query runs on one thread
+        threads = faiss.omp_get_max_threads()
+        faiss.omp_set_num_threads(1)
+        try:
+            d, pos = self.faiss.search(np.ascontiguousarray(vector[None, :], dtype=np.float32), k)
+        finally:
+            faiss.omp_set_num_threads(threads)
         order = sorted((float(dd), int(self.ids[p]), int(p)) for dd, p in zip(d[0], pos[0]) if p >= 0)
         return [(entry_id, self.names[p]) for _, entry_id, p in order]
 

@@ -38,13 +38,17 @@ def apply(T: AnyArray, points: AnyArray) -> AnyArray:
 
 
 def rotation_from_vector(w: AnyArray) -> AnyArray:
-    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues)."""
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues); (K, 3) vectors give (K, 3, 3) matrices."""
+    v = np.asarray(w, dtype=np.float64)
+    many = v.reshape(-1, 3)
+    theta = np.sqrt(np.sum(many * many, axis=1))
+    small = theta < 1e-12
+    k = many / np.where(small, 1.0, theta)[:, None]
+    zero = np.zeros(len(many))
+    K = np.stack([zero, -k[:, 2], k[:, 1], k[:, 2], zero, -k[:, 0], -k[:, 1], k[:, 0], zero], axis=1).reshape(-1, 3, 3)
+    R = np.eye(3) + np.sin(theta)[:, None, None] * K + (1.0 - np.cos(theta))[:, None, None] * (K @ K)
+    R[small] = np.eye(3)
+    return R if v.ndim == 2 else R[0]
 
 
 def estimate_normals(points: AnyArray, k: int = 12, towards: AnyArray | None = None,

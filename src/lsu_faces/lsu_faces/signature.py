@@ -35,11 +35,12 @@ if TYPE_CHECKING:
     pass
 
 from .frame import FaceFrame, FaceParams, parametric_map, spherical_embedding
-from .register import apply, rotation_from_vector
+from .register import rotation_from_vector
 
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
            "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap",
-           "compact_vector", "prior_median_m", "REGION_WEIGHTS_FIRST_PASS", "smoothed", "smoothing_cells"]
+           "compact_vector", "prior_median_m", "REGION_WEIGHTS_FIRST_PASS", "smoothed", "smoothing_cells",
+           "compare_many", "align_to_depthmaps"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
 # weight of each face region in the depth-map distance (rigid regions up, expression regions down)
@@ -176,37 +177,86 @@ def _grid_points(sig: Signature) -> tuple[AnyArray, AnyArray]:
     return np.stack([x[valid], y[valid], sig.data[valid]], axis=1), valid
 
 
-def _sample(sig: Signature, xy: AnyArray) -> AnyArray:
-    """Bilinear height of a depth map at local (x, y); NaN outside or next to a hole."""
-    g, e = sig.params.grid, sig.params.extent_m
-    f = (xy + e) / (2 * e) * g - 0.5
+def _sample_gradient(data: AnyArray, extent_m: float, xy: AnyArray) -> tuple[AnyArray, AnyArray, AnyArray]:
+    """Bilinear height of K depth maps ``data`` (K, g, g) at local (K, M, 2) points and its x, y slopes;
+    NaN outside or next to a hole."""
+    g = data.shape[-1]
+    cell = 2 * extent_m / g
+    f = (xy + extent_m) / cell - 0.5
     i0 = np.floor(f).astype(np.int64)
     w = f - i0
-    out = np.full(len(xy), np.nan)
-    ok = np.all((i0 >= 0) & (i0 < g - 1), axis=1)
-    c, r, wx, wy = i0[ok, 0], i0[ok, 1], w[ok, 0], w[ok, 1]
-    d = sig.data
-    out[ok] = ((1 - wx) * (1 - wy) * d[r, c] + wx * (1 - wy) * d[r, c + 1] + (1 - wx) * wy * d[r + 1, c]
-               + wx * wy * d[r + 1, c + 1])
-    return out
+    ok = (i0[..., 0] >= 0) & (i0[..., 0] < g - 1) & (i0[..., 1] >= 0) & (i0[..., 1] < g - 1)
+    at = np.where(ok, i0[..., 1] * g + i0[..., 0], 0) + (np.arange(len(data)) * g * g)[:, None]
+    flat = np.ascontiguousarray(data).ravel()
+    a, b, cc, dd = flat[at], flat[at + 1], flat[at + g], flat[at + g + 1]
+    wx, wy = w[..., 0], w[..., 1]
+    h = (1 - wx) * (1 - wy) * a + wx * (1 - wy) * b + (1 - wx) * wy * cc + wx * wy * dd
+    hx = ((1 - wy) * (b - a) + wy * (dd - cc)) / cell
+    hy = ((1 - wx) * (cc - a) + wx * (dd - b)) / cell
+    return np.where(ok, h, np.nan), np.where(ok, hx, np.nan), np.where(ok, hy, np.nan)
 
 
-def _sample_gradient(sig: Signature, xy: AnyArray) -> tuple[AnyArray, AnyArray, AnyArray]:
-    """Bilinear height of a depth map at local (x, y) and its x, y slopes; NaN outside or next to a hole."""
-    g, e = sig.params.grid, sig.params.extent_m
-    cell = 2 * e / g
-    f = (xy + e) / cell - 0.5
-    i0 = np.floor(f).astype(np.int64)
-    w = f - i0
-    h, hx, hy = (np.full(len(xy), np.nan) for _ in range(3))
-    ok = np.all((i0 >= 0) & (i0 < g - 1), axis=1)
-    c, r, wx, wy = i0[ok, 0], i0[ok, 1], w[ok, 0], w[ok, 1]
-    d = sig.data
-    a, b, cc, dd = d[r, c], d[r, c + 1], d[r + 1, c], d[r + 1, c + 1]
-    h[ok] = (1 - wx) * (1 - wy) * a + wx * (1 - wy) * b + (1 - wx) * wy * cc + wx * wy * dd
-    hx[ok] = ((1 - wy) * (b - a) + wy * (dd - cc)) / cell
-    hy[ok] = ((1 - wx) * (cc - a) + wx * (dd - b)) / cell
-    return h, hx, hy
+def _row_quantiles(values: AnyArray, ok: AnyArray, q: float) -> AnyArray:
+    """Per row of ``values`` (K, M), the ``q`` quantile of its entries where ``ok``: numpy's default
+    (linear) quantile of each row's kept entries, all rows in one sort instead of one call per row."""
+    s = np.sort(np.where(ok, values, np.inf), axis=1)
+    n = ok.sum(axis=1)
+    v = n * q + (1 - q) - 1
+    lo = np.floor(v).astype(np.int64)
+    hi = np.minimum(lo + 1, n - 1)
+    t = v - lo
+    a, b = np.take_along_axis(s, lo[:, None], 1)[:, 0], np.take_along_axis(s, hi[:, None], 1)[:, 0]
+    return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t)
+
+
+def align_to_depthmaps(points: AnyArray, data: AnyArray, extent_m: float, weights: AnyArray,
+                       distances: tuple[float, ...], iterations: int = 8, trim: float = 0.1) -> AnyArray:
+    """(K, 4, 4) rigid transforms taking face-frame ``points`` (M, 3) onto the surfaces of K depth maps
+    ``data`` (K, g, g) of half width ``extent_m``: `align_to_depthmap` against several maps at once.
+
+    The K problems are solved side by side as stacked arrays (each map's steps, stopping rules and trim
+    are its own), so a probe is aligned onto all its first-stage candidates in one pass of numpy calls
+    rather than one pass per candidate. Deterministic: fixed numpy operations, same input, same bits.
+    """
+    p0 = np.asarray(points, dtype=np.float64)
+    n_maps = len(data)
+    T = np.tile(np.eye(4), (n_maps, 1, 1))
+    alive = np.ones(n_maps, bool)            # False once a map shares fewer than 20 points: its T is final
+    for dist in distances:
+        moving = alive.copy()
+        for _ in range(iterations):
+            ks = np.flatnonzero(moving)
+            if len(ks) == 0:
+                break
+            p = p0 @ T[ks, :3, :3].transpose(0, 2, 1) + T[ks, None, :3, 3]
+            h, hx, hy = _sample_gradient(data[ks], extent_m, p[..., :2])
+            norm = np.sqrt(hx * hx + hy * hy + 1.0)
+            nx, ny, nz = -hx / norm, -hy / norm, 1.0 / norm
+            r = (p[..., 2] - h) * nz                   # distance to the tangent plane at the vertical foot point
+            ok = np.isfinite(r) & (np.abs(r) <= dist)
+            few = ok.sum(axis=1) < 20
+            alive[ks[few]] = False
+            moving[ks[few]] = False
+            if few.all():
+                continue
+            if few.any():
+                ks, p, nx, ny, nz, r, ok = (v[~few] for v in (ks, p, nx, ny, nz, r, ok))
+            w = np.where(ok, weights, 0.0)
+            if trim > 0:
+                w *= np.abs(r) <= _row_quantiles(np.abs(r), ok, 1.0 - trim)[:, None]
+            px, py, pz = p[..., 0], p[..., 1], p[..., 2]
+            J = np.stack([py * nz - pz * ny, pz * nx - px * nz, px * ny - py * nx, nx, ny, nz], axis=-1)
+            J = np.where(ok[..., None], J, 0.0)
+            Jw = (J * w[..., None]).transpose(0, 2, 1)
+            A = Jw @ J + 1e-12 * np.eye(6)
+            x = np.linalg.solve(A, -(Jw @ np.where(ok, r, 0.0)[..., None]))[..., 0]
+            step = np.tile(np.eye(4), (len(ks), 1, 1))
+            step[:, :3, :3] = rotation_from_vector(x[:, :3])
+            step[:, :3, 3] = x[:, 3:]
+            T[ks] = step @ T[ks]
+            done = (np.linalg.norm(x[:, 3:], axis=1) < 1e-6) & (np.linalg.norm(x[:, :3], axis=1) < 1e-5)
+            moving[ks[done]] = False
+    return T
 
 
 def align_to_depthmap(points: AnyArray, ref: Signature, weights: AnyArray,
@@ -218,31 +268,7 @@ def align_to_depthmap(points: AnyArray, ref: Signature, weights: AnyArray,
     no nearest-neighbour search is needed: the maps are already in the same face frame and only small
     corrections remain. Deterministic: fixed numpy operations, same input, same bits.
     """
-    p0 = np.asarray(points, dtype=np.float64)
-    T = np.eye(4)
-    for dist in distances:
-        for _ in range(iterations):
-            p = apply(T, p0)
-            h, hx, hy = _sample_gradient(ref, p[:, :2])
-            n = np.stack([-hx, -hy, np.ones_like(hx)], axis=1)
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            r = (p[:, 2] - h) * n[:, 2]              # distance to the tangent plane at the vertical foot point
-            ok = np.isfinite(r) & (np.abs(r) <= dist)
-            if ok.sum() < 20:
-                return T
-            r, n, pk, w = r[ok], n[ok], p[ok], weights[ok]
-            if trim > 0:
-                w = w * (np.abs(r) <= np.quantile(np.abs(r), 1.0 - trim))
-            J = np.concatenate([np.cross(pk, n), n], axis=1)
-            A = (J * w[:, None]).T @ J + 1e-12 * np.eye(6)
-            x = np.linalg.solve(A, -(J * w[:, None]).T @ r)
-            step = np.eye(4)
-            step[:3, :3] = rotation_from_vector(x[:3])
-            step[:3, 3] = x[3:]
-            T = step @ T
-            if np.linalg.norm(x[3:]) < 1e-6 and np.linalg.norm(x[:3]) < 1e-5:
-                break
-    return T
+    return align_to_depthmaps(points, ref.data[None], ref.params.extent_m, weights, distances, iterations, trim)[0]
 
 
 def smoothed(sig: Signature, sigma_cells: float) -> Signature:
@@ -286,30 +312,42 @@ def smoothing_cells(a: Signature, b: Signature) -> float:
     return float(np.clip(SMOOTH_CELLS_PER_MM * noise * 1000.0, SMOOTH_MIN_CELLS, SMOOTH_MAX_CELLS))
 
 
-def _depthmap_distance(probe: Signature, ref: Signature, smooth: float | None = None,
-                       weights: dict[str, float] | None = None) -> tuple[float, float]:
-    sigma = smoothing_cells(probe, ref) if smooth is None else smooth
-    if smooth is None and MIRROR_FILL:
-        probe, ref = mirror_completed(probe), mirror_completed(ref)
-    probe, ref = smoothed(probe, sigma), smoothed(ref, sigma)
-    pp, _ = _grid_points(probe)
-    if len(pp) < 20 or np.isfinite(ref.data).sum() < 20:
-        return float("inf"), 0.0
-    cell = 2 * ref.params.extent_m / ref.params.grid
-    # the rigid alignment (6 unknowns) needs only a third of the cells: same frame, small corrections;
-    # the distance itself is taken over every cell
-    sub = pp[::ALIGN_STRIDE]
-    T = align_to_depthmap(sub, ref, _region_weights(sub, weights), (4 * cell, 1.5 * cell),
-                          iterations=ALIGN_ITERATIONS, trim=probe.params.trim)
-    moved = apply(T, pp)
-    diff = moved[:, 2] - _sample(ref, moved[:, :2])
-    ok = np.isfinite(diff)
-    overlap = float(ok.sum()) / max(len(pp), 1)
-    if overlap < probe.params.min_overlap or ok.sum() < 20:
-        return float("inf"), overlap
-    d, wd = np.abs(diff[ok]), _region_weights(moved[ok], weights)
-    keep = d <= np.quantile(d, 1.0 - probe.params.trim)
-    return float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap
+def _depthmap_distances(probe: Signature, refs: list[Signature], smooth: float | None = None,
+                        weights: dict[str, float] | None = None) -> list[tuple[float, float]]:
+    """(distance, overlap) of ``probe`` against each of ``refs``: the probe is prepared once per smoothing
+    and aligned onto all references of that smoothing together (`align_to_depthmaps`)."""
+    out: list[tuple[float, float]] = [(float("inf"), 0.0)] * len(refs)
+    sigmas = [smoothing_cells(probe, r) if smooth is None else float(smooth) for r in refs]
+    mirror = smooth is None and MIRROR_FILL
+    for sigma in sorted(set(sigmas)):
+        group = [j for j, s in enumerate(sigmas) if s == sigma]
+        pr = smoothed(mirror_completed(probe) if mirror else probe, sigma)
+        pp, _ = _grid_points(pr)
+        refs_s = [smoothed(mirror_completed(refs[j]) if mirror else refs[j], sigma) for j in group]
+        use = [k for k, r in enumerate(refs_s) if np.isfinite(r.data).sum() >= 20]
+        if len(pp) < 20 or not use:
+            continue
+        params = refs_s[use[0]].params
+        data = np.stack([refs_s[k].data for k in use])
+        cell = 2 * params.extent_m / params.grid
+        # the rigid alignment (6 unknowns) needs only a third of the cells: same frame, small corrections;
+        # the distance itself is taken over every cell
+        sub = pp[::ALIGN_STRIDE]
+        T = align_to_depthmaps(sub, data, params.extent_m, _region_weights(sub, weights), (4 * cell, 1.5 * cell),
+                               iterations=ALIGN_ITERATIONS, trim=probe.params.trim)
+        moved = pp @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
+        h, _, _ = _sample_gradient(data, params.extent_m, moved[..., :2])
+        diff = moved[..., 2] - h
+        for k, j in enumerate(use):
+            ok = np.isfinite(diff[k])
+            overlap = float(ok.sum()) / max(len(pp), 1)
+            if overlap < probe.params.min_overlap or ok.sum() < 20:
+                out[group[j]] = (float("inf"), overlap)
+                continue
+            d, wd = np.abs(diff[k, ok]), _region_weights(moved[k, ok], weights)
+            keep = d <= np.quantile(d, 1.0 - probe.params.trim)
+            out[group[j]] = (float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap)
+    return out
 
 
 def _region_weights(local: AnyArray, weights: dict[str, float] | None = None) -> AnyArray:
@@ -336,17 +374,27 @@ def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None
     applied to both depth maps first (None: `smoothing_cells` from the scans' noise; 0: none).
     ``weights``: region weights (default `REGION_WEIGHTS`).
     """
-    if probe.method != ref.method:
-        raise SignatureError(f"cannot compare a '{probe.method}' signature with a '{ref.method}' one; "
-                             f"re-enrol the gallery with one method")
-    if probe.data.shape != ref.data.shape:
-        raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); re-enrol the gallery")
+    return compare_many(probe, [ref], model, smooth, weights)[0]
+
+
+def compare_many(probe: Signature, refs: list[Signature], model: ImpostorModel | None = None,
+                 smooth: float | None = None, weights: dict[str, float] | None = None
+                 ) -> list[tuple[float, float, float]]:
+    """`compare` of ``probe`` against each of ``refs`` (one 1:N fine stage: the probe's preparation and the
+    alignments are shared, see `_depthmap_distances`)."""
+    for ref in refs:
+        if probe.method != ref.method:
+            raise SignatureError(f"cannot compare a '{probe.method}' signature with a '{ref.method}' one; "
+                                 f"re-enrol the gallery with one method")
+        if probe.data.shape != ref.data.shape:
+            raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); "
+                                 f"re-enrol the gallery")
     if probe.method == "depthmap":
-        dist, overlap = _depthmap_distance(probe, ref, smooth, weights)
+        found = _depthmap_distances(probe, refs, smooth, weights)
     else:
-        dist, overlap = _fft_distance(probe, ref)
+        found = [_fft_distance(probe, ref) for ref in refs]
     model = model or ImpostorModel.prior(probe.method)
-    return model.score(dist), dist, overlap
+    return [(model.score(dist), dist, overlap) for dist, overlap in found]
 
 
 @dataclass(frozen=True)

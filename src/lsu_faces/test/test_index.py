@@ -90,3 +90,39 @@ def test_threshold_follows_the_noise_of_the_enrolled_scans(tmp_path):
     for i in range(3):
         g.enroll(f"p{i}", face_like(i, noise_m=1.5e-3))
     assert g.identify(face_like(0, noise_m=1.5e-3)).gallery_noise_mm == pytest.approx(1.5)
+
+
+def test_fine_stage_aligns_the_probe_onto_each_candidate_and_ranks_like_single_comparisons():
+    from lsu_faces.signature import align_to_depthmaps, compare, compare_many
+
+    p = SignatureParams()
+    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    x, y = np.meshgrid(c, c)
+    rng = np.random.default_rng(5)
+    bumps = [(rng.uniform(-0.04, 0.04, 2), rng.normal(0.0, 0.004)) for _ in range(10)]
+
+    def height(u, v):      # an analytic face-like surface: a paraboloid with smooth bumps
+        return -4.0 * (u ** 2 + v ** 2) + sum(a * np.exp(-((u - b[0]) ** 2 + (v - b[1]) ** 2) / 0.0002)
+                                              for b, a in bumps)
+
+    inside = np.hypot(x, y) <= 0.06
+    points = np.stack([x[inside], y[inside], height(x, y)[inside]], axis=1)
+    # candidates: the same surface moved by known translations (truth), and one map with almost nothing seen
+    shifts = np.array([[0.0, 0.0, 0.0], [0.0015, -0.001, 0.0005], [-0.002, 0.0005, -0.001], [0.001, 0.002, 0.0]])
+    maps = [np.where(inside, height(x - dx, y - dy) + dz, np.nan) for dx, dy, dz in shifts]
+    empty = np.full_like(maps[0], np.nan)
+    empty[:3, :3] = 0.0
+    cell = 2 * p.extent_m / p.grid
+    T = align_to_depthmaps(points, np.stack(maps + [empty]), p.extent_m, np.ones(len(points)),
+                           (4 * cell, 1.5 * cell), iterations=10, trim=0.1)
+    for k, shift in enumerate(shifts):
+        assert np.abs(T[k, :3, 3] - shift).max() < 1e-4, (k, T[k, :3, 3], shift)
+        assert np.allclose(T[k, :3, :3], np.eye(3), atol=5e-3)
+    assert np.array_equal(T[-1], np.eye(4))                # fewer than 20 shared points: left where it was
+    # the batch gives each candidate its own result, in the candidates' order, whatever their noise (smoothing)
+    probe = face_like(7, noise_m=3e-4)
+    refs = [face_like(s, noise_m=n) for s, n in ((3, 1e-4), (7, 1e-4), (9, 1.2e-3), (7, 1.2e-3), (4, 0.0))]
+    batch = [d for _, d, _ in compare_many(probe, refs)]
+    single = [compare(probe, r)[1] for r in refs]
+    assert np.allclose(batch, single, rtol=1e-9, atol=0.0)
+    assert int(np.argmin(batch)) in (1, 3) and min(batch[1], batch[3]) < 0.5 * min(batch[0], batch[2], batch[4])
