@@ -160,14 +160,22 @@ def open_sim_source(context: SourceContext) -> SimSource:
         fallback = CarriageState(float(param("carriage_position_steps")), bool(param("laser_on")))
         return carriage_from_truth(truth, later, fallback)
 
-    kind = str(param("sim_motion") or "still")
+    def optional(name: str, default: Any) -> Any:
+        # the motion settings are the camera node's; a caller with only the scene's parameters gets a still subject
+        try:
+            value = param(name)
+        except LookupError:
+            return default
+        return default if value is None else value
+
+    kind = str(optional("sim_motion", "") or "still")
     try:
-        motion = None if kind == "still" else scene_motion(kind, int(param("sim_motion_seed")), geometry, scene,
-                                                           float(param("sim_motion_turn_at_s")))
+        motion = None if kind == "still" else scene_motion(kind, int(optional("sim_motion_seed", 0)), geometry, scene,
+                                                           float(optional("sim_motion_turn_at_s", 1.0)))
     except MotionError as exc:
         raise CameraError(f"sim_motion: {exc}") from None
     return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed, motion=motion,
-                     motion_hz=float(param("sim_motion_hz")))
+                     motion_hz=float(optional("sim_motion_hz", 5.0)))
 
 
 __all__ = ["SimSource", "carriage_from_truth", "open_sim_source", "TRUTH_DELAY_S"]
