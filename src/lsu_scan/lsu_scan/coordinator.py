@@ -56,7 +56,7 @@ from lsu_interfaces.srv import CaptureStereo, MoveTo, StreamStereo
 
 from .laser_guard import LaserGuard
 from .scan_bag import ScanBag, recover_killed_scans, storage_problem
-from .scan_calls import ScanAborted, ScanCanceled, _key
+from .scan_calls import MatcherSilent, ScanAborted, ScanCanceled, _key
 from .scan_params import PARAMETERS, ScanParameters
 from .scan_run import ScanRun, ScanRunSteps
 from .stopsnap_run import StopSnapRun
@@ -253,7 +253,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         except ScanCanceled as exc:
             run.abort_reason, run.canceled = str(exc), True
         except ScanAborted as exc:
-            run.abort_reason = str(exc)
+            run.abort_reason, run.matcher_silent = str(exc), isinstance(exc, MatcherSilent)
         except Exception as exc:  # a bug must still leave the laser off and the data on disk
             if self.shutting_down:  # rclpy's own exceptions out of a context the signal handler shut down
                 run.abort_reason = f"scan_coordinator is shutting down ({exc.__class__.__name__})"

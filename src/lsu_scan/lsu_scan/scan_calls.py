@@ -37,6 +37,10 @@ class ScanCanceled(ScanAborted):
     """The user canceled the goal."""
 
 
+class MatcherSilent(ScanAborted):
+    """stereo_matcher stopped answering (a snap's points never came): no scan cloud will come either."""
+
+
 _key = stamps.to_ns  # an image stamp as the key of its acknowledgement
 
 

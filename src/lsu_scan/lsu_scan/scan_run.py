@@ -44,6 +44,7 @@ class ScanRun:
     points_total: int = 0
     abort_reason: str = ""
     canceled: bool = False
+    matcher_silent: bool = False                      # aborted as stereo_matcher stopped answering: no cloud comes
     sweep: SweepPlan | None = None                 # a sweep scan's plan; None: stop-snap
     frames: FrameCount | None = None                # a sweep's frames counted from stamps, once its stream ended
     stream: dict[str, Any] = field(default_factory=dict)  # a sweep's stream figures for scan.json
@@ -128,7 +129,10 @@ class ScanRunSteps(ScanCalls):
                     partial=partial, reason=abort_reason)
         record.timings_s["scan"] = time.monotonic() - run.started
         try:
-            cloud_points = self._save_cloud(folder, cloud_serial_before, record) if run.captured else 0
+            # a matcher that stopped acknowledging snaps sends no cloud: waiting cloud_timeout_s for it would only
+            # hold the result back
+            cloud_points = (self._save_cloud(folder, cloud_serial_before, record)
+                            if run.captured and not run.matcher_silent else 0)
         except OSError as exc:  # a full disk, the folder gone: the points are still in the bag if one was recorded
             cloud_points = 0
             cloud_error = f"cloud.ply could not be written: {exc}"

@@ -14,7 +14,7 @@ from lsu_interfaces.msg import LaserLine, ScanEvent
 from lsu_interfaces.srv import MoveTo
 
 from .laser_guard import ack_due_at
-from .scan_calls import ScanAborted, ScanCalls, _key
+from .scan_calls import MatcherSilent, ScanAborted, ScanCalls, _key
 from .scan_plan import SnapRecord
 from .scan_run import ScanRun
 from .settle import SettleTrace, profile_from_line, settle_from_images
@@ -156,7 +156,7 @@ class StopSnapRun(ScanCalls):
         snap, key = pending["snap"], pending["key"]
         remaining = float(self.ack_timeout_s) - (time.monotonic() - pending["t_captured"])
         if not self._wait(lambda: key in self._acks, remaining):
-            raise ScanAborted(f"snap {snap.index} (position {snap.position_steps}) was not acknowledged by "
+            raise MatcherSilent(f"snap {snap.index} (position {snap.position_steps}) was not acknowledged by "
                               f"stereo_matcher within {self.ack_timeout_s:g} s: is the extractor/matcher running?")
         self.guard.answered("ack")
         self._guarded_ack = None
