@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from lsu_common.arrays import AnyArray
 
@@ -177,6 +176,8 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     ``cloud_xyz``: the scan's points as reconstructed (left frame, m): where the surface is. The reference
     frame (default: the middle one) is the pose the corrected scan is delivered in.
     """
+    from scipy.optimize import least_squares  # here: the matcher imports this module at start, scipy is ~0.5 s
+
     n = len(images)
     if n == 0 or len(times_s) != n or len(lines) != n:
         raise MotionError(f"need one time and one pair of lines per frame: {n} frames, {len(times_s)} times, "
