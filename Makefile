@@ -41,10 +41,7 @@ lint: setup
 #     with slow tests are handed out first, see lsu_testing.plugin),
 #  2. the tests marked serial and the fault-injection tests, alone in one process.
 # Exit status 5 (no test selected) of one part is no failure: PYTEST_ARGS may name tests of one part only.
-# Three workers on two cores: most tests wait on processes, DDS and the simulated unit's motion, so a third
-# worker fills the cores those waits leave idle (the part's tests are written to pass on a loaded host;
-# the timing-sensitive ones are in part 2).
-PYTEST_WORKERS ?= 3
+PYTEST_WORKERS ?= 2
 test: lint
 	cd $(ROOT) && par=0 && ser=0; \
 	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not serial and not fault" $(PYTEST_ARGS) \
