@@ -60,6 +60,9 @@ class Launcher:
         self._shutdown = threading.Event()
         self._reason = ""
         self._failed = False
+        # set by the signal handler, acted on by the run loop: a handler runs between two bytecodes of the main
+        # thread, which may hold the lock inside the Event it would set (Event.set there deadlocked the launcher)
+        self._signalled: int | None = None
         self.children: list[_Child] = []
         for index, spec in enumerate(description.nodes):
             exe = resolve_executable(spec.package, spec.executable)
@@ -102,7 +105,7 @@ class Launcher:
         self.say(f"started {child.spec.label} ({child.spec.package}/{child.spec.executable}) pid {child.process.pid}")
 
     def request_shutdown(self, reason: str) -> None:
-        """Ask the run loop to stop every node (thread- and signal-safe)."""
+        """Ask the run loop to stop every node (from any thread; not from a signal handler: `_on_signal`)."""
         if not self._shutdown.is_set():
             self._reason = reason
             self._shutdown.set()
@@ -187,6 +190,9 @@ class Launcher:
             for child in self.children:
                 self._start(child)
             while not self._shutdown.is_set():
+                if self._signalled is not None:
+                    self.request_shutdown(f"received {signal.Signals(self._signalled).name}")
+                    break
                 now = time.monotonic()
                 for child in self.children:
                     if child.process is not None and child.process.poll() is not None:
@@ -207,8 +213,9 @@ class Launcher:
         return 1 if self._failed else 0
 
     def _on_signal(self, signum: int, _frame: object) -> None:
-        if self._shutdown.is_set():
+        # no lock may be taken here (see _signalled): only flags are read and set, and signals sent
+        if self._signalled is not None or self._shutdown.is_set():
             # a second Ctrl-C: do not wait for the grace periods
             self._signal_all(signal.SIGKILL)
             return
-        self.request_shutdown(f"received {signal.Signals(signum).name}")
+        self._signalled = signum

@@ -9,6 +9,8 @@ import textwrap
 import threading
 import time
 
+import pytest
+
 from lsu_tools.launch_file import LaunchDescription, NodeSpec
 from lsu_tools.launcher import Launcher
 
@@ -57,3 +59,19 @@ def test_a_node_crashing_while_stopping_is_named_and_fails_the_launch(tmp_path):
 def test_nodes_ending_cleanly_leave_the_launch_successful(tmp_path):
     code, text = _run(tmp_path, ["clean", "clean"])
     assert code == 0 and "while stopping" not in text, text
+
+
+@pytest.mark.timeout(60)
+def test_ctrl_c_while_the_run_loop_holds_its_events_lock_neither_hangs_nor_is_lost():
+    # a signal handler runs in the main thread between two bytecodes, possibly while that thread holds the
+    # lock inside the shutdown Event (in its wait); the handler setting that Event then waited for a lock
+    # its own thread held: the launcher hung until killed (`stop` returned None in the restart test)
+    import signal as _signal
+    from pathlib import Path as _Path
+
+    out = io.StringIO()
+    launcher = Launcher(LaunchDescription(_Path("none.launch.yaml"), {}, []), out=out)
+    with launcher._shutdown._cond:  # type: ignore[attr-defined]  # what Event.wait holds for a moment, as the loop waits 0.05 s at a time
+        launcher._on_signal(_signal.SIGINT, None)
+    assert launcher.run() == 0  # the loop acts on it: no node, so it ends at once
+    assert "shutting down: received SIGINT" in out.getvalue()
