@@ -152,16 +152,17 @@ def _owner(gid: Sequence[int]) -> str:
     """`` (pid N: command)`` of the local process that owns a Fast DDS endpoint, else ``""``.
 
     Fast DDS writes the low 16 bits of the owner's process id into bytes 4-5 of every GUID (after the
-    vendor id 1.15 and two bytes of host id), so a pid at most 65535 is found from the gid alone.
+    vendor id 1.15 and two bytes of host id): the first running pid with those low bits is taken.
     """
     import os
+    from pathlib import Path
 
     if len(gid) < 6 or list(gid[:2]) != [1, 15]:
         return ""
     low = gid[4] | gid[5] << 8
     for pid in range(low, 1 << 22, 1 << 16):
         try:
-            command = open(f"/proc/{pid}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
+            command = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
         except OSError:
             continue
         return f" (pid {pid}{' (this process)' if pid == os.getpid() else ''}: {command.strip()[:160]})"
