@@ -17,7 +17,7 @@
    scan_wall_over_mechanical = the default scan's action wall time / (moves at the emulator's rate +
    settle + exposure for every snap), the bound the coordinator computes from the parameters;
    scan_wall_over_mechanical_recording: the same for the recording scan.
-2. Replay of the recorded bag: the per-snap computation called directly on its frames (no ROS:
+2. Replay of the recorded bag: the scan's computation called directly on its frames, per snap and the cloud's (no ROS:
    replay_compute_ms_per_snap), `lsu run replay BAG --exit` (the default replay, bag handed to the
    extractor and matcher in one process: replay_snaps_per_s, replay_cpu_ms_per_snap and
    replay_cpu_over_compute = the two CPU times per snap), and the message path (images + events as
@@ -303,12 +303,14 @@ def _node_params(name: str) -> dict:
 
 
 def compute_reference(bag: Path, passes: int = 3) -> dict:
-    """CPU per snap of the per-snap computation called directly on the bag's frames (no ROS).
+    """CPU per snap of the scan's computation called directly on the bag's frames (no ROS).
 
     The frames are read from the bag first (not timed); then per snap: the two images read from
     their CDR buffers (lsu_extract.image), two extractions with the replay launch file's extractor
     parameters, matching + triangulation (lsu_reconstruct.pipeline.reconstruct_snap) with its
-    matcher parameters and calibration: the functions the nodes call. The median of ``passes``
+    matcher parameters and calibration; and once per scan what the matcher computes for its cloud:
+    colours from the laser-off frame, the snaps merged, the grazing points dropped (colour_at,
+    merge_snaps, drop_grazing): the functions the nodes call. The median of ``passes``
     passes (after one untimed one) of CPU time (this process, all threads), with OpenCV on one
     thread as in the replay's extraction processes: its thread pool, of no use to a frame this
     small, would add its own CPU to the reference and hide the replay's overhead.
@@ -320,11 +322,11 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
 
     cv2.setNumThreads(1)  # for the rest of this process: the graphs it measures run in processes of their own
 
-    from lsu_bags.bags import read_message_views, read_messages
+    from lsu_bags.bags import deserialize_ros, read_message_views, read_messages
     from lsu_extract.extractor import ExtractorParams, extract_laser_line
     from lsu_extract.image import decode_image, parse_image_cdr
     from lsu_reconstruct.matching import LineArrays, MatchParams
-    from lsu_reconstruct.pipeline import reconstruct_snap
+    from lsu_reconstruct.pipeline import colour_at, drop_grazing, merge_snaps, reconstruct_snap
     from lsu_reconstruct.stereo import StereoModel
 
     ext = _node_params("laser_extractor")
@@ -337,6 +339,14 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
     for m in read_messages(bag, ["/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
         frames.setdefault(struct.unpack_from("<iI", m.data, 4), {})[m.topic.split("/")[-2]] = m.data
     pairs = [(f["left"], f["right"]) for _, f in sorted(frames.items()) if len(f) == 2]
+    texture = None  # the left laser-off frame the scan's TEXTURE event names
+    for m in read_messages(bag, ["/lsu/scan/events"]):
+        event = deserialize_ros(m)
+        if event.type == event.TEXTURE:
+            raw = frames.get((event.image_stamp.sec, event.image_stamp.nanosec), {}).get("left")
+            if raw is not None:
+                msg = parse_image_cdr(raw)
+                texture = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
 
     def line(raw: bytes) -> LineArrays:
         msg = parse_image_cdr(raw)
@@ -345,10 +355,11 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
                           image_width=r.image_width, image_height=r.image_height)
 
     def one_pass() -> int:
-        points = 0
-        for left, right in pairs:
-            points += len(reconstruct_snap(model, line(left), line(right), match))
-        return points
+        snaps = [reconstruct_snap(model, line(left), line(right), match) for left, right in pairs]
+        if texture is not None:
+            for snap in snaps:
+                snap.rgb = colour_at(texture, snap.u, snap.v)
+        return len(drop_grazing(merge_snaps(snaps), model, float(mat["max_view_angle_deg"])))
 
     def timed_pass() -> float:
         c0 = time.process_time()
@@ -561,7 +572,8 @@ REPLAY_NOTES = (
     "replay: the recording scan's bag (scan events + image pairs, the laser-off texture pair included). "
     "replay_compute_ms_per_snap: CPU per snap of the computation called directly on the bag's frames, "
     "no ROS (images read from their CDR buffers, two extractions and matching + triangulation with the "
-    "replay launch file's parameters, OpenCV on one thread as in the extraction processes; median of the "
+    "replay launch file's parameters, and the scan cloud's colours, merge and grazing filter as the matcher "
+    "computes them once per scan, shared out per snap; OpenCV on one thread as in the extraction processes; median of the "
     "passes, one before and one after each replay run). "
     "replay_snaps_per_s / replay_cpu_ms_per_snap: "
     "`lsu run replay BAG --exit` (the default replay: the bag read and handed to the extractor and "

@@ -299,3 +299,24 @@ def test_merge_keeps_snap_order_and_fields(rig, model):
     cloud = merge_snaps([a, b])
     assert len(cloud) == len(a) + len(b)
     assert cloud.snap[0] == 0 and cloud.snap[-1] == 1
+
+
+def test_the_planar_test_of_the_grazing_filter_agrees_with_numpys_eigenvalues():
+    """`_planar` (smallest eigenvector given, the other two eigenvalues in closed form) against numpy's eigh on
+    neighbourhoods from a plane (spread), a line (no spread), and in between: the same decision for every one."""
+    from lsu_reconstruct.pipeline import PLANAR_SPREAD, _planar
+
+    rng = np.random.default_rng(11)
+    scales = np.concatenate([np.full((200, 3), [1.0, 1.0, 0.01]),        # a surface patch
+                             np.full((200, 3), [1.0, 0.001, 0.001]),     # points along one line
+                             rng.uniform(0.001, 1.0, (600, 3))])         # anything between
+    cov = np.empty((len(scales), 3, 3))
+    for i, s in enumerate(scales):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        cov[i] = (q * s**2) @ q.T
+    values, vectors = np.linalg.eigh(cov)
+    expected = values[:, 1] >= PLANAR_SPREAD * values[:, 2]
+    near = np.abs(values[:, 1] - PLANAR_SPREAD * values[:, 2]) < 1e-9 * values[:, 2]  # ties: either is right
+    got = _planar(cov, vectors[:, :, 0] * rng.choice([-1.0, 1.0], (len(cov), 1)))
+    assert expected[:200].all() and not expected[200:400].any()
+    assert np.array_equal(got[~near], expected[~near])
