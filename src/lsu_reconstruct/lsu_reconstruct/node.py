@@ -584,10 +584,10 @@ class StereoMatcherNode(LsuNode):
 
     def _publish_points(self, snap: SnapPoints, index: int, header: Header) -> None:
         snap.snap = np.full(len(snap), index, dtype=np.uint32)
-        if self.scan is not None and self.scan.texture is not None:
-            snap.rgb = colour_at(self.scan.texture, snap.u, snap.v)
         if not self.points_pub.get_subscription_count():
             return  # volatile: a message no reader holds is never seen, so it is not encoded (a replay's usual case)
+        if self.scan is not None and self.scan.texture is not None:
+            snap.rgb = colour_at(self.scan.texture, snap.u, snap.v)  # the scan cloud colours every snap again
         out = Header(stamp=header.stamp, frame_id=self.model.left_frame_id if self.model else "lsu_left_optical")
         self.points_pub.publish(cloud_to_msg(encode(snap.fields()), out))
 
