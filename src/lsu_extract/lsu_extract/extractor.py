@@ -132,7 +132,7 @@ class ExtractorParams:
     saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
     adaptive_width_px: float = ADAPTIVE_WIDTH_PX  # blais_rioux / adaptive: wider rows (FWHM) take the 8th order / com
-    grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
+    grow_wide: bool = True           # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
     red_rise_ratio: float = 0.5      # colour, no laser-off frame: red must rise this x the signal's contrast (0: off)
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
@@ -668,6 +668,28 @@ GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every fr
 LASER_OFF_MAX_WIDTH_PX = 48.0
 
 
+# ... and bounded by the colour of the change. The laser adds almost pure red: green and blue rise by its crosstalk
+# (a few to 15 % of red's rise). A scene that changed between the two frames (a person walking behind) changes
+# every channel: its differences pass the signal red - max(green, blue rise) where red rose most, but green or
+# blue rose by half of red's rise or more. So with a laser-off frame of a colour camera a row is kept only where,
+# over the 3 px at its centre, neither green nor blue rose by more than LASER_OFF_OTHER_RISE_RATIO x red's rise;
+# a row whose red clips there is exempt (its rise is cut, crosstalk's is not). bench/results/extract.json:
+# false_rows_pct_ambient_diff_moving_person, and the real sets' missed rows, which this costs little.
+LASER_OFF_OTHER_RISE_RATIO = 0.5
+
+
+def _red_change(sig: LaserSignal, v: AnyArray, u: AnyArray, saturation: int) -> AnyArray:
+    """Which detections (rows ``v``, columns ``u``) of a colour frame with its laser-off frame changed as a laser
+    changes a scene (`LASER_OFF_OTHER_RISE_RATIO`): (n,) bool."""
+    assert sig.texture is not None
+    cols = np.clip(np.rint(u).astype(np.int64)[:, None] + np.arange(-1, 2)[None, :], 0, sig.width - 1)
+    rows = v[:, None]
+    on = sig.image[rows, cols]
+    rise = (on.astype(np.float32) - sig.texture[rows, cols]).mean(axis=1)  # (n, 3): blue, green, red
+    return ((np.maximum(rise[:, 0], rise[:, 1]) <= LASER_OFF_OTHER_RISE_RATIO * rise[:, 2])
+            | (on[:, :, 2].max(axis=1) >= saturation))
+
+
 @lru_cache(maxsize=16)
 def _laser_off_params(params: ExtractorParams) -> ExtractorParams:
     """``params`` with the width range of a frame given with its laser-off frame (`LASER_OFF_MAX_WIDTH_PX`)."""
@@ -729,6 +751,37 @@ def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: Extracto
         col[kept["v"] + 1] = kept["u"]
         peak[kept["v"] + 1] = kept["peak"]
     return out
+
+
+def _merge(chunks: list[dict[str, Any]]) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """`_keep` chunks as one set of per-row arrays by row, and their names ("v", `_FIELDS`, the flags some row has)."""
+    # a per-row flag travels with the rows only when some row has it (`explain_rows`)
+    flags = tuple(f for f in _FLAGS if any(c.get(f) is not None and np.any(c[f]) for c in chunks))
+    for flag in flags:
+        for c in chunks:
+            if c.get(flag) is None:
+                c[flag] = np.zeros(c["v"].size, bool)
+    names = ("v", *_FIELDS, *flags)
+    if len(chunks) == 1:
+        return chunks[0], names
+    if chunks:
+        order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
+        return {name: np.concatenate([c[name] for c in chunks])[order] for name in names}, names
+    return {name: np.zeros(0, np.float32) for name in names}, names
+
+
+def _clean(sig: LaserSignal, found: dict[str, Any], names: tuple[str, ...], params: ExtractorParams
+           ) -> tuple[dict[str, Any], int, int]:
+    """``found`` without the rows of a changed scene (`_red_change`) and the weak isolated rows (`drop_isolated`),
+    and how many of each were dropped."""
+    changed = 0
+    if sig.texture is not None and sig.colour and found["v"].size:
+        keep = _red_change(sig, found["v"].astype(np.int64), found["u"], params.saturation_level)
+        if not keep.all():
+            changed = int(keep.size - np.count_nonzero(keep))
+            found = {name: found[name][keep] for name in names}
+    found, isolated = drop_isolated(found, params.min_contrast, sig.height, names)
+    return found, changed, isolated
 
 
 def one_opencv_thread() -> None:
@@ -841,27 +894,20 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
                 s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
                 fit = _refine(s, red, first, column - first, params, width, on_red=on_red, check_red=check_red)
             chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
-    grown = 0
-    if params.grow_wide and chunks and sum(c["v"].size for c in chunks) < height:
-        more = _grow_along(sig, chunks, params, width, on_red, check_red)
-        grown = sum(c["v"].size for c in more)
-        chunks += more
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
-    # a per-row flag travels with the rows only when some row has it (`explain_rows`)
-    flags = tuple(f for f in _FLAGS if any(c.get(f) is not None and np.any(c[f]) for c in chunks))
-    for flag in flags:
-        for c in chunks:
-            if c.get(flag) is None:
-                c[flag] = np.zeros(c["v"].size, bool)
-    names = ("v", *_FIELDS, *flags)
-    if len(chunks) == 1:
-        found = chunks[0]
-    elif chunks:
-        order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
-        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in names}
-    else:
-        found = {name: np.zeros(0, np.float32) for name in names}
-    found, isolated = drop_isolated(found, params.min_contrast, height, names)
+    found, names = _merge(chunks)
+    found, changed, isolated = _clean(sig, found, names, params)
+    grown = 0
+    # grown from the rows that stay (a weak isolated row is noise: grown, it would no longer look isolated)
+    if params.grow_wide and 0 < found["v"].size < height:
+        more = _grow_along(sig, [found], params, width, on_red, check_red)
+        if more:
+            grown = sum(c["v"].size for c in more)
+            saturated += sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in more)
+            found, names = _merge([found, *more])
+            found, changed_grown, isolated_grown = _clean(sig, found, names, params)
+            changed, isolated = changed + changed_grown, isolated + isolated_grown
+    flags = names[1 + len(_FIELDS):]
     # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
@@ -869,7 +915,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
-        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {})},
+        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {}),
+               **({"rows_scene_changed": changed} if changed else {})},
         saturated=found["saturated"].astype(bool, copy=False) if "saturated" in flags else None,
         skewed=found["skewed"].astype(bool, copy=False) if "skewed" in flags else None)
 
