@@ -688,11 +688,13 @@ def _red_change(sig: LaserSignal, v: AnyArray, u: AnyArray, saturation: int) -> 
     # the 3 pixels at each centre as flat indices into the (H * W, 3) frames: one gather per frame
     first = v * width + np.clip(np.rint(u).astype(np.int64), 1, width - 2) - 1
     at = first[:, None] + np.arange(3)[None, :]
-    on = sig.image.reshape(-1, 3)[at]            # (n, 3 px, 3 channels) uint8
-    off = sig.texture.reshape(-1, 3)[at]
-    rise = on.sum(axis=1, dtype=np.int32) - off.sum(axis=1, dtype=np.int32)  # 3 x the mean rise: blue, green, red
-    return ((np.maximum(rise[:, 0], rise[:, 1]) <= LASER_OFF_OTHER_RISE_RATIO * rise[:, 2])
-            | (on[:, :, 2].max(axis=1) >= saturation))
+    on = np.take(sig.image.reshape(-1, 3), at, axis=0)  # (n, 3 px, 3 channels) uint8; take: ~8x indexing's speed
+    change = on.astype(np.int16)
+    change -= np.take(sig.texture.reshape(-1, 3), at, axis=0)
+    rise = change[:, 0] + change[:, 1] + change[:, 2]  # (n, 3): 3 x the mean rise of blue, green, red
+    red = on[:, :, 2]
+    clipped = np.maximum(np.maximum(red[:, 0], red[:, 1]), red[:, 2]) >= saturation
+    return (np.maximum(rise[:, 0], rise[:, 1]) <= LASER_OFF_OTHER_RISE_RATIO * rise[:, 2]) | clipped
 
 
 @lru_cache(maxsize=16)
