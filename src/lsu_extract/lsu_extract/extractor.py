@@ -132,7 +132,7 @@ class ExtractorParams:
     saturation_level: int = 250      # red value from which the sensor (or its JPEG-softened picture) clips [DN]
     clipped_centre: str = "signal"   # where red clips: centre between the flanks of the signal, or of red
     adaptive_width_px: float = ADAPTIVE_WIDTH_PX  # blais_rioux / adaptive: wider rows (FWHM) take the 8th order / com
-    grow_wide: bool = False          # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
+    grow_wide: bool = True           # follow the line row by row from its detections, up to GROW_MAX_WIDTH_PX wide
     red_rise_ratio: float = 0.5      # colour, no laser-off frame: red must rise this x the signal's contrast (0: off)
     red_threshold: int = 150         # thesis method: laser pixels have red above this ...
     blue_threshold: int = 100        # ... and blue below this [DN]
@@ -662,10 +662,39 @@ GROW_PASSES = 512  # bound on the rows grown from one end (a pass grows every fr
 
 # With a laser-off frame the signal is red's rise over it: texture, red print and lit patches cancel, which is what
 # max_width_px guards against in a single frame. A line wider than that (grazing light, a defocused or near part:
-# the turntable globe's grazing rows) is then accepted up to this width in every search. The cost: where the scene
-# changed between the two frames (a person walking behind), wide differences pass too (bench/results/extract.json:
-# *_laser_off, false_rows_pct_ambient_diff_moving_person).
+# the turntable globe's grazing rows) is then accepted up to this width in one last full-row search of the rows still
+# without a line (the searches before keep max_width_px: a wider refinement window adds the noise of the laser-off frame
+# to every row's centre: the simulated plane's column RMS 0.10 -> 0.13 px). The cost: where the scene changed between
+# the two frames (a person walking behind), wide differences pass too (bench/results/extract.json:
+# false_rows_pct_ambient_diff_moving_person).
 LASER_OFF_MAX_WIDTH_PX = 48.0
+
+
+# ... and bounded by the colour of the change. The laser adds almost pure red: green and blue rise by its crosstalk
+# (a few to 15 % of red's rise). A scene that changed between the two frames (a person walking behind) changes
+# every channel: its differences pass the signal red - max(green, blue rise) where red rose most, but green or
+# blue rose by half of red's rise or more. So with a laser-off frame of a colour camera a row is kept only where,
+# over the 3 px at its centre, neither green nor blue rose by more than LASER_OFF_OTHER_RISE_RATIO x red's rise;
+# a row whose red clips there is exempt (its rise is cut, crosstalk's is not). bench/results/extract.json:
+# false_rows_pct_ambient_diff_moving_person, and the real sets' missed rows, which this costs little. 0 = no test.
+LASER_OFF_OTHER_RISE_RATIO = 0.5
+
+
+def _red_change(sig: LaserSignal, v: AnyArray, u: AnyArray, saturation: int) -> AnyArray:
+    """Which detections (rows ``v``, columns ``u``) of a colour frame with its laser-off frame changed as a laser
+    changes a scene (`LASER_OFF_OTHER_RISE_RATIO`): (n,) bool."""
+    assert sig.texture is not None
+    width = sig.width
+    # the 3 pixels at each centre as flat indices into the (H * W, 3) frames: one gather per frame
+    first = v * width + np.clip(np.rint(u).astype(np.int64), 1, width - 2) - 1
+    at = first[:, None] + np.arange(3)[None, :]
+    on = np.take(sig.image.reshape(-1, 3), at, axis=0)  # (n, 3 px, 3 channels) uint8; take: ~8x indexing's speed
+    change = on.astype(np.int16)
+    change -= np.take(sig.texture.reshape(-1, 3), at, axis=0)
+    rise = change[:, 0] + change[:, 1] + change[:, 2]  # (n, 3): 3 x the mean rise of blue, green, red
+    red = on[:, :, 2]
+    clipped = np.maximum(np.maximum(red[:, 0], red[:, 1]), red[:, 2]) >= saturation
+    return (np.maximum(rise[:, 0], rise[:, 1]) <= LASER_OFF_OTHER_RISE_RATIO * rise[:, 2]) | clipped
 
 
 @lru_cache(maxsize=16)
@@ -731,6 +760,64 @@ def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: Extracto
     return out
 
 
+def _search_rows(sig: LaserSignal, rows: AnyArray, params: ExtractorParams, known: dict[str, Any] | None,
+                 on_red: bool, check_red: bool) -> tuple[dict[str, Any] | None, int]:
+    """Full-row search of ``rows`` (the line's other rows ``known``, for continuity): their `_keep` chunk (None
+    where none was found) and how many rows were ambiguous."""
+    half, width = params.refine_half_px, sig.width
+    # strong rows only: on a frame where the line has left the object, most pending rows are lit
+    # skin or background without it, and they need no second-peak search nor a decision
+    cand = row_candidates(sig.rows(rows, reuse=True), rows, half, params.min_contrast, strong_only=True,
+                          scratch=True, local=not sig.colour)
+    known_rows = known["v"].astype(np.int64) if known is not None else _NO_ROWS
+    known_cols = known["u"] if known is not None else _NO_COLS
+    pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
+                  known_rows, known_cols, 2 * params.coarse_step_rows)
+    ambiguous = int(np.count_nonzero(pick.ambiguous))
+    ok = pick.column >= 0
+    rows_f = cand.rows[ok]
+    if not rows_f.size:
+        return None, ambiguous
+    column = pick.column[ok]
+    if half <= column.min() and column.max() <= width - 1 - half:
+        fit = _refine_columns(sig, rows_f, column, params, width, on_red, check_red)
+    else:  # some window is cut by the border: shifted inside the image, edge samples repeated
+        s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
+        fit = _refine(s, red, first, column - first, params, width, on_red=on_red, check_red=check_red)
+    return _keep(rows_f, fit, pick.uniqueness[ok]), ambiguous
+
+
+def _merge(chunks: list[dict[str, Any]]) -> tuple[dict[str, Any], tuple[str, ...]]:
+    """`_keep` chunks as one set of per-row arrays by row, and their names ("v", `_FIELDS`, the flags some row has)."""
+    # a per-row flag travels with the rows only when some row has it (`explain_rows`)
+    flags = tuple(f for f in _FLAGS if any(c.get(f) is not None and np.any(c[f]) for c in chunks))
+    for flag in flags:
+        for c in chunks:
+            if c.get(flag) is None:
+                c[flag] = np.zeros(c["v"].size, bool)
+    names = ("v", *_FIELDS, *flags)
+    if len(chunks) == 1:
+        return chunks[0], names
+    if chunks:
+        order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
+        return {name: np.concatenate([c[name] for c in chunks])[order] for name in names}, names
+    return {name: np.zeros(0, np.float32) for name in names}, names
+
+
+def _clean(sig: LaserSignal, found: dict[str, Any], names: tuple[str, ...], params: ExtractorParams
+           ) -> tuple[dict[str, Any], int, int]:
+    """``found`` without the rows of a changed scene (`_red_change`) and the weak isolated rows (`drop_isolated`),
+    and how many of each were dropped."""
+    changed = 0
+    if sig.texture is not None and sig.colour and found["v"].size and LASER_OFF_OTHER_RISE_RATIO > 0.0:
+        keep = _red_change(sig, found["v"].astype(np.int64), found["u"], params.saturation_level)
+        if not keep.all():
+            changed = int(keep.size - np.count_nonzero(keep))
+            found = {name: found[name][keep] for name in names}
+    found, isolated = drop_isolated(found, params.min_contrast, sig.height, names)
+    return found, changed, isolated
+
+
 def one_opencv_thread() -> None:
     """Run OpenCV on one thread in this process, as every process that extracts laser lines does.
 
@@ -758,8 +845,6 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     params = params or ExtractorParams()
     sig = LaserSignal(image, texture)
     height, width = sig.height, sig.width
-    if sig.texture is not None and params.max_width_px < LASER_OFF_MAX_WIDTH_PX and params.method != THESIS:
-        params = _laser_off_params(params)
     if params.method == THESIS:
         line = thesis_detector(sig.image, params.red_threshold, params.blue_threshold)
         return LaserLineResult(method=THESIS, image_width=width, image_height=height, u=line.u, v=line.v,
@@ -784,6 +869,9 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)
         if threshold < params.min_contrast:
             params = _at_contrast(params, threshold)
+    wide = None
+    if sig.texture is not None and params.max_width_px < LASER_OFF_MAX_WIDTH_PX:
+        wide = _laser_off_params(params)
     chunks: list[dict[str, Any]] = []
     full_searched = 0
     pending: AnyArray | None = None  # None = every row
@@ -822,46 +910,41 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         pending = pending[sig.may_hold_laser(pending, params.min_contrast)]
     if pending.size:
         full_searched += pending.size
-        # strong rows only: on a frame where the line has left the object, most pending rows are lit
-        # skin or background without it, and they need no second-peak search nor a decision
-        cand = row_candidates(sig.rows(pending, reuse=True), pending, half, params.min_contrast, strong_only=True,
-                              scratch=True, local=not sig.colour)
-        known_rows = chunks[0]["v"] if chunks else _NO_ROWS
-        known_cols = chunks[0]["u"] if chunks else _NO_COLS
-        pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
-                      known_rows, known_cols, 2 * step)
-        ambiguous = int(np.count_nonzero(pick.ambiguous))
-        ok = pick.column >= 0
-        rows_f = cand.rows[ok]
-        if rows_f.size:
-            column = pick.column[ok]
-            if half <= column.min() and column.max() <= width - 1 - half:
-                fit = _refine_columns(sig, rows_f, column, params, width, on_red, check_red)
-            else:  # some window is cut by the border: shifted inside the image, edge samples repeated
-                s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
-                fit = _refine(s, red, first, column - first, params, width, on_red=on_red, check_red=check_red)
-            chunks.append(_keep(rows_f, fit, pick.uniqueness[ok]))
-    grown = 0
-    if params.grow_wide and chunks and sum(c["v"].size for c in chunks) < height:
-        more = _grow_along(sig, chunks, params, width, on_red, check_red)
-        grown = sum(c["v"].size for c in more)
-        chunks += more
+        known = chunks[0] if chunks else None
+        searched, ambiguous = _search_rows(sig, pending, params, known, on_red, check_red)
+        if searched is not None:
+            chunks.append(searched)
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
-    # a per-row flag travels with the rows only when some row has it (`explain_rows`)
-    flags = tuple(f for f in _FLAGS if any(c.get(f) is not None and np.any(c[f]) for c in chunks))
-    for flag in flags:
-        for c in chunks:
-            if c.get(flag) is None:
-                c[flag] = np.zeros(c["v"].size, bool)
-    names = ("v", *_FIELDS, *flags)
-    if len(chunks) == 1:
-        found = chunks[0]
-    elif chunks:
-        order = np.argsort(np.concatenate([c["v"] for c in chunks]), kind="stable")
-        found = {name: np.concatenate([c[name] for c in chunks])[order] for name in names}
-    else:
-        found = {name: np.zeros(0, np.float32) for name in names}
-    found, isolated = drop_isolated(found, params.min_contrast, height, names)
+    found, names = _merge(chunks)
+    found, changed, isolated = _clean(sig, found, names, params)
+    grown = 0
+    # grown from the rows that stay (a weak isolated row is noise: grown, it would no longer look isolated)
+    if params.grow_wide and 0 < found["v"].size < height:
+        more = _grow_along(sig, [found], params, width, on_red, check_red)
+        if more:
+            grown = sum(c["v"].size for c in more)
+            saturated += sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in more)
+            found, names = _merge([found, *more])
+            found, changed_grown, isolated_grown = _clean(sig, found, names, params)
+            changed, isolated = changed + changed_grown, isolated + isolated_grown
+    if wide is not None and found["v"].size < height:
+        # with a laser-off frame, the rows still without a line are searched once more for a wide one
+        missing = np.ones(height, bool)
+        missing[found["v"].astype(np.int64)] = False
+        pending = missing.nonzero()[0]
+        pending = pending[sig.may_hold_laser(pending, params.min_contrast)]
+        if pending.size:
+            full_searched += pending.size
+            wide_rows, _ = _search_rows(sig, pending, wide, found, False, False)
+            if wide_rows is not None:  # only the wide ones: a narrower row there was left out by the searches before
+                keep = wide_rows["width"] > params.max_width_px
+                wide_rows = {name: value if value is None else value[keep] for name, value in wide_rows.items()}
+            if wide_rows is not None and wide_rows["v"].size:
+                saturated += 0 if wide_rows["saturated"] is None else int(np.count_nonzero(wide_rows["saturated"]))
+                found, names = _merge([found, wide_rows])
+                found, changed_wide, isolated_wide = _clean(sig, found, names, params)
+                changed, isolated = changed + changed_wide, isolated + isolated_wide
+    flags = names[1 + len(_FIELDS):]
     # every field is a fresh float32 array (u: column + offset) except v, the row indices
     return LaserLineResult(
         method=params.method, image_width=width, image_height=height,
@@ -869,7 +952,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         peak=found["peak"].astype(np.float32, copy=False), width=found["width"].astype(np.float32, copy=False),
         quality=found["quality"].astype(np.float32, copy=False),
         rows_searched=height, rows_ambiguous=ambiguous, rows_saturated=saturated, rows_full_search=full_searched,
-        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {})},
+        extra={**({"rows_isolated": isolated} if isolated else {}), **({"rows_grown": grown} if grown else {}),
+               **({"rows_scene_changed": changed} if changed else {})},
         saturated=found["saturated"].astype(bool, copy=False) if "saturated" in flags else None,
         skewed=found["skewed"].astype(bool, copy=False) if "skewed" in flags else None)
 

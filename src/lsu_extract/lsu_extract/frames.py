@@ -36,7 +36,7 @@ class FrameExtractor:
     buffer is reused after its callback); False where the buffers stay as they are (a mapped bag file).
     """
 
-    def __init__(self, params: ExtractorParams, background: str = "none", copy_frames: bool = True) -> None:
+    def __init__(self, params: ExtractorParams, background: str = "texture", copy_frames: bool = True) -> None:
         if background not in BACKGROUNDS:
             raise ValueError(f"background '{background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
         self.params = params

@@ -6,11 +6,12 @@ the matcher pairs left and right by stamp. A frame it cannot read (unsupported e
 size different from the first frame of that camera, a short buffer) is dropped with one
 error line per distinct problem and an ERROR status on ``/diagnostics``; the node keeps running.
 
-With ``background: texture`` it also follows ``scan/events``: the laser-off pair that a scan's
+With ``background: texture`` (the default) it also follows ``scan/events``: the laser-off pair that a scan's
 TEXTURE event names (by stamp, among the last `lsu_extract.frames.FRAMES_KEPT` frames of each camera, or the next
 ones) becomes the background of that scan's frames: the extractor's signal is then the
 difference from it (ambient light and red objects cancel). A new scan starts without one, and
-until the pair is in, frames are extracted without it.
+until the pair is in, frames are extracted without it: a stop-snap scan takes its pair before the
+first snap, so every snap has it; a sweep takes it after the sweep, so its frames are extracted alone.
 """
 
 from __future__ import annotations
@@ -112,9 +113,9 @@ class LaserExtractorNode(LsuNode):
         for spec in fields(ExtractorParams):
             value = getattr(defaults, spec.name)
             self.declare_parameter(spec.name, value, descriptor(Param(value, *_DESCRIPTIONS[spec.name])))
-        self.declare_parameter("background", "none", ParameterDescriptor(
-            description="none: each frame alone; texture: minus the laser-off frame of the scan's TEXTURE event "
-                        "(ambient light and red objects cancel)"))
+        self.declare_parameter("background", "texture", ParameterDescriptor(
+            description="texture: minus the laser-off frame of the scan's TEXTURE event once it is in (ambient light "
+                        "and red objects cancel; frames before it, and a sweep's, alone); none: each frame alone"))
         background = str(self.get_parameter("background").value)
         if background not in BACKGROUNDS:
             raise ValueError(f"background '{background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")

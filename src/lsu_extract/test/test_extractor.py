@@ -6,6 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from lsu_common.arrays import AnyArray
+from lsu_extract import extractor as extractor_module
 from lsu_extract.detectors import METHODS
 from lsu_extract.extractor import (
     DEFAULT_METHOD,
@@ -131,6 +132,27 @@ def test_texture_frame_cancels_a_red_background():
     result = extract_laser_line(image, texture=texture)
     assert len(result) == image.shape[0]
     assert np.sqrt(np.mean(errors(result, truth) ** 2)) <= 0.1
+
+
+def test_a_scene_change_between_the_laser_off_frame_and_the_snap_is_not_taken_for_the_laser(monkeypatch):
+    # the laser in rows 0..239; in rows 240..479 something skin-coloured moved in between the two frames (a person
+    # walking behind): a 20 px wide brightening of every channel, red most (+80 / +45 / +35 DN in R / G / B), which
+    # passes red's rise less the larger of green's and blue's (35 DN). Truth: where the line was drawn and the patch.
+    scene = LineScene(ambient=0.3, last_row=239, seed=11, texture_seed=11)
+    image, truth, visible = render_line(scene)
+    texture, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=12))
+    cols = np.arange(image.shape[1])
+    bump = np.exp(-0.5 * ((cols - 450.0) / 8.5) ** 2)
+    moved = image.astype(np.float32)
+    moved[240:] += bump[None, :, None] * np.array([35.0, 45.0, 80.0])[None, None, :]
+    image = np.clip(np.rint(moved), 0, 255).astype(np.uint8)
+    result = extract_laser_line(image, texture=texture)
+    rows = result.v.astype(int)
+    assert np.count_nonzero(visible[rows]) == np.count_nonzero(visible)  # every laser row
+    assert np.count_nonzero(~visible[rows]) == 0 and result.extra.get("rows_scene_changed", 0) > 100
+    assert np.max(np.abs(errors(result, truth))) < 0.5
+    monkeypatch.setattr(extractor_module, "LASER_OFF_OTHER_RISE_RATIO", 0.0)  # without the test: the patch is taken
+    assert np.count_nonzero(extract_laser_line(image, texture=texture).v >= 240) > 100
 
 
 @pytest.mark.parametrize("method", ["blais_rioux4", "blais_rioux8", "gaussian3", "com"])

@@ -138,12 +138,13 @@ def test_every_extractor_parameter_takes_effect_when_set_through_the_parameter_s
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
     new = {"method": "thesis", "min_contrast": 20.0, "contrast_sigmas": 4.0, "ambiguity_ratio": 0.5,
            "min_width_px": 2.0, "max_width_px": 20.0, "window_px": 16, "coarse_step_rows": 4, "saturation_level": 240,
-           "clipped_centre": "red", "adaptive_width_px": 7.0, "grow_wide": True, "red_rise_ratio": 0.3, "red_threshold": 120,
+           "clipped_centre": "red", "adaptive_width_px": 7.0, "grow_wide": False, "red_rise_ratio": 0.3, "red_threshold": 120,
            "blue_threshold": 90}
     cases = {name: (value, lambda name=name, value=value: getattr(extractor.params, name) == value)
              for name, value in new.items()}
-    cases["background"] = ("texture", lambda: extractor.background == "texture")
+    assert extractor.background == "texture"  # the default: the scan's laser-off pair once it is in
+    cases["background"] = ("none", lambda: extractor.background == "none")
     assert all(getattr(extractor.params, name) != value for name, value in new.items()), "pick values that change"
     ros_node.check_parameters(extractor, cases)
     refused = ros_node.set_parameter("/lsu/laser_extractor", "background", "sky")
-    assert not refused.successful and "must be one of" in refused.reason and extractor.background == "texture"
+    assert not refused.successful and "must be one of" in refused.reason and extractor.background == "none"

@@ -55,7 +55,10 @@ def test_a_clipped_line_with_crosstalk_is_centred_between_its_flanks_not_on_whol
 
 
 def test_a_frame_own_noise_threshold_finds_the_faint_line_a_fixed_30_dn_loses(globe):
-    now, fixed = score(globe), score(globe, ExtractorParams(contrast_sigmas=0.0))
+    # the threshold alone: grow_wide off in both (grown rows, on this frame alone, add daylight texture: 0.7 % false;
+    # bench/results/extract.json, *_images_alone)
+    now = score(globe, ExtractorParams(grow_wide=False))
+    fixed = score(globe, ExtractorParams(contrast_sigmas=0.0, grow_wide=False))
     assert now.clear_rows >= 3500
     assert now.missed_pct <= 0.6 * fixed.missed_pct
     assert now.false_pct <= fixed.false_pct + 0.5  # at the price of a few rows of daylight texture
@@ -70,11 +73,13 @@ def test_the_laser_off_frame_leaves_no_false_rows_on_static_pairs():
 
 def test_a_person_walking_behind_between_the_two_frames_gives_few_false_rows():
     # the laser adds red alone; the person changes every channel and mostly cancels (the goal is 0: not met). With a
-    # laser-off frame lines up to LASER_OFF_MAX_WIDTH_PX wide are accepted (the globe's wide rows, below), and so are
-    # the wide differences the person leaves where they moved (1.8 % of these rows with the single-frame width limit)
+    # laser-off frame lines up to LASER_OFF_MAX_WIDTH_PX wide are accepted (the globe's wide rows, below); the wide
+    # differences the person leaves where they moved pass the signal, but green or blue rose there by half of red's
+    # rise or more (LASER_OFF_OTHER_RISE_RATIO): ~5 % of these rows without that test. Left: 1 px wide rises of red
+    # alone near the right border (pair 25), ~1 % of the rows
     moving = devdata.box_images(pairs=devdata.BOX_MOVING_PAIRS)
     diff = score(moving, texture=True)
-    assert diff.false_pct <= 5.0
+    assert diff.false_pct <= 1.5
 
 
 def test_laser_off_frame_finds_the_globe_line_where_it_is_wide(globe):
