@@ -144,6 +144,10 @@ def prior_sweep(people: int = 8) -> dict[str, dict[str, float]]:
             errs.setdefault(tag, []).append(1000 * float(np.linalg.norm(P @ (w - identity_weights(seed)[:len(w)]))))
         out[name] = {f"vec_err_mm_{t}": float(np.median(e)) for t, e in errs.items()}
     ident.EXPRESSION_SIGMA = 0.5
+    # the reference: no fit at all (the mean face, all weights 0)
+    out["mean_face_no_fit"] = {f"vec_err_mm_{t}": float(np.median([1000 * np.linalg.norm(
+        P @ identity_weights(seed)[:len(b0.identity)]) for tg, blob, seed in jobs if tg == t and blob]))
+        for t in ("exact_filler", "tof_enrol", "tof_probe")}
     return out
 
 
@@ -364,6 +368,7 @@ def main() -> None:
                                          + results["sensors"]["rig"]["rank"][n][key], n))  # type: ignore[index]
         choice[family.rstrip("_")] = best
     results["chosen_on_select_half"] = choice
+    RESULT.write_text(json.dumps(results, indent=1, sort_keys=True) + "\n")
     results["fit_variant_sweep"] = prior_sweep()
     results["wall_s"] = time.perf_counter() - t_start
     results["host"] = "2 cores shared with 4 other agents: times are inflated"
