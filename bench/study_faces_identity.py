@@ -37,8 +37,10 @@ Tuning honesty: the test people are split in halves by index (first half "select
 the variant and fusion weight are chosen on the select half only, and the report half's figures of that
 choice are given beside the full population's.
 
-Run: ``.venv/bin/python bench/study_faces_identity.py`` (seeded, deterministic; fits cached in
-``~/.cache/lsu/study_faces_identity``). Writes ``bench/results/study_faces_identity.json``.
+Run: ``.venv/bin/python bench/study_faces_identity.py`` (seeded, deterministic: a second run gives the same
+figures; fits cached in ``~/.cache/lsu/study_faces_identity``; the first run fits ~1,300 maps, about 15 min on a
+loaded 2-core host). ``LSU_STUDY_NS`` (default 20,100,1000) sets the gallery sizes, ``LSU_STUDY_VARIANTS`` adds fit
+variants to the ranking (each refits every map; the sweep below covers them all cheaply). Writes ``bench/results/study_faces_identity.json``.
 """
 
 from __future__ import annotations
@@ -249,6 +251,14 @@ def main() -> None:
             if recalled is not None:
                 recall_hits.setdefault(name, {}).setdefault(N, []).append(recalled)
 
+        def fine(probe: tuple[int, int], cand: list[int], d_today: dict[int, float]) -> int:
+            """Today's fine stage over ``cand`` (distances kept in ``d_today``, computed once): the best entry."""
+            new = [e for e in cand if e not in d_today]
+            if new:
+                for e, f in zip(new, compare_many(sigs[probe], [gallery_sigs[e] for e in new])):
+                    d_today[e] = f[1]
+            return min(cand, key=lambda e: (d_today[e], e))
+
         probe_order: list[tuple[int, int]] = []
         for N in NS:
             n = min(N, len(all_ids))   # a refused enrolment: N - 1 entries (as the bench)
@@ -290,23 +300,13 @@ def main() -> None:
                 # fusion: identity first stage, today's fine stage
                 did = id_dist(vname, "vec", probe, n)
                 cand_id = [int(e) for e in np.argsort(did, kind="stable")[:FIRST_STAGE + 1]]
-                new = [e for e in cand_id if e not in d_today]
-                if new:
-                    for e, f in zip(new, compare_many(sigs[probe], [gallery_sigs[e] for e in new])):
-                        d_today[e] = f[1]
-                best = min(cand_id, key=lambda e: (d_today[e], e))
-                note("fuse_idfirst", N, probe, best == true, true in cand_id)
+                note("fuse_idfirst", N, probe, fine(probe, cand_id, d_today) == true, true in cand_id)
                 union = sorted(set(cand) | set(cand_id))
                 # controls: the union's (or as many compact candidates') gain without the identity score
                 best = min(union, key=lambda e: (d_today[e], e))
                 note("control_union_today", N, probe, best == true, true in union)
                 wide = [e for e, _ in sub.search(compact_vector(sigs[probe]), len(union))]
-                new = [e for e in wide if e not in d_today]
-                if new:
-                    for e, f in zip(new, compare_many(sigs[probe], [gallery_sigs[e] for e in new])):
-                        d_today[e] = f[1]
-                best = min(wide, key=lambda e: (d_today[e], e))
-                note("control_wide_today", N, probe, best == true, true in wide)
+                note("control_wide_today", N, probe, fine(probe, wide, d_today) == true, true in wide)
                 for w, label in [(w, f"fuse_z{w}") for w in FUSE_WEIGHTS]:
                     score = {e: (np.log(d_today[e]) - zt[0]) / zt[1] + w * (np.log(did[e]) - zi[0]) / zi[1]
                              for e in union}
