@@ -307,7 +307,7 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
 
     The frames are read from the bag first (not timed); then per snap: the two images read from
     their CDR buffers (lsu_extract.image), two extractions with the replay launch file's extractor
-    parameters, matching + triangulation (lsu_reconstruct.pipeline.reconstruct_snap) with its
+    parameters (against the scan's laser-off pair with its `background: texture`), matching + triangulation (lsu_reconstruct.pipeline.reconstruct_snap) with its
     matcher parameters and calibration; and once per scan what the matcher computes for its cloud:
     colours from the laser-off frame, the snaps merged, the grazing points dropped (colour_at,
     merge_snaps, drop_grazing): the functions the nodes call. The median of ``passes``
@@ -339,23 +339,26 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
     for m in read_messages(bag, ["/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
         frames.setdefault(struct.unpack_from("<iI", m.data, 4), {})[m.topic.split("/")[-2]] = m.data
     pairs = [(f["left"], f["right"]) for _, f in sorted(frames.items()) if len(f) == 2]
-    texture = None  # the left laser-off frame the scan's TEXTURE event names
+    off: dict = {}  # the laser-off pair the scan's TEXTURE event names: the cloud's colours (left), and the
+    #                 extractor's background with `background: texture`, as the nodes use it
     for m in read_messages(bag, ["/lsu/scan/events"]):
         event = deserialize_ros(m)
         if event.type == event.TEXTURE:
-            raw = frames.get((event.image_stamp.sec, event.image_stamp.nanosec), {}).get("left")
-            if raw is not None:
+            for side, raw in frames.get((event.image_stamp.sec, event.image_stamp.nanosec), {}).items():
                 msg = parse_image_cdr(raw)
-                texture = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
+                off[side] = decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step)
+    texture = off.get("left")
+    background = off if ext.get("background", "none") == "texture" else {}
 
-    def line(raw: bytes) -> LineArrays:
+    def line(raw: bytes, side: str) -> LineArrays:
         msg = parse_image_cdr(raw)
-        r = extract_laser_line(decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step), params)
+        r = extract_laser_line(decode_image(msg.data, msg.width, msg.height, msg.encoding, msg.step), params,
+                               texture=background.get(side))
         return LineArrays(u=r.u, v=r.v, peak=r.peak, width=r.width, quality=np.clip(r.quality, 0.0, 1.0),
                           image_width=r.image_width, image_height=r.image_height)
 
     def one_pass() -> int:
-        snaps = [reconstruct_snap(model, line(left), line(right), match) for left, right in pairs]
+        snaps = [reconstruct_snap(model, line(left, "left"), line(right, "right"), match) for left, right in pairs]
         if texture is not None:
             for snap in snaps:
                 snap.rgb = colour_at(texture, snap.u, snap.v)
