@@ -167,20 +167,25 @@ def face_sweeps(model, sheet, geometry, objects: Sequence, kind: str = "standing
         messages[name], points[name] = result.messages, len(xyz)
         return result.signature
 
-    def sweep(kind: str, seed: int) -> MotionScan:
-        return motion_scan(model, sheet, geometry, objects, kind, seed=seed, rate_steps_s=rate_steps_s, start=lo,
-                           end=hi)
+    def still_sweep(seed: int) -> AnyArray:
+        # the same render and reconstruction as `motion_scan`'s, without the motion measurement (images kept,
+        # dense flows) that a still subject does not need
+        from .sweep_sim import reconstruct_rendered, render_sweep
+
+        return reconstruct_rendered(model, sheet, render_sweep(geometry, objects, rate_steps_s, 30.0, lo, hi,
+                                                               seed=seed)).xyz
 
     messages: dict[str, list[str]] = {}
     points: dict[str, int] = {}
     lo, hi = face_range_steps(geometry, objects, FACE_SWEEP_MARGIN_M)
-    enrolment = signature(sweep("still", enrol_seed).raw_xyz, "enrolment")
+    enrolment = signature(still_sweep(enrol_seed), "enrolment")
     probes: dict[str, Any] = {}
     if still_probe:
-        probes["still"] = signature(sweep("still", probe_seed).raw_xyz, "still")
+        probes["still"] = signature(still_sweep(probe_seed), "still")
     flagged = False
     if moving_probe:
-        moving = sweep(kind, probe_seed)
+        moving = motion_scan(model, sheet, geometry, objects, kind, seed=probe_seed, rate_steps_s=rate_steps_s,
+                             start=lo, end=hi)
         probes["moving_raw"] = signature(moving.raw_xyz, "moving_raw")
         probes["moving_corrected"] = signature(moving.corrected_xyz, "moving_corrected")
         flagged = bool(moving.estimate.flagged)  # type: ignore[attr-defined]
