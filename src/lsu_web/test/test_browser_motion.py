@@ -36,6 +36,7 @@ def graph(tmp_path_factory):
 
 def test_the_page_says_hold_still_when_a_sweep_is_scanned_again(graph):
     page = open_page(graph)
+    page.select_option("select[name=mode]", "sweep")  # shows the sweep's own fields
     page.fill("input[name=sweep_rate]", str(RATE))
     page.uncheck("input[name=texture]")  # as test_motion_graph's `lsu scan --no-texture`
     start_scan(page, START, END, 1, "moving", mode="sweep")
