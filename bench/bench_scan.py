@@ -1194,13 +1194,15 @@ def motion_face_person(seed: int) -> dict:
 def motion_face_figures() -> dict:
     """Rank-1 identification of still and standing (raw, corrected) sweep probes against still sweep enrolments."""
     import numpy as np
-    from bench_faces import POP_SEED, _parallel
+    from bench_faces import POP_SEED, POP_WORKERS, _parallel
 
     from lsu_faces.gallery import Gallery
     from lsu_faces.signature import Signature, compare
 
     started = time.monotonic()
-    people = _parallel(motion_face_person, [POP_SEED + i for i in range(MOTION_FACES_N)])
+    seeds = [POP_SEED + i for i in range(MOTION_FACES_N)]
+    # a pool per POP_WORKERS people: they finish in order, each cached, so a run cut short leaves its first people
+    people = [p for k in range(0, len(seeds), POP_WORKERS) for p in _parallel(motion_face_person, seeds[k:k + POP_WORKERS])]
     out: dict = {}
     with tempfile.TemporaryDirectory(prefix="lsu-bench-motion-faces-") as tmp:
         gallery = Gallery(Path(tmp) / "gallery.db")
