@@ -1139,12 +1139,15 @@ MOTION_FACES_NOTES = (
     "fresh lsu_faces Gallery, each probe identified by Gallery.identify: motion_face_rank1_pct_<probe> = probes "
     "whose nearest name is their own (a probe without a face counts as a miss); "
     "motion_face_rank1_standing_corrected_minus_still (goal >= 0: corrected standing identified as well as still); "
+    "motion_face_accepted_pct_<probe>: probes identified as their own person and accepted by the gallery's open-set "
+    "rule at its default false-accept rate (lsu face identify's exit 0); "
     "motion_face_genuine_mm_<probe>: median full-comparison distance of a probe to its own enrolment; "
     "motion_face_corrected_nearer_pct: people whose corrected standing probe is nearer their enrolment than the raw "
     "one; motion_face_flagged_pct: standing sweeps flagged beyond correction; motion_faces_bench_s: this part's "
     "wall time (bench_faces' pool of POP_WORKERS processes, a host shared with other jobs).")
 MOTION_FACE_PROBES = {"still": "still", "moving_raw": "standing_raw", "moving_corrected": "standing_corrected"}
 MOTION_FACES_UNITS = {**{f"motion_face_rank1_pct_{n}": "%" for n in MOTION_FACE_PROBES.values()},
+                      **{f"motion_face_accepted_pct_{n}": "%" for n in MOTION_FACE_PROBES.values()},
                       **{f"motion_face_genuine_mm_{n}": "mm" for n in MOTION_FACE_PROBES.values()},
                       "motion_face_rank1_standing_corrected_minus_still": "pct points",
                       "motion_face_corrected_nearer_pct": "%", "motion_face_flagged_pct": "%",
@@ -1211,16 +1214,19 @@ def motion_face_figures() -> dict:
             gallery.enroll(str(seed), sig)
         genuine: dict = {}
         for probe, name in MOTION_FACE_PROBES.items():
-            hits = []
+            hits, accepted = [], []
             for p in people:
                 sig = Signature.from_bytes(p[probe]) if p[probe] else None
                 if sig is None or p["seed"] not in enrolled:
                     hits.append(False)
+                    accepted.append(False)
                     continue
-                matches = gallery.identify(sig, max_results=len(enrolled)).matches
-                hits.append(bool(matches) and matches[0].name == str(p["seed"]))
+                found = gallery.identify(sig, max_results=len(enrolled))
+                hits.append(bool(found.matches) and found.matches[0].name == str(p["seed"]))
+                accepted.append(hits[-1] and found.accepted)
                 genuine.setdefault(probe, {})[p["seed"]] = compare(sig, enrolled[p["seed"]])[1] * 1000.0
             out[f"motion_face_rank1_pct_{name}"] = 100.0 * float(np.mean(hits))
+            out[f"motion_face_accepted_pct_{name}"] = 100.0 * float(np.mean(accepted))
             out[f"motion_face_genuine_mm_{name}"] = float(np.median(list(genuine.get(probe, {}).values()) or [np.nan]))
     raw, corrected = genuine.get("moving_raw", {}), genuine.get("moving_corrected", {})
     both = [s for s in raw if s in corrected]
