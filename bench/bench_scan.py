@@ -9,6 +9,7 @@
     .venv/bin/python bench/bench_scan.py --only person_stopsnap (only part 8: stop-snap of a realistic person, no ROS)
     .venv/bin/python bench/bench_scan.py --only motion          (only part 9: a living subject, no ROS)
     .venv/bin/python bench/bench_scan.py --only motion_live     (only part 9's live 60 fps sweep)
+    .venv/bin/python bench/bench_scan.py --only motion_faces    (only part 10: faces of moving people, no ROS)
     .venv/bin/python bench/bench_scan.py --only replay [--bag DIR]   (only part 2, on a simulated scan bag
                                                                       unless a bag is given)
 
@@ -51,6 +52,9 @@
    off the true surface (stopsnap_points_over_1mm_pct), and the adaptive settle against the fixed one on the same
    scene and frames (adaptive_settle_rms_over_fixed, adaptive_settle_time_over_fixed).
 9. A living subject (`--only motion`, `--only motion_live`): see MOTION_NOTES.
+10. Faces of a living subject (`--only motion_faces`, no ROS; LSU_BENCH_MOTION_FACES_N people, default 20): face
+   identification rank-1 of still and standing (raw, corrected) sweeps against still sweep enrolments, see
+   MOTION_FACES_NOTES.
 """
 
 from __future__ import annotations
@@ -1137,6 +1141,122 @@ def motion_figures() -> dict:
     return out
 
 
+# faces of a living subject (issue 36): identification on corrected standing sweeps against still ones
+MOTION_FACES_N = int(os.environ.get("LSU_BENCH_MOTION_FACES_N", "20"))
+MOTION_FACES_NOTES = (
+    " motion_faces (`--only motion_faces`, no ROS; lsu_accuracy.motion_sim.face_sweeps): face identification on sweeps "
+    f"of moving people: {MOTION_FACES_N} people of the face model (ICT, MIT; the face bench's population seeds "
+    "bench_faces.POP_SEED.., never used for tuning; scene person:ict:SEED, neutral, frontal), each swept over the face "
+    "range widened by motion_sim.FACE_SWEEP_MARGIN_M (20 mm: the nose finder needs the face around the nose) at "
+    "the face sweep's rate and 30 fps: an enrolment from a still sweep (render seed 2 i), then probes of a "
+    "second sweep (render and motion seed 2 i + 1): still, and standing (lsu_sim.motion) as reconstructed (raw) and "
+    "as corrected. Every cloud through lsu face's pipeline (lsu_faces.pipeline.process_cloud), the enrolments in a "
+    "fresh lsu_faces Gallery, each probe identified by Gallery.identify: motion_face_rank1_pct_<probe> = probes "
+    "whose nearest name is their own (a probe without a face counts as a miss); "
+    "motion_face_rank1_standing_corrected_minus_still (goal >= 0: corrected standing identified as well as still); "
+    "motion_face_accepted_pct_<probe>: probes identified as their own person and accepted by the gallery's open-set "
+    "rule at its default false-accept rate (lsu face identify's exit 0); "
+    "motion_face_genuine_mm_<probe>: median full-comparison distance of a probe to its own enrolment; "
+    "motion_face_corrected_nearer_pct: people whose corrected standing probe is nearer their enrolment than the raw "
+    "one; motion_face_flagged_pct: standing sweeps flagged beyond correction; motion_faces_bench_s: this part's "
+    "wall time (bench_faces' pool of POP_WORKERS processes, a host shared with other jobs).")
+MOTION_FACE_PROBES = {"still": "still", "moving_raw": "standing_raw", "moving_corrected": "standing_corrected"}
+MOTION_FACES_UNITS = {**{f"motion_face_rank1_pct_{n}": "%" for n in MOTION_FACE_PROBES.values()},
+                      **{f"motion_face_accepted_pct_{n}": "%" for n in MOTION_FACE_PROBES.values()},
+                      **{f"motion_face_genuine_mm_{n}": "mm" for n in MOTION_FACE_PROBES.values()},
+                      "motion_face_rank1_standing_corrected_minus_still": "pct points",
+                      "motion_face_corrected_nearer_pct": "%", "motion_face_flagged_pct": "%",
+                      "motion_face_people": "people", "motion_face_refused_pct": "%", "motion_faces_bench_s": "s"}
+
+
+def motion_face_person(seed: int) -> dict:
+    """One person's signatures (bytes, b"" where no face was found): still enrolment, still and standing probes;
+    cached by content in bench_faces' cache (the code of the sweeps, the motion and the face pipeline)."""
+    import hashlib
+    import importlib
+    import pickle
+
+    from bench_faces import CACHE, POP_SEED, _code_tag
+
+    h = hashlib.sha256(f"motion-face-{seed}-{_code_tag()}-{FACE_SWEEP_RATE}".encode())
+    for mod in ("lsu_accuracy.motion_sim", "lsu_accuracy.sweep_sim", "lsu_reconstruct.motion", "lsu_reconstruct.sweep",
+                "lsu_sim.motion", "lsu_faces.pipeline"):
+        h.update(Path(importlib.import_module(mod).__file__ or "").read_bytes())
+    cached = CACHE / f"motion-face-{h.hexdigest()[:24]}.pkl"
+    if cached.is_file():
+        return pickle.loads(cached.read_bytes())  # noqa: S301 (this benchmark's own cache)
+
+    from lsu_accuracy.motion_sim import face_sweeps
+    from lsu_config import config_dir
+    from lsu_reconstruct.laser_sheet import read_laser_yaml
+    from lsu_reconstruct.stereo import StereoModel
+    from lsu_sim import build_scene, load_rig
+
+    calib = config_dir() / "calibration" / "sim"
+    geometry = load_rig()
+    t0 = time.monotonic()
+    index = seed - POP_SEED
+    found = face_sweeps(StereoModel.from_folder(calib), read_laser_yaml(calib / "laser.yaml"), geometry,
+                        build_scene(f"person:ict:{seed}", geometry), "standing", enrol_seed=2 * index,
+                        probe_seed=2 * index + 1, rate_steps_s=FACE_SWEEP_RATE)
+    print(f"[motion faces] person {seed}: {time.monotonic() - t0:.0f} s, flagged {found.flagged}, points "
+          f"{found.points}, {[k for k, v in found.probes.items() if v is None]} without a face", flush=True)
+    out = {"seed": seed, "enrolment": found.enrolment.to_bytes() if found.enrolment is not None else b"",
+           "flagged": found.flagged,
+           **{name: sig.to_bytes() if sig is not None else b"" for name, sig in found.probes.items()}}
+    CACHE.mkdir(parents=True, exist_ok=True)
+    cached.write_bytes(pickle.dumps(out))
+    return out
+
+
+def motion_face_figures() -> dict:
+    """Rank-1 identification of still and standing (raw, corrected) sweep probes against still sweep enrolments."""
+    import numpy as np
+    from bench_faces import POP_SEED, POP_WORKERS, _parallel
+
+    from lsu_faces.gallery import Gallery
+    from lsu_faces.signature import Signature, compare
+
+    started = time.monotonic()
+    seeds = [POP_SEED + i for i in range(MOTION_FACES_N)]
+    # a pool per POP_WORKERS people: they finish in order, each cached, so a run cut short leaves its first people
+    people = [p for k in range(0, len(seeds), POP_WORKERS) for p in _parallel(motion_face_person, seeds[k:k + POP_WORKERS])]
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="lsu-bench-motion-faces-") as tmp:
+        gallery = Gallery(Path(tmp) / "gallery.db")
+        enrolled = {p["seed"]: Signature.from_bytes(p["enrolment"]) for p in people if p["enrolment"]}
+        for seed, sig in enrolled.items():
+            gallery.enroll(str(seed), sig)
+        genuine: dict = {}
+        for probe, name in MOTION_FACE_PROBES.items():
+            hits, accepted = [], []
+            for p in people:
+                sig = Signature.from_bytes(p[probe]) if p[probe] else None
+                if sig is None or p["seed"] not in enrolled:
+                    hits.append(False)
+                    accepted.append(False)
+                    continue
+                found = gallery.identify(sig, max_results=len(enrolled))
+                hits.append(bool(found.matches) and found.matches[0].name == str(p["seed"]))
+                accepted.append(hits[-1] and found.accepted)
+                genuine.setdefault(probe, {})[p["seed"]] = compare(sig, enrolled[p["seed"]])[1] * 1000.0
+            out[f"motion_face_rank1_pct_{name}"] = 100.0 * float(np.mean(hits))
+            out[f"motion_face_accepted_pct_{name}"] = 100.0 * float(np.mean(accepted))
+            out[f"motion_face_genuine_mm_{name}"] = float(np.median(list(genuine.get(probe, {}).values()) or [np.nan]))
+    raw, corrected = genuine.get("moving_raw", {}), genuine.get("moving_corrected", {})
+    both = [s for s in raw if s in corrected]
+    out["motion_face_rank1_standing_corrected_minus_still"] = (out["motion_face_rank1_pct_standing_corrected"]
+                                                               - out["motion_face_rank1_pct_still"])
+    out["motion_face_corrected_nearer_pct"] = 100.0 * float(np.mean([corrected[s] < raw[s] for s in both])) \
+        if both else float("nan")
+    out["motion_face_flagged_pct"] = 100.0 * float(np.mean([p["flagged"] for p in people]))
+    out["motion_face_refused_pct"] = 100.0 * float(np.mean([not p[k] for p in people
+                                                            for k in ("enrolment", *MOTION_FACE_PROBES)]))
+    out["motion_face_people"] = float(len(enrolled))
+    out["motion_faces_bench_s"] = time.monotonic() - started
+    print("[motion faces] " + ", ".join(f"{k}={v:.3g}" for k, v in out.items()), flush=True)
+    return out
+
 def motion_live(tmp: Path) -> dict:
     """sweep_scan_s_60fps: a face sweep at 60 fps and twice the rate, live, beside one at 30 fps."""
     from lsu_scan.scanner import LsuScanner
@@ -1178,10 +1298,10 @@ def motion_live(tmp: Path) -> dict:
 def only(parts: set, bag: Path | None = None) -> int:
     """Measure only the named parts (`PARTS`; sweep = sweep_live + sweep_accuracy) and merge them into the existing scan.json."""
     unknown = parts - {"live", "replay", "view", "two_host", "settle", "sweep", "sweep_live", "sweep_accuracy", "web",
-                       "person_stopsnap", "motion", "motion_live"}
+                       "person_stopsnap", "motion", "motion_live", "motion_faces"}
     if unknown:
         raise SystemExit("--only takes live, replay, view, two_host, settle, sweep, sweep_live, sweep_accuracy, web, "
-                         "person_stopsnap, motion, motion_live (comma-separated); "
+                         "person_stopsnap, motion, motion_live, motion_faces (comma-separated); "
                          f"not {', '.join(sorted(unknown))}")
     claim = rosenv.isolate()
     figures: dict = {}
@@ -1215,6 +1335,8 @@ def only(parts: set, bag: Path | None = None) -> int:
                 figures.update(motion_figures())
             if "motion_live" in parts:
                 figures.update(motion_live(tmp))
+            if "motion_faces" in parts:
+                figures.update(motion_face_figures())
             if "two_host" in parts:
                 unavailable = why_unavailable()
                 if unavailable is not None:
@@ -1238,8 +1360,9 @@ def only(parts: set, bag: Path | None = None) -> int:
         measured["settle"] += f", scene {os.environ.get('LSU_BENCH_SETTLE_SCENE', 'head:7')}"
     if parts:
         write_result("scan", merged, {**old["units"], **LIVE_UNITS, **UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS,
-                                      **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS, **PERSON_UNITS, **MOTION_UNITS},
-                     notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES,
+                                      **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS, **PERSON_UNITS, **MOTION_UNITS,
+                                      **MOTION_FACES_UNITS},
+                     notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES + MOTION_FACES_NOTES,
                      extra={"measured": measured})
     if failure is not None:
         print(f"two_host figures not measured: {str(failure)[:2000]}", file=sys.stderr)
@@ -1265,7 +1388,7 @@ def main() -> int:
             sweep = {**sweep_live(tmp), **sweep_accuracy()}
             web = web_figures(tmp)
             web.update(person_stopsnap_figures())
-            motion = {**motion_figures(), **motion_live(tmp)}
+            motion = {**motion_figures(), **motion_live(tmp), **motion_face_figures()}
     finally:
         claim.release()
     write_result(
@@ -1273,10 +1396,10 @@ def main() -> int:
         {**live_figures(runs), **replays, **view_figures(runs), **two_host_figures(walls), **settle, **sweep, **web,
          **motion},
         {**LIVE_UNITS, **REPLAY_UNITS, **REPLAY_BEFORE_UNITS, **UNITS, **SETTLE_UNITS, **SWEEP_UNITS, **WEB_UNITS,
-         **PERSON_UNITS, **MOTION_UNITS},
-        notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES,
+         **PERSON_UNITS, **MOTION_UNITS, **MOTION_FACES_UNITS},
+        notes=NOTES + WEB_NOTES + PERSON_NOTES + MOTION_NOTES + MOTION_FACES_NOTES,
         extra={"measured": {part: measured_note("make bench-scan")
-                            for part in (*PARTS, "web", "person_stopsnap", "motion", "motion_live")
+                            for part in (*PARTS, "web", "person_stopsnap", "motion", "motion_live", "motion_faces")
                             if part != "two_host" or unavailable is None}})
     return 0
 

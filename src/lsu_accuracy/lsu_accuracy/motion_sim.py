@@ -6,6 +6,10 @@
 (`lsu_reconstruct.motion`). Its accuracy figures are against the true moving surface: the delivered cloud
 (raw or corrected) is in the subject's pose at the reference frame (the middle one), and its distance is
 taken to the person's meshes at that true pose (`MotionScan.rms_mm`).
+
+`face_sweeps`: the face signatures of a person's sweeps as `lsu face enroll`/`identify` make them
+(`lsu_faces.pipeline.process_cloud`): an enrolment from a still sweep, probes from a second still sweep and from a
+moving one (raw and corrected), for identification on moving subjects.
 """
 
 from __future__ import annotations
@@ -18,7 +22,13 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-__all__ = ["MotionScan", "motion_scan", "face_range_steps"]
+__all__ = ["MotionScan", "motion_scan", "face_range_steps", "FaceSweeps", "face_sweeps", "FACE_PROBES"]
+
+# the probes of `face_sweeps`: a second still sweep, the moving one as reconstructed and as corrected
+FACE_PROBES = ("still", "moving_raw", "moving_corrected")
+# `face_sweeps`' margin around the face's landmarks: the nose finder needs the cheeks and brow around the nose (the
+# landmarks' own range, 4 mm, leaves it no face to find)
+FACE_SWEEP_MARGIN_M = 0.02
 
 
 @dataclass
@@ -128,3 +138,55 @@ def motion_scan(model, sheet, geometry, objects: Sequence, kind: str, seed: int 
                             positions[k])
         scan.live_xyz, scan.live_record = sweep.correct(model, raw, frame_of, apply=correct)
     return scan
+
+
+@dataclass
+class FaceSweeps:
+    """A person's face signatures (`lsu_faces.signature.Signature`, None where the pipeline found no face) from
+    sweeps: ``enrolment`` (a still sweep) and ``probes`` by `FACE_PROBES`; ``messages`` the pipeline's words for
+    each, ``flagged`` whether the moving sweep was flagged beyond correction."""
+
+    enrolment: Any
+    probes: dict[str, Any]
+    messages: dict[str, list[str]]
+    flagged: bool
+    points: dict[str, int]
+
+
+def face_sweeps(model, sheet, geometry, objects: Sequence, kind: str = "standing", enrol_seed: int = 0,
+                probe_seed: int = 1, rate_steps_s: float = 57.1, still_probe: bool = True,
+                moving_probe: bool = True) -> FaceSweeps:
+    """Sweeps over the face of ``objects`` (`face_range_steps`, `FACE_SWEEP_MARGIN_M`): a still one with
+    ``enrol_seed`` (render noise) for the enrolment, then with ``probe_seed`` a still one (``still_probe``) and one
+    moving as ``kind`` (``moving_probe``; motion seed ``probe_seed``), each cloud taken through the face pipeline
+    `lsu face` uses. A probe not asked for is absent from ``probes``."""
+    from lsu_faces.pipeline import ProcessParams, process_cloud
+
+    def signature(xyz: AnyArray, name: str) -> Any:
+        result = process_cloud({c: xyz[:, k] for k, c in enumerate("xyz")}, ProcessParams())
+        messages[name], points[name] = result.messages, len(xyz)
+        return result.signature
+
+    def still_sweep(seed: int) -> AnyArray:
+        # the same render and reconstruction as `motion_scan`'s, without the motion measurement (images kept,
+        # dense flows) that a still subject does not need
+        from .sweep_sim import reconstruct_rendered, render_sweep
+
+        return reconstruct_rendered(model, sheet, render_sweep(geometry, objects, rate_steps_s, 30.0, lo, hi,
+                                                               seed=seed)).xyz
+
+    messages: dict[str, list[str]] = {}
+    points: dict[str, int] = {}
+    lo, hi = face_range_steps(geometry, objects, FACE_SWEEP_MARGIN_M)
+    enrolment = signature(still_sweep(enrol_seed), "enrolment")
+    probes: dict[str, Any] = {}
+    if still_probe:
+        probes["still"] = signature(still_sweep(probe_seed), "still")
+    flagged = False
+    if moving_probe:
+        moving = motion_scan(model, sheet, geometry, objects, kind, seed=probe_seed, rate_steps_s=rate_steps_s,
+                             start=lo, end=hi)
+        probes["moving_raw"] = signature(moving.raw_xyz, "moving_raw")
+        probes["moving_corrected"] = signature(moving.corrected_xyz, "moving_corrected")
+        flagged = bool(moving.estimate.flagged)  # type: ignore[attr-defined]
+    return FaceSweeps(enrolment, probes, messages, flagged, points)

@@ -53,6 +53,7 @@ from lsu_common.params import declare_parameters
 from lsu_interfaces.action import Scan
 from lsu_interfaces.msg import LaserLine, ScanEvent, ScannerState, StereoExposure
 from lsu_interfaces.srv import CaptureStereo, MoveTo, StreamStereo
+from lsu_reconstruct.motion import HOLD_STILL
 
 from .laser_guard import LaserGuard
 from .scan_bag import ScanBag, recover_killed_scans, storage_problem
@@ -208,7 +209,7 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
         while run.record.motion.get("flagged") and rescans > 0 and not run.canceled \
                 and not run.record.partial and not self.shutting_down:
             rescans -= 1
-            message = str(run.record.motion.get("message", "hold still, scanning again"))
+            message = str(run.record.motion.get("message", HOLD_STILL))
             moved.append(f"{message}: scan {run.scan_id} moved beyond correction "
                          f"({_motion_reasons(run.record.motion)})")
             self.get_logger().warning(moved[-1])

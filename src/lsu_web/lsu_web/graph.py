@@ -54,6 +54,7 @@ class ScanWatch:
     result_at: float = 0.0
     canceled_here: bool = False
     last_feedback: Any = None
+    notices_told: int = 0      # of the scanner's notices ("hold still, scanning again"), how many the page was sent
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -147,6 +148,12 @@ class WebGraph:
                                               "total": f["total"], "eta_s": None, "stage": "another client's scan",
                                               "points": None, "position": None}, latest_key="progress")
             return
+        # notices (the coordinator's "hold still, scanning again" before a rescan) are sent once each, apart from
+        # the progress: a progress message is replaced by the next one within a tick
+        notices = self.scanner.notices
+        for text in notices[w.notices_told:]:
+            self.outbox.publish(CONTROL, {"type": "notice", "text": text})
+        w.notices_told = len(notices)
         fb = self.scanner.get_feedback()
         if fb is not None and fb is not w.last_feedback:
             w.last_feedback = fb

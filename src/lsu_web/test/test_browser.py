@@ -8,7 +8,6 @@ file the server wrote. Set LSU_WEB_SCREENSHOTS=DIR to save the screenshots the R
 
 import json
 import os
-import socket
 import time
 import urllib.request
 from pathlib import Path
@@ -16,63 +15,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lsu_testing.browser import free_port, open_page, start_scan, web_sim_graph
 from lsu_testing.http import http
 from lsu_testing.plugin import LaunchedProcess
 
 pytestmark = pytest.mark.slow
-CHROMIUM = Path("/usr/bin/chromium")
 SHOTS = os.environ.get("LSU_WEB_SCREENSHOTS", "")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
-    if not CHROMIUM.is_file():
-        pytest.skip("no /usr/bin/chromium (make setup installs Debian's chromium)")
-    playwright_api = pytest.importorskip("playwright.sync_api")
     from lsu_scan.scanner import LsuScanner
 
     tmp = tmp_path_factory.mktemp("web")
-    port = free_port()
-    # capture and ack timeouts sized for a loaded 2-core host: this module tests the page, not the deadlines
     # a realistic person (the faces test enrols the page's scan) and a gallery of this module's own, open to
     # enrolment: the page then offers enrol and remove
-    proc = LaunchedProcess(["launch", "sim", f"port:={tmp / 'gp32'}", f"output_dir:={tmp / 'scans'}", "web:=true",
-                            f"web_port:={port}", "capture_timeout_s:=10.0", "ack_timeout_s:=60.0", "scene:=person:2",
-                            f"gallery:={tmp / 'gallery.db'}", "allow_enrolment:=true"])
-    scanner = None
-    try:
-        proc.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=90)
-        proc.wait_for_line(r"\[web_server\] lsu web: open (http://\S+)", timeout_s=90)
-        proc.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=90)
+    with web_sim_graph(tmp, "scene:=person:2", f"gallery:={tmp / 'gallery.db'}", "allow_enrolment:=true") as g:
         scanner = LsuScanner(wait_s=30)
-        with playwright_api.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox"])
-            yield {"proc": proc, "url": f"http://127.0.0.1:{port}/", "scans": tmp / "scans", "tmp": tmp,
-                   "scanner": scanner, "browser": browser, "gallery": tmp / "gallery.db"}
-            browser.close()
-    finally:
-        if scanner is not None:
+        try:
+            yield {**g, "scanner": scanner, "gallery": tmp / "gallery.db"}
+        finally:
             scanner.close()
-        proc.stop(timeout_s=15)
-
-
-def open_page(g, url=None):
-    page = g["browser"].new_page(viewport={"width": 1400, "height": 1000}, accept_downloads=True)
-    # "load" waits for the WebGL set-up too, which a loaded host's software GL may take tens of seconds for
-    page.goto(url or g["url"], wait_until="commit", timeout=60000)
-    try:
-        page.wait_for_function("window.lsu && window.lsu.connected && window.lsu.clientId > 0", timeout=120000)
-    except Exception:
-        web_lines = [line for line in g["proc"].output.splitlines() if "[web_server]" in line][-30:]
-        raise AssertionError(f"the page did not connect: window.lsu = {page.evaluate('JSON.stringify(window.lsu || null)')}"
-                             f"\nweb_server said:\n" + "\n".join(web_lines)) from None
-    return page
 
 
 def driver_laser_after(g, since: float, timeout_s: float = 20.0) -> bool:
@@ -97,18 +60,6 @@ def canvas_lit_pixels(page) -> int:
         const d = g.getImageData(0, 0, c.width, c.height).data; let n = 0;
         for (let i = 0; i < d.length; i += 4) if (Math.abs(d[i] - 16) + Math.abs(d[i+1] - 20) + Math.abs(d[i+2] - 28) > 30) n++;
         return n; }""")
-
-
-def start_scan(page, start: int, end: int, step: int, name: str, record_bag: bool = False, mode: str = "stopsnap") -> None:
-    page.select_option("select[name=mode]", mode)
-    page.fill("input[name=name]", name)
-    page.fill("input[name=start]", str(start))
-    page.fill("input[name=end]", str(end))
-    if mode == "stopsnap":  # the sweep's own fields (rate, frames) keep their defaults
-        page.fill("input[name=step]", str(step))
-    if record_bag:
-        page.check("input[name=record_bag]")
-    page.click("#btn-start")
 
 
 def test_scan_from_the_page_progress_points_mesh_and_ply_download(graph):

@@ -7,7 +7,8 @@ import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 
 const $ = (id) => document.getElementById(id);
 const lsu = window.lsu = { clientId: 0, pointsDrawn: 0, progressPct: 0, imagesShown: 0, linesDrawn: 0,
-                           lastResult: null, state: null, laserOn: null, meshLoaded: false, connected: false };
+                           lastResult: null, state: null, laserOn: null, meshLoaded: false, connected: false,
+                           notices: [] };
 
 // ---------------------------------------------------------------- tabs
 for (const b of document.querySelectorAll('#tabs button')) {
@@ -201,6 +202,7 @@ function onControl(m) {
   if (m.type === 'progress') { onProgress(m); return; }
   if (m.type === 'result') { onResult(m); return; }
   if (m.type === 'event') { onEvent(m); return; }
+  if (m.type === 'notice') { onNotice(m); return; }
   if (m.type === 'laser_hold') {
     if (m.seconds > 0) say($('laser-message'), `laser on for at most ${m.seconds} s`, 'info');
     else if (m.why_off) say($('laser-message'), `laser off: ${m.why_off}`, 'ok');
@@ -230,6 +232,12 @@ function onProgress(p) {
   $('progress-text').textContent = `${pct} %` + (p.eta_s != null ? ` · ETA ${p.eta_s.toFixed(1)} s` : '');
   $('progress-detail').textContent = `${p.stage}: ${p.done} / ${p.total}` + (p.position != null ? ` at ${p.position} steps` : '')
       + (p.points != null ? ` · ${p.points.toLocaleString()} points` : '');
+}
+// a notice from the scan coordinator (its words: "hold still, scanning again" before a rescan), shown until
+// the next scan starts from this page
+function onNotice(n) {
+  lsu.notices.push(n.text);
+  const el = $('scan-notice'); el.textContent = n.text; el.classList.remove('hidden');
 }
 function onEvent(e) {
   if (e.event === 'STARTED' || e.event === 'SWEEP_START') {
@@ -305,6 +313,7 @@ form.addEventListener('submit', async (ev) => {
                  fps: +form.fps.value, texture: form.texture.checked, record_bag: form.record_bag.checked };
   $('btn-start').disabled = true;
   say($('scan-message'), 'starting…', 'info');
+  $('scan-notice').classList.add('hidden'); $('scan-notice').textContent = ''; lsu.notices = [];
   clearPoints(); lsu.progressPct = 0; lsu.lastResult = null; $('progress-fill').style.width = '0'; $('progress-text').textContent = '0 %';
   $('result-card').classList.add('hidden');
   try { await api('POST', '/api/scan', goal); say($('scan-message'), 'scanning', 'info'); setRunning(true); }
