@@ -42,11 +42,13 @@ lint: setup
 #  2. the tests marked serial and the fault-injection tests, alone in one process.
 # Exit status 5 (no test selected) of one part is no failure: PYTEST_ARGS may name tests of one part only.
 PYTEST_WORKERS ?= 2
+# the slowest tests are named in the log of every run
+DURATIONS ?= --durations=30 --durations-min=5
 test: lint
 	cd $(ROOT) && par=0 && ser=0; \
-	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not serial and not fault" $(PYTEST_ARGS) \
+	$(VENV)/bin/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder $(DURATIONS) -m "not serial and not fault" $(PYTEST_ARGS) \
 		|| par=$$?; \
-	$(VENV)/bin/python -m pytest -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
+	$(VENV)/bin/python -m pytest $(DURATIONS) -m "serial or fault" $(PYTEST_ARGS) || ser=$$?; \
 	if [ $$par = 5 ] && [ $$ser = 5 ]; then exit 5; fi; \
 	for rc in $$par $$ser; do [ $$rc = 0 ] || [ $$rc = 5 ] || exit $$rc; done
 

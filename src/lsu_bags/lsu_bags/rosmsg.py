@@ -12,7 +12,6 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
 import yaml
 
 #: arrays longer than this are shortened when printed (like `ros2 topic echo` does)
@@ -62,6 +61,8 @@ def to_data(msg: Any, array_limit: int | None = None) -> Any:
     Arrays longer than ``array_limit`` keep their first items and end with a note
     ``'... N more'`` (``None``: no limit).
     """
+    import numpy as np  # here, not at the top: `lsu`'s launcher and short commands import this module, not numpy
+
     if _is_message(msg):
         return {name: to_data(getattr(msg, name), array_limit) for name in msg.get_fields_and_field_types()}
     if isinstance(msg, (list, tuple, array.array, np.ndarray)):

@@ -10,7 +10,7 @@ from lsu_cameras.calib_io import read_calibration_dir
 from lsu_cameras.calibration import BoardSpec, CalibrationError, calibrate_stereo, find_board, load_pairs
 from lsu_cameras.cli import cmd_calibrate
 from lsu_sim import load_rig
-from lsu_sim.boards import random_board_poses, render_board_pairs
+from lsu_testing.shared import board_pairs as shared_board_pairs
 
 BOARD = BoardSpec(9, 6, 0.020)
 
@@ -21,9 +21,9 @@ def geometry():
 
 
 @pytest.fixture(scope="module")
-def board_pairs(geometry):
-    poses = random_board_poses(geometry, 13, seed=21, square_m=BOARD.square_m)
-    return render_board_pairs(geometry, poses, seed=21, square_m=BOARD.square_m)
+def board_pairs(tmp_path_factory):
+    """13 varied views of the simulated rig: the first 13 of test_live's 14, rendered once per run."""
+    return shared_board_pairs(tmp_path_factory, 14, seed=21, square_m=BOARD.square_m)[:13]
 
 
 def check_against_truth(result, geometry):

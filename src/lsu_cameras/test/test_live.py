@@ -24,7 +24,7 @@ from lsu_cameras.live import (
 )
 from lsu_cameras.node import StereoCameraNode
 from lsu_sim import load_rig
-from lsu_sim.boards import random_board_poses, render_board_pairs
+from lsu_testing.shared import board_pairs as shared_board_pairs
 
 BOARD = BoardSpec(9, 6, 0.020)
 SIZE = (640, 480)
@@ -36,10 +36,9 @@ def geometry():
 
 
 @pytest.fixture(scope="module")
-def board_pairs(geometry):
-    """14 varied views of the simulated rig (~20 s to render: shared by every test here)."""
-    poses = random_board_poses(geometry, 14, seed=21, square_m=BOARD.square_m)
-    return render_board_pairs(geometry, poses, seed=21, square_m=BOARD.square_m)
+def board_pairs(tmp_path_factory):
+    """14 varied views of the simulated rig (~20 s to render: shared by every test here and test_calibration)."""
+    return shared_board_pairs(tmp_path_factory, 14, seed=21, square_m=BOARD.square_m)
 
 
 def pinhole_corners(R, t, f=800.0, c=(320.0, 240.0)):

@@ -45,6 +45,16 @@ def _deferred(name: str) -> Any:
     return call
 
 
+def _forward(name: str) -> Any:
+    """Any other public name of the stand-in: the real module's. A dunder name the stand-in lacks
+    (``__file__``, ``__wrapped__``, ...) is missing, not forwarded: tools probe every module in
+    ``sys.modules`` for them (``inspect.getmodule``, run by rclpy's logger at a process's first log
+    line), and forwarding would load open3d, dash and plotly in every process that logs."""
+    if name.startswith("__") and name.endswith("__"):
+        raise AttributeError(f"module '{PLOTLY_MODULE}' (stand-in) has no attribute '{name}'")
+    return getattr(_real_module(), name)
+
+
 def defer_plotly_viewer() -> None:
     """Put the stand-in in place unless open3d (or its plotly module) is imported already. Idempotent."""
     if "open3d" in sys.modules or PLOTLY_MODULE in sys.modules:
@@ -53,5 +63,5 @@ def defer_plotly_viewer() -> None:
     vars(stand_in)["_lsu_stand_in"] = True
     for name in PLOTLY_NAMES:
         setattr(stand_in, name, _deferred(name))
-    vars(stand_in)["__getattr__"] = lambda name: getattr(_real_module(), name)  # module __getattr__ (PEP 562)
+    vars(stand_in)["__getattr__"] = _forward  # module __getattr__ (PEP 562)
     sys.modules[PLOTLY_MODULE] = stand_in

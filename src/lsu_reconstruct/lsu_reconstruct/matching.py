@@ -114,15 +114,13 @@ def savgol_weights(window: int, pos: int) -> AnyArray:
     """Weights of the quadratic least-squares fit over ``window`` samples, evaluated at sample ``pos``
     (``weights @ y`` is the fitted value there): scipy.signal.savgol_coeffs(window, 2, pos=pos, use="dot").
 
-    The same least-squares problem solved the same way (scipy.linalg.lstsq, scipy's rcond), so the weights are
-    scipy's to the bit, without importing scipy.signal: that costs ~1.3 s CPU in every process that matches
-    (each start of stereo_matcher and of a replay). A test compares them with scipy's.
+    The same least-squares problem solved the same way (LAPACK's gelsd with scipy's rcond), so the weights
+    are scipy's to the bit, with numpy's lstsq: importing scipy.signal (~1.3 s CPU) or scipy.linalg (~0.5 s)
+    would be paid at every start of stereo_matcher and of a replay. A test compares them with scipy's.
     """
-    from scipy.linalg import lstsq
-
     x = np.arange(-pos, window - pos, dtype=np.float64)
     a = x ** np.arange(3, dtype=np.float64).reshape(-1, 1)
-    coeffs, _, _, _ = lstsq(a, np.array([1.0, 0.0, 0.0]), cond=np.finfo(np.float64).eps * max(a.shape))
+    coeffs, _, _, _ = np.linalg.lstsq(a, np.array([1.0, 0.0, 0.0]), rcond=np.finfo(np.float64).eps * max(a.shape))
     return np.asarray(coeffs)
 
 

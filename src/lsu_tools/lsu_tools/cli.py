@@ -106,21 +106,42 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_run)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The full `lsu` argument parser: every installed ``lsu.commands`` entry point."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `lsu` argument parser: every installed ``lsu.commands`` entry point, or, given the ``command``
+    about to run, only what it takes.
+
+    A plug-in's imports (OpenCV, rosbags, ...) are paid by every `lsu` process that loads it, the graph's
+    launcher and each short command as much as the command that uses them. So with a ``command``, the
+    plug-in of that name and this package's own (cheap, they import nothing heavy at registration) load
+    first, and the rest only when none of them provides the command: commands named otherwise than their
+    plug-in (`calibrate`, `render`, `mesh`) and those that extend another plug-in's command (``--laser``
+    of `calibrate`) still get every plug-in, in the order of their names."""
     from .nodes_index import command_plugins
 
     parser = argparse.ArgumentParser(
         prog="lsu", description="LSU stereo laser-line scanner: launch, inspect and run the ROS 2 graph.",
         epilog="DDS stays on this machine: ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST unless you set it.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for entry in command_plugins():
+    plugins = command_plugins()
+    first = [e for e in plugins if command is not None and (e.name == command or e.module.startswith(f"{__package__}."))]
+    _load_plugins(sub, first)
+    if command not in sub.choices:
+        _load_plugins(sub, [e for e in plugins if e not in first])
+    return parser
+
+
+def _load_plugins(sub: argparse._SubParsersAction[argparse.ArgumentParser], entries: list) -> None:
+    for entry in entries:
         try:
             entry.load()(sub)
         except Exception as exc:  # a broken plugin must not take the whole command down
             print(f"lsu: warning: subcommand plugin '{entry.name}' ({entry.value}) failed to load: {exc}",
                   file=sys.stderr)
-    return parser
+
+
+def _command(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` starts with (None for `lsu`, `lsu -h ...`: they list every command)."""
+    return argv[0] if argv and not argv[0].startswith("-") else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
 
     defer_plotly_viewer()
     report = rosenv.apply_defaults()
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(_command(argv))
     args = parser.parse_args(argv)
     args.env_report = report  # what lsu set by default, for `lsu doctor`
     from lsu_bags.rosmsg import InterfaceError
