@@ -178,7 +178,9 @@ def test_decide_follows_its_rule_row_by_row(seed, max_gap_rows, with_refs):
     ref_rows = np.sort(rng.choice(others, rng.integers(1, others.size), replace=False)) if with_refs \
         else np.zeros(0, np.int64)
     ref_cols = line[ref_rows].astype(np.float32) + rng.uniform(-1, 1, ref_rows.size).astype(np.float32)
-    reflection = line[searched] + rng.choice([-1, 1], searched.size) * rng.integers(15, 40, searched.size)
+    offset = rng.choice([-1, 1], searched.size) * rng.integers(15, 40, searched.size)
+    # a column is >= 0 (-1 means "no second peak"): a reflection that would fall left of the image lies right
+    reflection = np.where(line[searched] + offset >= 0, line[searched] + offset, line[searched] - offset)
     swap = rng.random(searched.size) < 0.5  # the reflection is the stronger peak in half the rows
     first, second = np.where(swap, reflection, line[searched]), np.where(swap, line[searched], reflection)
     # whole numbers and a ratio of 0.5: the thresholds are exact in float32 and in Python's floats alike

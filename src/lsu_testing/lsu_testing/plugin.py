@@ -53,6 +53,19 @@ def pytest_configure(config: pytest.Config) -> None:
     else:
         _claim = rosenv.isolate()
     os.environ.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+    _derandomize_hypothesis()
+
+
+def _derandomize_hypothesis() -> None:
+    """Property tests draw the same examples in every run and process (the project's rule: same input, same
+    result): Hypothesis's examples come from a fixed seed per test, and no example database carries one run's
+    finds into the next."""
+    try:
+        from hypothesis import settings
+    except ImportError:
+        return  # no property tests without it
+    settings.register_profile("lsu", derandomize=True, database=None)
+    settings.load_profile("lsu")
 
 
 @pytest.hookimpl(trylast=True)
