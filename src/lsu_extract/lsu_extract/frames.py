@@ -41,7 +41,7 @@ class FrameExtractor:
             raise ValueError(f"background '{background}' is unknown; must be one of: {', '.join(BACKGROUNDS)}")
         self.params = params
         self.background = background
-        self._copy = copy_frames
+        self.copy_frames = copy_frames  # a replay of a bag turns it off while it runs (the buffers stay as they are)
         self._recent: dict[str, collections.deque[tuple[int, AnyArray]]] = {
             side: collections.deque(maxlen=FRAMES_KEPT) for side in SIDES}
         self._texture_key: int | None = None  # stamp (ns) of the current scan's laser-off pair
@@ -68,7 +68,7 @@ class FrameExtractor:
         texture = None
         if self.background == "texture":
             key = stamps.to_ns(msg)
-            self._recent[side].append((key, np.array(image) if self._copy else image))
+            self._recent[side].append((key, np.array(image) if self.copy_frames else image))
             if key == self._texture_key:
                 self.textures[side] = self._recent[side][-1][1]
             texture = self.textures.get(side)

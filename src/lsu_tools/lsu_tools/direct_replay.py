@@ -435,6 +435,9 @@ class DirectReplay:
             # the bag's reading (and a compressed bag's zstd decompression, which releases the GIL) runs on
             # the other core while this one extracts and matches
             messages = read_ahead(source, PREFETCH, "bag-reader", reading)
+        # the bag's buffers stay as they are (views of the mapped file, or bytes of their own), unlike a
+        # subscription's, which is reused: the laser-off background keeps them without a copy
+        copying, extractor.core.copy_frames = extractor.core.copy_frames, False
         try:
             t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
             spin_cpu = [0.0]
@@ -445,6 +448,7 @@ class DirectReplay:
             stats.extracted_here = pool.own if pool is not None else 0
             stats.read_cpu_s = reading["producer_s"] - read0
         finally:
+            extractor.core.copy_frames = copying
             if pool is not None:
                 pool.close()
                 extractor.frozen_reason = None
