@@ -57,6 +57,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_faces as bf  # noqa: E402
 
+from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_faces import identity as ident  # noqa: E402
 from lsu_faces.gallery import FIRST_STAGE, _Index  # noqa: E402
 from lsu_faces.signature import (  # noqa: E402
@@ -153,7 +154,7 @@ def prior_sweep(people: int = 8) -> dict[str, dict[str, float]]:
     return out
 
 
-def d_prime(gen: np.ndarray, imp: np.ndarray) -> float:
+def d_prime(gen: AnyArray, imp: AnyArray) -> float:
     gen, imp = gen[np.isfinite(gen)], imp[np.isfinite(imp)]
     return float((imp.mean() - gen.mean()) / np.sqrt((imp.var() + gen.var()) / 2))
 
@@ -223,7 +224,7 @@ def main() -> None:
                                   "true_two_people_mm": float(np.median([1000 * np.linalg.norm(W[i] - W[j])
                                                                          for i in range(len(W)) for j in range(i)]))})
         # ---- distances: every matcher gives a function probe -> distances to gallery entries [0..n)
-        def id_dist(name: str, kind: str, probe: tuple[int, int], n: int) -> np.ndarray:
+        def id_dist(name: str, kind: str, probe: tuple[int, int], n: int) -> AnyArray:
             f = fits[name]
             p = f["probes"].get(probe)  # type: ignore[union-attr]
             if p is None:
