@@ -340,13 +340,16 @@ def compute_reference(bag: Path, passes: int = 3) -> dict:
                         method=mat["triangulation"])
     model = StereoModel.from_folder(CONFIG / "calibration" / "sim")
     frames: dict = {}
-    for m in read_messages(bag, ["/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
-        frames.setdefault(struct.unpack_from("<iI", m.data, 4), {})[m.topic.split("/")[-2]] = m.data
+    events = []
+    for m in read_messages(bag, ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]):
+        if m.topic.endswith("image_raw"):
+            frames.setdefault(struct.unpack_from("<iI", m.data, 4), {})[m.topic.split("/")[-2]] = m.data
+        else:
+            events.append(deserialize_ros(m))
     pairs = [(f["left"], f["right"]) for _, f in sorted(frames.items()) if len(f) == 2]
     off: dict = {}  # the laser-off pair the scan's TEXTURE event names: the cloud's colours (left), and the
     #                 extractor's background with `background: texture`, as the nodes use it
-    for m in read_messages(bag, ["/lsu/scan/events"]):
-        event = deserialize_ros(m)
+    for event in events:
         if event.type == event.TEXTURE:
             for side, raw in frames.get((event.image_stamp.sec, event.image_stamp.nanosec), {}).items():
                 msg = parse_image_cdr(raw)
