@@ -79,10 +79,19 @@ def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_
         replay.matcher.points_pub.publish = published.append  # what subscribers of /lsu/points would get
         replay.matcher.points_pub.get_subscription_count = lambda: 1  # one, or the points are not encoded
         replay.matcher.cloud_pub.publish = clouds.append
+        order: list[str] = []  # the scan cloud's libraries load before the timed window (its loop), not in it
+        def spied(name: str, call):
+            def spy(*args, **kwargs):
+                order.append(name)
+                return call(*args, **kwargs)
+            return spy
+        replay.matcher.prepare_scan_cloud = spied("prepare_scan_cloud", replay.matcher.prepare_scan_cloud)
+        replay._replay = spied("_replay", replay._replay)
         stats = replay.run(BAG)
     finally:
         for node in nodes:
             node.destroy_node()
+    assert order[:2] == ["prepare_scan_cloud", "_replay"]
     assert (stats.snaps, stats.snap_events, stats.pairs, stats.frames_dropped, stats.lines_unpaired) == (6, 6, 7, 0, 0)
     replayed = points_by_stamp(published)
     assert sorted(replayed) == sorted(recorded)

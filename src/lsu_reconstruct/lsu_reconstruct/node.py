@@ -58,7 +58,15 @@ from lsu_interfaces.msg import CarriagePosition, LaserLine, ScanEvent, StereoExp
 from .laser_sheet import LaserSheet, LaserSheetError, read_laser_yaml
 from .matching import LineArrays, MatchParams, prepare
 from .motion import MotionParams, SweepMotion
-from .pipeline import MAX_VIEW_ANGLE_DEG, SnapPoints, colour_at, drop_grazing, merge_snaps, reconstruct_snap
+from .pipeline import (
+    MAX_VIEW_ANGLE_DEG,
+    SnapPoints,
+    colour_at,
+    drop_grazing,
+    load_drop_grazing,
+    merge_snaps,
+    reconstruct_snap,
+)
 from .stereo import CalibrationError, StereoModel
 from .sweep import SweepParams, exposure_mid_s
 from .sweep_live import SWEEP_MATCHING, Exposure, LiveSweep, SweepPoints
@@ -596,6 +604,10 @@ class StereoMatcherNode(LsuNode):
         self.last_error = text
         self.get_logger().error(text, throttle_duration_sec=5.0)
 
+    def prepare_scan_cloud(self) -> None:
+        """Load what the scan cloud's filters need (once per process), ahead of the scan's end."""
+        load_drop_grazing(float(self.get_parameter("max_view_angle_deg").value))
+
     # ------------------------------------------------------------------ scan events and texture
     def on_event(self, msg: ScanEvent) -> None:
         """Scan bookkeeping: STARTED, TEXTURE, SNAP, FINISHED, ABORTED."""
@@ -609,6 +621,7 @@ class StereoMatcherNode(LsuNode):
                 held.clear()
             self._waiting_images.clear()
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
+            self.prepare_scan_cloud()
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
             self.get_logger().warning(f"scan event {msg.type} for scan '{msg.scan_id}' without its STARTED; ignored",

@@ -131,6 +131,15 @@ def _planar(cov: AnyArray, normals: AnyArray) -> AnyArray:
     return (s - root) >= PLANAR_SPREAD * (s + root)  # both halves of the two roots: middle >= spread x largest
 
 
+def load_drop_grazing(max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG) -> None:
+    """Import what `drop_grazing` needs (open3d: about a third of a second of CPU, once per process).
+
+    A node calls it when a scan starts, so that the scan's end (when the cloud is awaited) does not pay it.
+    """
+    if max_view_angle_deg < 90.0:
+        import open3d  # noqa: F401
+
+
 def drop_grazing(cloud: SnapPoints, model: StereoModel, max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG) -> SnapPoints:
     """The scan cloud without the points either camera sees at more than ``max_view_angle_deg`` from the surface normal.
 

@@ -438,6 +438,7 @@ class DirectReplay:
         # the bag's buffers stay as they are (views of the mapped file, or bytes of their own), unlike a
         # subscription's, which is reused: the laser-off background keeps them without a copy
         copying, extractor.core.copy_frames = extractor.core.copy_frames, False
+        matcher.prepare_scan_cloud()  # a library's import is start-up, as the live node's at its scan's start
         try:
             t0, cpu0, read0 = time.monotonic(), time.process_time(), reading["producer_s"]
             spin_cpu = [0.0]
