@@ -30,6 +30,8 @@ from rclpy.publisher import Publisher
 from rclpy.qos import qos_policy_name_from_kind
 from rclpy.subscription import Subscription
 
+from .interrupts import accept_interrupts
+
 EXIT_OK = 0
 EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); the message says why
 # how long a way out waits for the callbacks still running (a scan's end, a mesh being written) before the nodes
@@ -95,6 +97,9 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
     executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
     node: Node | None = None
     try:
+        # rclpy's handler is in place (it shuts the context down, then raises KeyboardInterrupt): a Ctrl-C held
+        # during start-up (launcher) is taken here and ends the node as any Ctrl-C does
+        accept_interrupts()
         try:
             node = make_node()
         except startup_errors as exc:

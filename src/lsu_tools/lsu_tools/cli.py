@@ -146,7 +146,13 @@ def _command(argv: list[str]) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Console script `lsu`."""
+    from lsu_common.interrupts import accept_interrupts
     from lsu_common.o3d import defer_plotly_viewer
+
+    try:
+        accept_interrupts()  # started by a launcher: a Ctrl-C held during start-up ends it here
+    except KeyboardInterrupt:
+        return 130
 
     defer_plotly_viewer()
     report = rosenv.apply_defaults()

@@ -20,16 +20,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TextIO
 
+from lsu_common.interrupts import hold_interrupts
+
 from .launch_file import LaunchDescription, NodeSpec
 from .nodes_index import resolve_executable
 
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:
-    """Runs in the child before exec: SIGTERM it when the launcher dies, however it dies."""
+def _child_setup() -> None:
+    """Runs in the child before exec: SIGTERM it when the launcher dies, however it dies; and SIGINT held until
+    the node can handle it (lsu_common.interrupts: every LSU executable accepts it once its handler is in place)."""
     libc = ctypes.CDLL(None, use_errno=True)
     libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    hold_interrupts()
 
 
 @dataclass
@@ -96,7 +100,7 @@ class Launcher:
         env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
         child.process = subprocess.Popen(
             child.command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            env=env, start_new_session=True, preexec_fn=_die_with_parent)
+            env=env, start_new_session=True, preexec_fn=_child_setup)
         child.starts += 1
         child.exit_code = None
         child.restart_at = None

@@ -14,15 +14,23 @@ import pytest
 from lsu_tools.launch_file import LaunchDescription, NodeSpec
 from lsu_tools.launcher import Launcher
 
-# a stand-in node: on SIGINT it ends cleanly ("clean") or dies of a segmentation fault ("crash")
+# a stand-in node: on SIGINT it ends cleanly ("clean") or dies of a segmentation fault ("crash"); like every
+# LSU executable it accepts SIGINT (which the launcher holds back during start-up) once its handler is in place.
+# "early": a Ctrl-C arrives while it is still starting (before its handler): held, it is taken by the handler.
 NODE = textwrap.dedent("""
     import os, signal, sys, time
     def on_int(*_):
         if sys.argv[1] == "crash":
             signal.signal(signal.SIGSEGV, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGSEGV)
+        if sys.argv[1] == "early":
+            print("stopped by its handler", flush=True)
         sys.exit(0)
+    if sys.argv[1] == "early":
+        print("up", flush=True)
+        os.kill(os.getpid(), signal.SIGINT)
     signal.signal(signal.SIGINT, on_int)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     print("up", flush=True)
     while True:
         time.sleep(0.05)
@@ -59,6 +67,31 @@ def test_a_node_crashing_while_stopping_is_named_and_fails_the_launch(tmp_path):
 def test_nodes_ending_cleanly_leave_the_launch_successful(tmp_path):
     code, text = _run(tmp_path, ["clean", "clean"])
     assert code == 0 and "while stopping" not in text, text
+
+
+def test_a_ctrl_c_during_a_nodes_start_up_waits_for_its_handler(tmp_path):
+    """Without the launcher holding SIGINT the signal would end the node before its handler (a traceback and exit
+    code 1 here; "Fatal Python error: init_import_site" and SIGABRT inside the interpreter's own start-up)."""
+    code, text = _run(tmp_path, ["early"])
+    assert "[early_node] stopped by its handler" in text, text
+    assert code == 0 and "Traceback" not in text and "exit code" not in text, text
+
+
+def test_run_node_takes_a_ctrl_c_held_during_start_up(tmp_path):
+    """A node started with SIGINT blocked and pending (what the launcher's start-up hold leaves) ends cleanly once
+    rclpy's handler is in place, rather than running on deaf to it."""
+    import subprocess
+
+    program = textwrap.dedent("""
+        import os, signal, sys
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        os.kill(os.getpid(), signal.SIGINT)  # pending: arrived during start-up
+        from lsu_tools.selftest import talker_main
+        sys.exit(talker_main([]))
+    """)
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "Traceback" not in done.stderr, done.stderr
 
 
 @pytest.mark.timeout(60)

@@ -115,12 +115,14 @@ def register(sub: argparse._SubParsersAction[Any]) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """``web_server``: `lsu web` as a launch-file executable (the ROS arguments the launcher appends are ignored)."""
+    from lsu_common.interrupts import accept_interrupts
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--ros-args" in argv:
         argv = argv[:argv.index("--ros-args")]
     p = argparse.ArgumentParser(prog="web_server")
     add_arguments(p)
     try:
+        accept_interrupts()  # a Ctrl-C held during start-up (launcher) ends the server here
         return cmd_web(p.parse_args(argv))
     except KeyboardInterrupt:
         return 0
