@@ -140,7 +140,7 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
     recorded = [deserialize_ros(m) for m in read_messages(Path(result.output_dir) / "bag", ["/lsu/scan/cloud"])]
     assert len(recorded) == 1
     live = xyz(recorded[0])
-    assert len(live) == result.points > sweep["frames_processed"] * 2 * 200
+    assert len(live) == result.points > sweep["frames_processed"] * 2 * 200, (sweep, values)  # the counts say why
     assert len(by_frame(recorded[0])) == sweep["frames_processed"]
     # Every frame on the plane, the first and last of the motion too (the camera renders each exposure from
     # the emulator's exact samples at the start and stop, the matcher places it by the driver's stamped
