@@ -202,14 +202,11 @@ class LaserSignal:
         """
         pixels = self._sliding(self.image, length)[starts]
         texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
-        other: AnyArray | None
-        other: AnyArray | None
         if not self.colour:
             red = cv2.transpose(pixels)
-            other = None if texture is None else cv2.transpose(texture)
-            if other is None:
+            if texture is None:
                 return red.astype(np.int16), red
-            return red.astype(np.int16) - other, red
+            return red.astype(np.int16) - cv2.transpose(texture), red
         planes = self._planes(pixels)
         red = planes[:, 2]
         if texture is None:
@@ -292,7 +289,7 @@ def contrast_noise(clipped: AnyArray, half: int) -> float:
     if clipped.shape[0] == 0 or clipped.shape[1] <= 2 * half:
         return 0.0
     if clipped.dtype != np.uint8:
-        clipped = clipped.astype(np.int16)
+        clipped = clipped.astype(np.int16, copy=False)
     twice = cv2.subtract(cv2.add(clipped[:, half:-half], clipped[:, half:-half], dtype=cv2.CV_16S),
                          cv2.add(clipped[:, :-2 * half], clipped[:, 2 * half:], dtype=cv2.CV_16S))
     hist = cv2.calcHist([cv2.convertScaleAbs(twice)], [0], None, [256], [0, 256]).ravel()
