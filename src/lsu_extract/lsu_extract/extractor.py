@@ -859,11 +859,18 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     on_red = params.clipped_centre == "red" and sig.colour and sig.texture is None
     check_red = sig.colour and sig.texture is None and params.red_rise_ratio > 0.0  # see red_rise_ratio above
     coarse_rows = _coarse_rows(height, step)
-    coarse = sig.rows_clipped(coarse_rows) if params.window_px > 0 else None
+    coarse = exact = None
+    if params.window_px > 0:
+        if sig.texture is not None:
+            # every 4th coarse row's exact signal, for the noise below, from the same planes
+            coarse, exact = sig.rows_laser_off(coarse_rows, 4 if params.contrast_sigmas > 0.0 else 0)
+        else:
+            coarse = sig.rows_clipped(coarse_rows)
     if params.contrast_sigmas > 0.0:
         # every 4th coarse row: ~10^4 samples pin the median down; more only cost time
         if sig.texture is not None:
-            sigma = contrast_noise(sig.rows(coarse_rows[::4]), half)  # unclipped: see contrast_noise
+            # unclipped: see contrast_noise
+            sigma = contrast_noise(sig.rows(coarse_rows[::4]) if exact is None else exact, half)
         else:
             sigma = contrast_noise(sig.rows_clipped(coarse_rows[::4]) if coarse is None else coarse[::4], half)
         threshold = max(NOISE_FLOOR_DN, round(params.contrast_sigmas * sigma * 2.0) / 2.0)

@@ -134,15 +134,41 @@ class LaserSignal:
             if pixels.shape[0] == 0:
                 return np.zeros((0, self.width), np.uint8)
             return pixels if self.texture is None else cv2.subtract(pixels, self.texture[rows])
+        if self.texture is not None:
+            return self.rows_laser_off(rows, 0)[0]
         # gathered first: OpenCV splits contiguous rows faster than rows strided across the frame
         pixels = self._gather(self.image, rows, "pixels")
         if pixels.shape[0] == 0:
             return np.zeros((0, self.width), np.uint8)
         blue, green, red = self._split(pixels, "planes")
-        if self.texture is None:
-            return cv2.subtract(red, other_channel(green, blue))
-        return cv2.subtract(cv2.subtract(red, cv2.extractChannel(self.texture[rows], 2)),
-                            self._other_rise(green, blue, self.texture[rows]))
+        return cv2.subtract(red, other_channel(green, blue))
+
+    def rows_laser_off(self, rows: RowSelection, every: int) -> tuple[AnyArray, AnyArray | None]:
+        """With the laser-off frame: `rows_clipped` of ``rows`` and, for ``every`` > 0, the exact signal (`rows`) of
+        ``rows[::every]``, both from one gather and split of each frame: ((n, W) uint8, (ceil(n / every), W) int16).
+
+        The coarse search reads the clipped signal of its rows, and the noise estimate (`contrast_noise`) the
+        unclipped signal of every few of them; the two share every plane. Rows where red fell are 0 in the clipped
+        signal (saturating uint8 subtraction) exactly as where the exact signal is below 0.
+        """
+        assert self.texture is not None
+        pixels = self._gather(self.image, rows, "pixels")
+        texture = self._gather(self.texture, rows, "texture")
+        n = pixels.shape[0]
+        if n == 0:
+            return np.zeros((0, self.width), np.uint8), (np.zeros((0, self.width), np.int16) if every else None)
+        if not self.colour:
+            exact = np.subtract(pixels[::every], texture[::every], dtype=np.int16) if every else None
+            return cv2.subtract(pixels, texture), exact
+        blue, green, red = self._split(pixels, "planes")
+        tex_blue, tex_green, tex_red = self._split(texture, "texture planes")
+        # max(green - green_off, blue - blue_off, 0), as `_other_rise`, in the planes' own memory
+        other = cv2.max(cv2.subtract(green, tex_green, dst=green), cv2.subtract(blue, tex_blue, dst=blue), dst=green)
+        exact = None
+        if every:
+            exact = np.subtract(red[::every], tex_red[::every], dtype=np.int16)
+            exact -= other[::every]
+        return cv2.subtract(cv2.subtract(red, tex_red, dst=red), other), exact
 
     def windows(self, rows: AnyArray, first_cols: AnyArray, length: int) -> tuple[AnyArray, AnyArray, AnyArray]:
         """Signal and red channel of ``length`` columns per row, starting near ``first_cols``.
@@ -176,33 +202,30 @@ class LaserSignal:
         """
         pixels = self._sliding(self.image, length)[starts]
         texture = None if self.texture is None else self._sliding(self.texture, length)[starts]
-        other: AnyArray | None
-        if self.colour:
-            red, other = self._planes(pixels, texture)
-        else:
+        if not self.colour:
             red = cv2.transpose(pixels)
-            other = None if texture is None else cv2.transpose(texture)
-        if other is None:
-            return red.astype(np.int16), red
-        # numpy: int16 - uint8 stays int16, and on these strided views it beats cv2.subtract's conversion
-        signal = red.astype(np.int16) - other
-        if self.colour and texture is not None:
-            planes = cv2.transpose(pixels.reshape(len(starts), 3 * length)).reshape(length, 3, len(starts))
-            tex = cv2.transpose(texture.reshape(len(starts), 3 * length)).reshape(length, 3, len(starts))
-            signal -= cv2.max(cv2.subtract(planes[:, 1], tex[:, 1]), cv2.subtract(planes[:, 0], tex[:, 0]))
+            if texture is None:
+                return red.astype(np.int16), red
+            return red.astype(np.int16) - cv2.transpose(texture), red
+        planes = self._planes(pixels)
+        red = planes[:, 2]
+        if texture is None:
+            # numpy: int16 - uint8 stays int16, and on these strided views it beats cv2.subtract's conversion
+            return red.astype(np.int16) - other_channel(planes[:, 1], planes[:, 0]), red
+        tex = self._planes(texture)
+        signal = red.astype(np.int16) - tex[:, 2]
+        signal -= cv2.max(cv2.subtract(planes[:, 1], tex[:, 1]), cv2.subtract(planes[:, 0], tex[:, 0]))
         return signal, red
 
-    def _planes(self, pixels: AnyArray, texture: AnyArray | None) -> tuple[AnyArray, AnyArray]:
-        """(red, other) of (n, L, 3) colour pixels, each (L, n) uint8; other = max(green, blue) or the texture's red.
+    @staticmethod
+    def _planes(pixels: AnyArray) -> AnyArray:
+        """The channels of (n, L, 3) colour pixels column-major: (L, 3, n) uint8, entry [j, c, i] = pixels[i, j, c].
 
         One byte transpose de-interleaves: row 3 j + c of the (3 L, n) result is channel c of
-        column j, so the channels are strided views whose rows are contiguous.
+        column j, so each channel ``[:, c]`` is a strided view whose rows are contiguous.
         """
         n, length = pixels.shape[:2]
-        planes = cv2.transpose(pixels.reshape(n, 3 * length)).reshape(length, 3, n)
-        if texture is None:
-            return planes[:, 2], other_channel(planes[:, 1], planes[:, 0])
-        return planes[:, 2], cv2.transpose(texture.reshape(n, 3 * length)).reshape(length, 3, n)[:, 2]
+        return cv2.transpose(pixels.reshape(n, 3 * length)).reshape(length, 3, n)
 
     @staticmethod
     def _other_rise(green: AnyArray, blue: AnyArray, texture: AnyArray) -> AnyArray:
@@ -266,7 +289,7 @@ def contrast_noise(clipped: AnyArray, half: int) -> float:
     if clipped.shape[0] == 0 or clipped.shape[1] <= 2 * half:
         return 0.0
     if clipped.dtype != np.uint8:
-        clipped = clipped.astype(np.int16)
+        clipped = clipped.astype(np.int16, copy=False)
     twice = cv2.subtract(cv2.add(clipped[:, half:-half], clipped[:, half:-half], dtype=cv2.CV_16S),
                          cv2.add(clipped[:, :-2 * half], clipped[:, 2 * half:], dtype=cv2.CV_16S))
     hist = cv2.calcHist([cv2.convertScaleAbs(twice)], [0], None, [256], [0, 256]).ravel()

@@ -54,6 +54,31 @@ def test_signal_with_a_laser_off_frame_is_the_red_rise_less_the_larger_green_or_
     np.testing.assert_array_equal(signal.T, np.stack([expected[3, 4:13], expected[11, 30:39]]))
     np.testing.assert_array_equal(red.T, np.stack([image[3, 4:13, 2], image[11, 30:39, 2]]))
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), mono=st.booleans(), every=st.integers(0, 5))
+def test_coarse_rows_with_a_laser_off_frame_share_their_planes_and_keep_both_signals(seed, mono, every):
+    # one gather and split per frame (`rows_laser_off`) gives the clipped signal of the rows and the exact
+    # signal of every few of them, as the definitions in numpy (and the separate methods) give them
+    rng = np.random.default_rng(seed)
+    shape = (int(rng.integers(1, 40)), int(rng.integers(2, 60)))
+    image = rng.integers(0, 256, shape if mono else (*shape, 3), dtype=np.uint8)
+    texture = rng.integers(0, 256, image.shape, dtype=np.uint8)
+    rise = image.astype(int) - texture.astype(int)
+    expected = rise if mono else rise[..., 2] - np.maximum(np.maximum(rise[..., 1], rise[..., 0]), 0)
+    rows = np.sort(rng.choice(shape[0], int(rng.integers(0, shape[0] + 1)), replace=False))
+    sig = LaserSignal(image, texture)
+    clipped, exact = sig.rows_laser_off(rows, every)
+    np.testing.assert_array_equal(clipped, np.clip(expected[rows], 0, 255))
+    assert clipped.dtype == np.uint8
+    if every == 0:
+        assert exact is None
+    else:
+        assert exact is not None and exact.dtype == np.int16
+        np.testing.assert_array_equal(exact, expected[rows[::every]])
+        np.testing.assert_array_equal(exact, sig.rows(rows[::every]))
+    np.testing.assert_array_equal(sig.rows_clipped(rows), clipped)
+
+
 def test_rows_dark_in_every_channel_cannot_hold_the_laser():
     image = np.zeros((4, 30, 3), np.uint8)
     image[1, 5] = (0, 0, 40)   # a red pixel above the contrast
