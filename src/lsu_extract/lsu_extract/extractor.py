@@ -761,14 +761,18 @@ def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: Extracto
 
 
 def _search_rows(sig: LaserSignal, rows: AnyArray, params: ExtractorParams, known: dict[str, Any] | None,
-                 on_red: bool, check_red: bool) -> tuple[dict[str, Any] | None, int]:
+                 on_red: bool, check_red: bool, strong: list[AnyArray] | None = None
+                 ) -> tuple[dict[str, Any] | None, int]:
     """Full-row search of ``rows`` (the line's other rows ``known``, for continuity): their `_keep` chunk (None
-    where none was found) and how many rows were ambiguous."""
+    where none was found) and how many rows were ambiguous. ``strong``: a list that gets the rows whose highest
+    peak stands ``min_contrast`` above their mean (the others can hold no line with these parameters)."""
     half, width = params.refine_half_px, sig.width
     # strong rows only: on a frame where the line has left the object, most pending rows are lit
     # skin or background without it, and they need no second-peak search nor a decision
     cand = row_candidates(sig.rows(rows, reuse=True), rows, half, params.min_contrast, strong_only=True,
                           scratch=True, local=not sig.colour)
+    if strong is not None:
+        strong.append(cand.rows)
     known_rows = known["v"].astype(np.int64) if known is not None else _NO_ROWS
     known_cols = known["u"] if known is not None else _NO_COLS
     pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
@@ -911,6 +915,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
             missing[chunks[0]["v"]] = False
             pending = missing.nonzero()[0]
     ambiguous = 0
+    strong: list[AnyArray] = []  # the full search's strong rows (`_search_rows`)
+    weak = _NO_ROWS  # rows that search found without a peak min_contrast above their mean
     if pending is None:
         pending = np.arange(height)
     if pending.size:
@@ -918,7 +924,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     if pending.size:
         full_searched += pending.size
         known = chunks[0] if chunks else None
-        searched, ambiguous = _search_rows(sig, pending, params, known, on_red, check_red)
+        searched, ambiguous = _search_rows(sig, pending, params, known, on_red, check_red, strong)
+        weak = np.setdiff1d(pending, strong[0], assume_unique=True)
         if searched is not None:
             chunks.append(searched)
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
@@ -939,6 +946,10 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         missing = np.ones(height, bool)
         missing[found["v"].astype(np.int64)] = False
         pending = missing.nonzero()[0]
+        if weak.size and sig.colour:
+            # a colour row's strength (highest peak over its mean) does not depend on the width range: a row
+            # weak in the search above is weak here too, and that search drops it unseen (`row_candidates`)
+            pending = np.setdiff1d(pending, weak, assume_unique=True)
         pending = pending[sig.may_hold_laser(pending, params.min_contrast)]
         if pending.size:
             full_searched += pending.size
