@@ -24,8 +24,8 @@
    replay_cpu_over_compute = the two CPU times per snap), and the message path (images + events as
    raw CDR published closed-loop, each snap waiting for its /lsu/points, into `lsu run replay`:
    replay_dds_*); three runs each, medians. Beside them the code before issue 33 (REPLAY_BEFORE, a temporary git
-   worktree first on PYTHONPATH) replayed alternately with this one: replay_snaps_per_s_over_before,
-   replay_cpu_over_before.
+   worktree first on PYTHONPATH) replayed alternately with this one, with today's extractor background (the same
+   work: replay_snaps_per_s_over_before, replay_cpu_over_before) and with its own defaults (*_defaults).
 3. Live view: a default scan with `lsu view` running and a Foxglove client (lsu_view.wsclient) subscribed
    to every channel, images included, then one more default scan without them:
    bridge_overhead_pct = that scan's wall time over the mean of the two default scans without, minus 1.
@@ -63,6 +63,7 @@ import contextlib
 import json
 import os
 import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -520,20 +521,34 @@ def _source_path(checkout: Path) -> str:
 
 def replay_before_figures(bag: Path, runs: int = REPLAYS, before: str = REPLAY_BEFORE) -> dict:
     """`lsu run replay BAG --exit` of the code at ``before`` (a temporary git worktree, its packages first on
-    PYTHONPATH) and of this checkout, alternated in one run on one host: replay_snaps_per_s_over_before (median
-    of the pairs' ratios) and replay_cpu_over_before (CPU per snap)."""
+    PYTHONPATH) and of this checkout, alternated in one run on one host (median of the rounds' ratios).
+
+    The code before extracted each frame alone by default; today's default subtracts the scan's laser-off
+    frame, which that code could do too (its `background: texture`). So it runs twice per round: with the
+    extractor background of today's default (replay_snaps_per_s_over_before, replay_cpu_over_before: the same
+    work, the replay's own cost compared) and with its own defaults (the *_defaults figures: what a user of
+    each version got out of the box)."""
     root = Path(__file__).resolve().parents[1]
+    background = str(_node_params("laser_extractor").get("background", "none"))
     with tempfile.TemporaryDirectory(prefix="lsu-bench-before-") as tmp:
         checkout = Path(tmp) / "before"
         subprocess.run(["git", "-C", str(root), "worktree", "add", "--detach", str(checkout), before], check=True,
                        capture_output=True)
         try:
-            env_before = {**os.environ, "PYTHONPATH": _source_path(checkout)}
-            pairs = []
+            env_defaults = {**os.environ, "PYTHONPATH": _source_path(checkout)}
+            same = Path(tmp) / "config_same"
+            shutil.copytree(checkout / "config", same)
+            params = same / "params" / "laser_extractor.yaml"
+            text = params.read_text()
+            if background != "none":
+                if "background: none" not in text:
+                    raise RuntimeError(f"{before}'s {params.name} has no 'background: none' to set to {background}")
+                params.write_text(text.replace("background: none", f"background: {background}", 1))
+            env_same = {**env_defaults, "LSU_CONFIG_DIR": str(same)}
+            rounds = []
             for _ in range(runs):
-                old = _replay_with_env(bag, env_before)
-                new = _replay_with_env(bag, dict(os.environ))
-                pairs.append((old, new))
+                rounds.append((_replay_with_env(bag, env_same), _replay_with_env(bag, env_defaults),
+                               _replay_with_env(bag, dict(os.environ))))
         finally:
             subprocess.run(["git", "-C", str(root), "worktree", "remove", "--force", str(checkout)], check=False,
                            capture_output=True)
@@ -541,10 +556,16 @@ def replay_before_figures(bag: Path, runs: int = REPLAYS, before: str = REPLAY_B
     def median(values: list[float]) -> float:
         return sorted(values)[len(values) // 2]
 
-    return {"replay_snaps_per_s_over_before": median([(n["snaps"] / n["seconds"]) / (o["snaps"] / o["seconds"])
+    figures = {}
+    for which, suffix in ((0, ""), (1, "_defaults")):
+        pairs = [(r[which], r[2]) for r in rounds]
+        figures.update({
+            f"replay_snaps_per_s_over_before{suffix}": median([(n["snaps"] / n["seconds"]) / (o["snaps"] / o["seconds"])
+                                                               for o, n in pairs]),
+            f"replay_cpu_over_before{suffix}": median([(n["cpu_s"] / n["snaps"]) / (o["cpu_s"] / o["snaps"])
                                                       for o, n in pairs]),
-            "replay_cpu_over_before": median([(n["cpu_s"] / n["snaps"]) / (o["cpu_s"] / o["snaps"]) for o, n in pairs]),
-            "replay_before_snaps_per_s": median([o["snaps"] / o["seconds"] for o, _ in pairs])}
+            f"replay_before_snaps_per_s{suffix}": median([o["snaps"] / o["seconds"] for o, _ in pairs])})
+    return figures
 
 
 def _replay_with_env(bag: Path, env: dict) -> dict:
@@ -563,8 +584,9 @@ def _replay_with_env(bag: Path, env: dict) -> dict:
     return {"snaps": snaps, "seconds": float(match.group(2)), "cpu_s": float(match.group(3)) * snaps / 1000.0}
 
 
-REPLAY_BEFORE_UNITS = {"replay_snaps_per_s_over_before": "x", "replay_cpu_over_before": "x",
-                       "replay_before_snaps_per_s": "snaps/s"}
+REPLAY_BEFORE_UNITS = {f"{name}{suffix}": unit for suffix in ("", "_defaults")
+                       for name, unit in (("replay_snaps_per_s_over_before", "x"), ("replay_cpu_over_before", "x"),
+                                          ("replay_before_snaps_per_s", "snaps/s"))}
 
 
 REPLAY_UNITS = {"replay_compute_ms_per_snap": "ms", "replay_snaps_per_s": "snaps/s", "replay_snaps_per_s_min": "snaps/s",
@@ -618,7 +640,12 @@ REPLAY_NOTES = (
     "fresh graph); these were replay_snaps_per_s / replay_cpu_ms_per_snap before the direct replay. "
     "replay_bag_mb_per_snap: the bag's disk size per snap; replay_bag_zstd_mb_per_snap and "
     "replay_read_zstd_ms_per_snap: a zstd-compressed copy of it (mcap chunks, as scan bags were recorded "
-    "before) and the CPU per snap of reading that copy, same run. ")
+    "before) and the CPU per snap of reading that copy, same run. replay_snaps_per_s_over_before / "
+    "replay_cpu_over_before: this checkout's `lsu run replay BAG --exit` against the code before issue 33 "
+    "(REPLAY_BEFORE) with the extractor background of today's default (`background: texture`, which that code "
+    "had as an option: the same extraction work; it had no grow_wide, which today's default adds), alternated, "
+    "median of the rounds' ratios; the *_defaults figures: the same against that code with its own defaults "
+    "(each frame extracted alone, no grazing filter). ")
 
 
 def sim_bag(tmp: Path) -> Path:
