@@ -186,11 +186,16 @@ class _View:
     band_bin: AnyArray = field(default_factory=lambda: np.zeros(0, np.int64))    # floor(n . P / PN_BIN_M)
     band_pn: AnyArray = field(default_factory=lambda: np.zeros(0))               # their n . P
     band_reach: AnyArray = field(default_factory=lambda: np.zeros(0))            # their reach
-    band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 8)))      # their sigma2, P, N, red albedo
+    # their sigma2, the laser distance's and incidence's coefficients in the laser origin's track position s
+    # (origin = band_start + s x: |origin - P|^2 = A + s (B + s), N . (origin - P) = C + s D) and red albedo
+    band_rows: AnyArray = field(default_factory=lambda: np.zeros((0, 6)))
+    band_start: AnyArray = field(default_factory=lambda: np.zeros(3))
     # their constants that do not change with the sheet's offset, one row each: the skin kernel's `KernelScale`
     # (sigma, b, sigma / b, (sigma / b)^2 / 2, sigma sqrt 2), 1 / sqrt(2 sigma2) and the normal's n . N
     band_consts: AnyArray = field(default_factory=lambda: np.zeros((7, 0)))
     band_skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))     # their skin flag
+    # their shadow test (`SimulatedRig._lit_at_own_origin`): -1 not cast yet at this pose, 0 shadowed, 1 lit
+    band_lit: AnyArray = field(default_factory=lambda: np.zeros(0, np.int8))
     skin: AnyArray = field(default_factory=lambda: np.zeros(0, bool))  # pixel sees a "skin" object
     speckle: SpeckleField | None = None
     # the sensor's view of ``base`` (lens-blurred) and its noise sigma (x 255, DN), for the settings in ``sensor_key``
@@ -249,7 +254,7 @@ class SimulatedRig:
     """The virtual LSU: a `RigGeometry`, a scene of `SceneObject`s, and a seeded sensor noise source."""
 
     def __init__(self, geometry: RigGeometry, objects: Sequence[SceneObject], seed: int = 0,
-                 reference: bool = False, parallel: bool = True) -> None:
+                 reference: bool = False, parallel: bool = True, shadow_cache: bool = True) -> None:
         self.geometry = geometry
         # reference: the plain render (every sub-exposure evaluated, fresh noise for the whole image, every
         # step on the full image); the default render gives the same images at a fraction of the CPU
@@ -260,6 +265,9 @@ class SimulatedRig:
         # a caller that keeps both cores busy otherwise (a camera stream beside the rest of the graph)
         # renders serially
         self.parallel = parallel
+        # shadow_cache: one shadow ray per pixel and subject pose (`_lit_at_own_origin`) instead of one per pixel
+        # and frame; off, the shadow rays go from every frame's own laser origin, as the reference's do
+        self.shadow_cache = shadow_cache
         self.rng = np.random.default_rng(seed)
         # one generator per camera, so the two views' images do not depend on the thread they render
         # on (nor on ``parallel``) and stay reproducible from ``seed``
@@ -408,9 +416,15 @@ class SimulatedRig:
         view.band_pn = view.pn[view.band_order]
         view.band_reach = reach[view.band_order]
         # what the laser term reads of a band's pixels, in the same order: one row gather per capture
-        view.band_rows = np.column_stack([sigma2[view.band_order], points[view.band_order], normals[view.band_order],
-                                          albedo[view.band_order, 2]])
+        n_sheet, x, start = self._sheet_frame(g.center_step)
+        to_start = start - points[view.band_order]
+        band_normals = normals[view.band_order]
+        view.band_start = start
+        view.band_rows = np.column_stack([sigma2[view.band_order], np.einsum("ij,ij->i", to_start, to_start),
+                                          2.0 * (to_start @ x), np.einsum("ij,ij->i", band_normals, to_start),
+                                          band_normals @ x, albedo[view.band_order, 2]])
         view.band_skin = skin[view.band_order]
+        view.band_lit = np.full(len(view.band_order), -1, np.int8)
         # the sheet keeps its orientation (n and the skin model are the geometry's, as for every cache here):
         # what depends on n . N alone is fixed per pixel
         order_nN = n_dot_normal[view.band_order]
@@ -438,6 +452,34 @@ class SimulatedRig:
             return ~self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=tfar).numpy().astype(bool)
         cast = self._cast(origin, to / dist[:, None])
         return cast["t_hit"].astype(np.float64) >= dist * (1.0 - 1e-5) - 1e-5
+
+    def _lit_at_own_origin(self, view: _View, rows: AnyArray, idx: AnyArray) -> AnyArray:
+        """Shadow test of the band table's ``rows`` (pixels ``idx``) from the laser origin whose sheet centre holds the point.
+
+        A point's laser term matters only while the sheet is within its reach, a few millimetres of track
+        around the position where the sheet's centre plane passes through it; its shadow ray is cast once per
+        pose from there (an occlusion query, `_lit`) and kept in ``view.band_lit``. A sweep thus casts one ray
+        per pixel and pose instead of one per pixel and frame. Where the laser's shadow edge crosses a
+        point's band, the point is lit or shadowed as it is at the band's centre for the whole band (the
+        reference render casts from every frame's own origin); test_render_cache states the difference.
+        """
+        known = view.band_lit[rows]
+        todo = np.flatnonzero(known < 0)
+        if len(todo):
+            n, x, start = self._sheet_frame(self.geometry.center_step)
+            pts = view.points[idx[todo]]
+            # the origin start + s x whose sheet n . X = n . (start + s x) contains the point
+            s = (pts @ n - float(n.dot(start))) / float(n.dot(x))
+            origins = start + s[:, None] * x
+            to = pts - origins
+            dist = np.sqrt(np.einsum("ij,ij->i", to, to))
+            rays = np.empty((len(to), 6), np.float32)
+            rays[:, :3], rays[:, 3:] = self._to_scene(origins, to)
+            tfar = float(1.0 - 1e-5 - 1e-5 / dist.max())
+            lit = ~self._scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=tfar).numpy().astype(bool)
+            known[todo] = lit
+            view.band_lit[rows[todo]] = lit
+        return known.astype(bool)
 
     @staticmethod
     def _band_candidates(view: _View, lo: float, hi: float) -> AnyArray:
@@ -473,12 +515,17 @@ class SimulatedRig:
         if len(idx) == 0:
             return idx, np.zeros((0, 3))
         rows = view.band_rows[sel]
-        s2, pts, normals, red_albedo = rows[:, 0], rows[:, 1:4], rows[:, 4:7], rows[:, 7]
+        s2, red_albedo = rows[:, 0], rows[:, 5]
         pn = view.band_pn[sel]
-        to_laser = origin - pts
-        sq = to_laser * to_laser
-        dist = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])     # = np.linalg.norm(to_laser, axis=1), in fewer passes
-        cos_i = np.einsum("ij,ij->i", normals, to_laser) / dist
+        if self.reference:
+            to_laser = origin - view.points[idx]
+            dist = np.linalg.norm(to_laser, axis=1)
+            cos_i = np.einsum("ij,ij->i", view.normals[idx], to_laser) / dist
+        else:
+            # the origin's track position: the sheet moves along x only (`_sheet_frame`)
+            s = float(self._sheet_frame(g.center_step)[1].dot(origin - view.band_start))
+            dist = np.sqrt(rows[:, 1] + s * (rows[:, 2] + s))
+            cos_i = (rows[:, 3] + s * rows[:, 4]) / dist
         incidence = np.clip(cos_i, 0.0, None)
         on_skin = view.band_skin[sel]
         # the skin and the other pixels (a slice when the band is all one or the other: no copies)
@@ -516,10 +563,13 @@ class SimulatedRig:
             # the skin band is wide for the kernel's tail: drop pixels it leaves below 1e-3 of the peak
             # (< 0.2 DN at full power) before the shadow rays, the costly part
             keep = np.flatnonzero(profile > 1e-3)
-            idx, profile, pts, dist, incidence = idx[keep], profile[keep], pts[keep], dist[keep], incidence[keep]
-            red_albedo = red_albedo[keep]
+            idx, profile, dist, incidence = idx[keep], profile[keep], dist[keep], incidence[keep]
+            red_albedo, sel = red_albedo[keep], sel[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
-        lit = self._lit(origin, pts, any_hit=not self.reference, dist=dist)
+        if self.reference or not self.shadow_cache:
+            lit = self._lit(origin, view.points[idx], any_hit=not self.reference, dist=dist)
+        else:
+            lit = self._lit_at_own_origin(view, sel, idx)
         power = g.laser.power * incidence * (g.subject_distance_m / dist) * lit
         value = (power * profile * red_albedo)[:, None] * g.laser.spectral_bgr[None, :]
         return idx, value
