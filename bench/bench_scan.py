@@ -64,6 +64,7 @@ import json
 import os
 import re
 import shutil
+import statistics
 import struct
 import subprocess
 import sys
@@ -1106,8 +1107,14 @@ MOTION_NOTES = (
     "the frame rate: what a real camera at that rate would give). motion_live_*_<fps>fps: the live graph's motion "
     "measurement of those sweeps (stereo_matcher, lsu_reconstruct.motion.SweepMotion, at most motion_max_frames "
     "frames): flagged (1/0, a still person: 0 expected), the measured motion [mm], the frames measured and the CPU "
-    "time it added before the cloud was out (compute_s).")
-MOTION_UNITS = {"motion_rms_standing_corrected_over_still": "x", "motion_rms_standing_raw_over_still": "x",
+    "time it added before the cloud was out (compute_s). sweep_60fps_render_cpu_ms_per_pair: the simulated camera's "
+    "CPU per stereo pair of that 60 fps sweep (person 2, both views on one thread as the camera stream renders, a "
+    "fresh rig per sweep, no ROS, measured before the graph starts), with its shadow rays cast once per pixel and "
+    "pose (the default) and _uncached with one per pixel and frame (the renderer's images before the cache, bit for "
+    "bit), alternated over MOTION_RENDER_ROUNDS sweeps each; sweep_60fps_render_cpu_over_uncached their ratio.")
+MOTION_RENDER_ROUNDS = 2
+MOTION_UNITS = {"sweep_60fps_render_cpu_ms_per_pair": "ms", "sweep_60fps_render_cpu_ms_per_pair_uncached": "ms",
+                "sweep_60fps_render_cpu_over_uncached": "x","motion_rms_standing_corrected_over_still": "x", "motion_rms_standing_raw_over_still": "x",
                 "motion_flagged_pct_beyond_limit": "%", "motion_flagged_pct_still": "%",
                 "motion_flagged_pct_seated": "%", "motion_flagged_pct_standing": "%", "sweep_scan_s_60fps": "s",
                 "sweep_scan_s_30fps_motion_live": "s", "sweep_60fps_rms_mm": "mm", "sweep_30fps_rms_mm": "mm",
@@ -1287,12 +1294,35 @@ def motion_face_figures() -> dict:
     print("[motion faces] " + ", ".join(f"{k}={v:.3g}" for k, v in out.items()), flush=True)
     return out
 
+def motion_render_cpu(lo: int, hi: int) -> dict:
+    """CPU per pair of the simulated camera rendering the 60 fps face sweep, shadow cache on and off (MOTION_NOTES)."""
+    from lsu_sim import CarriageState, SimulatedRig, build_scene, load_rig
+
+    geometry = load_rig(None)
+    scene = build_scene("person:2", geometry)
+    frames = int((hi - lo) / MOTION_RATE_60 * MOTION_FPS_60)
+    cpu: dict[bool, list[float]] = {True: [], False: []}
+    for _ in range(MOTION_RENDER_ROUNDS):
+        for cached in (True, False):
+            rig = SimulatedRig(geometry, scene, seed=0, shadow_cache=cached)
+            rig.render(CarriageState(float(lo), False), capture_time_s=99.0, seed=0, parallel=False)  # sensor caches
+            state = CarriageState(float(lo), True, velocity_steps_per_s=MOTION_RATE_60, position_time_s=100.0)
+            start = time.process_time()
+            for index in range(frames):
+                rig.render(state, capture_time_s=100.0 + index / MOTION_FPS_60, seed=index, parallel=False)
+            cpu[cached].append(1e3 * (time.process_time() - start) / frames)
+    cached_ms, uncached_ms = statistics.median(cpu[True]), statistics.median(cpu[False])
+    return {"sweep_60fps_render_cpu_ms_per_pair": cached_ms, "sweep_60fps_render_cpu_ms_per_pair_uncached": uncached_ms,
+            "sweep_60fps_render_cpu_over_uncached": cached_ms / uncached_ms}
+
+
 def motion_live(tmp: Path) -> dict:
     """sweep_scan_s_60fps: a face sweep at 60 fps and twice the rate, live, beside one at 30 fps."""
     from lsu_scan.scanner import LsuScanner
 
     old = json.loads((Path(__file__).resolve().parent / "results" / "scan.json").read_text())["figures"]
     lo, hi = int(old.get("sweep_face_start_steps", 82)), int(old.get("sweep_face_end_steps", 438))
+    render = motion_render_cpu(lo, hi)
     graph = start_sim_graph(tmp, "gp32m", "scans", scene="person:2")
     runs: dict = {}
     try:
@@ -1312,7 +1342,7 @@ def motion_live(tmp: Path) -> dict:
     sweep60 = records["60"].get("sweep", {})
     out = {"sweep_scan_s_60fps": runs["60"].seconds, "sweep_scan_s_30fps_motion_live": runs["30"].seconds,
            "sweep_60fps_frames_dropped_pct": float(sweep60.get("frames_dropped_pct", float("nan"))),
-           "sweep_60fps_camera_lag_s": float(sweep60.get("camera_lag_s", float("nan")))}
+           "sweep_60fps_camera_lag_s": float(sweep60.get("camera_lag_s", float("nan"))), **render}
     for name, record in records.items():
         lag = float(record.get("sweep", {}).get("camera_lag_s", float("nan")))
         out[f"sweep_scan_minus_render_lag_s_{name}fps"] = runs[name].seconds - lag

@@ -11,8 +11,10 @@ following the post-stop vibration, from each camera's own exposure start: ``capt
 then adds lens blur, saturation with blooming, the optional Bayer mosaic, shot + read noise, 8-bit
 quantisation (and demosaicing). `physics` documents each effect and its sources. A constant-rate
 motion is averaged over the exposure in closed form, and the sensor steps run on the laser's
-rectangle of the image (`SimulatedRig.render`); ``reference=True`` renders the plain way, sub-exposure
-by sub-exposure and on the whole image, which the tests and the benchmark compare against.
+rectangle of the image (`SimulatedRig.render`); a pixel's shadow ray is cast once per subject pose, from
+the laser origin whose sheet centre holds it (`SimulatedRig._lit_at_own_origin`). ``reference=True``
+renders the plain way, sub-exposure by sub-exposure, on the whole image and with a shadow ray per pixel
+and frame, which the tests and the benchmark compare against.
 
 Pixel integration: the laser sheet is only ~2.5 px thick, so sampling it at pixel centres would
 alias. Over one pixel ``n . P`` is close to linear (slope g per pixel), and the box average of a
@@ -416,7 +418,7 @@ class SimulatedRig:
         view.band_pn = view.pn[view.band_order]
         view.band_reach = reach[view.band_order]
         # what the laser term reads of a band's pixels, in the same order: one row gather per capture
-        n_sheet, x, start = self._sheet_frame(g.center_step)
+        _, x, start = self._sheet_frame(g.center_step)
         to_start = start - points[view.band_order]
         band_normals = normals[view.band_order]
         view.band_start = start
@@ -566,7 +568,9 @@ class SimulatedRig:
             idx, profile, dist, incidence = idx[keep], profile[keep], dist[keep], incidence[keep]
             red_albedo, sel = red_albedo[keep], sel[keep]
         # the fan spreads in one direction only: irradiance falls as 1/r, referenced to the subject distance
-        if self.reference or not self.shadow_cache:
+        n, x, _ = self._sheet_frame(g.center_step)
+        # (a sheet parallel to the track never moves over the scene: no origin of its own per point)
+        if self.reference or not self.shadow_cache or abs(float(n.dot(x))) < 1e-9:
             lit = self._lit(origin, view.points[idx], any_hit=not self.reference, dist=dist)
         else:
             lit = self._lit_at_own_origin(view, sel, idx)
