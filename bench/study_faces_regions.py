@@ -5,7 +5,7 @@ near-frontal enrolment and two probes on other occasions per person, through the
 the LSU rig "rig"; galleries beyond the captured people filled with exact-path enrolments of further ICT people).
 Two splits of identities:
 
-- ``tune`` (``LSU_STUDY_SPLIT=tune``, the default): captured people seeds 0..19 (the development seeds), fillers
+- ``tune`` (``LSU_STUDY_SPLIT=tune``, the default): captured people seeds 0..59 (development seeds; as many as the report split), fillers
   seeds 100..; every choice below (regions, fusion, first-stage size) is made here;
 - ``report``: the bench's people (seeds ``POP_SEED``.., fillers after them), never used for a choice.
 
@@ -26,8 +26,8 @@ Matchers (each a rank-1 figure per gallery size N and sensor):
   a few degrees off no longer tilts every block; recall of the true person among the first k.
 
 Run: ``LSU_STUDY_SPLIT=tune .venv/bin/python bench/study_faces_regions.py``, then ``LSU_STUDY_SPLIT=report``
-(seeded, deterministic; captures from the bench's cache, a miss renders: the tuning people's ~120 captures take
-~20 min on a loaded 2-core host). The tuning split compares every gallery entry (``LSU_STUDY_FULL=1``) at
+(seeded, deterministic; captures from the bench's cache, a miss renders: the tuning people's ~360 captures take
+~40 min on a loaded 2-core host). The tuning split compares every gallery entry (``LSU_STUDY_FULL=1``) at
 N = 20, 100, with the per-region alignments (``LSU_STUDY_EACH_REGION=1``); the report split at N = 20, 100,
 1,000 compares only the first stage's candidates and the regions after the whole face's alignment (the
 per-region alignments and the model-aligned first stage lost on the tuning split), and states the variant the
@@ -68,7 +68,7 @@ from lsu_faces.signature import (  # noqa: E402
 SPLIT = os.environ.get("LSU_STUDY_SPLIT", "tune")
 NS = tuple(int(n) for n in os.environ.get("LSU_STUDY_NS", "20,100" if SPLIT == "tune" else "20,100,1000").split(","))
 if SPLIT == "tune":
-    PEOPLE = list(range(0, 20))
+    PEOPLE = list(range(0, 60))
     FILL0 = 100
 else:
     PEOPLE = [bf.POP_SEED + i for i in range(bf.POP_TEST)]
@@ -164,8 +164,7 @@ def fuse(dist: AnyArray, kind: str, use: list[int]) -> AnyArray:
         with np.errstate(divide="ignore"):
             ld = np.log(np.where(np.isfinite(d), d, 1.0))
         bad = ~np.isfinite(d)
-        ld = np.where(bad, np.nan, ld)
-        m = np.nanmean(ld, axis=0)
+        m = np.where(bad, 0.0, ld).sum(axis=0) / np.maximum(np.sum(~bad, axis=0), 1)   # mean over the finite ones
         m = np.where(np.sum(~bad, axis=0) >= max(1, len(use) // 2), m, np.inf)
         return np.exp(m)
     if kind == "median":
@@ -318,15 +317,15 @@ def main() -> None:
         # then the name), and its figures here
         tune = json.loads(tune_file.read_text())["sensors"]
         here = results["sensors"]  # type: ignore[assignment]
-        n_t = str(max(int(n) for n in tune["tof"]["rank1_pct"]["today"]))
+        n_t = {s: str(max(int(n) for n in tune[s]["rank1_pct"]["today"])) for s in tune}   # a refused enrolment: N - 1
         names = [k for k in here["tof"]["rank1_pct"] if k in tune["tof"]["rank1_pct"]]   # type: ignore[index]
 
         def key(k: str) -> tuple[float, int, str]:
             fs = int(k.rsplit("fs", 1)[1]) if "_fs" in k else FIRST_STAGE + 1
-            return (-(tune["tof"]["rank1_pct"][k][n_t] + tune["rig"]["rank1_pct"][k][n_t]), fs, k)
+            return (-sum(tune[s]["rank1_pct"][k][n_t[s]] for s in tune), fs, k)
 
         best = min(names, key=key)
-        results["chosen_on_tune"] = {"name": best, "tune_n": int(n_t), "tune": {s: tune[s]["rank1_pct"][best] for s in tune},
+        results["chosen_on_tune"] = {"name": best, "tune_n": n_t, "tune": {s: tune[s]["rank1_pct"][best] for s in tune},
                                      "report": {s: here[s]["rank1_pct"][best] for s in here},  # type: ignore[index]
                                      "today_report": {s: here[s]["rank1_pct"]["today"] for s in here}}  # type: ignore[index]
     results["wall_s"] = time.perf_counter() - t_start
