@@ -66,7 +66,7 @@ HEADLINES: list[tuple[str, str, str, str | None]] = [
     ("scan", "scan_wall_over_mechanical_recording", "(with its bag)", None),
     ("scan", "replay_snaps_per_s", ">= 300 (`lsu run replay BAG`)", ">= 300"),
     ("scan", "replay_cpu_over_compute", "<= 1.15 (replay CPU / the computation called directly)", "<= 1.15"),
-    ("scan", "replay_snaps_per_s_over_before", ">= 1.2 (against the code before issue 33, same run)", ">= 1.2"),
+    ("scan", "replay_snaps_per_s_over_before", ">= 1.2 (against the code before issue 33 on the same work, same run)", ">= 1.2"),
     ("scan", "replay_cpu_over_compute_and_read", "(the same, reading the bag counted in the reference)", None),
     ("scan", "replay_dds_snaps_per_s", "(the message path: bag played into the replay graph)", None),
     ("scan", "bridge_overhead_pct", "<= 5 (live view)", "<= 5"),
