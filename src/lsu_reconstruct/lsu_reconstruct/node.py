@@ -605,7 +605,10 @@ class StereoMatcherNode(LsuNode):
         self.get_logger().error(text, throttle_duration_sec=5.0)
 
     def prepare_scan_cloud(self) -> None:
-        """Load what the scan cloud's filters need (once per process), ahead of the scan's end."""
+        """Load what the scan cloud's filters need (once per process), ahead of the scan's end: for a caller that
+        times the scan (the direct replay). The live node leaves it to the scan's end: loaded as a scan starts, it
+        held the matcher ~0.3 s (the import keeps the GIL) while a sweep's first frames and its laser-off pair
+        came in, and a sweep's cloud came out uncoloured."""
         load_drop_grazing(float(self.get_parameter("max_view_angle_deg").value))
 
     # ------------------------------------------------------------------ scan events and texture
@@ -621,7 +624,6 @@ class StereoMatcherNode(LsuNode):
                 held.clear()
             self._waiting_images.clear()
             self.get_logger().info(f"scan {msg.scan_id}: started, {msg.expected_snaps} snaps expected")
-            self.prepare_scan_cloud()
             return
         if self.scan is None or (msg.scan_id and msg.scan_id != self.scan.scan_id):
             self.get_logger().warning(f"scan event {msg.type} for scan '{msg.scan_id}' without its STARTED; ignored",

@@ -132,10 +132,8 @@ def _planar(cov: AnyArray, normals: AnyArray) -> AnyArray:
 
 
 def load_drop_grazing(max_view_angle_deg: float = MAX_VIEW_ANGLE_DEG) -> None:
-    """Import what `drop_grazing` needs (open3d: about a third of a second of CPU, once per process).
-
-    A node calls it when a scan starts, so that the scan's end (when the cloud is awaited) does not pay it.
-    """
+    """Import what `drop_grazing` needs (open3d: about a third of a second of CPU, once per process), for a caller
+    that times the scan's processing and would otherwise count it there (`StereoMatcherNode.prepare_scan_cloud`)."""
     if max_view_angle_deg < 90.0:
         import open3d  # noqa: F401
 
