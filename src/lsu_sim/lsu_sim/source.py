@@ -174,7 +174,8 @@ def open_sim_source(context: SourceContext) -> SimSource:
                                                            float(optional("sim_motion_turn_at_s", 1.0)))
     except MotionError as exc:
         raise CameraError(f"sim_motion: {exc}") from None
-    return SimSource(SimulatedRig(geometry, scene, seed=seed), carriage, clock=context.clock, seed=seed, motion=motion,
+    # the shadow cache: a person at 60 fps on a small host (its few pixels at shadow edges: `SimulatedRig`)
+    return SimSource(SimulatedRig(geometry, scene, seed=seed, shadow_cache=True), carriage, clock=context.clock, seed=seed, motion=motion,
                      motion_hz=float(optional("sim_motion_hz", 5.0)))
 
 
