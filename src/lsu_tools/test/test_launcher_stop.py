@@ -74,7 +74,9 @@ def test_a_ctrl_c_during_a_nodes_start_up_waits_for_its_handler(tmp_path):
     code 1 here; "Fatal Python error: init_import_site" and SIGABRT inside the interpreter's own start-up)."""
     code, text = _run(tmp_path, ["early"])
     assert "[early_node] stopped by its handler" in text, text
-    assert code == 0 and "Traceback" not in text and "exit code" not in text, text
+    # it may end before or after the launcher's own shutdown (its Ctrl-C is its own): either way cleanly
+    assert code == 0 and "Traceback" not in text and "crashed" not in text, text
+    assert "exit code" not in text or "early_node ended (exit code 0)" in text, text
 
 
 def test_run_node_takes_a_ctrl_c_held_during_start_up(tmp_path):
