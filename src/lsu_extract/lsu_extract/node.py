@@ -132,11 +132,14 @@ class LaserExtractorNode(LsuNode):
                             for side in SIDES}
         # raw: the pixels are read in place from the serialized message (rclpy's deserializer copies
         # them into an array.array first: ~0.4 ms per frame, a tenth of the extraction)
-        self.subscriptions_ = [
+        # the events' subscription first: an executor serves the subscriptions ready in one wait in the order they
+        # were made, and a scan's TEXTURE event must be taken before the snap frames that came in with it (each
+        # would otherwise be extracted alone, without the laser-off pair it names)
+        self.subscriptions_ = [self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS)]
+        self.subscriptions_ += [
             self.create_subscription(Image, f"stereo/{side}/image_raw",
                                      lambda raw, side=side: self.on_image(side, raw), qos.FRAME_QUEUE, raw=True)
             for side in SIDES]
-        self.subscriptions_.append(self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS))
 
     def _read_params(self, overrides: dict[str, Any]) -> ExtractorParams:
         values = {spec.name: overrides.get(spec.name, self.get_parameter(spec.name).value)
