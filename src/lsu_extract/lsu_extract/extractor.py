@@ -761,18 +761,15 @@ def _grow_along(sig: LaserSignal, chunks: list[dict[str, Any]], params: Extracto
 
 
 def _search_rows(sig: LaserSignal, rows: AnyArray, params: ExtractorParams, known: dict[str, Any] | None,
-                 on_red: bool, check_red: bool, strong: list[AnyArray] | None = None
-                 ) -> tuple[dict[str, Any] | None, int]:
+                 on_red: bool, check_red: bool) -> tuple[dict[str, Any] | None, int, AnyArray]:
     """Full-row search of ``rows`` (the line's other rows ``known``, for continuity): their `_keep` chunk (None
-    where none was found) and how many rows were ambiguous. ``strong``: a list that gets the rows whose highest
-    peak stands ``min_contrast`` above their mean (the others can hold no line with these parameters)."""
+    where none was found), how many rows were ambiguous, and the strong rows: those whose highest peak stands
+    ``min_contrast`` above their mean (the others can hold no line with these parameters)."""
     half, width = params.refine_half_px, sig.width
     # strong rows only: on a frame where the line has left the object, most pending rows are lit
     # skin or background without it, and they need no second-peak search nor a decision
     cand = row_candidates(sig.rows(rows, reuse=True), rows, half, params.min_contrast, strong_only=True,
                           scratch=True, local=not sig.colour)
-    if strong is not None:
-        strong.append(cand.rows)
     known_rows = known["v"].astype(np.int64) if known is not None else _NO_ROWS
     known_cols = known["u"] if known is not None else _NO_COLS
     pick = decide(cand, params.min_contrast, params.ambiguity_ratio, max(params.window_px, half),
@@ -781,14 +778,14 @@ def _search_rows(sig: LaserSignal, rows: AnyArray, params: ExtractorParams, know
     ok = pick.column >= 0
     rows_f = cand.rows[ok]
     if not rows_f.size:
-        return None, ambiguous
+        return None, ambiguous, cand.rows
     column = pick.column[ok]
     if half <= column.min() and column.max() <= width - 1 - half:
         fit = _refine_columns(sig, rows_f, column, params, width, on_red, check_red)
     else:  # some window is cut by the border: shifted inside the image, edge samples repeated
         s, red, first = sig.windows(rows_f, column - half, 2 * half + 1)
         fit = _refine(s, red, first, column - first, params, width, on_red=on_red, check_red=check_red)
-    return _keep(rows_f, fit, pick.uniqueness[ok]), ambiguous
+    return _keep(rows_f, fit, pick.uniqueness[ok]), ambiguous, cand.rows
 
 
 def _merge(chunks: list[dict[str, Any]]) -> tuple[dict[str, Any], tuple[str, ...]]:
@@ -915,7 +912,6 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
             missing[chunks[0]["v"]] = False
             pending = missing.nonzero()[0]
     ambiguous = 0
-    strong: list[AnyArray] = []  # the full search's strong rows (`_search_rows`)
     weak = _NO_ROWS  # rows that search found without a peak min_contrast above their mean
     if pending is None:
         pending = np.arange(height)
@@ -924,8 +920,8 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
     if pending.size:
         full_searched += pending.size
         known = chunks[0] if chunks else None
-        searched, ambiguous = _search_rows(sig, pending, params, known, on_red, check_red, strong)
-        weak = np.setdiff1d(pending, strong[0], assume_unique=True)
+        searched, ambiguous, strong = _search_rows(sig, pending, params, known, on_red, check_red)
+        weak = np.setdiff1d(pending, strong, assume_unique=True)
         if searched is not None:
             chunks.append(searched)
     saturated = sum(0 if c["saturated"] is None else int(np.count_nonzero(c["saturated"])) for c in chunks)
@@ -953,7 +949,7 @@ def extract_laser_line(image: AnyArray, params: ExtractorParams | None = None,
         pending = pending[sig.may_hold_laser(pending, params.min_contrast)]
         if pending.size:
             full_searched += pending.size
-            wide_rows, _ = _search_rows(sig, pending, wide, found, False, False)
+            wide_rows, _, _ = _search_rows(sig, pending, wide, found, False, False)
             if wide_rows is not None:  # only the wide ones: a narrower row there was left out by the searches before
                 keep = wide_rows["width"] > params.max_width_px
                 wide_rows = {name: value if value is None else value[keep] for name, value in wide_rows.items()}

@@ -105,8 +105,7 @@ class LaserSignal:
             return np.subtract(red, other_channel(green, blue), out=signal, dtype=np.int16)
         tex_blue, tex_green, tex_red = self._split(texture, "texture planes")
         np.subtract(red, tex_red, out=signal, dtype=np.int16)
-        # max(green - green_off, blue - blue_off, 0), as `_other_rise`, in the planes' own memory
-        other = cv2.max(cv2.subtract(green, tex_green, dst=green), cv2.subtract(blue, tex_blue, dst=blue), dst=green)
+        other = self._other_rise_in_place(green, blue, tex_green, tex_blue)
         return np.subtract(signal, other, out=signal, dtype=np.int16)
 
     @staticmethod
@@ -162,8 +161,7 @@ class LaserSignal:
             return cv2.subtract(pixels, texture), exact
         blue, green, red = self._split(pixels, "planes")
         tex_blue, tex_green, tex_red = self._split(texture, "texture planes")
-        # max(green - green_off, blue - blue_off, 0), as `_other_rise`, in the planes' own memory
-        other = cv2.max(cv2.subtract(green, tex_green, dst=green), cv2.subtract(blue, tex_blue, dst=blue), dst=green)
+        other = self._other_rise_in_place(green, blue, tex_green, tex_blue)
         exact = None
         if every:
             exact = np.subtract(red[::every], tex_red[::every], dtype=np.int16)
@@ -226,6 +224,12 @@ class LaserSignal:
         """
         n, length = pixels.shape[:2]
         return cv2.transpose(pixels.reshape(n, 3 * length)).reshape(length, 3, n)
+
+    @staticmethod
+    def _other_rise_in_place(green: AnyArray, blue: AnyArray, tex_green: AnyArray, tex_blue: AnyArray) -> AnyArray:
+        """`_other_rise` of planes the caller owns (this thread's scratch planes): written into ``green`` and ``blue``,
+        returned in ``green``."""
+        return cv2.max(cv2.subtract(green, tex_green, dst=green), cv2.subtract(blue, tex_blue, dst=blue), dst=green)
 
     @staticmethod
     def _other_rise(green: AnyArray, blue: AnyArray, texture: AnyArray) -> AnyArray:
