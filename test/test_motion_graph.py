@@ -67,5 +67,5 @@ def test_a_sudden_turn_is_flagged_and_scanned_again(tmp_path, launch):
     assert json.loads(text)["unreliable_frames"] == bad
     # the second: the same goal, the head held still in its new pose
     assert second["rescan_of"] == first["scan_id"]
-    assert second["motion"]["measured"] and not second["motion"]["flagged"], second["motion"]
+    assert second["motion"]["measured"] and not second["motion"]["flagged"], json.dumps(second["motion"])
     assert not second["partial"] and second["points"] > 5000

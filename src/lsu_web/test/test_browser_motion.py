@@ -54,7 +54,7 @@ def test_the_page_says_hold_still_when_a_sweep_is_scanned_again(graph):
     first = next(r for r in records if not r["rescan_of"])
     second = next(r for r in records if r["rescan_of"])
     assert first["motion"]["flagged"] and first["motion"]["message"] == HOLD_STILL, first["motion"]
-    assert second["rescan_of"] == first["scan_id"] and not second["motion"]["flagged"], second["motion"]
+    assert second["rescan_of"] == first["scan_id"] and not second["motion"]["flagged"], json.dumps(second["motion"])
     # the page said it once, in the words of the record, and it stays on the page after the result
     assert notices == [HOLD_STILL] and shown == HOLD_STILL, (notices, shown)
     assert result["outcome"] == "SUCCEEDED" and result["scan_id"] == second["scan_id"], result
