@@ -27,6 +27,10 @@ _TYPE_RE = re.compile(r"^[A-Za-z_]\w*/(?:(?:msg|srv|action)/)?[A-Z]\w*$")
 DISCOVERY_QUIET_S = 1.5
 DISCOVERY_MIN_S = 1.0
 DISCOVERY_MAX_S = 10.0
+# how long a quiet graph still waits for the names of endpoints whose node is unknown: a name on its way comes
+# within seconds; one that never comes is a leftover (a process that ended without leaving the graph, a DDS
+# participant that is no ROS node), which must not hold every listing to its maximum
+NAME_WAIT_S = 4 * DISCOVERY_QUIET_S
 UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"  # rmw's name for the node of an endpoint whose node info has not come
 
 
@@ -51,6 +55,7 @@ class GraphClient:
         self.node = rclpy.create_node(f"_lsu_cli_{os.getpid()}", context=self.context,
                                       start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.context)
+        self.unnamed: list[str] = []  # endpoints whose node never named itself in the last `wait_for_discovery`
         self.executor.add_node(self.node)
 
     def __enter__(self) -> GraphClient:
@@ -101,27 +106,36 @@ class GraphClient:
         return missing
 
     def wait_for_discovery(self, max_s: float, quiet_s: float = DISCOVERY_QUIET_S,
-                           min_s: float = DISCOVERY_MIN_S) -> float:
+                           min_s: float = DISCOVERY_MIN_S, name_wait_s: float = NAME_WAIT_S) -> float:
         """Listen until no node, topic, service or endpoint appeared for ``quiet_s`` (at least ``min_s``,
         at most ``max_s`` seconds); returns the seconds listened.
 
         There is no daemon keeping the graph: each command discovers it afresh, and how long that
         takes depends on how many nodes there are and how busy the host is, so a fixed wait is
         either too short (entities missed) or too long. Quiet does not count while an endpoint's node
-        is unknown (`endpoints_without_node`): its name is still on the way.
+        is unknown (`endpoints_without_node`): its name is still on the way, for up to ``name_wait_s``; those
+        still unnamed then (or at ``max_s``) are left in ``unnamed``.
         """
         start = time.monotonic()
         last_change, seen = start, self.graph_snapshot()
         me = (self.node.get_name(), self.node.get_namespace())
+        naming_since: float | None = None  # when quiet was first put off for a name on its way
+        self.unnamed = []
         while self.context.ok():
             now = time.monotonic()
             # quiet only counts once another participant is seen: on a busy host the first
             # announcement can take seconds, and "nothing new" before it means nothing yet
             others = any((name, ns) != me for name, ns in seen[0])
             if now - start >= max_s:
+                self.unnamed = self.endpoints_without_node()
                 break
             if others and now - start >= min_s and now - last_change >= quiet_s:
-                if not self.endpoints_without_node():
+                unnamed = self.endpoints_without_node()
+                if not unnamed:
+                    break
+                naming_since = now if naming_since is None else naming_since
+                if now - naming_since >= name_wait_s:
+                    self.unnamed = unnamed  # leftovers, not names on the way (`NAME_WAIT_S`)
                     break
                 last_change = now  # a node's name is on the way: it is news still to come
             self.executor.spin_once(timeout_sec=0.05)
@@ -190,6 +204,10 @@ def cmd_node_list(args: argparse.Namespace) -> int:
         g.wait_for_discovery(args.wait)
         names = sorted({(ns.rstrip("/") + "/" + n) for n, ns in g.node.get_node_names_and_namespaces()
                         if not n.startswith("_")})
+        if g.unnamed:
+            sys.stderr.write(f"note: {len(g.unnamed)} endpoint(s) on this domain belong to no named node (a process "
+                             "that ended without leaving the graph, or a DDS participant that is no ROS node): "
+                             + "; ".join(g.unnamed[:5]) + "\n")
     for name in names:
         print(name)
     return 0

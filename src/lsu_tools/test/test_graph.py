@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 
-from lsu_tools.graph import DISCOVERY_MIN_S, DISCOVERY_QUIET_S, GraphClient
+from lsu_tools.graph import DISCOVERY_MIN_S, DISCOVERY_QUIET_S, NAME_WAIT_S, GraphClient
 
 
 def test_listing_waits_while_nodes_keep_appearing(ros_context):
@@ -32,6 +33,8 @@ def test_listing_waits_while_nodes_keep_appearing(ros_context):
         worker.start()
         try:
             g.wait_for_discovery(max_s=60.0)
+            if g.unnamed:  # another test's leftover on this domain: whose, for whoever reads the summary
+                warnings.warn(f"endpoints of no named node on this domain: {g.unnamed}", stacklevel=1)
             seen = {n for n, ns in g.node.get_node_names_and_namespaces() if ns == "/graphtest"}
             finished_first = len(created) == count
         finally:
@@ -84,7 +87,20 @@ def test_listing_waits_for_the_node_of_every_endpoint_seen(ros_context, monkeypa
         monkeypatch.setattr(g, "graph_snapshot", snapshot)
         monkeypatch.setattr(g, "endpoints_without_node", lambda: [] if named() else ["publisher on /t [T]"])
         waited = g.wait_for_discovery(max_s=120.0)
+        assert g.unnamed == []
     assert named_after_s + DISCOVERY_QUIET_S <= waited < 120.0
+
+
+def test_an_endpoint_whose_name_never_comes_holds_the_listing_only_for_the_name_wait(ros_context, monkeypatch):
+    # a leftover endpoint (its process gone without leaving the graph) is never named: the listing waits
+    # NAME_WAIT_S for it after the graph went quiet, then lists what there is and names the leftover
+    with GraphClient() as g:
+        me = (g.node.get_name(), g.node.get_namespace())
+        monkeypatch.setattr(g, "graph_snapshot", lambda: (tuple(sorted([me, ("other", "/graphtest5")])), (), (), ()))
+        monkeypatch.setattr(g, "endpoints_without_node", lambda: ["publisher on /gone [T] (pid 1: gone)"])
+        waited = g.wait_for_discovery(max_s=120.0)
+        assert g.unnamed == ["publisher on /gone [T] (pid 1: gone)"]
+    assert max(DISCOVERY_MIN_S, DISCOVERY_QUIET_S) + NAME_WAIT_S <= waited < 120.0
 
 
 def test_a_settled_graph_has_no_endpoint_without_its_node(ros_context):
@@ -96,6 +112,8 @@ def test_a_settled_graph_has_no_endpoint_without_its_node(ros_context):
     try:
         with GraphClient() as g:
             g.wait_for_discovery(max_s=60.0)
+            if g.unnamed:
+                warnings.warn(f"endpoints of no named node on this domain: {g.unnamed}", stacklevel=1)
             assert ("named_owner", "/graphtest4") in g.node.get_node_names_and_namespaces()
             # its own endpoints (a leftover of another test on this domain is the launch fixture's to report)
             assert [e for e in g.endpoints_without_node() if " on /graphtest4/" in e] == []
