@@ -342,10 +342,11 @@ class SimulatedRig:
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in result.items()}
 
-    def _smooth_normals(self, geom: AnyArray, prim: AnyArray, uvs: AnyArray, hit: AnyArray) -> AnyArray:
+    def _smooth_normals(self, geom: AnyArray, prim: AnyArray, uvs: AnyArray) -> AnyArray:
+        """Unit interpolated vertex normals of hit pixels (their object ids, triangles and barycentrics)."""
         normals = np.zeros((len(geom), 3))
         for gid in range(len(self.objects)):
-            sel = hit & (geom == gid)
+            sel = geom == gid
             if not np.any(sel):
                 continue
             tri = self._tris[gid][prim[sel]]
@@ -365,56 +366,68 @@ class SimulatedRig:
         geom = np.where(hit, cast["geometry_ids"].astype(np.int64), -1)
         t = np.where(hit, t, 0.0)
         points = view.origin + view.dirs * t[:, None]
-        normals = self._smooth_normals(geom, cast["primitive_ids"].astype(np.int64), cast["primitive_uvs"], hit)
-        normals = normals @ self._pose_R.T  # the scene's normals as the subject is turned now
-        flip = np.einsum("ij,ij->i", normals, view.dirs) > 0  # face the camera: both sides of a mesh are visible
-        normals[flip] *= -1.0
+        # the surface's terms on the pixels that hit only (about half of a person's view is background); a
+        # pixel that misses gets what the whole-image formulas give it: no normal, the background's light,
+        # the bare sheet's variance and reach
+        hit_idx = np.flatnonzero(hit)
+        dirs, geom_h = view.dirs[hit_idx], geom[hit_idx]
+        nrm = self._smooth_normals(geom_h, cast["primitive_ids"][hit_idx].astype(np.int64), cast["primitive_uvs"][hit_idx])
+        nrm = nrm @ self._pose_R.T  # the scene's normals as the subject is turned now
+        flip = np.einsum("ij,ij->i", nrm, dirs) > 0  # face the camera: both sides of a mesh are visible
+        nrm[flip] *= -1.0
         ok = hit.reshape(H, W)
         depth = t.reshape(H, W)
         pts = points.reshape(H, W, 3)
-        du = _footprints(pts, ok, depth, 1).reshape(-1, 3)
-        dv = _footprints(pts, ok, depth, 0).reshape(-1, 3)
-        albedo = np.zeros((H * W, 3))
-        spec = np.zeros(H * W)
+        du = _footprints(pts, ok, depth, 1).reshape(-1, 3)[hit_idx]
+        dv = _footprints(pts, ok, depth, 0).reshape(-1, 3)[hit_idx]
+        pts_h = points[hit_idx]
+        albedo = np.zeros((len(hit_idx), 3))
+        spec = np.zeros(len(hit_idx))
+        skin_h = np.zeros(len(hit_idx), bool)
         for gid, obj in enumerate(self.objects):
-            sel = geom == gid
+            sel = geom_h == gid
             if np.any(sel):
                 # the texture is the scene's own: evaluated where the point is on the subject as built
-                albedo[sel] = obj.albedo((points[sel] - self._pose_t) @ self._pose_R, du[sel] @ self._pose_R,
+                albedo[sel] = obj.albedo((pts_h[sel] - self._pose_t) @ self._pose_R, du[sel] @ self._pose_R,
                                          dv[sel] @ self._pose_R)
                 spec[sel] = obj.specularity
+                skin_h |= sel & (obj.material == "skin")
         light = g.lighting
-        to_lamp = light.key_light_m - points
+        to_lamp = light.key_light_m - pts_h
         to_lamp /= np.maximum(np.linalg.norm(to_lamp, axis=1, keepdims=True), 1e-12)
-        diffuse = np.clip(np.einsum("ij,ij->i", normals, to_lamp), 0.0, None)
-        half = to_lamp - view.dirs
+        diffuse = np.clip(np.einsum("ij,ij->i", nrm, to_lamp), 0.0, None)
+        half = to_lamp - dirs
         half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-12)
-        highlight = light.specular * spec * np.clip(np.einsum("ij,ij->i", normals, half), 0.0, None) ** light.shininess
-        radiance = albedo * (light.ambient + light.key * diffuse)[:, None] + highlight[:, None]
-        radiance[~hit] = light.background
+        highlight = light.specular * spec * np.clip(np.einsum("ij,ij->i", nrm, half), 0.0, None) ** light.shininess
+        radiance = np.empty((H * W, 3))
+        radiance[:] = light.background
+        radiance[hit_idx] = albedo * (light.ambient + light.key * diffuse)[:, None] + highlight[:, None]
         n = g.laser_normal
         slope2 = (du @ n) ** 2 + (dv @ n) ** 2
         # grazing pixels have huge footprints along n: cap so they stay in the band test but contribute ~0
-        sigma2 = g.laser.sheet_sigma_m ** 2 + np.minimum(slope2, (50.0 * g.laser.sheet_sigma_m) ** 2) / 12.0
-        skin = np.zeros(H * W, bool)
-        for gid, obj in enumerate(self.objects):
-            if obj.material == "skin":
-                skin |= geom == gid
+        sigma2 = np.full(H * W, g.laser.sheet_sigma_m ** 2)
+        sigma2[hit_idx] = g.laser.sheet_sigma_m ** 2 + np.minimum(slope2, (50.0 * g.laser.sheet_sigma_m) ** 2) / 12.0
         # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_width`) and its
         # centre shift (at most |n . N| / (n_skin (mu_a + mu_s'))) reach further from the sheet
+        nN = np.abs(nrm @ n)
+        reach = 5.0 * np.sqrt(sigma2)
+        reach[hit_idx] += skin_h * (6.0 * g.skin.diffusion_length_m * np.sqrt(np.clip(1.0 - nN * nN, 0, 1))
+                                    + g.skin.centre_shift_per_sin_t * nN / g.skin.refractive_index)
+        normals = np.zeros((H * W, 3))
+        normals[hit_idx] = nrm
+        skin = np.zeros(H * W, bool)
+        skin[hit_idx] = skin_h
         n_dot_normal = normals @ g.laser_normal
-        nN = np.abs(n_dot_normal)
-        reach = 5.0 * np.sqrt(sigma2) + skin * (6.0 * g.skin.diffusion_length_m * np.sqrt(np.clip(1.0 - nN * nN, 0, 1))
-                                                + g.skin.centre_shift_per_sin_t * nN / g.skin.refractive_index)
+        red_albedo = np.zeros(H * W)
+        red_albedo[hit_idx] = albedo[:, 2]
         view.hit, view.t, view.geom, view.points, view.normals = hit, t, geom, points, normals
         view.skin, view.reach = skin, reach
-        view.red_albedo = albedo[:, 2]
+        view.red_albedo = red_albedo
         view.base = radiance.reshape(H, W, 3).astype(np.float32)
         view.sensor_key = ()  # the sensor's view of the base is made again at the next render
         view.pn = np.where(hit, points @ n, np.nan)
         view.sigma2 = sigma2
         view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
-        hit_idx = np.flatnonzero(hit)
         bins = np.floor(view.pn[hit_idx] / PN_BIN_M).astype(np.int64)
         order = np.argsort(bins, kind="stable")  # stable: by pixel index within a bin
         view.band_order, view.band_bin = hit_idx[order], bins[order]
@@ -427,7 +440,7 @@ class SimulatedRig:
         view.band_start = start
         view.band_rows = np.column_stack([sigma2[view.band_order], np.einsum("ij,ij->i", to_start, to_start),
                                           2.0 * (to_start @ x), np.einsum("ij,ij->i", band_normals, to_start),
-                                          band_normals @ x, albedo[view.band_order, 2]])
+                                          band_normals @ x, red_albedo[view.band_order]])
         view.band_skin = skin[view.band_order]
         view.band_lit = np.full(len(view.band_order), -1, np.int8)
         # the sheet keeps its orientation (n and the skin model are the geometry's, as for every cache here):
