@@ -206,9 +206,9 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
         ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
         play = subprocess.run([LSU, "bag", "play", str(Path(result.output_dir) / "bag"), "--topics", *REPLAYED,
                                "--wait-subscribers", "20",
-                               # the extractor and the matcher both read the events and the left images: play
-                               # only once both are matched, or the matcher may miss STARTED (as test_replay does)
-                               "--expect", "/lsu/scan/events=2", "--expect", "/lsu/stereo/left/image_raw=2"],
+                               # the extractor, the matcher and the face processor read the events, the first
+                               # two the left images: play only once all are matched, or one misses STARTED/TEXTURE
+                               "--expect", "/lsu/scan/events=3", "--expect", "/lsu/stereo/left/image_raw=2"],
                               capture_output=True, text=True, timeout=180)
         assert play.returncode == 0, play.stdout + play.stderr
         assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay_graph.output[-3000:]
