@@ -98,6 +98,9 @@ class Launcher:
         env.update(child.spec.env)
         env["PYTHONUNBUFFERED"] = "1"
         env.setdefault("RCUTILS_COLORIZED_OUTPUT", "0")
+        # a node that crashes (a segmentation fault in a library) prints every thread's Python stack first:
+        # what it was doing, in the launch's output
+        env.setdefault("PYTHONFAULTHANDLER", "1")
         child.process = subprocess.Popen(
             child.command, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             env=env, start_new_session=True, preexec_fn=_child_setup)
