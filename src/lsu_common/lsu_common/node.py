@@ -2,7 +2,9 @@
 `LsuNode`, the rclpy node class they derive from.
 
 ``rclpy.init`` installs rclpy's SIGINT and SIGTERM handlers: either signal ends the spin through
-``KeyboardInterrupt`` or ``ExternalShutdownException``, which is a normal end (exit code 0). The
+``KeyboardInterrupt`` or ``ExternalShutdownException``, which is a normal end (exit code 0). A node run with
+``defer_signals`` (`run_node`) has its own handlers instead: the signal ends the spin and the context stays up
+until the nodes are destroyed. The
 node is built inside the ``try`` (opening a simulated rig takes seconds, and a Ctrl-C meanwhile is
 a normal end too); ``destroy_node()`` always runs, so each node's own safe state (laser off,
 motion stopped, scan data on disk) is reached on every way out.
@@ -16,6 +18,7 @@ thread still inside it.
 
 from __future__ import annotations
 
+import signal
 import sys
 import threading
 import time
@@ -37,6 +40,8 @@ EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); t
 # how long a way out waits for the callbacks still running (a scan's end, a mesh being written) before the nodes
 # go: below `lsu launch`'s SIGINT grace (2.5 s), so that a node that ends in time is not SIGTERMed
 CALLBACK_GRACE_S = 2.0
+# how often a node run with deferred signals (`run_node`) looks whether one came
+SIGNAL_POLL_S = 0.1
 
 
 class LsuNode(Node):
@@ -53,6 +58,10 @@ class LsuNode(Node):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.qos_warnings: list[str] = []  # the incompatible-QoS warnings logged, newest last (bounded)
+
+    def begin_shutdown(self) -> None:
+        """The process is stopping: callbacks still running should end now (`close_nodes` calls it first, then
+        waits `CALLBACK_GRACE_S` for them). Nothing by default."""
 
     def create_publisher(self, *args: Any, **kwargs: Any) -> Publisher:
         kwargs.setdefault("event_callbacks", PublisherEventCallbacks(use_default_callbacks=False))
@@ -74,7 +83,8 @@ class LsuNode(Node):
 
 def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *,
              multi_threaded: bool = False, on_started: Callable[[Node], None] | None = None,
-             startup_errors: tuple[type[BaseException], ...] = (), program: str = "") -> int:
+             startup_errors: tuple[type[BaseException], ...] = (), program: str = "",
+             defer_signals: bool = False) -> int:
     """Run one node until Ctrl-C, SIGTERM or an external shutdown; returns the process exit code.
 
     Args:
@@ -87,17 +97,36 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
             as ``<program>: error: <message>`` with exit code 2 instead of a traceback; other
             exceptions propagate after the clean shutdown.
         program: the name in that message (default: the node class's name).
+        defer_signals: SIGINT and SIGTERM, once the node is built, only end the spin (polled every
+            `SIGNAL_POLL_S`); the context stays up until the nodes are destroyed. rclpy's own handlers shut the
+            context down from their thread the moment the signal comes, under whatever a callback thread is
+            doing in the middleware: a node whose callbacks spin an executor of their own (scan_coordinator's
+            scan thread) ended in SIGSEGV inside that wait on Ctrl-C mid-scan.
     """
     from .o3d import defer_plotly_viewer
 
     defer_plotly_viewer()
-    rclpy.init(args=list(sys.argv if args is None else args))
+    stop = threading.Event()
+    node: Node | None = None
+    if defer_signals:
+        from rclpy.signals import SignalHandlerOptions
+
+        rclpy.init(args=list(sys.argv if args is None else args), signal_handler_options=SignalHandlerOptions.NO)
+
+        def on_signal(signum: int, frame: Any) -> None:
+            if node is None:
+                raise KeyboardInterrupt  # still being built: end as rclpy's handler would
+            stop.set()
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, on_signal)
+    else:
+        rclpy.init(args=list(sys.argv if args is None else args))
     # before the node: a SIGTERM while the node is built shuts the context down, and nothing
     # (no executor, no guard condition) can be created in it afterwards
     executor = MultiThreadedExecutor() if multi_threaded else SingleThreadedExecutor()
-    node: Node | None = None
     try:
-        # rclpy's handler is in place (it shuts the context down, then raises KeyboardInterrupt): a Ctrl-C held
+        # rclpy's handler (or the deferred one) is in place: a Ctrl-C held
         # during start-up (launcher) is taken here and ends the node as any Ctrl-C does
         accept_interrupts()
         try:
@@ -110,7 +139,11 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
         if on_started is not None:
             on_started(node)
         executor.add_node(node)
-        executor.spin()
+        if defer_signals:
+            while not stop.is_set() and rclpy.ok():
+                executor.spin_once(timeout_sec=SIGNAL_POLL_S)
+        else:
+            executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -149,9 +182,13 @@ def stop_executor(executor: Executor, grace_s: float = CALLBACK_GRACE_S) -> bool
 
 def close_nodes(executor: Executor, nodes: Sequence[Node], context: Any = None,
                 grace_s: float = CALLBACK_GRACE_S) -> None:
-    """The way out of a process's nodes (module doc): `stop_executor`, every node destroyed (each reaches
-    its safe state in ``destroy_node``), then ``context`` (None: the default one) shut down."""
+    """The way out of a process's nodes (module doc): every node told (`LsuNode.begin_shutdown`: a running
+    callback winds down), `stop_executor`, every node destroyed (each reaches its safe state in
+    ``destroy_node``), then ``context`` (None: the default one) shut down."""
     try:
+        for node in nodes:
+            if isinstance(node, LsuNode):
+                node.begin_shutdown()
         if not stop_executor(executor, grace_s):
             for node in nodes[:1]:
                 node.get_logger().warning(f"a callback was still running {grace_s:g} s after the shutdown began; "
@@ -165,13 +202,13 @@ def close_nodes(executor: Executor, nodes: Sequence[Node], context: Any = None,
 
 
 def main_of(node_class: type[Node], *, multi_threaded: bool = False,
-            startup_errors: tuple[type[BaseException], ...] = (), program: str = ""
+            startup_errors: tuple[type[BaseException], ...] = (), program: str = "", defer_signals: bool = False
             ) -> Callable[..., int]:
     """A console-script ``main(args=None)`` running ``node_class`` with `run_node`."""
 
     def main(args: list[str] | None = None) -> int:
         return run_node(node_class, args, multi_threaded=multi_threaded, startup_errors=startup_errors,
-                        program=program)
+                        program=program, defer_signals=defer_signals)
 
     main.__doc__ = f"Console script running {node_class.__name__}."
     return main

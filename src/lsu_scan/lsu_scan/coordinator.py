@@ -277,6 +277,9 @@ class ScanCoordinatorNode(ScanParameters, StopSnapRun, SweepRun, ScanRunSteps):
                                     "scanning without a bag")
             return None
 
+    def begin_shutdown(self) -> None:
+        self._stopping = True  # the scan thread ends the scan at its next check (laser off, data on disk)
+
     def destroy_node(self) -> None:
         if self._busy.locked():
             # the scan thread owns the private node: let it end the scan (laser off in its finally)
@@ -301,4 +304,6 @@ def _motion_reasons(motion: dict) -> str:
     return text + (f" (carriage {where[0]:.0f}..{where[1]:.0f} steps)" if where else "")
 
 
-main = main_of(ScanCoordinatorNode, multi_threaded=True)
+# deferred signals: the scan thread spins the private node's executor; a context shut down by rclpy's signal
+# thread under that wait crashed the process (SIGSEGV) on Ctrl-C mid-scan, before scan.json was written
+main = main_of(ScanCoordinatorNode, multi_threaded=True, defer_signals=True)
