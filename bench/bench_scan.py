@@ -1090,7 +1090,7 @@ MOTION_FPS_60, MOTION_RATE_60 = 60.0, 2 * FACE_SWEEP_RATE
 MOTION_NOTES = (
     " motion (`--only motion`, no ROS; lsu_accuracy.motion_sim): sweeps over each person's face (the carriage "
     "positions whose sheet crosses the true landmarks, +-4 mm) at the face sweep's rate and 30 fps of "
-    f"{', '.join(MOTION_SUBJECTS)} moving as lsu_sim.motion's still, seated, standing and turn (standing sway plus a "
+    f"{', '.join(MOTION_SUBJECTS)} moving as lsu_sim.motion's still, seated, standing and turn (seated sway plus a "
     "15 deg turn in 0.4 s a third into the sweep: beyond the stated limit of 5 deg / 40 mm/s), motion seed = person "
     "seed, the subject's pose updated at 15 Hz; the motion measured from the frames' texture and the points "
     "corrected (lsu_reconstruct.motion). motion_rms_mm_<kind>_raw/_corrected: RMS distance of the cloud (raw: each line "
