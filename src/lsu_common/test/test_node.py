@@ -10,20 +10,25 @@ import pytest
 
 PROBE = textwrap.dedent("""
     import sys
+    import threading
     import time
-    from rclpy.node import Node
-    from lsu_common.node import run_node
+    from rclpy.executors import SingleThreadedExecutor
+    from lsu_common.node import LsuNode, run_node
 
-    class Probe(Node):
+    class Probe(LsuNode):
         def __init__(self):
             super().__init__("runner_probe", namespace="/lsu_runner_test")
             if sys.argv[1] == "working":  # a callback still at work when the signal comes (a scan's end)
                 self.timer = self.create_timer(0.05, self.work)
+            if sys.argv[1] == "deferred":  # a callback inside a private executor's wait (scan_coordinator's scan)
+                self.stopping = threading.Event()
+                self.private = SingleThreadedExecutor(context=self.context)
+                self.timer = self.create_timer(0.05, self.wait_in_private)
             if sys.argv[1] == "busy":
                 raise RuntimeError("port 8765 is taken; choose another")
             if sys.argv[1] == "bug":
                 raise KeyError("not a start-up error")
-            if sys.argv[1] == "slow":  # a node that takes seconds to build (a simulated rig)
+            if sys.argv[1].startswith("slow"):  # a node that takes seconds to build (a simulated rig)
                 print("building", flush=True)
                 time.sleep(2.0)
                 from std_msgs.msg import Empty
@@ -36,12 +41,25 @@ PROBE = textwrap.dedent("""
             self.get_clock().now()  # a handle of the node, in use to the end of the callback
             print("work done", flush=True)
 
+        def wait_in_private(self):
+            self.timer.cancel()
+            print("waiting", flush=True)
+            while not self.stopping.is_set():
+                self.private.spin_once(timeout_sec=0.02)
+            print(f"wait ended, context ok {self.context.ok()}", flush=True)
+
+        def begin_shutdown(self):
+            if sys.argv[1] == "deferred":
+                print("begin shutdown", flush=True)
+                self.stopping.set()
+
         def destroy_node(self):
             print("destroyed", flush=True)
             super().destroy_node()
 
     sys.exit(run_node(Probe, ["probe"], startup_errors=(RuntimeError,), program="probe",
-                      multi_threaded=sys.argv[1] == "working",
+                      multi_threaded=sys.argv[1] in ("working", "deferred"),
+                      defer_signals=sys.argv[1] in ("deferred", "slow_deferred"),
                       on_started=lambda node: print("ready", flush=True)))
 """)
 
@@ -92,6 +110,26 @@ def test_a_callback_still_running_ends_before_the_node_is_destroyed(sig):
     assert proc.returncode == 0, err
     assert out.split() == ["work", "done", "destroyed"], (out, err)
     assert "Traceback" not in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_deferred_signals_keep_the_context_up_until_a_callback_in_the_middleware_has_ended(sig):
+    # rclpy's own handlers shut the context down from their thread at the signal, under a callback thread waiting
+    # in the middleware (scan_coordinator ended in SIGSEGV there); deferred, the node is told first, the callback
+    # leaves its wait with the context still up, and only then is the node destroyed
+    proc, out, err = _signal_after("deferred", ["ready", "waiting"], sig)
+    assert proc.returncode == 0, err
+    assert out.splitlines() == ["begin shutdown", "wait ended, context ok True", "destroyed"], (out, err)
+    assert "Traceback" not in err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_deferred_signal_while_the_node_is_built_is_a_normal_end(sig):
+    proc, out, err = _signal_after("slow_deferred", ["building"], sig)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "ready" not in out
 
 
 @pytest.mark.slow
