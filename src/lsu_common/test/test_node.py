@@ -95,41 +95,29 @@ def test_a_signal_ends_the_node_cleanly(sig):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_while_the_node_is_built_is_a_normal_end(sig):
-    proc, out, err = _signal_after("slow", ["building"], sig)
+@pytest.mark.parametrize("mode", ["slow", "slow_deferred"])  # rclpy's signal handlers, or deferred ones
+def test_a_signal_while_the_node_is_built_is_a_normal_end(mode, sig):
+    proc, out, err = _signal_after(mode, ["building"], sig)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "ready" not in out
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_callback_still_running_ends_before_the_node_is_destroyed(sig):
+@pytest.mark.parametrize("mode, before, after", [
     # the executor's threads must not run a callback of a destroyed node in a shut-down context (what ended
     # face_processor in a segmentation fault inside the middleware at shutdown)
-    proc, out, err = _signal_after("working", ["ready", "working"], sig)
-    assert proc.returncode == 0, err
-    assert out.split() == ["work", "done", "destroyed"], (out, err)
-    assert "Traceback" not in err
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_deferred_signals_keep_the_context_up_until_a_callback_in_the_middleware_has_ended(sig):
+    ("working", ["ready", "working"], ["work done", "destroyed"]),
     # rclpy's own handlers shut the context down from their thread at the signal, under a callback thread waiting
     # in the middleware (scan_coordinator ended in SIGSEGV there); deferred, the node is told first, the callback
     # leaves its wait with the context still up, and only then is the node destroyed
-    proc, out, err = _signal_after("deferred", ["ready", "waiting"], sig)
+    ("deferred", ["ready", "waiting"], ["begin shutdown", "wait ended, context ok True", "destroyed"]),
+])
+def test_a_callback_still_running_ends_before_the_node_is_destroyed(mode, before, after, sig):
+    proc, out, err = _signal_after(mode, before, sig)
     assert proc.returncode == 0, err
-    assert out.splitlines() == ["begin shutdown", "wait ended, context ok True", "destroyed"], (out, err)
+    assert out.splitlines() == after, (out, err)
     assert "Traceback" not in err
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_deferred_signal_while_the_node_is_built_is_a_normal_end(sig):
-    proc, out, err = _signal_after("slow_deferred", ["building"], sig)
-    assert proc.returncode == 0, err
-    assert "Traceback" not in err and "ready" not in out
 
 
 @pytest.mark.slow
