@@ -11,7 +11,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from lsu_bags.bags import read_messages
 from lsu_common.arrays import AnyArray
-from lsu_testing.plugin import LSU
+from lsu_testing.plugin import LSU, REPLAY_GRAPH_READERS
 from lsu_view.wsclient import FoxgloveClient, ProtocolError
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
@@ -69,9 +69,7 @@ def test_foxglove_client_gets_the_recorded_scan_cloud_through_the_bridge(launch)
         else:
             raise AssertionError(f"the bridge never subscribed to the scan topics:\n{graph.output[-3000:]}")
         play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "60",
-                               # the extractor, the matcher and the face processor read the events (one matched late misses STARTED
-                               # and TEXTURE: its frames extracted alone, another cloud), the first two the left images
-                               "--expect", "/lsu/scan/events=3", "--expect", "/lsu/stereo/left/image_raw=2"],
+                               *REPLAY_GRAPH_READERS],
                               capture_output=True, text=True, timeout=180)
         assert play.returncode == 0, play.stdout + play.stderr
         received = {"/lsu/scan/cloud": [], "/lsu/points": []}

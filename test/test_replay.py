@@ -13,7 +13,7 @@ from sensor_msgs.msg import PointCloud2
 from lsu_bags.bags import deserialize_ros, read_messages
 from lsu_bags.pointcloud2 import decode, from_msg
 from lsu_common.arrays import AnyArray
-from lsu_testing.plugin import LSU
+from lsu_testing.plugin import LSU, REPLAY_GRAPH_READERS
 
 BAG = Path(__file__).parent / "data" / "bags" / "scan_head"
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw"]
@@ -39,9 +39,7 @@ def test_replayed_scan_gives_the_recorded_cloud(launch, ros_node):
     ros_node.node.create_subscription(PointCloud2, "/lsu/scan/cloud", clouds.append, latched)
     ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
     play = subprocess.run([LSU, "bag", "play", str(BAG), "--topics", *REPLAYED, "--wait-subscribers", "20",
-                           # the extractor, the matcher and the face processor read the events (one matched late misses STARTED
-                           # and TEXTURE: its frames extracted alone, another cloud), the first two the left images
-                           "--expect", "/lsu/scan/events=3", "--expect", "/lsu/stereo/left/image_raw=2"],
+                           *REPLAY_GRAPH_READERS],
                           capture_output=True, text=True, timeout=120)
     assert play.returncode == 0, play.stdout + play.stderr
     assert ros_node.spin_until(lambda: len(clouds) >= 1, 30.0), graph.output[-3000:]

@@ -24,7 +24,7 @@ from lsu_common import qos, stamps
 from lsu_common.arrays import AnyArray
 from lsu_interfaces.msg import SimTruth
 from lsu_scan.scanner import LsuScanner
-from lsu_testing.plugin import LSU, LaunchedProcess
+from lsu_testing.plugin import LSU, REPLAY_GRAPH_READERS, LaunchedProcess
 
 pytestmark = pytest.mark.slow
 REPLAYED = ["/lsu/scan/events", "/lsu/stereo/left/image_raw", "/lsu/stereo/right/image_raw", "/lsu/stereo/exposure",
@@ -206,9 +206,7 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
         ros_node.spin_until(lambda: False, 2.0)  # let the extractor's subscriptions be discovered
         play = subprocess.run([LSU, "bag", "play", str(Path(result.output_dir) / "bag"), "--topics", *REPLAYED,
                                "--wait-subscribers", "20",
-                               # the extractor, the matcher and the face processor read the events, the first
-                               # two the left images: play only once all are matched, or one misses STARTED/TEXTURE
-                               "--expect", "/lsu/scan/events=3", "--expect", "/lsu/stereo/left/image_raw=2"],
+                               *REPLAY_GRAPH_READERS],
                               capture_output=True, text=True, timeout=180)
         assert play.returncode == 0, play.stdout + play.stderr
         assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay_graph.output[-3000:]

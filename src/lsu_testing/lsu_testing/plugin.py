@@ -35,6 +35,11 @@ import pytest
 from lsu_scan import rosenv
 from lsu_tools.processes import LSU, LaunchedProcess, ProcessWaitError, pid_alive  # noqa: F401  (re-exported for tests)
 
+# `lsu bag play` into `lsu launch replay`: play only once every reader of the replayed events and images has matched
+# (volatile: a reader matched late misses STARTED and TEXTURE and extracts the snaps alone, another cloud). The
+# extractor, the matcher and the face processor read the events; the first two the left images.
+REPLAY_GRAPH_READERS = ("--expect", "/lsu/scan/events=3", "--expect", "/lsu/stereo/left/image_raw=2")
+
 _claim: rosenv.DomainClaim | None = None
 
 
