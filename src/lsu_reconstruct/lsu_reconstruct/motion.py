@@ -8,11 +8,13 @@ reference frame (dense optical flow, OpenCV's DIS, on the blue channel where the
 the laser lines of both frames masked out) at the pixels where the scan's own points project, in both
 cameras, is the projection of one rigid motion of those points: a 6-parameter fit (rotation about the
 points' centre and translation, robust loss) per measured frame gives the head's pose relative to the
-reference frame's (`estimate_motion`). Poses between measured frames are interpolated linearly in time.
+reference frame's (`estimate_motion`). The poses are smoothed over ~0.5 s (`smoothed_poses`): their scatter
+about the smoothed track is the measurement's own noise for this scan. Poses between measured frames are
+interpolated linearly in time.
 
 Correction (`MotionEstimate.correct`): each point moved from its frame's pose back to the reference
-frame's, so that every line lies on one head before meshing. A measured motion within the measurement's
-noise (`MotionParams.min_motion_mm`) leaves the scan as it is.
+frame's, so that every line lies on one head before meshing. A motion within the measurement's noise
+(`MotionParams.min_motion_mm`, `MotionParams.min_motion_ratio` x this scan's noise) leaves the scan as it is.
 
 Beyond what can be corrected (`MotionParams`): a fit that does not explain the flow (few inliers or a large
 residual: the face turned so far that its image changed, a blink, an occlusion), a rotation beyond
@@ -37,7 +39,7 @@ from .matching import LineArrays
 from .stereo import StereoModel
 
 __all__ = ["MotionParams", "MotionEstimate", "estimate_motion", "motion_record", "HOLD_STILL", "MotionError",
-           "SweepMotion"]
+           "SweepMotion", "beyond_noise", "smoothed_poses"]
 
 HOLD_STILL = "hold still, scanning again"
 
@@ -52,20 +54,30 @@ class MotionParams:
 
     every_frames: int = 3              # measure every Nth frame (10 Hz at 30 fps: sway is below 1 Hz)
     mask_px: int = 12                  # pixels either side of a laser line left out of the flow
-    model_points: int = 4000           # scan points (seeded subsample) whose image motion is fitted
+    # scan points (seeded subsample) whose image motion is fitted: the fit's cost is per point; 2000 measured the
+    # sweeps of bench_scan's motion part as well as 4000 at half the fit's CPU
+    model_points: int = 2000
     inlier_px: float = 1.0             # a point's fit residual below this is an inlier
     max_residual_px: float = 0.8       # RMS of the inliers' residuals beyond which a frame is unreliable
     min_inlier_share: float = 0.5      # share of the points that must be inliers
     max_rotation_deg: float = 5.0      # rotation from the reference frame beyond which a frame is unreliable
     max_speed_mm_s: float = 40.0       # fastest point speed between measured frames beyond which it is unreliable
-    # a measured motion whose fitted points move less than this over the scan is the measurement's noise
-    # (up to ~1 mm on a still simulated face): the scan is left as it is
+    # a measured motion whose fitted points move less than this over the scan may be the measurement's noise
+    # (up to ~1 mm on a still simulated face, pose by pose): then it counts only by min_motion_ratio
     min_motion_mm: float = 1.5
+    # the poses are smoothed by a straight line through the measured frames within smooth_s / 2 of each (sway is
+    # below 1 Hz, the measurement's noise differs frame to frame); where >= 3 frames fall in it, the scatter about
+    # those lines is the measurement's own noise, and a smoothed motion this many times that noise is real even below
+    # min_motion_mm (a seated person's slow drift). 0 s: the poses as measured, min_motion_mm alone
+    smooth_s: float = 0.5
+    min_motion_ratio: float = 2.7
     seed: int = 0
 
     def __post_init__(self) -> None:
         if self.every_frames < 1 or self.model_points < 12 or self.mask_px < 0:
             raise MotionError("every_frames >= 1, model_points >= 12 and mask_px >= 0 are needed")
+        if self.smooth_s < 0 or self.min_motion_ratio <= 0:
+            raise MotionError("smooth_s >= 0 and min_motion_ratio > 0 are needed")
 
 
 def _rotation(rvec: AnyArray) -> AnyArray:
@@ -96,8 +108,10 @@ class MotionEstimate:
     speed_mm_s: AnyArray              # (M,) fastest point speed from the previous measured frame
     reliable: AnyArray                # (M,) bool
     reasons: list[str] = field(default_factory=list)  # per measured frame: why unreliable ('' when reliable)
-    measured_mm: float = 0.0          # the largest displacement of the fitted points over the scan, as measured
-    significant: bool = True          # beyond the noise (`MotionParams.min_motion_mm`); else the poses are zeroed
+    measured_mm: float = 0.0          # the largest displacement of the fitted points over the scan (smoothed poses)
+    significant: bool = True          # beyond the noise (`MotionParams.min_motion_mm`, `min_motion_ratio`); else zeroed
+    noise_mm: float = float("nan")    # RMS displacement of the measured poses about the smoothed ones (NaN: too few)
+    smoothed: bool = False            # ``vectors`` are the smoothed poses (a slow drift), not the measured ones
 
     @property
     def flagged(self) -> bool:
@@ -160,6 +174,18 @@ def _flow(ref: AnyArray, img: AnyArray) -> AnyArray:
     return engine.calc(ref, img, None)
 
 
+# pixels of texture around the fitted points' bounding box that the flow is computed on: more than a sway's ~20 px
+# image motion, and room for DIS's coarsest patches
+FLOW_MARGIN_PX = 48
+
+
+def _crop(uv: AnyArray, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """(rows, columns) of the image around the pixels ``uv`` (N,2), widened by `FLOW_MARGIN_PX`."""
+    lo = np.floor(uv.min(axis=0)).astype(int) - FLOW_MARGIN_PX
+    hi = np.ceil(uv.max(axis=0)).astype(int) + FLOW_MARGIN_PX + 1
+    return slice(max(lo[1], 0), min(hi[1], shape[0])), slice(max(lo[0], 0), min(hi[0], shape[1]))
+
+
 def _sample(field2: AnyArray, uv: AnyArray) -> AnyArray:
     """Bilinear samples (N,2) of a 2-channel float32 image at pixels ``uv`` (N,2)."""
     maps = np.ascontiguousarray(uv.astype(np.float32).reshape(-1, 1, 2))
@@ -198,7 +224,11 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     uv = [model.project_left(X), model.project_right(X)]
     inside = np.all([(p[:, 0] >= 1) & (p[:, 0] <= W - 2) & (p[:, 1] >= 1) & (p[:, 1] <= H - 2) for p in uv], axis=0)
     X, uv = X[inside], [p[inside] for p in uv]
-    ref_gray = [_gray(images[ref][k]) for k in range(2)]
+    # the flow is computed on the points' bounding box widened by FLOW_MARGIN_PX (about half of a person's frame):
+    # DIS's cost is per pixel, and only the flow at the points is used
+    crops = [_crop(p, (H, W)) for p in uv]
+    ref_gray = [np.ascontiguousarray(_gray(images[ref][k])[crops[k]]) for k in range(2)]
+    uv_crop = [p - np.array([c[1].start, c[0].start], float) for p, c in zip(uv, crops)]
     ref_masks = [_line_mask(lines[ref][k], (H, W), params.mask_px) for k in range(2)]
     measured = sorted(set(range(0, n, params.every_frames)) | {n - 1, ref})
 
@@ -219,11 +249,11 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
             continue
         targets, keep = [], np.ones(len(X), bool)
         for cam in range(2):
-            flow = _flow(ref_gray[cam], _gray(images[k][cam]))
+            flow = _flow(ref_gray[cam], np.ascontiguousarray(_gray(images[k][cam])[crops[cam]]))
             mask = ref_masks[cam] | _line_mask(lines[k][cam], (H, W), params.mask_px)
             pix = np.rint(uv[cam]).astype(np.int64)
             keep &= ~mask[pix[:, 1], pix[:, 0]]
-            targets.append(uv[cam] + _sample(flow, uv[cam]))
+            targets.append(uv[cam] + _sample(flow, uv_crop[cam]))
         if np.count_nonzero(keep) < 12:
             vectors[i], residual[i], share[i] = np.nan, np.inf, 0.0
             continue
@@ -273,15 +303,60 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
         if fast > params.max_speed_mm_s:
             why.append(f"moved at {fast:.0f} mm/s")
         reasons.append("; ".join(why))
+    fitted = np.all(np.isfinite(vectors), axis=1)
     vectors = np.where(np.isfinite(vectors), vectors, 0.0)
     reliable = np.array([not r for r in reasons])
-    # a frame without a fit counts as unmoved (its pose is zero from here on)
-    moved = max(float(np.max(np.linalg.norm(b - box, axis=1))) if b is not None else 0.0 for b in boxes) * 1e3
-    significant = moved >= params.min_motion_mm
+    # the limits above judge each measured pose; the verdict takes the smoothed ones (a frame without a fit counts
+    # as unmoved: its pose is zero from here on)
+    smoothed, noise = smoothed_poses(t_m, vectors, fitted, measured.index(ref), 0.5 * params.smooth_s, box, centre)
+    moved = max(_box_shift_mm(box, v, centre) for v in smoothed)
+    significant = beyond_noise(moved, noise, params)
+    # the correction: a drift below min_motion_mm (real only by min_motion_ratio) is slow and of the noise's size, the
+    # smoothed poses follow it; a larger motion moves faster, and a line over smooth_s cuts its turns: as measured
+    drift = moved < params.min_motion_mm
+    if drift:
+        vectors = smoothed
     if not significant and reliable.all():
         vectors = np.zeros_like(vectors)
     return MotionEstimate(frames, t_m, vectors, centre, ref, residual, share, speed, reliable, reasons,
-                          measured_mm=moved, significant=significant)
+                          measured_mm=moved, significant=significant, noise_mm=noise,
+                          smoothed=drift and bool(np.isfinite(noise)))
+
+
+def beyond_noise(moved_mm: float, noise_mm: float, params: MotionParams) -> bool:
+    """Whether a smoothed motion of ``moved_mm`` is real (`MotionParams.min_motion_mm`, ``min_motion_ratio`` x the
+    scan's measured noise ``noise_mm``, NaN: unknown) and so corrected."""
+    return bool(moved_mm >= params.min_motion_mm or (np.isfinite(noise_mm) and moved_mm >= params.min_motion_ratio * noise_mm))
+
+
+def _box_shift_mm(box: AnyArray, vector: AnyArray, centre: AnyArray) -> float:
+    """The largest displacement [mm] of the corners ``box`` (K,3) under the pose ``vector``."""
+    return float(np.max(np.linalg.norm(_moved(box, vector, centre) - box, axis=1))) * 1e3
+
+
+# frames with a smoothed pose needed before their scatter is taken as the measurement's noise
+MIN_NOISE_FRAMES = 6
+
+
+def smoothed_poses(times: AnyArray, vectors: AnyArray, fitted: AnyArray, ref: int, half_s: float, box: AnyArray,
+                    centre: AnyArray) -> tuple[AnyArray, float]:
+    """Poses (M,6) on a straight line through the fitted frames within ``half_s`` of each (where >= 3 are), zero at
+    the reference ``ref``; and the measurement's noise: the RMS displacement [mm] of ``box`` under the measured
+    poses' differences from those lines. Below `MIN_NOISE_FRAMES` such frames: the poses as measured, noise NaN."""
+    if half_s <= 0:
+        return vectors, float("nan")
+    line = vectors.copy()
+    smoothed = np.zeros(len(times), bool)
+    for i, t in enumerate(times):
+        near = fitted & (np.abs(times - t) <= half_s * (1 + 1e-9))
+        if np.count_nonzero(near) >= 3 and fitted[i]:
+            line[i] = np.polyfit(times[near] - t, vectors[near], 1)[1]   # the line's value at t
+            smoothed[i] = True
+    if np.count_nonzero(smoothed) < MIN_NOISE_FRAMES:
+        return vectors, float("nan")
+    noise = float(np.sqrt(np.mean([_box_shift_mm(box, d, centre) ** 2 for d in (vectors - line)[smoothed]])))
+    # the reference frame's pose is zero by definition: the smoothed poses are relative to its smoothed one
+    return np.where(fitted[:, None], line - line[ref], 0.0), noise
 
 
 def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | Mapping[int, float] | None = None,
@@ -304,6 +379,8 @@ def motion_record(estimate: MotionEstimate, positions_steps: Sequence[float] | M
         "max_translation_mm": float(1e3 * np.max(np.linalg.norm(estimate.vectors[:, 3:], axis=1))),
         "max_rotation_deg": float(np.degrees(np.max(np.linalg.norm(estimate.vectors[:, :3], axis=1)))),
         "measured_motion_mm": round(float(estimate.measured_mm), 3),
+        "noise_mm": round(float(estimate.noise_mm), 3) if np.isfinite(estimate.noise_mm) else None,
+        "poses_smoothed": bool(estimate.smoothed),
         "beyond_noise": bool(estimate.significant),
         "corrected": bool(corrected and estimate.significant),
         "flagged": estimate.flagged,
@@ -368,7 +445,7 @@ class SweepMotion:
 
     @classmethod
     def for_sweep(cls, expected_frames: int, params: MotionParams = MotionParams(),
-                  max_frames: int = 16) -> SweepMotion:
+                  max_frames: int = 32) -> SweepMotion:
         """A sweep of ``expected_frames`` measured on every ``params.every_frames``-th frame, fewer if that would be
         more than ``max_frames`` frames (each costs two dense flows at the scan's end, before its cloud is out)."""
         every = max(params.every_frames, -(-int(expected_frames) // max(1, int(max_frames))))
