@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lsu_reconstruct.motion import MotionParams, beyond_noise, smoothed_poses
+from lsu_reconstruct.motion import MotionParams, _box_shift_mm, beyond_noise, smoothed_poses
 
 RATE_HZ, SECONDS = 10.0, 6.0          # every 3rd frame of a 30 fps face sweep
 ROT_NOISE_RAD, T_NOISE_M = np.radians(0.08), 0.0001
@@ -37,8 +37,6 @@ def _track(drift_m: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 def _error(poses: np.ndarray, truth: np.ndarray) -> float:
     """RMS over frames of the box corners' largest displacement [mm] between ``poses`` and ``truth``."""
-    from lsu_reconstruct.motion import _box_shift_mm
-
     return float(np.sqrt(np.mean([_box_shift_mm(BOX, d, CENTRE) ** 2 for d in poses - truth])))
 
 
@@ -60,14 +58,11 @@ def test_the_smoothed_poses_are_nearer_the_truth_and_the_noise_is_measured(seed)
 @pytest.mark.parametrize("seed", range(5))
 def test_a_still_head_is_within_the_noise_and_a_seated_drift_beyond_it(seed):
     params = MotionParams()
-    fitted = None
     verdicts = {}
     for name, drift in (("still", 0.0), ("seated", 0.0016)):
         times, truth, measured, ref = _track(drift, 100 + seed)
         fitted = np.ones(len(times), bool)
         smoothed, noise = smoothed_poses(times, measured, fitted, ref, 0.5 * params.smooth_s, BOX, CENTRE)
-        from lsu_reconstruct.motion import _box_shift_mm
-
         moved = max(_box_shift_mm(BOX, v, CENTRE) for v in smoothed)
         # the seated drift is below the absolute threshold: only the scan's own noise tells it from a still head
         assert moved < params.min_motion_mm, (name, moved)
