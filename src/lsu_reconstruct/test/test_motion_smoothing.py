@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from lsu_common.arrays import AnyArray
 from lsu_reconstruct.motion import MotionParams, _box_shift_mm, beyond_noise, smoothed_poses
 
 RATE_HZ, SECONDS = 10.0, 6.0          # every 3rd frame of a 30 fps face sweep
@@ -19,7 +20,7 @@ CENTRE = np.array([0.0, 0.0, 0.3])
 BOX = CENTRE + np.array([[a, b, c] for a in (-0.07, 0.07) for b in (-0.09, 0.09) for c in (-0.05, 0.05)])
 
 
-def _track(drift_m: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _track(drift_m: float, seed: int) -> tuple[AnyArray, AnyArray, AnyArray, int]:
     """Times, true poses and measured poses (M,6) of a head drifting ``drift_m`` along x over the sweep; the
     middle frame the reference (its measured pose exactly zero, as `estimate_motion` gives it)."""
     times = np.arange(0.0, SECONDS, 1.0 / RATE_HZ)
@@ -35,7 +36,7 @@ def _track(drift_m: float, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return times, truth, measured, ref
 
 
-def _error(poses: np.ndarray, truth: np.ndarray) -> float:
+def _error(poses: AnyArray, truth: AnyArray) -> float:
     """RMS over frames of the box corners' largest displacement [mm] between ``poses`` and ``truth``."""
     return float(np.sqrt(np.mean([_box_shift_mm(BOX, d, CENTRE) ** 2 for d in poses - truth])))
 
