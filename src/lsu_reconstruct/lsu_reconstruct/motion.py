@@ -408,6 +408,9 @@ class SweepMotion:
     # fewer measured frames than this: the sweep is too short to follow the motion (its points all lie near the
     # laser lines masked out of the flow), it is said so rather than flagged
     MIN_FRAMES = 6
+    # measured frames at most (`for_sweep`; the node's motion_max_frames): every 6th of a 30 fps face sweep, ~5 Hz, so
+    # that `smoothed_poses` finds 3 frames in its 0.5 s; each costs two dense flows before the cloud is out
+    MAX_FRAMES = 32
 
     def __init__(self, params: MotionParams = MotionParams()) -> None:
         self.params = params
@@ -445,7 +448,7 @@ class SweepMotion:
 
     @classmethod
     def for_sweep(cls, expected_frames: int, params: MotionParams = MotionParams(),
-                  max_frames: int = 32) -> SweepMotion:
+                  max_frames: int = MAX_FRAMES) -> SweepMotion:
         """A sweep of ``expected_frames`` measured on every ``params.every_frames``-th frame, fewer if that would be
         more than ``max_frames`` frames (each costs two dense flows at the scan's end, before its cloud is out)."""
         every = max(params.every_frames, -(-int(expected_frames) // max(1, int(max_frames))))

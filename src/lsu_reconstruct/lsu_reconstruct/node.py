@@ -173,7 +173,7 @@ def parameter_table() -> dict[str, Param]:
                                    "measured motion is within limits (applies at the next scan's end)"),
         "motion_every_frames": Param(MotionParams().every_frames, "sweep scans: measure the motion on every Nth "
                                      "frame (applies from the next sweep)", (1, 100)),
-        "motion_max_frames": Param(32, "sweep scans: measure the motion on at most this many frames (a longer sweep "
+        "motion_max_frames": Param(SweepMotion.MAX_FRAMES, "sweep scans: measure the motion on at most this many frames (a longer sweep "
                                    "on every Nth frame accordingly; each costs two dense flows before the scan's cloud "
                                    "is out; applies from the next sweep)", (6, 10000)),
     }
