@@ -148,10 +148,11 @@ class MotionEstimate:
         return out
 
 
-def _gray(image: AnyArray) -> AnyArray:
-    """The blue channel of a BGR frame (the red laser adds ~5 % there), or the frame itself if grey."""
+def _gray(image: AnyArray, crop: tuple[slice, slice] = (slice(None), slice(None))) -> AnyArray:
+    """The blue channel of a BGR frame (the red laser adds ~5 % there), or the frame itself if grey, within ``crop``
+    (`_crop`), as one contiguous copy."""
     img = np.asarray(image)
-    return np.ascontiguousarray(img[..., 0] if img.ndim == 3 else img)
+    return np.ascontiguousarray(img[crop + (0,)] if img.ndim == 3 else img[crop])
 
 
 def _line_mask(line: LineArrays, shape: tuple[int, int], half_px: int) -> AnyArray:
@@ -216,7 +217,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     if not 0 <= ref < n:
         raise MotionError(f"reference frame {ref} is not one of the {n} frames")
     times = np.asarray(times_s, dtype=np.float64)
-    H, W = _gray(images[0][0]).shape
+    H, W = np.asarray(images[0][0]).shape[:2]
     rng = np.random.default_rng(params.seed)
     pick = rng.choice(len(cloud), size=min(params.model_points, len(cloud)), replace=False)
     X = cloud[np.sort(pick)]
@@ -227,7 +228,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
     # the flow is computed on the points' bounding box widened by FLOW_MARGIN_PX (about half of a person's frame):
     # DIS's cost is per pixel, and only the flow at the points is used
     crops = [_crop(p, (H, W)) for p in uv]
-    ref_gray = [np.ascontiguousarray(_gray(images[ref][k])[crops[k]]) for k in range(2)]
+    ref_gray = [_gray(images[ref][k], crops[k]) for k in range(2)]
     uv_crop = [p - np.array([c[1].start, c[0].start], float) for p, c in zip(uv, crops)]
     ref_masks = [_line_mask(lines[ref][k], (H, W), params.mask_px) for k in range(2)]
     measured = sorted(set(range(0, n, params.every_frames)) | {n - 1, ref})
@@ -249,7 +250,7 @@ def estimate_motion(model: StereoModel, images: Sequence[tuple[AnyArray, AnyArra
             continue
         targets, keep = [], np.ones(len(X), bool)
         for cam in range(2):
-            flow = _flow(ref_gray[cam], np.ascontiguousarray(_gray(images[k][cam])[crops[cam]]))
+            flow = _flow(ref_gray[cam], _gray(images[k][cam], crops[cam]))
             mask = ref_masks[cam] | _line_mask(lines[k][cam], (H, W), params.mask_px)
             pix = np.rint(uv[cam]).astype(np.int64)
             keep &= ~mask[pix[:, 1], pix[:, 0]]
