@@ -409,9 +409,10 @@ class SimulatedRig:
         sigma2[hit_idx] = g.laser.sheet_sigma_m ** 2 + np.minimum(slope2, (50.0 * g.laser.sheet_sigma_m) ** 2) / 12.0
         # skin: the diffusion kernel (length b sin psi in sheet-offset units, see `_skin_width`) and its
         # centre shift (at most |n . N| / (n_skin (mu_a + mu_s'))) reach further from the sheet
+        n_dot_hit = nrm @ n
         n_dot_normal = np.zeros(H * W)
-        n_dot_normal[hit_idx] = nrm @ n
-        nN = np.abs(n_dot_normal[hit_idx])
+        n_dot_normal[hit_idx] = n_dot_hit
+        nN = np.abs(n_dot_hit)
         reach = 5.0 * np.sqrt(sigma2)
         reach[hit_idx] += skin_h * (6.0 * g.skin.diffusion_length_m * np.sqrt(np.clip(1.0 - nN * nN, 0, 1))
                                     + g.skin.centre_shift_per_sin_t * nN / g.skin.refractive_index)
