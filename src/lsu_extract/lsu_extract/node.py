@@ -9,9 +9,15 @@ error line per distinct problem and an ERROR status on ``/diagnostics``; the nod
 With ``background: texture`` (the default) it also follows ``scan/events``: the laser-off pair that a scan's
 TEXTURE event names (by stamp, among the last `lsu_extract.frames.FRAMES_KEPT` frames of each camera, or the next
 ones) becomes the background of that scan's frames: the extractor's signal is then the
-difference from it (ambient light and red objects cancel). A new scan starts without one, and
-until the pair is in, frames are extracted without it: a stop-snap scan takes its pair before the
-first snap, so every snap has it; a sweep takes it after the sweep, so its frames are extracted alone.
+difference from it (ambient light and red objects cancel). A new scan starts without one: a stop-snap
+scan takes its pair before the first snap, so every snap has it; a sweep takes it after the sweep, so its
+frames are extracted alone. Events and images travel on different topics, which DDS does not order
+between them (a reliable event lost once comes with the next heartbeat, after images sent later): from a
+scan's STARTED until its next event (TEXTURE, or SNAP / SWEEP_START of a scan without a pair) frames are
+held, then extracted in the order they came, so a snap that overtook its scan's TEXTURE event still has
+the pair. Frames are held at most `TEXTURE_WAIT_S` (then extracted without the pair, with a warning), and
+no more than `lsu_extract.frames.FRAMES_KEPT` of a camera: more before any event is a stream (a sweep's
+frames come before its SWEEP_START), not a stop-snap's one texture and one snap pair.
 """
 
 from __future__ import annotations
@@ -37,12 +43,15 @@ from lsu_interfaces.msg import LaserLine, ScanEvent
 
 from .detectors import METHODS
 from .extractor import ExtractorParams, LaserLineResult, one_opencv_thread, param_problems
-from .frames import BACKGROUNDS, SIDES, FrameExtractor
+from .frames import BACKGROUNDS, FRAMES_KEPT, SIDES, FrameExtractor
 from .image import ImageFormatError
 
 # scan data: sensor-data depth, but reliable (a lost snap is a hole in the face)
 SCAN_DATA_QOS = qos.SCAN_DATA
 EVENTS_QOS = qos.EVENTS
+# longest a started scan's frames wait for its next event (module doc): far beyond a texture capture and a
+# retransmission, short enough that a scan whose events stopped still gets its lines
+TEXTURE_WAIT_S = 5.0
 
 _DESCRIPTIONS: dict[str, tuple[str, tuple[float, float] | None]] = {
     "method": (f"peak detector: one of {', '.join(METHODS)} ('thesis' = the pixel-level baseline of ch. 6)", None),
@@ -127,14 +136,17 @@ class LaserExtractorNode(LsuNode):
         self._reported: dict[str, str] = {}  # side -> last problem reported (one log line per problem)
         self.frames = {side: 0 for side in SIDES}
         self.dropped = {side: 0 for side in SIDES}
+        # frames of a started scan that came before its next event (module doc); None while none are held
+        self._held: list[tuple[str, Any]] | None = None
+        self._hold_timer: Any = None
+        self._hold_scan = ""
         self.diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.publishers_ = {side: self.create_publisher(LaserLine, f"stereo/{side}/laser_line", SCAN_DATA_QOS)
                             for side in SIDES}
         # raw: the pixels are read in place from the serialized message (rclpy's deserializer copies
         # them into an array.array first: ~0.4 ms per frame, a tenth of the extraction)
         # the events' subscription first: an executor serves the subscriptions ready in one wait in the order they
-        # were made, and a scan's TEXTURE event must be taken before the snap frames that came in with it (each
-        # would otherwise be extracted alone, without the laser-off pair it names)
+        # were made, so a TEXTURE event that came in with snap frames is taken before them (no hold needed)
         self.subscriptions_ = [self.create_subscription(ScanEvent, "scan/events", self.on_event, EVENTS_QOS)]
         self.subscriptions_ += [
             self.create_subscription(Image, f"stereo/{side}/image_raw",
@@ -153,6 +165,11 @@ class LaserExtractorNode(LsuNode):
     @property
     def background(self) -> str:
         return self.core.background
+
+    @property
+    def frames_held(self) -> int:
+        """Frames held for the started scan's next event (module doc)."""
+        return len(self._held or ())
 
     @property
     def textures(self) -> dict[str, AnyArray]:
@@ -180,7 +197,15 @@ class LaserExtractorNode(LsuNode):
                                f"min_contrast={self.params.min_contrast}, window_px={self.params.window_px}")
 
     def on_image(self, side: str, raw: bytes) -> None:
-        """Extract the line of one serialized sensor_msgs/Image and publish it; a bad image is reported, never raised."""
+        """Extract the line of one serialized sensor_msgs/Image and publish it; a bad image is reported, never raised.
+
+        Held instead while a started scan's next event is awaited (module doc).
+        """
+        if self._held is not None:
+            self._held.append((side, raw))  # bytes: the subscription hands each callback its own
+            if sum(1 for s, _ in self._held if s == side) > FRAMES_KEPT:
+                self._release_held()  # a stream, not a texture pair and a snap (module doc)
+            return
         line = self.line_of(side, raw)
         if line is not None:
             self.publishers_[side].publish(line)
@@ -219,7 +244,30 @@ class LaserExtractorNode(LsuNode):
         self._report(side, DiagnosticStatus.ERROR, f"{side} camera: {problem}")
 
     def on_event(self, msg: ScanEvent) -> None:
+        """The event's meaning to the frame state; STARTED holds the frames until the scan's next event."""
+        if self._held is not None and msg.type != ScanEvent.STARTED:
+            follow_scan_event(self.core, msg)  # first: a TEXTURE event's pair is the background of the held frames
+            self._release_held()
+            return
+        self._release_held(f"scan {msg.scan_id} started")  # a previous scan's frames, with its own background
         follow_scan_event(self.core, msg)
+        if msg.type == ScanEvent.STARTED and self.background == "texture":
+            self._held, self._hold_scan = [], msg.scan_id
+            self._hold_timer = self.create_timer(
+                TEXTURE_WAIT_S, lambda: self._release_held(f"no event in {TEXTURE_WAIT_S:g} s"))
+
+    def _release_held(self, late: str = "") -> None:
+        """Extract and publish the held frames in the order they came; ``late``: why without the scan's next event."""
+        if self._hold_timer is not None:
+            self.destroy_timer(self._hold_timer)
+            self._hold_timer = None
+        held, self._held = self._held, None
+        if held and late:
+            self.get_logger().warning(
+                f"scan {self._hold_scan}: {late} after its start: {len(held)} frame(s) held for its laser-off "
+                "pair extracted without it (ambient light and red objects may show as laser)")
+        for side, raw in held or ():
+            self.on_image(side, raw)
 
     def _report(self, side: str, level: bytes, message: str) -> None:
         if self._reported.get(side) == message:

@@ -134,6 +134,49 @@ def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_name
     assert ros_node.spin_until(lambda: not extractor.textures, 10)
 
 
+@pytest.mark.parametrize("next_event", ["texture", "snap", "none"])
+def test_frames_that_overtake_their_scans_texture_event_wait_for_it(ros_node, monkeypatch, next_event):
+    """A stop-snap scan's laser-off pair and first snap delivered before its TEXTURE event (events and images travel
+    on separate topics, unordered between them): held, then extracted minus that pair, in the order they came. A
+    scan's SNAP (no pair) releases them as they are; without any event they go out after TEXTURE_WAIT_S."""
+    import lsu_extract.node as node_module
+
+    monkeypatch.setattr(node_module, "TEXTURE_WAIT_S", 0.3)
+    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
+    lines: list[LaserLine] = []
+    ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
+    pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
+    events = ros_node.node.create_publisher(ScanEvent, "/lsu/scan/events", EVENTS_QOS)
+    assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and events.get_subscription_count() > 0 and
+                               extractor.publishers_["left"].get_subscription_count() > 0, 10)
+    scene = LineScene(first_row=100, last_row=380, seed=3, texture_seed=3)
+    lit, truth, visible = render_line(scene)
+    off, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=4))
+    for frame in (lit, off):
+        frame[:, 499:502] = (30, 30, 220)  # a red object in every row: laser to a frame alone
+    events.publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s1"))
+    assert ros_node.spin_until(lambda: extractor._held is not None, 10)
+    pub.publish(image_msg(off, 10))
+    pub.publish(image_msg(lit, 11))
+    assert ros_node.spin_until(lambda: extractor.frames_held == 2, 10)
+    assert not lines  # nothing goes out before the scan's next event
+    if next_event == "texture":
+        events.publish(ScanEvent(type=ScanEvent.TEXTURE, scan_id="s1", image_stamp=Time(sec=10, nanosec=12345)))
+    elif next_event == "snap":
+        events.publish(ScanEvent(type=ScanEvent.SNAP, scan_id="s1", image_stamp=Time(sec=11, nanosec=12345)))
+    assert ros_node.spin_until(lambda: len(lines) >= 2, 10)
+    assert [m.header.stamp.sec for m in lines] == [10, 11] and extractor.frames_held == 0
+    u, v = np.asarray(lines[1].u), np.asarray(lines[1].v).astype(int)
+    bar = np.count_nonzero(~visible[v])
+    if next_event == "texture":  # minus the pair: the laser rows only, on the line
+        assert bar == 0 and len(v) >= 0.99 * np.count_nonzero(visible)
+        assert np.max(np.abs(u - truth[v])) < 0.5
+    else:  # alone: the red bar is taken for the laser where the laser is not
+        assert bar > 100
+    pub.publish(image_msg(lit, 12))  # after the hold: straight through
+    assert ros_node.spin_until(lambda: len(lines) >= 3, 10)
+
+
 def test_every_extractor_parameter_takes_effect_when_set_through_the_parameter_service(ros_node):
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
     new = {"method": "thesis", "min_contrast": 20.0, "contrast_sigmas": 4.0, "ambiguity_ratio": 0.5,
