@@ -217,10 +217,12 @@ POP_NOTES = (
     f"first-stage candidates. genuine/impostor distances: each probe against its own enrolment and 20 other "
     f"people's, with today's signature and comparison. Open set at N = 1,000: non-mated searches = each probe "
     f"with its own person left out; fnir_pct_at_fpir_1 at the threshold where 1 % of those are accepted, "
-    f"*_at_stated_fpir_1 with the product's rule (impostor model of 300 sampled gallery pairs, prior for the "
-    f"enrolled scans' noise). real_tof_*: the figures of the issue's 20 real people (86 Kinect-v2-class maps). "
+    f"*_at_stated_fpir_1 with the product's rule (lsu_faces.gallery.stranger_model: a log-normal fitted to the "
+    f"nearest other person of 200 leave-one-out searches of the gallery's own entries), *_pair_rule_* with the rule "
+    f"before it (impostor model of 300 sampled gallery pairs, prior for the enrolled scans' noise, per person x "
+    f"people). real_tof_*: the figures of the issue's 20 real people (86 Kinect-v2-class maps). "
     f"identify_ms_at_100k: Gallery.identify on a fresh gallery file of {SCALE_N} rows (ICT signatures reused with "
-    f"their compact vectors spread apart), median of 10 probes after the index build and the calibration "
+    f"their compact vectors spread apart), median of 10 probes after the index build and the open-set calibration "
     f"(timed separately); host shared with other jobs.")
 RESULTS_FILE = Path(__file__).resolve().parent / "results" / "faces.json"
 CACHE = Path(os.environ.get("LSU_BENCH_FACES_CACHE", str(Path.home() / ".cache" / "lsu" / "bench_faces")))
@@ -361,10 +363,73 @@ def _fine(probe: Signature, entries: list[tuple[int, Signature]]) -> list[tuple[
     return sorted((d, i) for (i, _), (_, d, _) in zip(entries, found))
 
 
+def _searches(sub: object, gallery_sigs: dict[int, Signature], sigs: dict[tuple[int, int], Signature],
+              probes: list[tuple[int, int]], members: list[int], ids: list[int]) -> dict[str, list]:
+    """Each probe of a person enrolled in ``sub`` searched as Gallery.identify searches (first stage, then the
+    full comparison): rank-1 hit, the best (mated) distance, the nearest other person's distance (that
+    probe's search with its own person left out: a stranger's search), first-stage recall, time [ms]."""
+    from lsu_faces.gallery import FIRST_STAGE
+    from lsu_faces.signature import compact_vector
+
+    out: dict[str, list] = {"hits": [], "mated_d": [], "nonmated_d": [], "mated_ok": [], "recall": [], "ms": []}
+    for s, k in probes:
+        if s not in members:
+            continue
+        if (s, k) not in sigs:      # refused as no face: a miss, and no search
+            for name, value in (("hits", False), ("mated_d", np.inf), ("nonmated_d", np.inf), ("mated_ok", False)):
+                out[name].append(value)
+            continue
+        t1 = time.perf_counter()
+        cand = sub.search(compact_vector(sigs[(s, k)]), FIRST_STAGE + 1)  # type: ignore[attr-defined]
+        fine = _fine(sigs[(s, k)], [(e, gallery_sigs[e]) for e, _ in cand])
+        out["ms"].append((time.perf_counter() - t1) * 1000.0)
+        true = ids.index(s)
+        out["recall"].append(true in [e for e, _ in cand])
+        out["hits"].append(bool(fine) and fine[0][1] == true)
+        out["mated_d"].append(fine[0][0] if fine else np.inf)
+        out["mated_ok"].append(bool(fine) and fine[0][1] == true)
+        out["nonmated_d"].append(next((d for d, e in fine if e != true), np.inf))
+    return out
+
+
+def _open_set(figures: dict[str, float], tag: str, sub: object, gallery_sigs: dict[int, Signature],
+              found: dict[str, list]) -> tuple[list[float], list[float]]:
+    """Open set at a stated FPIR of 1 % on the gallery ``sub``: the product's rule (its own leave-one-out
+    searches, lsu_faces.gallery.stranger_model), the pair rule before it (impostor model of 300 sampled
+    gallery pairs, prior for the enrolled scans' noise, per person x people) and the oracle threshold
+    (1 % of the non-mated searches below it); the DET curve."""
+    from lsu_faces.gallery import CALIBRATION_SEARCHES, FIRST_STAGE, stranger_model
+    from lsu_faces.signature import ImpostorModel
+
+    size = len(sub.ids)  # type: ignore[attr-defined]
+    m_d, n_d, m_ok = np.array(found["mated_d"]), np.array(found["nonmated_d"]), np.array(found["mated_ok"])
+    t0 = time.perf_counter()
+    stranger = stranger_model(sub, lambda e: {i: gallery_sigs[i] for i in e}, FIRST_STAGE,  # type: ignore[arg-type]
+                              CALIBRATION_SEARCHES)
+    figures[f"stranger_calibration_s_{tag}"] = time.perf_counter() - t0
+    pairs = np.random.default_rng(5).integers(0, size, size=(300, 2))
+    dist = [compare(gallery_sigs[int(a)], gallery_sigs[int(b)])[1] for a, b in pairs if a != b]
+    pair_model = ImpostorModel.fit(dist, "depthmap", sub.noise_m)  # type: ignore[attr-defined]
+    for rule, model, per in (("", stranger, FAR), ("_pair_rule", pair_model, FAR / size)):
+        figures[f"fpir_pct_at_stated_1{rule}_{tag}"] = float(100 * np.mean([model.false_accept(d) <= per for d in n_d]))
+        figures[f"fnir_pct_at_stated_fpir_1{rule}_{tag}"] = float(100 * np.mean(
+            [not (ok and model.false_accept(d) <= per) for d, ok in zip(m_d, m_ok)]))
+        figures[f"threshold_mm_at_stated_fpir_1{rule}_{tag}"] = model.threshold_m(per) * 1000.0
+    finite = n_d[np.isfinite(n_d)]
+    t1 = float(np.quantile(finite, 0.01)) if len(finite) else np.inf
+    figures[f"fnir_pct_at_fpir_1_{tag}"] = float(100 * np.mean(~(m_ok & (m_d < t1))))
+    figures[f"threshold_mm_at_fpir_1_{tag}"] = t1 * 1000.0
+    figures[f"open_set_people_{tag}"] = float(size)
+    thresholds = np.sort(np.concatenate([finite, [np.inf]]))
+    fpir = np.array([np.mean(n_d < t) for t in thresholds])
+    fnir = np.array([np.mean(~(m_ok & (m_d < t))) for t in thresholds])
+    return fpir.tolist(), fnir.tolist()
+
+
 def population(figures: dict[str, float], t_start: float) -> dict[str, object]:
     """The ICT population through both sensors: distances, rank-1 against N, open set, refusals."""
-    from lsu_faces.gallery import FIRST_STAGE, _Index
-    from lsu_faces.signature import ImpostorModel, compact_vector
+    from lsu_faces.gallery import _Index
+    from lsu_faces.signature import compact_vector
 
     test_seeds = [POP_SEED + i for i in range(POP_TEST)]
     fillers = [POP_SEED + POP_TEST + i for i in range(max(POP_N) - POP_TEST)]
@@ -413,71 +478,29 @@ def population(figures: dict[str, float], t_start: float) -> dict[str, object]:
         figures[f"d_prime_{sensor}"] = float((i_.mean() - g.mean()) / np.sqrt((i_.var() + g.var()) / 2))
         # identification: gallery = the test people's enrolments (through the sensor) + exact-path fillers
         ids = [s for s in test_seeds if (s, 0) in sigs]
-        idx = _Index(())
         vecs = np.concatenate([np.stack([compact_vector(sigs[(s, 0)]) for s in ids]), filler_vecs])
         all_ids = ids + fillers
-        idx.build(list(range(len(all_ids))), [str(s) for s in all_ids], vecs, [0.0] * len(all_ids))
+        noise_mm = [float(by[(s, 0)]["noise_mm"]) for s in ids] + [0.1] * len(fillers)  # exact path: 1e-4 m
         gallery_sigs = {n: sigs[(s, 0)] for n, s in enumerate(ids)}
         gallery_sigs.update({len(ids) + n: f for n, f in enumerate(filler_sigs)})
         probes = [(s, k) for s in test_seeds for k in range(1, 1 + POP_PROBES)]
         rank_vs_n: dict[int, float] = {}
         det_data = None
-        for N in POP_N:
-            members = ids[:min(N, len(ids))]
-            if N <= len(ids):
-                sub = _Index(())
-                sub.build(list(range(N)), [str(s) for s in members], vecs[:N], [0.0] * N)
-                size = N
-            else:
-                sub = _Index(())
-                sub.build(list(range(N)), [str(s) for s in all_ids[:N]], vecs[:N], [0.0] * N)
-                size = N
-            hits, mated_d, nonmated_d, mated_ok, recall = [], [], [], [], []
-            t_id = []
-            for s, k in probes:
-                if s not in members:
-                    continue
-                if (s, k) not in sigs:
-                    hits.append(False)
-                    mated_d.append(np.inf)
-                    nonmated_d.append(np.inf)
-                    mated_ok.append(False)
-                    continue
-                t1 = time.perf_counter()
-                cand = sub.search(compact_vector(sigs[(s, k)]), FIRST_STAGE + 1)
-                fine = _fine(sigs[(s, k)], [(e, gallery_sigs[e]) for e, _ in cand])
-                t_id.append((time.perf_counter() - t1) * 1000.0)
-                true = ids.index(s)
-                recall.append(true in [e for e, _ in cand])
-                hits.append(bool(fine) and fine[0][1] == true)
-                others = [d for d, e in fine if e != true]
-                mated_d.append(fine[0][0] if fine else np.inf)
-                mated_ok.append(bool(fine) and fine[0][1] == true)
-                nonmated_d.append(others[0] if others else np.inf)   # the person left out: a stranger's search
-            rank_vs_n[size] = float(100.0 * np.mean(hits))
-            figures[f"rank1_pct_n{size}_{sensor}"] = rank_vs_n[size]
-            figures[f"first_stage_recall_pct_n{size}_{sensor}"] = float(100.0 * np.mean(recall)) if recall else 0.0
-            if size == OPEN_N:
-                figures[f"rank1_pct_population_{sensor}"] = rank_vs_n[size]
-                figures[f"identify_ms_median_n{OPEN_N}_{sensor}"] = median(t_id) if t_id else float("nan")
-                # open set at N = 1000: the product's rule (impostor model of the gallery's own sampled pairs,
-                # prior for the enrolled scans' noise) at a stated FPIR of 1 %, and the DET curve
-                rng = np.random.default_rng(5)
-                pairs = rng.integers(0, min(size, len(all_ids)), size=(300, 2))   # an enrolment refused: N - 1
-                dist = [compare(gallery_sigs[int(a)], gallery_sigs[int(b)])[1] for a, b in pairs if a != b]
-                noise = float(np.nanmedian([by[(s, 0)]["noise_mm"] for s in ids])) / 1000.0
-                model = ImpostorModel.fit(dist, "depthmap", noise)
-                per = FAR / size
-                m_d, n_d, m_ok = np.array(mated_d), np.array(nonmated_d), np.array(mated_ok)
-                figures[f"fpir_pct_at_stated_1_{sensor}"] = float(100 * np.mean([model.false_accept(d) <= per for d in n_d]))
-                figures[f"fnir_pct_at_stated_fpir_1_{sensor}"] = float(100 * np.mean(
-                    [not (ok and model.false_accept(d) <= per) for d, ok in zip(m_d, m_ok)]))
-                thresholds = np.sort(np.concatenate([n_d[np.isfinite(n_d)], [np.inf]]))
-                fpir = np.array([np.mean(n_d < t) for t in thresholds])
-                fnir = np.array([np.mean(~(m_ok & (m_d < t))) for t in thresholds])
-                t1 = float(np.quantile(n_d[np.isfinite(n_d)], 0.01)) if np.isfinite(n_d).any() else np.inf
-                figures[f"fnir_pct_at_fpir_1_{sensor}"] = float(100 * np.mean(~(m_ok & (m_d < t1))))
-                det_data = (fpir.tolist(), fnir.tolist())
+        for N in [*POP_N, len(ids)]:
+            count = min(N, len(all_ids))        # an enrolment refused: N - 1 entries
+            sub = _Index(())
+            sub.build(list(range(count)), [str(s) for s in all_ids[:count]], vecs[:count], noise_mm[:count])
+            found = _searches(sub, gallery_sigs, sigs, probes, ids[:count], ids)
+            if N == len(ids):   # the sensor's enrolments alone: the gallery a lab would have, no fillers
+                _open_set(figures, f"sensor_gallery_{sensor}", sub, gallery_sigs, found)
+                continue
+            rank_vs_n[N] = float(100.0 * np.mean(found["hits"]))
+            figures[f"rank1_pct_n{N}_{sensor}"] = rank_vs_n[N]
+            figures[f"first_stage_recall_pct_n{N}_{sensor}"] = float(100.0 * np.mean(found["recall"]))
+            if N == OPEN_N:
+                figures[f"rank1_pct_population_{sensor}"] = rank_vs_n[N]
+                figures[f"identify_ms_median_n{OPEN_N}_{sensor}"] = median(found["ms"])
+                det_data = _open_set(figures, sensor, sub, gallery_sigs, found)
         figures[f"population_people_{sensor}"] = float(len(ids))
         plots["rank_vs_n"][sensor] = rank_vs_n  # type: ignore[index]
         plots["det"][sensor] = det_data  # type: ignore[index]
@@ -531,8 +554,8 @@ def scale(figures: dict[str, float]) -> None:
         figures["index_build_s_at_100k"] = time.perf_counter() - t0
         figures["index_bytes_per_person"] = idx.memory_bytes() / SCALE_N
         t0 = time.perf_counter()
-        fresh.impostor_model()
-        figures["impostor_calibration_s_at_100k"] = time.perf_counter() - t0
+        fresh.stranger_model()
+        figures["stranger_calibration_s_at_100k"] = time.perf_counter() - t0
         noisy = sigs[0].data + np.random.default_rng(7).normal(0.0, 5e-4, sigs[0].data.shape)
         probe = Signature("depthmap", noisy, sigs[0].params, sigs[0].points_used, 5e-4)
         times, firsts = [], []

@@ -117,10 +117,9 @@ def run_face(args: argparse.Namespace) -> int:
         print(f"best: {best.name}")
     else:
         print(f"best: (rejected: {ident.reason})")
-    model = ident.model
-    print(f"  scores calibrated on {model.samples} impostor distances of this gallery (+ the prior for its scans' "
-          f"depth noise, {ident.gallery_noise_mm:.2f} mm; this scan {ident.probe_noise_mm:.2f} mm): a stranger "
-          f"comes within {model.threshold_m(0.5) * 1000:.2f} mm half of the time")
+    print(f"  stranger chances calibrated on {ident.calibration} (depth noise of the enrolled scans "
+          f"{ident.gallery_noise_mm:.2f} mm, this scan {ident.probe_noise_mm:.2f} mm): accepting at FPIR "
+          f"{ident.false_accept_rate:g} needs < {ident.threshold_m * 1000:.2f} mm")
     for rank, m in enumerate(ident.matches, 1):
         print(f"  {rank}. {m.name:<24s} score {m.score:.6f}  stranger chance {m.false_accept:.3e}  "
               f"distance {m.distance_m * 1000:.3f} mm  entry {m.entry_id}")

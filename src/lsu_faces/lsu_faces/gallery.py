@@ -25,24 +25,34 @@ time and SQLite's own file change counter (header bytes 24-27, bumped by every c
 process), and the row count. A file changed behind this object's back (another process, a restored
 backup, an edited row) is noticed and the index rebuilt; this object's own writes update it in place.
 
-Open set: scores are calibrated on the gallery's own impostor distances (pairs of entries of
-different names: all pairs of a small gallery, a fixed, seeded sample of ``impostor_pairs`` pairs of a
-large one), fitted as a log-normal (`lsu_faces.signature.ImpostorModel.fit`) and shrunk towards a prior
-for the depth noise of the scans actually enrolled (each row keeps its scan's measured noise): a
-gallery of time-of-flight scans is judged by a time-of-flight stranger, not the LSU rig's. The best
-match is accepted when the chance that a stranger comes as close, times the number of people
-compared, is at most the stated false-positive identification rate (FPIR, per search); a rejection
-says why.
+Open set: the best match is accepted when the chance that a stranger's search comes as close is at
+most the stated false-positive identification rate (FPIR, per search); a rejection says why. The
+gallery calibrates that chance on itself, with scans of its own sensor and noise:
+
+- from `SELF_CALIBRATION_PEOPLE` depth-map people on, by leave-one-out searches: a fixed, seeded sample
+  of ``calibration_searches`` entries, each searched as `identify` searches (first stage, then the full
+  comparison) with its own person left out, is exactly a stranger's search of this gallery; the
+  distances to their nearest other person, fitted as a log-normal, give the per-search chance directly
+  (`nearest_stranger_distances`). A chance per comparison times the people compared (below) assumes
+  the comparisons independent and the log-normal right far into its tail, and so over a thousand
+  people accepts nobody at a stated 1 %;
+- in smaller galleries (too few searches for a 1 % tail), by the gallery's impostor distances (pairs of
+  entries of different names: all pairs of a small gallery, a fixed, seeded sample of
+  ``impostor_pairs`` pairs of a larger one), fitted as a log-normal (`lsu_faces.signature.ImpostorModel.fit`)
+  shrunk towards a prior for the depth noise of the scans actually enrolled (each row keeps its
+  scan's measured noise: a gallery of time-of-flight scans is judged by a time-of-flight stranger,
+  not the LSU rig's), times the number of people compared.
 """
 
 from __future__ import annotations
 
 import builtins
+import collections
 import datetime as _dt
 import os
 import sqlite3
 import stat
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +65,8 @@ from lsu_common.arrays import AnyArray
 from .signature import ImpostorModel, Signature, SignatureError, compact_vector, compare, compare_many
 
 __all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryPermissionError", "GalleryEntry",
-           "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT"]
+           "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT",
+           "nearest_stranger_distances", "stranger_model"]
 
 DEFAULT_FALSE_ACCEPT = 0.01      # open-set decision: chance that an unenrolled person is accepted as someone
 
@@ -75,6 +86,8 @@ CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
 _NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
 FIRST_STAGE = 10         # entries the compact index hands to the full comparison (compared in one batch)
 IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
+SELF_CALIBRATION_PEOPLE = 50   # depth-map people from which the gallery calibrates on leave-one-out searches
+CALIBRATION_SEARCHES = 200     # leave-one-out searches of that calibration (every entry below that)
 
 
 class GalleryError(ValueError):
@@ -111,10 +124,10 @@ class Match:
     """One ranked candidate of an identification."""
 
     name: str
-    score: float                 # 1 - false_accept: calibrated on the gallery's impostor distances
+    score: float                 # 1 - false_accept
     entry_id: int
     distance_m: float
-    false_accept: float = 1.0    # chance that a different person comes this close (one comparison)
+    false_accept: float = 1.0    # chance that a stranger's search of this gallery comes this close (module doc)
 
 
 @dataclass
@@ -122,13 +135,14 @@ class Identification:
     """Ranked matches and the open-set decision."""
 
     matches: list[Match]
-    accepted: bool               # the best match's false_accept x people compared <= the stated rate
-    false_accept_rate: float     # the stated rate
+    accepted: bool               # the best match's false_accept <= the stated rate
+    false_accept_rate: float     # the stated rate (FPIR, per search)
     threshold_m: float           # distance the best match had to beat
-    model: ImpostorModel
+    model: ImpostorModel         # log-normal of a stranger's nearest distance, or of one impostor pair (calibration)
     reason: str = ""             # why the best match was rejected (empty when accepted)
     probe_noise_mm: float = float("nan")
     gallery_noise_mm: float = float("nan")
+    calibration: str = ""        # what the stranger chances were calibrated on
 
     @property
     def best(self) -> Match | None:
@@ -146,6 +160,8 @@ class Gallery:
         self.index_builds = 0                            # how often the index was (re)built from the file
         self.first_stage = FIRST_STAGE
         self.impostor_pairs = IMPOSTOR_PAIRS
+        self.calibration_searches = CALIBRATION_SEARCHES
+        self._stranger: dict[tuple, ImpostorModel] = {}
 
     # ------------------------------------------------------------------ privacy
     def _check_private(self) -> None:
@@ -331,6 +347,7 @@ class Gallery:
                     made[int(entry_id)] = compact_vector(self._decode(int(entry_id), "", blob)).tobytes()
         self._signatures.clear()
         self._impostor.clear()
+        self._stranger.clear()
         idx = _Index(fingerprint)
         depth = [r for r in rows if r[2] == "depthmap"]
         if depth:
@@ -399,14 +416,26 @@ class Gallery:
         self._impostor[key] = model
         return model
 
+    def stranger_model(self, idx: _Index | None = None) -> ImpostorModel | None:
+        """Log-normal of a stranger's nearest distance in this gallery's depth-map search, from leave-one-out
+        searches (module doc); None below `SELF_CALIBRATION_PEOPLE` people. Kept until the gallery changes."""
+        idx = idx or self.index()
+        if idx.people < SELF_CALIBRATION_PEOPLE:
+            return None
+        key = (idx.fingerprint, idx.count)
+        if key not in self._stranger:
+            self._stranger.clear()
+            self._stranger[key] = stranger_model(idx, self.signatures, self.first_stage, self.calibration_searches)
+        return self._stranger[key]
+
     def identify(self, probe: Signature, max_results: int = 5,
                  false_accept_rate: float = DEFAULT_FALSE_ACCEPT) -> Identification:
         """Candidates ranked by distance (best first), one per name (its best sample), and the open-set decision.
 
         Depth-map probes: the ``first_stage`` nearest entries of the compact index, then the full
-        comparison on those. The best match is accepted when its chance of being a stranger
-        (`ImpostorModel.false_accept`), times the number of names in the gallery, is at most
-        ``false_accept_rate`` (the FPIR aimed at); otherwise ``reason`` says why it was rejected.
+        comparison on those. The best match is accepted when the chance that a stranger's search comes as
+        close is at most ``false_accept_rate`` (the FPIR aimed at; calibrated as the module doc says);
+        otherwise ``reason`` says why it was rejected.
         """
         if not 0 < false_accept_rate < 1:
             raise GalleryError(f"false_accept_rate must be in (0, 1) (got {false_accept_rate})")
@@ -422,32 +451,70 @@ class Gallery:
         if not cand:
             return Identification([], False, false_accept_rate, 0.0, ImpostorModel.prior(probe.method),
                                   f"no entry of the gallery has a '{probe.method}' signature", probe_noise)
-        model = self.impostor_model(probe.method, idx)
+        stranger = self.stranger_model(idx) if probe.method == "depthmap" else None
+        if stranger is not None:
+            model, compared = stranger, 1
+            calibration = f"{model.samples} searches of this gallery by its own people, each left out"
+        else:
+            model, compared = self.impostor_model(probe.method, idx), max(people, 1)
+            calibration = (f"{model.samples} impostor distances of this gallery (+ the prior for its scans' depth "
+                           f"noise), for each of the {compared} {'person' if compared == 1 else 'people'} compared")
+        threshold = model.threshold_m(false_accept_rate / compared)
         sigs = self.signatures([i for i, _ in cand])
         best: dict[str, Match] = {}
         found = compare_many(probe, [sigs[entry_id] for entry_id, _ in cand], model)
         for (entry_id, name), (_, dist, _) in zip(cand, found):
             if name not in best or dist < best[name].distance_m:
-                best[name] = Match(name, model.score(dist), entry_id, dist, model.false_accept(dist))
+                chance = min(1.0, model.false_accept(dist) * compared)
+                best[name] = Match(name, 1.0 - chance, entry_id, dist, chance)
         ranked = sorted(best.values(), key=lambda m: (m.distance_m, m.name))
-        per_comparison = false_accept_rate / max(people, 1)
-        threshold = model.threshold_m(per_comparison)
-        accepted = bool(ranked) and ranked[0].false_accept <= per_comparison
+        accepted = bool(ranked) and ranked[0].false_accept <= false_accept_rate
         gallery_noise = idx.noise_m * 1000.0
         reason = ""
         if not accepted and ranked:
             top = ranked[0]
-            reason = (f"the nearest face, {top.name}, is {top.distance_m * 1000:.2f} mm away; a stranger comes that "
-                      f"close with chance {top.false_accept:.2g} per person, and {people} "
-                      f"{'person' if people == 1 else 'people'} were compared: accepting at FPIR "
-                      f"{false_accept_rate:g} needs < {threshold * 1000:.2f} mm")
+            reason = (f"the nearest face, {top.name}, is {top.distance_m * 1000:.2f} mm away; a stranger's search of "
+                      f"this gallery comes that close with chance {top.false_accept:.2g} (calibrated on "
+                      f"{calibration}): accepting at FPIR {false_accept_rate:g} needs < {threshold * 1000:.2f} mm")
             if np.isfinite(probe_noise) and np.isfinite(gallery_noise) and \
                     max(probe_noise, gallery_noise) > 2.0 * max(min(probe_noise, gallery_noise), 0.05):
                 reason += (f" (this scan's depth noise is {probe_noise:.2f} mm, the gallery's {gallery_noise:.2f} mm: "
                            f"another sensor or distance than the enrolments?)")
         ranked = ranked[:max(1, int(max_results))] if max_results else ranked
         return Identification(ranked, accepted, false_accept_rate, threshold, model, reason, probe_noise,
-                              gallery_noise)
+                              gallery_noise, calibration)
+
+
+def nearest_stranger_distances(idx: _Index, signatures: Callable[[builtins.list[int]], dict[int, Signature]],
+                               first_stage: int, searches: int, seed: int = 0x5EA) -> builtins.list[float]:
+    """Leave-one-out searches of a gallery's depth-map entries: the distance [m] from each entry of a fixed,
+    seeded sample of ``searches`` (every entry if fewer) to its nearest entry of another name, found as
+    `Gallery.identify` finds it (the compact first stage, its own name's entries skipped, then the full
+    comparison on ``first_stage`` candidates): a stranger's search of the rest of the gallery.
+
+    ``signatures``: entry ids -> their signatures (the gallery's, or a bench's own).
+    """
+    n = len(idx.ids)
+    picks = np.sort(np.random.default_rng(seed).choice(n, size=min(n, int(searches)), replace=False))
+    own = collections.Counter(idx.names)
+    probes = signatures([int(idx.ids[p]) for p in picks])
+    out: builtins.list[float] = []
+    for p in picks:
+        probe, name = probes[int(idx.ids[p])], idx.names[p]
+        cand = [e for e, other in idx.search(compact_vector(probe), first_stage + own[name]) if other != name]
+        refs = signatures(cand[:first_stage])
+        found = compare_many(probe, [refs[e] for e in cand[:first_stage]])
+        out.append(min((dist for _, dist, _ in found), default=float("inf")))
+    return out
+
+
+def stranger_model(idx: _Index, signatures: Callable[[builtins.list[int]], dict[int, Signature]],
+                   first_stage: int, searches: int) -> ImpostorModel:
+    """Log-normal of a stranger's nearest distance in a search of the gallery ``idx``: fitted (mean and
+    deviation of the logs) to its `nearest_stranger_distances`."""
+    found = nearest_stranger_distances(idx, signatures, first_stage, searches)
+    d = np.log([x for x in found if np.isfinite(x) and x > 0])
+    return ImpostorModel(float(d.mean()), float(max(d.std(), 1e-3)), len(d))
 
 
 class _Index:

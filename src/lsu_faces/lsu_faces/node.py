@@ -11,8 +11,8 @@ A thin adapter over :mod:`lsu_faces.pipeline` and :mod:`lsu_faces.gallery`:
 - serves ``face/identify`` and, only when the read-only parameter ``allow_enrolment`` is true,
   ``face/enroll`` (lsu_interfaces/srv/Enroll, Identify) on a private SQLite gallery (``gallery_file``;
   any process on the DDS domain can call a service, and a gallery is biometric data). Identify
-  accepts the best match at the stated ``false_accept_rate`` (scores calibrated on the gallery's own
-  impostor distances, see :mod:`lsu_faces.gallery`).
+  accepts the best match at the stated ``false_accept_rate`` (a stranger's chance calibrated on the
+  gallery's own searches or impostor distances, see :mod:`lsu_faces.gallery`).
 
 Bad input (empty or tiny cloud, no u/v, not a face, unreadable files, locked or corrupt gallery) is
 logged as one line and returned in the service message; no exception escapes a callback.
@@ -194,7 +194,8 @@ def parameter_table() -> dict[str, Param]:
                              "protrusion or svd (thesis)"),
         "signature_method": Param(gp.method, "face signature: depthmap (ICP-aligned) or fft (thesis)"),
         "false_accept_rate": Param(DEFAULT_FALSE_ACCEPT, "identify accepts the best match only when the chance that "
-                                   "a stranger comes as close (gallery impostor statistics) is at most this (0..1)",
+                                   "a stranger's search comes as close (calibrated on the gallery itself) is at most this "
+                                   "(FPIR per search, 0..1)",
                                    (0.0, 1.0)),
         "marker_max_triangles": Param(60000, "triangles sent in the scan/mesh Marker (0 = all)", (0, 100_000_000)),
     }

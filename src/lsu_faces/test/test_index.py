@@ -77,7 +77,27 @@ def test_stranger_is_rejected_with_the_reason_and_a_member_accepted(tmp_path):
     assert member.accepted and member.best.name == "person3" and member.reason == ""
     stranger = g.identify(face_like(77, noise_m=1e-4))
     assert not stranger.accepted and stranger.best is None
-    assert "stranger comes that close" in stranger.reason and "FPIR 0.01" in stranger.reason
+    assert "comes that close with chance" in stranger.reason and "FPIR 0.01" in stranger.reason
+    assert "impostor distances" in stranger.calibration     # 6 people: too few to calibrate on its own searches
+
+
+def test_a_large_gallery_states_the_fpir_its_strangers_reach(tmp_path):
+    """From SELF_CALIBRATION_PEOPLE people on, a stranger's chance comes from the gallery's own leave-one-out
+    searches: strangers of the population it was enrolled from are accepted at about the stated FPIR (a little
+    under it: 7 of these 200 at a stated 10 %), members found again are accepted. The chance per pair times the people
+    compared (the rule of small galleries) accepts none of these strangers."""
+    from lsu_faces.gallery import SELF_CALIBRATION_PEOPLE
+
+    g = Gallery(tmp_path / "g.db")
+    for i in range(SELF_CALIBRATION_PEOPLE + 10):
+        g.enroll(f"person{i}", face_like(i))
+    stated = 0.1
+    strangers = [g.identify(face_like(5000 + i), false_accept_rate=stated) for i in range(200)]
+    assert all("each left out" in s.calibration for s in strangers)
+    reached = np.mean([s.accepted for s in strangers])
+    assert 0.02 <= reached <= 0.2, reached
+    members = [g.identify(face_like(i, noise_m=1e-4), false_accept_rate=stated) for i in range(0, 50, 5)]
+    assert all(m.accepted and m.best.name == f"person{i}" for m, i in zip(members, range(0, 50, 5)))
 
 
 def test_threshold_follows_the_noise_of_the_enrolled_scans(tmp_path):
