@@ -103,22 +103,28 @@ def test_parameters_are_validated_with_a_readable_reason(ros_node):
     assert extractor.params.method == "thesis" and extractor.params.min_contrast == 20.0
 
 
-def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_names(ros_node):
+def texture_setup(ros_node):
+    """An extractor, its left lines, image and event publishers (matched), and a laser frame and its laser-off
+    frame: the laser only in rows 100..380, a red bar (a red object, not laser) at column 500 in every row."""
     extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
-    assert extractor.set_parameters([Parameter("background", value="texture")])[0].successful
-    assert not extractor.set_parameters([Parameter("background", value="dark")])[0].successful
     lines: list[LaserLine] = []
     ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
     pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
     events = ros_node.node.create_publisher(ScanEvent, "/lsu/scan/events", EVENTS_QOS)
     assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and events.get_subscription_count() > 0 and
                                extractor.publishers_["left"].get_subscription_count() > 0, 10)
-    # the laser only in rows 100..380; a red bar (a red object, not laser) at column 500 in every row
     scene = LineScene(first_row=100, last_row=380, seed=3, texture_seed=3)
     lit, truth, visible = render_line(scene)
     off, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=4))
     for frame in (lit, off):
         frame[:, 499:502] = (30, 30, 220)
+    return extractor, lines, pub, events, lit, off, truth, visible
+
+
+def test_background_texture_subtracts_the_laser_off_frame_the_texture_event_names(ros_node):
+    extractor, lines, pub, events, lit, off, truth, visible = texture_setup(ros_node)
+    assert extractor.set_parameters([Parameter("background", value="texture")])[0].successful
+    assert not extractor.set_parameters([Parameter("background", value="dark")])[0].successful
     pub.publish(image_msg(lit, 1))  # no laser-off frame yet: the bar is taken for the laser
     pub.publish(image_msg(off, 10))
     assert ros_node.spin_until(lambda: len(lines) >= 2, 10)
@@ -142,18 +148,7 @@ def test_frames_that_overtake_their_scans_texture_event_wait_for_it(ros_node, mo
     import lsu_extract.node as node_module
 
     monkeypatch.setattr(node_module, "TEXTURE_WAIT_S", 0.3)
-    extractor = ros_node.add(LaserExtractorNode(context=ros_node.context))
-    lines: list[LaserLine] = []
-    ros_node.node.create_subscription(LaserLine, "/lsu/stereo/left/laser_line", lines.append, SCAN_DATA_QOS)
-    pub = ros_node.node.create_publisher(Image, "/lsu/stereo/left/image_raw", SCAN_DATA_QOS)
-    events = ros_node.node.create_publisher(ScanEvent, "/lsu/scan/events", EVENTS_QOS)
-    assert ros_node.spin_until(lambda: pub.get_subscription_count() > 0 and events.get_subscription_count() > 0 and
-                               extractor.publishers_["left"].get_subscription_count() > 0, 10)
-    scene = LineScene(first_row=100, last_row=380, seed=3, texture_seed=3)
-    lit, truth, visible = render_line(scene)
-    off, _, _ = render_line(scene.with_(amplitude_dn=0.0, seed=4))
-    for frame in (lit, off):
-        frame[:, 499:502] = (30, 30, 220)  # a red object in every row: laser to a frame alone
+    extractor, lines, pub, events, lit, off, truth, visible = texture_setup(ros_node)
     events.publish(ScanEvent(type=ScanEvent.STARTED, scan_id="s1"))
     assert ros_node.spin_until(lambda: extractor._held is not None, 10)
     pub.publish(image_msg(off, 10))
