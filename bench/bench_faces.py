@@ -468,8 +468,8 @@ def population(figures: dict[str, float], t_start: float) -> dict[str, object]:
                 for m in range(21):
                     other = test_seeds[(n + m) % len(test_seeds)]
                     if (other, 0) in sigs and (m == 0 or other != s):
-                        d = compare(sigs[(s, k)], sigs[(other, 0)], smooth=0.0,   # today's comparison
-                                    weights=REGION_WEIGHTS_FIRST_PASS)[1]
+                        d = compare(sigs[(s, k)], sigs[(other, 0)], smooth=0.0,   # the first pass's comparison
+                                    weights=REGION_WEIGHTS_FIRST_PASS, core=False)[1]
                         (gen if m == 0 else imp).append(d * 1000.0)
         g, i_ = np.array(gen), np.array(imp)
         g, i_ = g[np.isfinite(g)], i_[np.isfinite(i_)]

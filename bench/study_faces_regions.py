@@ -51,6 +51,7 @@ from lsu_common.arrays import AnyArray  # noqa: E402
 from lsu_faces.gallery import FIRST_STAGE, _Index  # noqa: E402
 from lsu_faces.identity import load_basis  # noqa: E402
 from lsu_faces.signature import (  # noqa: E402
+    CORE_REGIONS,
     Signature,
     _depth_map,
     _grid_points,
@@ -86,11 +87,7 @@ RESULT = Path(os.environ.get("LSU_STUDY_OUT", str(Path(__file__).resolve().paren
 
 # regions: (centre x, centre y, radius) in the face frame [m] (x right, y down, origin the nose tip)
 REGIONS = {
-    "nose": (0.0, -0.005, 0.022),
-    "nose_wide": (0.0, -0.01, 0.035),
-    "bridge": (0.0, -0.035, 0.018),
-    "eye_l": (-0.032, -0.032, 0.018),
-    "eye_r": (0.032, -0.032, 0.018),
+    **CORE_REGIONS,     # nose, nose_wide, bridge, eye_l, eye_r: the ensemble the product adopted from this study
     "brow": (0.0, -0.05, 0.03),
     "forehead": (0.0, -0.062, 0.022),
     "cheek_l": (-0.04, 0.0, 0.02),

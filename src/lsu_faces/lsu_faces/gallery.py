@@ -84,7 +84,7 @@ CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
 """
 # columns added after the first release: added to older galleries on their first write
 _NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
-FIRST_STAGE = 10         # entries the compact index hands to the full comparison (compared in one batch)
+FIRST_STAGE = 20         # entries the compact index hands to the full comparison (compared in one batch)
 IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
 SELF_CALIBRATION_PEOPLE = 50   # depth-map people from which the gallery calibrates on leave-one-out searches
 CALIBRATION_SEARCHES = 200     # leave-one-out searches of that calibration (every entry below that)

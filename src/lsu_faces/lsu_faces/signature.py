@@ -10,15 +10,16 @@ radial vector, y from the camera's down direction), so a turned or nodding head 
   trimmed, region-weighted RMS of the height differences where both maps have data: the rigid parts
   of a face (nose, eye sockets, forehead) count more than the parts that move with expressions
   (mouth, chin); see ``REGION_WEIGHTS``. Missing cells (occlusion, hair, a hand) simply do not count.
+  That distance is combined (geometric mean) with a region ensemble over five discs no expression
+  moves (``CORE_REGIONS``: nose, wider nose, bridge, eye-socket rims).
 - ``fft`` (the thesis' proposal): the spherical parametric map (elevation x azimuth, see
   `lsu_faces.frame.parametric_map`) and the magnitudes of its Fourier coefficients along the azimuth,
   which do not change when the face rolls about the radial vector. Compared by the RMS difference.
 
 Scores are calibrated, not fixed: `ImpostorModel` is a log-normal fitted to the distances between
 different people actually seen (a gallery's own entries, shrunk towards a prior measured on synthetic
-people with the LSU rig), and a match's score is ``1 - P(an impostor is this close)``. An open-set
-decision accepts the best match when that chance, times the number of people compared, is at most
-the stated false-accept rate.
+people with the LSU rig), and a match's score is ``1 - P(an impostor is this close)``. The gallery's
+open-set decision (`lsu_faces.gallery`) calibrates on its own searches from 50 people on.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from .register import rotation_from_vector
 __all__ = ["SignatureError", "Signature", "SignatureParams", "make_signature", "compare",
            "SIGNATURE_METHODS", "ImpostorModel", "REGION_WEIGHTS", "SIGNATURE_VERSION", "align_to_depthmap",
            "compact_vector", "prior_median_m", "REGION_WEIGHTS_FIRST_PASS", "smoothed", "smoothing_cells",
-           "compare_many", "align_to_depthmaps"]
+           "compare_many", "align_to_depthmaps", "CORE_REGIONS"]
 
 SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, region weights (1 is not comparable)
 # weight of each face region in the depth-map distance (rigid regions up, expression regions down)
@@ -49,6 +50,16 @@ SIGNATURE_VERSION = 2   # 2: generic-face frame, deterministic registration, reg
 REGION_WEIGHTS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.5, "cheeks": 0.3, "mouth": 0.0, "chin": 0.0}
 # the first pass's weights (its distances are the ones quoted against the real maps)
 REGION_WEIGHTS_FIRST_PASS = {"nose": 2.0, "eyes": 1.5, "forehead": 1.2, "cheeks": 1.0, "mouth": 0.25, "chin": 0.4}
+
+# the region ensemble of the depth-map distance (after Faltemier, Bowyer & Flynn 2008): discs (centre x, centre y,
+# radius) [m] of the face frame over the parts that no expression moves (x right, y down, origin the nose tip).
+# Each disc's trimmed RMS height difference after the face's one alignment; their geometric mean and the whole
+# face's distance, combined by a geometric mean, rank a probe's candidates. Chosen on tuning people only
+# (bench/study_faces_regions.py: the core five beat every other set, single regions, medians, Borda counts and
+# per-region alignments there)
+CORE_REGIONS = {"nose": (0.0, -0.005, 0.022), "nose_wide": (0.0, -0.01, 0.035), "bridge": (0.0, -0.035, 0.018),
+                "eye_l": (-0.032, -0.032, 0.018), "eye_r": (0.032, -0.032, 0.018)}
+CORE_TRIM = 0.1            # fraction of a region's largest differences ignored (a region is small: few outliers)
 
 SIGNATURE_METHODS = ("depthmap", "fft")
 ALIGN_STRIDE = 3          # every third cell of the probe aligns it onto the reference
@@ -313,9 +324,10 @@ def smoothing_cells(a: Signature, b: Signature) -> float:
 
 
 def _depthmap_distances(probe: Signature, refs: list[Signature], smooth: float | None = None,
-                        weights: dict[str, float] | None = None) -> list[tuple[float, float]]:
+                        weights: dict[str, float] | None = None, core: bool = True) -> list[tuple[float, float]]:
     """(distance, overlap) of ``probe`` against each of ``refs``: the probe is prepared once per smoothing
-    and aligned onto all references of that smoothing together (`align_to_depthmaps`)."""
+    and aligned onto all references of that smoothing together (`align_to_depthmaps`). ``core``: the whole
+    face's distance combined with the core regions' (`CORE_REGIONS`); False: the whole face's alone."""
     out: list[tuple[float, float]] = [(float("inf"), 0.0)] * len(refs)
     sigmas = [smoothing_cells(probe, r) if smooth is None else float(smooth) for r in refs]
     mirror = smooth is None and MIRROR_FILL
@@ -338,6 +350,7 @@ def _depthmap_distances(probe: Signature, refs: list[Signature], smooth: float |
         moved = pp @ T[:, :3, :3].transpose(0, 2, 1) + T[:, None, :3, 3]
         h, _, _ = _sample_gradient(data, params.extent_m, moved[..., :2])
         diff = moved[..., 2] - h
+        discs = [np.hypot(pp[:, 0] - cx, pp[:, 1] - cy) <= r for cx, cy, r in CORE_REGIONS.values()] if core else []
         for k, j in enumerate(use):
             ok = np.isfinite(diff[k])
             overlap = float(ok.sum()) / max(len(pp), 1)
@@ -346,8 +359,27 @@ def _depthmap_distances(probe: Signature, refs: list[Signature], smooth: float |
                 continue
             d, wd = np.abs(diff[k, ok]), _region_weights(moved[k, ok], weights)
             keep = d <= np.quantile(d, 1.0 - probe.params.trim)
-            out[group[j]] = (float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep]))), overlap)
+            dist = float(np.sqrt(np.sum(wd[keep] * d[keep] ** 2) / np.sum(wd[keep])))
+            if core:
+                dist = float(np.sqrt(dist * _core_distance(np.abs(diff[k]), discs)))
+            out[group[j]] = (dist, overlap)
     return out
+
+
+def _core_distance(diff: AnyArray, discs: list[AnyArray]) -> float:
+    """Geometric mean of the core regions' trimmed RMS of ``diff`` (|height difference| per probe cell, NaN
+    where the reference has none) over the regions ``discs`` (masks of the probe's cells); a region with
+    fewer than 20 cells, or under half of them (or 15) compared, does not count; inf below two that do."""
+    logs = []
+    for disc in discs:
+        cells = int(disc.sum())
+        d = diff[disc]
+        d = np.sort(d[np.isfinite(d)])
+        if cells < 20 or len(d) < max(15, 0.5 * cells):
+            continue
+        d = d[: max(1, int(round(len(d) * (1.0 - CORE_TRIM))))]
+        logs.append(0.5 * np.log(max(float(np.mean(d ** 2)), 1e-30)))   # identical maps: ~0, not log(0)
+    return float(np.exp(np.mean(logs))) if len(logs) >= max(1, len(discs) // 2) else float("inf")
 
 
 def _region_weights(local: AnyArray, weights: dict[str, float] | None = None) -> AnyArray:
@@ -367,18 +399,20 @@ def _fft_distance(probe: Signature, ref: Signature) -> tuple[float, float]:
 
 
 def compare(probe: Signature, ref: Signature, model: ImpostorModel | None = None,
-            smooth: float | None = None, weights: dict[str, float] | None = None) -> tuple[float, float, float]:
+            smooth: float | None = None, weights: dict[str, float] | None = None,
+            core: bool = True) -> tuple[float, float, float]:
     """(score 0..1, distance [m], overlap fraction) of ``probe`` against ``ref``.
 
     The score is ``model.score(distance)`` (default model: the prior). ``smooth``: Gaussian in cells
     applied to both depth maps first (None: `smoothing_cells` from the scans' noise; 0: none).
-    ``weights``: region weights (default `REGION_WEIGHTS`).
+    ``weights``: region weights (default `REGION_WEIGHTS`). ``core``: the whole face's distance combined
+    with the core regions' (`CORE_REGIONS`, the default); False: the whole face's alone (the first pass).
     """
-    return compare_many(probe, [ref], model, smooth, weights)[0]
+    return compare_many(probe, [ref], model, smooth, weights, core)[0]
 
 
 def compare_many(probe: Signature, refs: list[Signature], model: ImpostorModel | None = None,
-                 smooth: float | None = None, weights: dict[str, float] | None = None
+                 smooth: float | None = None, weights: dict[str, float] | None = None, core: bool = True
                  ) -> list[tuple[float, float, float]]:
     """`compare` of ``probe`` against each of ``refs`` (one 1:N fine stage: the probe's preparation and the
     alignments are shared, see `_depthmap_distances`)."""
@@ -390,7 +424,7 @@ def compare_many(probe: Signature, refs: list[Signature], model: ImpostorModel |
             raise SignatureError(f"signature grids differ ({probe.data.shape} vs {ref.data.shape}); "
                                  f"re-enrol the gallery")
     if probe.method == "depthmap":
-        found = _depthmap_distances(probe, refs, smooth, weights)
+        found = _depthmap_distances(probe, refs, smooth, weights, core)
     else:
         found = [_fft_distance(probe, ref) for ref in refs]
     model = model or ImpostorModel.prior(probe.method)
