@@ -156,3 +156,23 @@ def test_real_head_meshes_pass_the_face_model_check():
             nose, frame, _ = embed_face(np.stack([c[k] for k in "xyz"], axis=1))
             assert np.linalg.norm(frame.origin - objs[0].extra["nose_tip_m"]) < 0.008, (base, yaw)
             assert nose.model_weight <= 2.3, (base, yaw)
+
+
+@pytest.mark.parametrize("identity", [2, 12])
+def test_a_fist_before_the_chin_does_not_make_a_face_implausible(monkeypatch, identity):
+    """A MakeHuman person with an open mouth and a fist before the chin, turned 25 deg, through the coarse depth
+    camera (4 mm steps): the whole face's model fit needs implausible weights for the fist, the face above it does
+    not: found, nose within 5 mm of the generator's nose tip (without the occluder rule: refused as no face)."""
+    import lsu_faces.face as face
+    from lsu_sim.depthcam import depth_scan
+    from lsu_sim.people import PersonSpec, make_person
+
+    spec = PersonSpec(identity, expression="open_mouth", yaw_deg=-25.0, pitch_deg=0.5, hand="front")
+    objs = person_objects(make_person(spec), [0.0, 0.0, 0.85])
+    c = depth_scan(objs, np.eye(4), seed=20_000 + identity)
+    pts = np.stack([c[k] for k in "xyz"], axis=1)
+    nose, frame, _ = embed_face(pts)
+    assert np.linalg.norm(frame.origin - objs[0].extra["nose_tip_m"]) < 0.005
+    monkeypatch.setattr(face, "OCCLUDED_SHARE", 2.0)      # the whole face's fit alone
+    with pytest.raises(face.NotAFaceError, match="implausible shape weights"):
+        embed_face(pts)
