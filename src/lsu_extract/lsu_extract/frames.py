@@ -3,7 +3,8 @@
 `FrameExtractor` holds the per-camera state the ``laser_extractor`` node keeps between frames:
 the size of each camera's first frame (frames of another size are refused) and, with the
 ``texture`` background, the newest frames of each camera and the laser-off pair the scan's
-TEXTURE event named. The node adds diagnostics and messages around it; a replay that extracts in
+TEXTURE event named, which stays the background of the scan's frames up to its last SNAP's stamp even
+when the scan's end is in first (events and images come on different topics). The node adds diagnostics and messages around it; a replay that extracts in
 several processes runs one per process over the same frames and events, so that every process
 holds the same state and each extracts its share of the frames exactly as the node would.
 
@@ -46,6 +47,8 @@ class FrameExtractor:
             side: collections.deque(maxlen=FRAMES_KEPT) for side in SIDES}
         self._texture_key: int | None = None  # stamp (ns) of the current scan's laser-off pair
         self.textures: dict[str, AnyArray] = {}
+        self._last_snap: int | None = None     # stamp (ns) of the current scan's latest SNAP
+        self._texture_until: int | None = None  # the scan ended: the pair is the background up to this stamp
         self._sizes: dict[str, tuple[int, int]] = {}
 
     def extract(self, side: str, raw: object, compute: bool = True) -> tuple[ImageCdr, LaserLineResult | None]:
@@ -72,6 +75,8 @@ class FrameExtractor:
             if key == self._texture_key:
                 self.textures[side] = self._recent[side][-1][1]
             texture = self.textures.get(side)
+            if self._texture_until is not None and key > self._texture_until:
+                texture = None  # after the ended scan's last snap: not the scan's frame
             if texture is not None and texture.shape != image.shape:
                 texture = None  # a mono laser-off frame for a colour one, or the like: extract alone
         if not compute:
@@ -79,9 +84,22 @@ class FrameExtractor:
         return msg, extract_laser_line(image, self.params, texture=texture)
 
     def forget_texture(self) -> None:
-        """A scan started or ended: its laser-off pair no longer applies."""
+        """A scan started: the previous scan's laser-off pair no longer applies."""
         self._texture_key = None
         self.textures.clear()
+        self._last_snap = self._texture_until = None
+
+    def snap_taken(self, key: int) -> None:
+        """A SNAP event of the current scan, its pair stamped ``key`` (ns)."""
+        self._last_snap = key if self._last_snap is None else max(self._last_snap, key)
+
+    def end_scan(self) -> None:
+        """The scan finished or was aborted: its pair stays the background of its snaps still to come (their
+        images may come after the event), up to its last SNAP's stamp; none after that."""
+        if self._last_snap is None:
+            self.forget_texture()
+        else:
+            self._texture_until = self._last_snap
 
     def take_texture(self, key: int) -> None:
         """The pair stamped ``key`` (ns) is the scan's laser-off pair: from the recent frames, or when it comes."""

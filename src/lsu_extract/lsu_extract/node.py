@@ -15,7 +15,8 @@ frames are extracted alone. Events and images travel on different topics, which 
 between them (a reliable event lost once comes with the next heartbeat, after images sent later): from a
 scan's STARTED until its next event (TEXTURE, or SNAP / SWEEP_START of a scan without a pair) frames are
 held, then extracted in the order they came, so a snap that overtook its scan's TEXTURE event still has
-the pair. Frames are held at most `TEXTURE_WAIT_S` (then extracted without the pair, with a warning), and
+the pair; and a scan's end (FINISHED, ABORTED) that overtakes its last snap's images leaves the pair the
+background of the frames up to the last SNAP's stamp. Frames are held at most `TEXTURE_WAIT_S` (then extracted without the pair, with a warning), and
 no more than `lsu_extract.frames.FRAMES_KEPT` of a camera: more before any event is a stream (a sweep's
 frames come before its SWEEP_START), not a stop-snap's one texture and one snap pair.
 """
@@ -105,12 +106,17 @@ def result_to_msg(result: LaserLineResult, header: Any) -> LaserLine:
 
 
 def follow_scan_event(core: FrameExtractor, msg: ScanEvent) -> None:
-    """What a scan event means to the frame state: STARTED, FINISHED, ABORTED forget the laser-off pair;
-    TEXTURE takes the pair it names (the node, and each extraction process of a replay)."""
-    if msg.type in (ScanEvent.STARTED, ScanEvent.FINISHED, ScanEvent.ABORTED):
+    """What a scan event means to the frame state (the node, and each extraction process of a replay): STARTED
+    forgets the laser-off pair, TEXTURE takes the pair it names, SNAP notes its stamp, FINISHED and ABORTED
+    keep the pair for the frames up to the last SNAP's stamp only."""
+    if msg.type == ScanEvent.STARTED:
         core.forget_texture()
     elif msg.type == ScanEvent.TEXTURE:
         core.take_texture(stamps.to_ns(msg.image_stamp))
+    elif msg.type == ScanEvent.SNAP:
+        core.snap_taken(stamps.to_ns(msg.image_stamp))
+    elif msg.type in (ScanEvent.FINISHED, ScanEvent.ABORTED):
+        core.end_scan()
 
 
 class LaserExtractorNode(LsuNode):

@@ -8,7 +8,7 @@ import pytest
 from lsu_common.arrays import AnyArray
 from lsu_extract.extractor import ExtractorParams
 from lsu_extract.frames import FrameExtractor
-from lsu_extract.image import ImageFormatError
+from lsu_extract.image import ImageFormatError, parse_image_cdr
 from lsu_extract.synthetic import LineScene, render_line
 
 
@@ -93,3 +93,27 @@ def test_extractors_sharing_the_frames_give_the_one_extractors_lines(stream):
     plain = replay(stream, [FrameExtractor(params, "none")])
     differs = [not same(a, b) for a, b in zip(alone, plain)]
     assert any(differs[2:8]) and not any(differs[11:])
+
+
+def test_a_scans_end_ahead_of_its_last_snaps_images_leaves_them_their_laser_off_pair(stream):
+    """FINISHED can reach the extractor before the last snap's images (another topic): those frames, stamped up to
+    the last SNAP's stamp, are still extracted minus the scan's laser-off pair; a frame after it is not."""
+    params = ExtractorParams()
+    frames = {(side, parse_image_cdr(payload).sec): payload for kind, side, payload, _ in stream if kind == "image"}
+    in_order = FrameExtractor(params, "texture")             # every frame before the scan's end
+    ended_early = FrameExtractor(params, "texture")
+    plain = FrameExtractor(params, "none")
+    for ex in (in_order, ended_early):
+        ex.extract("left", frames[("left", 1)])
+        ex.take_texture(1_000_000_000)
+        for sec in (2, 3):
+            ex.snap_taken(sec * 1_000_000_000)
+    ended_early.end_scan()
+    for sec in (2, 3):                                       # the scan's snaps, after its end came in
+        _, want = in_order.extract("left", frames[("left", sec)])
+        _, got = ended_early.extract("left", frames[("left", sec)])
+        _, alone = plain.extract("left", frames[("left", sec)])
+        assert same(("line", got), ("line", want)) and not same(("line", got), ("line", alone))
+    _, late = ended_early.extract("left", frames[("left", 4)])  # stamped after the last snap: alone
+    _, alone = plain.extract("left", frames[("left", 4)])
+    assert same(("line", late), ("line", alone))
