@@ -407,6 +407,7 @@ def _open_set(figures: dict[str, float], tag: str, sub: object, gallery_sigs: di
     stranger = stranger_model(sub, lambda e: {i: gallery_sigs[i] for i in e}, FIRST_STAGE,  # type: ignore[arg-type]
                               CALIBRATION_SEARCHES)
     figures[f"stranger_calibration_s_{tag}"] = time.perf_counter() - t0
+    assert stranger is not None, f"{tag}: too few leave-one-out searches found anybody"
     pairs = np.random.default_rng(5).integers(0, size, size=(300, 2))
     dist = [compare(gallery_sigs[int(a)], gallery_sigs[int(b)])[1] for a, b in pairs if a != b]
     pair_model = ImpostorModel.fit(dist, "depthmap", sub.noise_m)  # type: ignore[attr-defined]

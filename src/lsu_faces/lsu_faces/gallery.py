@@ -161,7 +161,7 @@ class Gallery:
         self.first_stage = FIRST_STAGE
         self.impostor_pairs = IMPOSTOR_PAIRS
         self.calibration_searches = CALIBRATION_SEARCHES
-        self._stranger: dict[tuple, ImpostorModel] = {}
+        self._stranger: dict[tuple, ImpostorModel | None] = {}
 
     # ------------------------------------------------------------------ privacy
     def _check_private(self) -> None:
@@ -418,7 +418,8 @@ class Gallery:
 
     def stranger_model(self, idx: _Index | None = None) -> ImpostorModel | None:
         """Log-normal of a stranger's nearest distance in this gallery's depth-map search, from leave-one-out
-        searches (module doc); None below `SELF_CALIBRATION_PEOPLE` people. Kept until the gallery changes."""
+        searches (module doc); None below `SELF_CALIBRATION_PEOPLE` people (or too few searches found anybody:
+        `stranger_model`). Kept until the gallery changes."""
         idx = idx or self.index()
         if idx.people < SELF_CALIBRATION_PEOPLE:
             return None
@@ -509,11 +510,14 @@ def nearest_stranger_distances(idx: _Index, signatures: Callable[[builtins.list[
 
 
 def stranger_model(idx: _Index, signatures: Callable[[builtins.list[int]], dict[int, Signature]],
-                   first_stage: int, searches: int) -> ImpostorModel:
+                   first_stage: int, searches: int) -> ImpostorModel | None:
     """Log-normal of a stranger's nearest distance in a search of the gallery ``idx``: fitted (mean and
-    deviation of the logs) to its `nearest_stranger_distances`."""
+    deviation of the logs) to its `nearest_stranger_distances`; None when fewer than
+    `SELF_CALIBRATION_PEOPLE` / 2 of them found anybody (entries that overlap no other)."""
     found = nearest_stranger_distances(idx, signatures, first_stage, searches)
     d = np.log([x for x in found if np.isfinite(x) and x > 0])
+    if len(d) < SELF_CALIBRATION_PEOPLE // 2:
+        return None
     return ImpostorModel(float(d.mean()), float(max(d.std(), 1e-3)), len(d))
 
 
