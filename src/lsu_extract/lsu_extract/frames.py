@@ -4,7 +4,8 @@
 the size of each camera's first frame (frames of another size are refused) and, with the
 ``texture`` background, the newest frames of each camera and the laser-off pair the scan's
 TEXTURE event named, which stays the background of the scan's frames up to its last SNAP's stamp even
-when the scan's end is in first (events and images come on different topics). The node adds diagnostics and messages around it; a replay that extracts in
+when the scan's end is in first (events and images come on different topics). The node adds diagnostics
+and messages around it; a replay that extracts in
 several processes runs one per process over the same frames and events, so that every process
 holds the same state and each extracts its share of the frames exactly as the node would.
 

@@ -16,9 +16,10 @@ between them (a reliable event lost once comes with the next heartbeat, after im
 scan's STARTED until its next event (TEXTURE, or SNAP / SWEEP_START of a scan without a pair) frames are
 held, then extracted in the order they came, so a snap that overtook its scan's TEXTURE event still has
 the pair; and a scan's end (FINISHED, ABORTED) that overtakes its last snap's images leaves the pair the
-background of the frames up to the last SNAP's stamp. Frames are held at most `TEXTURE_WAIT_S` (then extracted without the pair, with a warning), and
-no more than `lsu_extract.frames.FRAMES_KEPT` of a camera: more before any event is a stream (a sweep's
-frames come before its SWEEP_START), not a stop-snap's one texture and one snap pair.
+background of the frames up to the last SNAP's stamp. Frames are held at most `TEXTURE_WAIT_S` (then
+extracted without the pair, with a warning), and no more than `lsu_extract.frames.FRAMES_KEPT` of a
+camera: more before any event is a stream (a sweep's frames come before its SWEEP_START), not a
+stop-snap's one texture and one snap pair.
 """
 
 from __future__ import annotations

@@ -466,7 +466,8 @@ def _model_weight(points: AnyArray, T: AnyArray, noise_m: float, params: FacePar
         in_front = sig.data[below] - model_map(upper_fit)[below]      # heights grow towards the scanner
         in_front = in_front[np.isfinite(in_front)]
         upper = weight(upper_fit)
-        if len(in_front) and np.mean(in_front >= OCCLUDER_IN_FRONT_M) >= OCCLUDED_SHARE and upper <= OCCLUDED_MAX_WEIGHT:
+        covered = len(in_front) > 0 and np.mean(in_front >= OCCLUDER_IN_FRONT_M) >= OCCLUDED_SHARE
+        if covered and upper <= OCCLUDED_MAX_WEIGHT:
             return upper
         return whole
     except (SignatureError, BasisError):
