@@ -371,12 +371,12 @@ def _searches(sub: object, gallery_sigs: dict[int, Signature], sigs: dict[tuple[
     from lsu_faces.gallery import FIRST_STAGE
     from lsu_faces.signature import compact_vector
 
-    out: dict[str, list] = {"hits": [], "mated_d": [], "nonmated_d": [], "mated_ok": [], "recall": [], "ms": []}
+    out: dict[str, list] = {"hits": [], "mated_d": [], "nonmated_d": [], "recall": [], "ms": []}
     for s, k in probes:
         if s not in members:
             continue
         if (s, k) not in sigs:      # refused as no face: a miss, and no search
-            for name, value in (("hits", False), ("mated_d", np.inf), ("nonmated_d", np.inf), ("mated_ok", False)):
+            for name, value in (("hits", False), ("mated_d", np.inf), ("nonmated_d", np.inf)):
                 out[name].append(value)
             continue
         t1 = time.perf_counter()
@@ -387,7 +387,6 @@ def _searches(sub: object, gallery_sigs: dict[int, Signature], sigs: dict[tuple[
         out["recall"].append(true in [e for e, _ in cand])
         out["hits"].append(bool(fine) and fine[0][1] == true)
         out["mated_d"].append(fine[0][0] if fine else np.inf)
-        out["mated_ok"].append(bool(fine) and fine[0][1] == true)
         out["nonmated_d"].append(next((d for d, e in fine if e != true), np.inf))
     return out
 
@@ -402,7 +401,7 @@ def _open_set(figures: dict[str, float], tag: str, sub: object, gallery_sigs: di
     from lsu_faces.signature import ImpostorModel
 
     size = len(sub.ids)  # type: ignore[attr-defined]
-    m_d, n_d, m_ok = np.array(found["mated_d"]), np.array(found["nonmated_d"]), np.array(found["mated_ok"])
+    m_d, n_d, m_ok = np.array(found["mated_d"]), np.array(found["nonmated_d"]), np.array(found["hits"])
     t0 = time.perf_counter()
     stranger = stranger_model(sub, lambda e: {i: gallery_sigs[i] for i in e}, FIRST_STAGE,  # type: ignore[arg-type]
                               CALIBRATION_SEARCHES)
