@@ -441,7 +441,7 @@ def _model_weight(points: AnyArray, T: AnyArray, noise_m: float, params: FacePar
     lower face is covered by something in front of it, the face above it (``OCCLUDED_SHARE``).
     """
     from .identity import EXPRESSION_SIGMA, FIT_RADIUS_M, BasisError, IdentityFit, fit_signature, load_basis, model_map
-    from .signature import Signature, SignatureError, make_signature
+    from .signature import Signature, SignatureError, cell_centres, make_signature
 
     b = load_basis()
 
@@ -459,7 +459,7 @@ def _model_weight(points: AnyArray, T: AnyArray, noise_m: float, params: FacePar
         if whole <= params.max_model_weight:
             return whole
         g = sig.params
-        c = (np.arange(g.grid) + 0.5) / g.grid * 2 * g.extent_m - g.extent_m    # cell centres; rows run down (+y)
+        c = cell_centres(g)   # rows run down (+y)
         below = (c[:, None] > MODEL_CHECK_BELOW_M) & (np.hypot(c[None, :], c[:, None]) <= FIT_RADIUS_M)
         upper_fit = fit_signature(Signature(sig.method, np.where(below, np.nan, sig.data), g, sig.points_used,
                                             sig.noise_m))

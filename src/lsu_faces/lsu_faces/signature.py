@@ -180,9 +180,14 @@ def _fft_magnitudes(m: AnyArray, orders: int) -> AnyArray:
     return out
 
 
+def cell_centres(params: SignatureParams) -> AnyArray:
+    """Coordinates [m] of the grid's cell centres along x (columns) and y (rows, down) of the face frame."""
+    g, e = params.grid, params.extent_m
+    return (np.arange(g) + 0.5) / g * 2 * e - e
+
+
 def _grid_points(sig: Signature) -> tuple[AnyArray, AnyArray]:
-    g, e = sig.params.grid, sig.params.extent_m
-    centres = (np.arange(g) + 0.5) / g * 2 * e - e
+    centres = cell_centres(sig.params)
     x, y = np.meshgrid(centres, centres)
     valid = np.isfinite(sig.data)
     return np.stack([x[valid], y[valid], sig.data[valid]], axis=1), valid
