@@ -55,4 +55,5 @@ def test_sigint_to_the_graph_leaves_laser_off(launch, lsu_cli, tmp_path, fault_r
     while truth(port + ".ctl")["laser_on"] and time.monotonic() < deadline:
         time.sleep(0.05)
     fault_report.note(laser_on_after_s=time.monotonic() - sent)
-    assert not truth(port + ".ctl")["laser_on"]
+    # the graph's output says where the driver's way out stood (callbacks waited for, commands timed out)
+    assert not truth(port + ".ctl")["laser_on"], proc.output[-3000:]

@@ -237,9 +237,10 @@ class Gp32Client:
         self.close()
 
     def close(self, safe: bool = True) -> None:
-        """Stop motion and switch the laser off (``safe``), then close the port."""
+        """Switch the laser off and stop motion (``safe``; the laser first: it is the hazard), then close the
+        port."""
         if safe and self._connected:
-            for action in (self.stop, lambda: self.laser(False)):
+            for action in (lambda: self.laser(False), self.stop):
                 try:
                     action()
                 except Gp32Error as exc:

@@ -436,6 +436,16 @@ class Gp32DriverNode(LsuNode):
                                                      callback_group=self._poll_group)
 
     # ------------------------------------------------------------------------------ shutdown
+    def begin_shutdown(self) -> None:
+        """The laser goes off the moment the process begins to stop, before its callbacks are waited for (at most
+        `CALLBACK_GRACE_S`) and before the motion is stopped: only this driver can switch it when the unit's
+        watchdog is off. `safe_shutdown` switches it again on the way out."""
+        if self.client.connected:
+            try:
+                self.client.laser(False)
+            except Gp32Error as exc:
+                self.get_logger().warning(f"laser off at shutdown failed: {exc}; trying again after the motion stops")
+
     def safe_shutdown(self) -> None:
         """Motion stopped, laser off, port closed (runs on Ctrl-C and node destruction)."""
         try:

@@ -281,3 +281,27 @@ def test_emulator_parameters_take_effect_or_are_refused(ros_node, tmp_path):
                           and emu_node.timer in emu_node.timers),
         "truth_rest_rate_hz": (2.0, lambda: emu_node.rest_period_s == 0.5),
     })
+
+
+def test_shutdown_switches_the_laser_off_first(ros_node, tmp_path):
+    """The process's way out (`close_nodes`): `begin_shutdown` switches the laser off before the callbacks still
+    running are waited for; `safe_shutdown` then sends the laser off ahead of the motion stop."""
+    emu = Gp32Emulator(EmulatorConfig(start_position_steps=100.0), Faults(), link=str(tmp_path / "q"))
+    emu.start()
+    try:
+        driver = ros_node.add(Gp32DriverNode(context=ros_node.context, cli_args=[
+            "--ros-args", "-p", f"port:={emu.link}", "-p", "watchdog_ms:=0"]))
+        assert ros_node.spin_until(lambda: driver.client.connected, 5.0)
+        driver.client.laser(True)
+        assert emu.truth().laser_on
+        sent = len(emu.log)
+        driver.begin_shutdown()
+        assert not emu.truth().laser_on
+        assert [line for line in list(emu.log)[sent:] if line in ("< L0", "< X")] == ["< L0"], list(emu.log)
+        driver.client.laser(True)
+        sent = len(emu.log)
+        driver.safe_shutdown()
+        commands = [line for line in list(emu.log)[sent:] if line in ("< L0", "< X")]
+        assert not emu.truth().laser_on and commands == ["< L0", "< X"], commands
+    finally:
+        emu.close()
