@@ -50,6 +50,12 @@ class SimSource(StereoSource):
         self._motion_t0: float | None = None
         self._motion_slot: int | None = None
         self._render_lock = threading.Lock()  # a pose holds for the whole render of a pair
+        if motion is not None:
+            # the first slot's pose cast now (a pose costs a re-cast of the views, ~0.5 s of CPU): the scan's first
+            # frames come on time instead of waiting for it
+            pose = motion.pose(0.0)
+            rig.set_subject_pose(pose.R, pose.translation)
+            self._motion_slot = 0
 
     @property
     def image_size(self) -> tuple[int, int]:
