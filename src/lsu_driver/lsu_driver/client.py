@@ -237,10 +237,10 @@ class Gp32Client:
         self.close()
 
     def close(self, safe: bool = True) -> None:
-        """Switch the laser off and stop motion (``safe``; the laser first: it is the hazard), then close the
-        port."""
+        """Switch the laser off and stop motion (``safe``; the laser first: it is the hazard), read the unit's
+        status (the laser off, or once more; the stop's ``!DONE`` read before the port goes), then close the port."""
         if safe and self._connected:
-            for action in (lambda: self.laser(False), self.stop):
+            for action in (lambda: self.laser(False), self.stop, self._laser_seen_off):
                 try:
                     action()
                 except Gp32Error as exc:
@@ -250,6 +250,10 @@ class Gp32Client:
         if self._supervisor is not None:
             self._supervisor.join(timeout=2.0)
             self._supervisor = None
+
+    def _laser_seen_off(self) -> None:
+        if self.status().laser_on:
+            self.laser(False)
 
     def _open(self) -> None:
         try:

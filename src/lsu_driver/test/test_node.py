@@ -302,6 +302,6 @@ def test_shutdown_switches_the_laser_off_first(ros_node, tmp_path):
         sent = len(emu.log)
         driver.safe_shutdown()
         commands = [line for line in list(emu.log)[sent:] if line in ("< L0", "< X")]
-        assert not emu.truth().laser_on and commands == ["< L0", "< X"], commands
+        assert not emu.truth().laser_on and commands == ["< L0", "< X"], commands  # one of each: the status read saw it off
     finally:
         emu.close()
