@@ -10,8 +10,10 @@ Model: ``host = offset + scale * device`` (``scale = 1 / (1 + drift)``, drift: h
 device counts) over a sliding window of samples (300: 30 s of the driver's 10 Hz status polls, long
 enough to see a drift of tens of ppm through the 1 ms counter). The fit uses the samples with the
 shortest round trips (their midpoints are the tightest brackets; a reply delayed by a busy host or
-USB adapter only widens its own bracket), weighted by the inverse square of their half round trip,
-so a few slow replies cannot pull it. The reported uncertainty is the bracket half-width of the best
+USB adapter only widens its own bracket), weighted by the inverse of their variance: the half round
+trip squared plus the counter's own (a reading k is uniform over [k, k+1) ms: 1/12 ms^2). Without the
+counter's part, round trips of a few microseconds weighed thousands of times more than the others and
+a handful of them, close together in time, set the drift alone (on a busy host: clipped at 1000 ppm). The reported uncertainty is the bracket half-width of the best
 samples plus the fit's own residual scatter plus one counter tick (a reading k means "somewhere in
 [k, k+1) ms", for the round trips as for the stamp being mapped): what a stamp mapped now can be off by.
 
@@ -96,10 +98,10 @@ class DeviceClock:
         d0 = device[-1]  # regress around the newest sample: the mapping matters most near "now"
         if len(device) < 2 or np.ptp(device) < 1e-3:
             scale = 1.0
-            offset = float(np.average(mid - device, weights=1.0 / half ** 2))
+            offset = float(np.average(mid - device, weights=1.0 / (half ** 2 + self._resolution_s ** 2 / 12.0)))
             spread = 0.0
         else:
-            w = 1.0 / half ** 2
+            w = 1.0 / (half ** 2 + self._resolution_s ** 2 / 12.0)
             A = np.column_stack([np.ones_like(device), device - d0])
             coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], mid * np.sqrt(w), rcond=None)[0]
             scale = float(np.clip(coef[1], 1.0 - self._max_drift, 1.0 + self._max_drift))

@@ -84,3 +84,17 @@ def test_the_counter_wrapping_around_keeps_the_mapping_continuous():
 def test_no_round_trip_yet_is_an_error_that_says_so():
     with pytest.raises(ClockSyncError, match="no round trip"):
         DeviceClock().to_host(1000)
+
+
+def test_a_few_very_short_round_trips_do_not_set_the_drift_alone():
+    """3 s of polls at 800 ppm (the driver's device-time test) where five round trips in a row, 0.4 s into it,
+    took 4 us (the rest 0.4..3 ms): the counter's 1 ms tick is most of what those readings are off by, and the drift
+    comes from all the samples, not from five readings 0.4 s apart."""
+    device = FakeDevice(start_ms=5_000, drift_ppm=800.0)
+    clock = DeviceClock()
+    rng = np.random.default_rng(3)
+    for k in range(30):
+        t = 1000.0 + 0.1 * k
+        half = 2e-6 if 4 <= k < 9 else rng.uniform(0.2e-3, 1.5e-3)
+        clock.add(ClockSample(t, t + 2 * half, device.ms(t + half + rng.uniform(-0.5, 0.5) * 1e-6)))
+    assert clock.drift_ppm == pytest.approx(800.0, abs=300.0)
