@@ -129,8 +129,20 @@ def stop_vibration_amplitude(config: EmulatorConfig, rate: float) -> float:
 def mono_to_wall(mono: float) -> float:
     """Wall-clock time (the host time base of ROS stamps) of monotonic instant ``mono``: the motion runs on
     the monotonic clock, stamps are on the wall clock; their offset is read now, so a stepped wall
-    clock moves past instants with it."""
-    return mono + (time.time() - time.monotonic())
+    clock moves past instants with it.
+
+    The offset is read between two monotonic reads, the tightest of a few brackets: a thread preempted between
+    two clock reads on a busy host would put the truth milliseconds off the device's own counter."""
+    best_width, offset = math.inf, 0.0
+    for _ in range(5):
+        before = time.monotonic()
+        wall = time.time()
+        after = time.monotonic()
+        if after - before < best_width:
+            best_width, offset = after - before, wall - 0.5 * (before + after)
+        if best_width < 20e-6:
+            break
+    return mono + offset
 
 
 @dataclass
