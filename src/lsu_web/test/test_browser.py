@@ -243,7 +243,7 @@ def test_sweep_then_enrol_identify_and_remove_in_the_page(graph):
     assert result["outcome"] == "SUCCEEDED", result
     record = json.loads((Path(result["output_dir"]) / "scan.json").read_text())
     assert record["goal"]["label"] == "sweep face" and record["goal"]["mode"] == "sweep" and record["sweep"], record
-    assert record["points"] > 10000
+    assert record["points"] > 10000, {k: record.get(k) for k in ("status", "partial", "sweep")}
     # the face processor writes the mesh a moment after the scan: the library shows it when it is there
     page.wait_for_function("window.lsu.meshLoaded", timeout=180000)
 
