@@ -42,6 +42,14 @@ gallery calibrates that chance on itself, with scans of its own sensor and noise
   shrunk towards a prior for the depth noise of the scans actually enrolled (each row keeps its
   scan's measured noise: a gallery of time-of-flight scans is judged by a time-of-flight stranger,
   not the LSU rig's), times the number of people compared.
+
+The leave-one-out calibration costs seconds per thousand people (200 searches); it is stored in the file's
+``calibration`` table under a key of the gallery's depth-map entries (ids and names: an entry never
+changes once enrolled) and what a search is (`CALIBRATION_VERSION`, the first stage, the searches, the core
+regions of the distance), so another process (each `lsu face identify`, a restarted node) reads it instead
+of searching again; any enrolment or removal changes the key, and a new calibration replaces the old row.
+It holds two numbers and a count, nothing of any face. A gallery that cannot be written (read-only, locked)
+keeps it in memory only.
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ from __future__ import annotations
 import builtins
 import collections
 import datetime as _dt
+import hashlib
 import os
 import sqlite3
 import stat
@@ -62,7 +71,7 @@ import numpy as np
 
 from lsu_common.arrays import AnyArray
 
-from .signature import ImpostorModel, Signature, SignatureError, compact_vector, compare, compare_many
+from .signature import CORE_REGIONS, ImpostorModel, Signature, SignatureError, compact_vector, compare, compare_many
 
 __all__ = ["GalleryError", "GalleryLockedError", "GalleryCorruptError", "GalleryPermissionError", "GalleryEntry",
            "Match", "Identification", "Gallery", "DEFAULT_FALSE_ACCEPT",
@@ -81,6 +90,13 @@ CREATE TABLE IF NOT EXISTS faces (
     points_used INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS faces_name ON faces(name);
+CREATE TABLE IF NOT EXISTS calibration (
+    key TEXT PRIMARY KEY,
+    log_mu REAL,
+    log_sigma REAL,
+    samples INTEGER NOT NULL,
+    date TEXT NOT NULL
+);
 """
 # columns added after the first release: added to older galleries on their first write
 _NEW_COLUMNS = {"compact": "BLOB", "noise_mm": "REAL"}
@@ -88,6 +104,9 @@ FIRST_STAGE = 20         # entries the compact index hands to the full compariso
 IMPOSTOR_PAIRS = 300     # impostor pairs a large gallery calibrates its scores on (all pairs below that)
 SELF_CALIBRATION_PEOPLE = 50   # depth-map people from which the gallery calibrates on leave-one-out searches
 CALIBRATION_SEARCHES = 200     # leave-one-out searches of that calibration (every entry below that)
+# part of a stored calibration's key (module doc): raise it when what a search's distance is changes otherwise
+# than through the key's other parts (the comparison, the first stage), so that no stored calibration is read
+CALIBRATION_VERSION = 1
 
 
 class GalleryError(ValueError):
@@ -161,7 +180,7 @@ class Gallery:
         self.first_stage = FIRST_STAGE
         self.impostor_pairs = IMPOSTOR_PAIRS
         self.calibration_searches = CALIBRATION_SEARCHES
-        self._stranger: dict[tuple, ImpostorModel | None] = {}
+        self._stranger: dict[str, ImpostorModel | None] = {}  # by calibration_key: one gallery state
 
     # ------------------------------------------------------------------ privacy
     def _check_private(self) -> None:
@@ -287,11 +306,13 @@ class Gallery:
                 n = conn.execute("DELETE FROM faces WHERE name = ?", (name,)).rowcount
             else:
                 n = conn.execute("DELETE FROM faces WHERE id = ?", (int(entry_id or 0),)).rowcount
+            conn.execute("DELETE FROM calibration")  # of a gallery state that is gone
         if n == 0:
             raise LookupError(f"gallery {self.path} has no entry {'named ' + repr(name) if name else entry_id}")
         self._vacuum()
         self._signatures.clear()     # ids may be reused; drop every per-entry state
         self._impostor.clear()
+        self._stranger.clear()
         self._index = None
         return int(n)
 
@@ -423,11 +444,50 @@ class Gallery:
         idx = idx or self.index()
         if idx.people < SELF_CALIBRATION_PEOPLE:
             return None
-        key = (idx.fingerprint, idx.count)
+        key = self.calibration_key(idx)
         if key not in self._stranger:
+            found, model = self._stored_calibration(key)
+            if not found:
+                model = stranger_model(idx, self.signatures, self.first_stage, self.calibration_searches)
+                self._store_calibration(key, model)
             self._stranger.clear()
-            self._stranger[key] = stranger_model(idx, self.signatures, self.first_stage, self.calibration_searches)
+            self._stranger[key] = model
         return self._stranger[key]
+
+    def calibration_key(self, idx: _Index | None = None) -> str:
+        """The key of the gallery state's stored calibration (module doc)."""
+        idx = idx or self.index()
+        digest = hashlib.sha256(f"{CALIBRATION_VERSION}|{self.first_stage}|{self.calibration_searches}|"
+                                f"{CORE_REGIONS!r}|".encode())
+        digest.update(np.ascontiguousarray(idx.ids, dtype="<i8").tobytes())
+        digest.update("\0".join(idx.names).encode())
+        return digest.hexdigest()
+
+    def _stored_calibration(self, key: str) -> tuple[bool, ImpostorModel | None]:
+        """(found, model) of the calibration stored under ``key``; a None model: too few searches found anybody."""
+        with self._connect(write=False) as conn:
+            if conn.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'calibration'").fetchone() is None:
+                return False, None   # a gallery from before stored calibrations
+            row = conn.execute("SELECT log_mu, log_sigma, samples FROM calibration WHERE key = ?", (key,)).fetchone()
+        if row is None:
+            return False, None
+        return True, (None if row[0] is None else ImpostorModel(float(row[0]), float(row[1]), int(row[2])))
+
+    def _store_calibration(self, key: str, model: ImpostorModel | None) -> None:
+        """``model`` stored under ``key``, replacing any other; a gallery that cannot be written keeps it in memory."""
+        before = self._fingerprint()
+        date = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        try:
+            with self._connect(write=True) as conn:
+                conn.execute("DELETE FROM calibration")
+                conn.execute("INSERT INTO calibration (key, log_mu, log_sigma, samples, date) VALUES (?, ?, ?, ?, ?)",
+                             (key, None if model is None else model.log_mu, None if model is None else model.log_sigma,
+                              0 if model is None else model.samples, date))
+        except GalleryError:
+            return
+        # our own write: the index stays valid when nothing else changed the file in between
+        if self._index is not None and before == self._index.fingerprint:
+            self._index.fingerprint = self._fingerprint()
 
     def identify(self, probe: Signature, max_results: int = 5,
                  false_accept_rate: float = DEFAULT_FALSE_ACCEPT) -> Identification:

@@ -100,6 +100,42 @@ def test_a_large_gallery_states_the_fpir_its_strangers_reach(tmp_path):
     assert all(m.accepted and m.best.name == f"person{i}" for m, i in zip(members, range(0, 50, 5)))
 
 
+def test_the_calibration_is_stored_with_the_gallery_and_redone_when_it_changes(tmp_path, monkeypatch):
+    """Another process (a new Gallery object on the file) reads the stored calibration instead of searching; an
+    enrolment changes the gallery's key and the next identification searches again; a removal drops the row."""
+    import lsu_faces.gallery as gallery_module
+    from lsu_faces.gallery import SELF_CALIBRATION_PEOPLE
+
+    searched = []
+    real = gallery_module.nearest_stranger_distances
+    monkeypatch.setattr(gallery_module, "nearest_stranger_distances",
+                        lambda *a, **k: searched.append(1) or real(*a, **k))
+    path = tmp_path / "g.db"
+    first = Gallery(path)
+    for i in range(SELF_CALIBRATION_PEOPLE + 2):
+        first.enroll(f"person{i}", face_like(i))
+    probe = face_like(5001)
+    said = first.identify(probe)
+    assert len(searched) == 1 and "each left out" in said.calibration
+    builds = first.index_builds
+    assert first.identify(probe).matches == said.matches and first.index_builds == builds  # its own write: index kept
+    second = Gallery(path)
+    again = second.identify(probe)
+    assert len(searched) == 1                       # read, not searched
+    assert second.stranger_model() == first.stranger_model()
+    assert [(m.name, m.distance_m, m.false_accept) for m in again.matches] == \
+        [(m.name, m.distance_m, m.false_accept) for m in said.matches]
+    second.enroll("newcomer", face_like(999))
+    key = second.calibration_key()
+    Gallery(path).identify(probe)
+    assert len(searched) == 2
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("SELECT key FROM calibration").fetchall() == [(key,)]
+    second.remove("newcomer")
+    with sqlite3.connect(path) as conn:
+        assert conn.execute("SELECT count(*) FROM calibration").fetchone()[0] == 0
+
+
 def test_threshold_follows_the_noise_of_the_enrolled_scans(tmp_path):
     from lsu_faces.signature import ImpostorModel
 
