@@ -5,6 +5,7 @@ SWEEP_END, the texture pair after it, and the matcher's points of every frame th
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 from std_srvs.srv import Trigger
@@ -20,6 +21,21 @@ from .sweep_plan import count_frames
 
 # after a sweep's last frame has its points, how long frames still without theirs are waited for [s]
 SWEEP_POINTS_GRACE_S = 0.2
+
+
+def wait_while_progressing(done: Callable[[], bool], progress: Callable[[], int],
+                           wait: Callable[[Callable[[], bool], float], bool], idle_s: float) -> bool:
+    """Wait (``wait(predicate, timeout_s)``) until ``done()``, for as long as ``progress()`` keeps growing: it
+    gives up once ``idle_s`` passed without growth. True when done."""
+    while not done():
+        seen = progress()
+
+        def moved(seen: int = seen) -> bool:
+            return done() or progress() > seen
+
+        if not wait(moved, idle_s):
+            return done()
+    return True
 
 
 class SweepRun(ScanCalls):
@@ -112,7 +128,8 @@ class SweepRun(ScanCalls):
                     self._event(ScanEvent.TEXTURE, run.scan_id, run.folder, image_stamp=response.stamp)
                     self._mark(run, "texture")
             if first is not None and not self.shutting_down:
-                self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s))
+                self._await_sweep_points(run, min(1.0, float(self.ack_timeout_s)) if aborted else float(self.ack_timeout_s),
+                                         follow=not aborted)
                 self._mark(run, "points")
         except ScanAborted as exc:
             if not aborted:
@@ -223,13 +240,22 @@ class SweepRun(ScanCalls):
         run.frames = count_frames(first, stamps.seconds_to_ns(period_s), sweep.frames_expected, keys, [],
                                   int(run.stream.get("camera_frames_dropped", 0)))
 
-    def _await_sweep_points(self, run: ScanRun, timeout_s: float) -> None:
-        """The matcher's points of every published frame (or ``timeout_s``); frames without them are dropped."""
+    def _await_sweep_points(self, run: ScanRun, timeout_s: float, follow: bool = True) -> None:
+        """The matcher's points of every published frame; frames without them are dropped. ``follow``: waited for
+        while they keep coming (``timeout_s`` without a new frame's ends it), else ``timeout_s`` at most."""
         keys = run.frame_keys
         # The matcher publishes a sweep's points in frame order: once the last frame's are in, a frame still
         # without points gets none before the scan's end releases what it holds back (FINISHED, after this
-        # wait); so waiting longer than a short grace for stragglers only delays the scan.
-        self._wait(lambda: all(k in self._acks for k in keys) or (bool(keys) and keys[-1] in self._acks), timeout_s)
+        # wait); so waiting longer than a short grace for stragglers only delays the scan. Before that, a busy
+        # host's matcher may be seconds behind the stream's end and still placing frames: a fixed wait from the
+        # stream's end dropped every frame of a sweep whose matcher was that far behind.
+        def last_in() -> bool:
+            return all(k in self._acks for k in keys) or (bool(keys) and keys[-1] in self._acks)
+
+        if follow:
+            wait_while_progressing(last_in, lambda: sum(k in self._acks for k in keys), self._wait, timeout_s)
+        else:
+            self._wait(last_in, timeout_s)
         self._wait(lambda: all(k in self._acks for k in keys), min(timeout_s, SWEEP_POINTS_GRACE_S))
         processed = []
         for snap, key in zip(run.captured, keys):

@@ -81,3 +81,34 @@ def test_a_reverse_sweeps_frames_are_counted_and_placed_like_a_forward_ones():
     first, period = 1_000_000_000, 33_333_333
     stamps = [first + k * period for k in range(down.frames_expected)]
     assert count_frames(first, period, down.frames_expected, stamps, stamps).dropped == 0
+
+
+class _LateMatcher:
+    """A matcher whose points come one frame every ``every_s`` (on a fake clock) up to ``frames``, then stop."""
+
+    def __init__(self, every_s: float, frames: int) -> None:
+        self.now, self.every_s, self.frames = 0.0, every_s, frames
+
+    def acked(self) -> int:
+        return min(self.frames, int(self.now / self.every_s))
+
+    def wait(self, predicate, timeout_s: float) -> bool:  # as ScanCalls._wait, its clock stepped 10 ms a turn
+        end = self.now + timeout_s
+        while not predicate():
+            if self.now >= end:
+                return False
+            self.now += 0.01
+        return True
+
+
+def test_the_sweep_points_are_awaited_while_they_keep_coming_not_a_fixed_time():
+    from lsu_scan.sweep_run import wait_while_progressing
+
+    # a busy host's matcher, a frame every 3 s: a fixed 5 s wait took 1 of the 10 frames; this takes all
+    late = _LateMatcher(3.0, 10)
+    assert wait_while_progressing(lambda: late.acked() == 10, late.acked, late.wait, 5.0)
+    assert late.acked() == 10 and late.now == pytest.approx(30.0, abs=0.05)
+    # a matcher that stops after 4 frames: given up 5 s after the 4th
+    stalled = _LateMatcher(3.0, 4)
+    assert not wait_while_progressing(lambda: stalled.acked() == 10, stalled.acked, stalled.wait, 5.0)
+    assert stalled.acked() == 4 and stalled.now == pytest.approx(12.0 + 5.0, abs=0.05)
