@@ -221,6 +221,21 @@ def test_dark_rows_without_laser_are_skipped_and_the_line_is_kept():
     assert result.rows_full_search < 60 + 2 * 8 * 2
 
 
+def test_lit_rows_without_laser_are_skipped_with_a_laser_off_frame_and_the_line_is_kept():
+    # a line in the middle rows of a brightly lit, textured view (skin around a face): every row is bright, so only
+    # the rise over the laser-off frame (noise, in the rows without the line) tells that most rows hold no line
+    scene = LineScene(ambient=0.5, first_row=150, last_row=330, seed=13)
+    image, truth, visible = render_line(scene)
+    off = render_line(scene.with_(amplitude_dn=0.0, seed=scene.seed + 1))[0]
+    result = extract_laser_line(image, texture=off)
+    np.testing.assert_array_equal(result.v.astype(int), np.flatnonzero(visible))
+    error = errors(result, truth)   # the bright view's shot noise: a looser bound than on a dark one
+    assert np.sqrt(np.mean(error ** 2)) <= 0.1 and np.max(np.abs(error)) <= 0.3
+    assert result.rows_full_search < 60 + 2 * 8 * 2
+    # without the laser-off frame the same lit rows cannot be told apart cheaply: each is searched
+    assert extract_laser_line(image).rows_full_search > image.shape[0] - (330 - 150 + 1)
+
+
 def test_tracking_and_full_search_refine_the_same_peaks_on_a_bright_textured_frame():
     image, _, _ = render_line(LineScene(seed=12, ambient=0.3, slope_px_per_row=-0.11, bow_px=14.0))
     tracked = extract_laser_line(image)

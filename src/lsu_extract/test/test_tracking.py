@@ -88,6 +88,20 @@ def test_rows_dark_in_every_channel_cannot_hold_the_laser():
     assert sig.may_hold_laser(np.arange(4), 30.0).tolist() == [False, True, True, False]
 
 
+def test_with_a_laser_off_frame_rows_that_do_not_rise_over_it_cannot_hold_the_laser():
+    from lsu_extract.signal import RISE_MARGIN
+
+    texture = np.full((4, 30, 3), 120, np.uint8)      # lit skin in every row
+    image = texture.copy()
+    image[1, 5, 2] += 25                              # red rises 25 DN: within RISE_MARGIN of a 30 DN contrast
+    image[2, 9, 0] += 21                              # blue rises (another channel: weaker, never wrong)
+    image[3, 3, 2] += 15                              # red rises, too little
+    assert 15 < RISE_MARGIN * 30.0 <= 21
+    sig = LaserSignal(image, texture)
+    assert sig.may_hold_laser(np.arange(4), 30.0).tolist() == [False, True, True, False]
+    assert LaserSignal(image).may_hold_laser(np.arange(4), 30.0).tolist() == [True] * 4  # bright: all searched
+
+
 def test_row_candidates_agree_on_float_and_clipped_signals_where_the_signal_is_positive():
     rng = np.random.default_rng(5)
     rows = rng.integers(0, 20, (12, 200)).astype(np.float32)
