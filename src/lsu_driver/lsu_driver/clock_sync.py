@@ -11,11 +11,12 @@ device counts) over a sliding window of samples (300: 30 s of the driver's 10 Hz
 enough to see a drift of tens of ppm through the 1 ms counter). The fit uses the samples with the
 shortest round trips (their midpoints are the tightest brackets; a reply delayed by a busy host or
 USB adapter only widens its own bracket), weighted by the inverse of their variance: the half round
-trip squared plus the counter's own (a reading k is uniform over [k, k+1) ms: 1/12 ms^2). Without the
-counter's part, round trips of a few microseconds weighed thousands of times more than the others and
-a handful of them, close together in time, set the drift alone (on a busy host: clipped at 1000 ppm). The reported uncertainty is the bracket half-width of the best
-samples plus the fit's own residual scatter plus one counter tick (a reading k means "somewhere in
-[k, k+1) ms", for the round trips as for the stamp being mapped): what a stamp mapped now can be off by.
+trip squared plus the counter's own (a reading k is uniform over [k, k+1) ms: 1/12 ms^2). The counter's
+part matters: by the round trip alone, a few round trips of microseconds would weigh thousands of times
+more than the others and, close together in time, set the drift alone. The reported uncertainty is the
+bracket half-width of the best samples plus the fit's own residual scatter plus one counter tick (a
+reading k means "somewhere in [k, k+1) ms", for the round trips as for the stamp being mapped): what a
+stamp mapped now can be off by.
 
 Why hand-written: NTP/PTP implementations exist but speak their own protocols to clocks that run
 them; here the "server" is a line-based serial device with a bare millisecond counter (wrapping), and
