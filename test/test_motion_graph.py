@@ -2,10 +2,10 @@
 sweep; stereo_matcher flags the sweep (scan/motion, into scan.json and the bag), `lsu scan` says "hold still,
 scanning again" and the coordinator scans again within the same goal.
 
-Truth: the simulator's motion (lsu_sim.motion ``turn``: a 15 deg turn of the head 1.5 s after the first frame
-rendered, the pose updated every 2 s: the sweep's frames after its first 2 s see the head turned, the middle one
-not; the head stays turned for the second sweep) and the sweep's own frame times. A still subject is left unchanged by the correction:
-test_motion_scan (the same `SweepMotion` the matcher runs, on rendered sweeps), without a graph.
+Truth: the simulator's motion (lsu_testing.motion: a 15 deg turn of the head that the sweep's frames after its
+first 2 s see, the middle one not; the head stays turned for the second sweep) and the sweep's own frame times. A
+still subject is left unchanged by the correction: test_motion_scan (the same `SweepMotion` the matcher runs, on
+rendered sweeps), without a graph.
 """
 
 from __future__ import annotations
@@ -16,29 +16,22 @@ import subprocess
 import pytest
 
 from lsu_bags.bags import read_messages
+from lsu_reconstruct.motion import HOLD_STILL
+from lsu_testing.motion import SWEEP_END, SWEEP_RATE, SWEEP_START, launch_args
 from lsu_testing.plugin import LSU
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
-# the face of person:2 (its landmarks lie within steps 133..295): 200 steps at the face rate, 3.5 s; the subject's pose is updated every
-# 2 s (each update re-casts the simulated views: 0.5 s of CPU, seconds on a busy host, while no frame is rendered),
-# so the head is unturned for the frames exposed in the first 2 s and turned 15 deg in the last 1.5 s, the
-# reference frame (the middle measured one) among the first. Shorter sweeps left a busy host's camera too few
-# frames after the update's pause to see the turn
-START, END, RATE = 140, 340, 57.1
-TURN_AT_S, MOTION_HZ = 1.5, 0.5
-HOLD_STILL = "hold still, scanning again"
 
 
 def test_a_sudden_turn_is_flagged_and_scanned_again(tmp_path, launch):
     scans = tmp_path / "scans"
-    graph = launch("launch", "sim", f"port:={tmp_path / 'gp32'}", "scene:=person:2", "motion:=turn",
-                   "motion_seed:=2", f"motion_turn_at_s:={TURN_AT_S}", f"motion_hz:={MOTION_HZ}",
-                   "capture_timeout_s:=5.0", f"output_dir:={scans}")
+    graph = launch("launch", "sim", f"port:={tmp_path / 'gp32'}", *launch_args(), f"output_dir:={scans}")
     graph.wait_for_line(r"\[gp32_driver\].*homed: track 470", timeout_s=60)
     graph.wait_for_line(r"\[stereo_camera\].*source 'sim' open", timeout_s=60)
-    run = subprocess.run([LSU, "scan", "--mode", "sweep", "--start", str(START), "--end", str(END), "--rate", str(RATE),
-                          "--record", "--no-texture", "--wait", "30"], capture_output=True, text=True, timeout=240)
+    run = subprocess.run([LSU, "scan", "--mode", "sweep", "--start", str(SWEEP_START), "--end", str(SWEEP_END),
+                          "--rate", str(SWEEP_RATE), "--record", "--no-texture", "--wait", "30"],
+                         capture_output=True, text=True, timeout=240)
     said = run.stdout + run.stderr
     assert run.returncode == 0, said + graph.output[-3000:]
     assert f"\n{HOLD_STILL}\n" in run.stderr, said  # said while the goal runs, on its own line
@@ -58,7 +51,7 @@ def test_a_sudden_turn_is_flagged_and_scanned_again(tmp_path, launch):
     turned = [int(f) for f, why in motion["reasons"].items() if "turned" in why]
     assert turned and min(turned) > motion["reference_frame"] + 1, motion
     lo, hi = motion["unreliable_positions_steps"]
-    assert START <= lo <= hi <= END
+    assert SWEEP_START <= lo <= hi <= SWEEP_END
     assert "moved beyond correction" in first["status"]
     # the bag holds the same record on its own topic (std_msgs/String, JSON: readable by plain rosbags)
     recorded = list(read_messages(first_folder / "bag", ["/lsu/scan/motion"]))

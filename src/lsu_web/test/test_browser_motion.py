@@ -4,8 +4,8 @@ started from the page.
 
 Ground truth never comes from the page: the scans' records on disk (scan.json: the first flagged with the
 coordinator's message, the second a rescan of it) and the simulator's motion (lsu_sim.motion ``turn``, the head
-turned 15 deg from the first frame rendered, the pose updated at 2 Hz: see test/test_motion_graph.py, whose
-sweep and settings these are). The words shown are the ones the record holds (lsu_reconstruct.motion.HOLD_STILL,
+turning during the first sweep and turned for the second: lsu_testing.motion, the sweep and settings of
+test/test_motion_graph.py too). The words shown are the ones the record holds (lsu_reconstruct.motion.HOLD_STILL,
 their one owner), not a copy in the test.
 """
 
@@ -18,28 +18,25 @@ import pytest
 
 from lsu_reconstruct.motion import HOLD_STILL
 from lsu_testing.browser import open_page, start_scan, web_sim_graph
+from lsu_testing.motion import SWEEP_END, SWEEP_RATE, SWEEP_START, launch_args
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
-# the middle of the face of person:2 at the face rate (test/test_motion_graph.py: the frames after the first 0.5 s
-# see the head turned, the reference frame among the first)
-START, END, RATE = 200, 240, 57
 
 
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("webmotion")
-    with web_sim_graph(tmp, "scene:=person:2", "motion:=turn", "motion_seed:=2", "motion_turn_at_s:=0.0",
-                       "motion_hz:=2.0") as g:
+    with web_sim_graph(tmp, *launch_args()) as g:
         yield g
 
 
 def test_the_page_says_hold_still_when_a_sweep_is_scanned_again(graph):
     page = open_page(graph)
     page.select_option("select[name=mode]", "sweep")  # shows the sweep's own fields
-    page.fill("input[name=sweep_rate]", str(RATE))
+    page.fill("input[name=sweep_rate]", str(SWEEP_RATE))
     page.uncheck("input[name=texture]")  # as test_motion_graph's `lsu scan --no-texture`
-    start_scan(page, START, END, 1, "moving", mode="sweep")
+    start_scan(page, SWEEP_START, SWEEP_END, 1, "moving", mode="sweep")
     # the notice is shown while the second sweep runs, before the goal's result
     page.wait_for_function("window.lsu.notices.length > 0", timeout=300000)
     assert page.evaluate("window.lsu.lastResult") is None
