@@ -164,6 +164,15 @@ class StereoFrame:
     laser_offsets_steps: tuple[float, float] = (0.0, 0.0)
 
 
+@dataclass(frozen=True)
+class PreparedPose:
+    """The views' caches of a subject pose (`SimulatedRig.prepare_subject_pose`), ready to be swapped in."""
+
+    R: AnyArray
+    t: AnyArray
+    views: list[dict[str, Any]]
+
+
 @dataclass
 class _View:
     """What one camera sees of the scene, cached between carriage positions."""
@@ -326,18 +335,36 @@ class SimulatedRig:
             raise ValueError("the subject pose needs a finite rotation matrix and translation")
         if np.array_equal(R, self._pose_R) and np.array_equal(t, self._pose_t):
             return
-        self._pose_R, self._pose_t = R, t
-        for view in self._views:
-            self._cache_view(view)
+        self.apply_subject_pose(self.prepare_subject_pose(R, t))
 
-    def _to_scene(self, origins: AnyArray, dirs: AnyArray) -> tuple[AnyArray, AnyArray]:
-        """Rays (left frame) in the scene's own frame (the inverse of the subject pose)."""
-        if not self._pose_t.any() and np.array_equal(self._pose_R, np.eye(3)):
+    def prepare_subject_pose(self, R: AnyArray, t: AnyArray) -> PreparedPose:
+        """The views' caches for the subject at pose (``R``, ``t``), computed without changing what renders now: a
+        thread may prepare the next pose while another renders the current one (`apply_subject_pose` swaps)."""
+        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        t = np.asarray(t, dtype=np.float64).reshape(3)
+        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+            raise ValueError("the subject pose needs a finite rotation matrix and translation")
+        return PreparedPose(R, t, [self._view_cache(view, R, t) for view in self._views])
+
+    def apply_subject_pose(self, prepared: PreparedPose) -> None:
+        """The subject at a pose `prepare_subject_pose` made the caches of (the renders after this see it)."""
+        self._pose_R, self._pose_t = prepared.R, prepared.t
+        for view, cache in zip(self._views, prepared.views):
+            for name, value in cache.items():
+                setattr(view, name, value)
+
+    def _to_scene(self, origins: AnyArray, dirs: AnyArray, pose: tuple[AnyArray, AnyArray] | None = None
+                  ) -> tuple[AnyArray, AnyArray]:
+        """Rays (left frame) in the scene's own frame (the inverse of the subject pose: ``pose`` (R, t), by default
+        the current one)."""
+        R, t = pose if pose is not None else (self._pose_R, self._pose_t)
+        if not t.any() and np.array_equal(R, np.eye(3)):
             return origins, dirs
-        return (np.asarray(origins) - self._pose_t) @ self._pose_R, np.asarray(dirs) @ self._pose_R
+        return (np.asarray(origins) - t) @ R, np.asarray(dirs) @ R
 
-    def _cast(self, origins: AnyArray, dirs: AnyArray) -> dict[str, AnyArray]:
-        origins, dirs = self._to_scene(origins, dirs)
+    def _cast(self, origins: AnyArray, dirs: AnyArray, pose: tuple[AnyArray, AnyArray] | None = None
+              ) -> dict[str, AnyArray]:
+        origins, dirs = self._to_scene(origins, dirs, pose)
         rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
         result = self._scene.cast_rays(o3d.core.Tensor(rays))
         return {k: v.numpy() for k, v in result.items()}
@@ -358,9 +385,15 @@ class SimulatedRig:
         return normals / np.where(norm > 0, norm, 1.0)
 
     def _cache_view(self, view: _View) -> None:
+        for name, value in self._view_cache(view, self._pose_R, self._pose_t).items():
+            setattr(view, name, value)
+
+    def _view_cache(self, view: _View, pose_R: AnyArray, pose_t: AnyArray) -> dict[str, Any]:
+        """What ``view`` sees of the scene with the subject at pose (``pose_R``, ``pose_t``): its cached fields by
+        name. Reads the view's rays and the scene only: `prepare_subject_pose` runs it beside a render."""
         g = self.geometry
         W, H = g.image_size
-        cast = self._cast(view.origin, view.dirs)
+        cast = self._cast(view.origin, view.dirs, (pose_R, pose_t))
         t = cast["t_hit"].astype(np.float64)
         hit = np.isfinite(t)
         geom = np.where(hit, cast["geometry_ids"].astype(np.int64), -1)
@@ -372,7 +405,7 @@ class SimulatedRig:
         hit_idx = np.flatnonzero(hit)
         dirs, geom_h = view.dirs[hit_idx], geom[hit_idx]
         nrm = self._smooth_normals(geom_h, cast["primitive_ids"][hit_idx].astype(np.int64), cast["primitive_uvs"][hit_idx])
-        nrm = nrm @ self._pose_R.T  # the scene's normals as the subject is turned now
+        nrm = nrm @ pose_R.T  # the scene's normals as the subject is turned
         flip = np.einsum("ij,ij->i", nrm, dirs) > 0  # face the camera: both sides of a mesh are visible
         nrm[flip] *= -1.0
         ok = hit.reshape(H, W)
@@ -388,8 +421,7 @@ class SimulatedRig:
             sel = geom_h == gid
             if np.any(sel):
                 # the texture is the scene's own: evaluated where the point is on the subject as built
-                albedo[sel] = obj.albedo((pts_h[sel] - self._pose_t) @ self._pose_R, du[sel] @ self._pose_R,
-                                         dv[sel] @ self._pose_R)
+                albedo[sel] = obj.albedo((pts_h[sel] - pose_t) @ pose_R, du[sel] @ pose_R, dv[sel] @ pose_R)
                 spec[sel] = obj.specularity
                 skin_h |= sel & (obj.material == "skin")
         light = g.lighting
@@ -422,35 +454,32 @@ class SimulatedRig:
         skin[hit_idx] = skin_h
         red_albedo = np.zeros(H * W)
         red_albedo[hit_idx] = albedo[:, 2]
-        view.hit, view.t, view.geom, view.points, view.normals = hit, t, geom, points, normals
-        view.skin, view.reach = skin, reach
-        view.red_albedo = red_albedo
-        view.base = radiance.reshape(H, W, 3).astype(np.float32)
-        view.sensor_key = ()  # the sensor's view of the base is made again at the next render
-        view.pn = np.where(hit, points @ n, np.nan)
-        view.sigma2 = sigma2
-        view.reach_max = float(reach[hit].max()) if np.any(hit) else 0.0
-        bins = np.floor(view.pn[hit_idx] / PN_BIN_M).astype(np.int64)
+        pn = np.where(hit, points @ n, np.nan)
+        bins = np.floor(pn[hit_idx] / PN_BIN_M).astype(np.int64)
         order = np.argsort(bins, kind="stable")  # stable: by pixel index within a bin
-        view.band_order, view.band_bin = hit_idx[order], bins[order]
-        view.band_pn = view.pn[view.band_order]
-        view.band_reach = reach[view.band_order]
+        band_order = hit_idx[order]
         # what the laser term reads of a band's pixels, in the same order: one row gather per capture
         _, x, start = self._sheet_frame(g.center_step)
-        to_start = start - points[view.band_order]
-        band_normals = normals[view.band_order]
-        view.band_start = start
-        view.band_rows = np.column_stack([sigma2[view.band_order], np.einsum("ij,ij->i", to_start, to_start),
-                                          2.0 * (to_start @ x), np.einsum("ij,ij->i", band_normals, to_start),
-                                          band_normals @ x, red_albedo[view.band_order]])
-        view.band_skin = skin[view.band_order]
-        view.band_lit = np.full(len(view.band_order), -1, np.int8)
+        to_start = start - points[band_order]
+        band_normals = normals[band_order]
+        band_rows = np.column_stack([sigma2[band_order], np.einsum("ij,ij->i", to_start, to_start),
+                                     2.0 * (to_start @ x), np.einsum("ij,ij->i", band_normals, to_start),
+                                     band_normals @ x, red_albedo[band_order]])
         # the sheet keeps its orientation (n and the skin model are the geometry's, as for every cache here):
         # what depends on n . N alone is fixed per pixel
-        order_nN = n_dot_normal[view.band_order]
-        scale = KernelScale.of(view.band_rows[:, 0], self._skin_width(order_nN))
-        view.band_consts = np.stack([scale.sigma, scale.b, scale.rb, scale.h, scale.sigma_sqrt2,
-                                     1.0 / np.sqrt(2.0 * view.band_rows[:, 0]), order_nN])
+        order_nN = n_dot_normal[band_order]
+        scale = KernelScale.of(band_rows[:, 0], self._skin_width(order_nN))
+        return {
+            "hit": hit, "t": t, "geom": geom, "points": points, "normals": normals, "skin": skin, "reach": reach,
+            "red_albedo": red_albedo, "base": radiance.reshape(H, W, 3).astype(np.float32),
+            "sensor_key": (),  # the sensor's view of the base is made again at the next render
+            "pn": pn, "sigma2": sigma2, "reach_max": float(reach[hit].max()) if np.any(hit) else 0.0,
+            "band_order": band_order, "band_bin": bins[order], "band_pn": pn[band_order],
+            "band_reach": reach[band_order], "band_start": start, "band_rows": band_rows,
+            "band_skin": skin[band_order], "band_lit": np.full(len(band_order), -1, np.int8),
+            "band_consts": np.stack([scale.sigma, scale.b, scale.rb, scale.h, scale.sigma_sqrt2,
+                                     1.0 / np.sqrt(2.0 * band_rows[:, 0]), order_nN]),
+        }
 
     # ------------------------------------------------------------------ laser
     def _lit(self, origin: AnyArray, points: AnyArray, any_hit: bool = False, dist: AnyArray | None = None) -> AnyArray:

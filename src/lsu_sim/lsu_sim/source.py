@@ -11,6 +11,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 from lsu_cameras.sources import CameraError, SourceContext, StereoPair, StereoSource
@@ -25,8 +26,9 @@ from .rig import CarriageState, SimulatedRig
 # and a pair rendered before they are in shows the carriage where it was not
 TRUTH_DELAY_S = 0.1
 # a moving subject's pose is updated at this rate by default: a new pose re-casts both views (~0.5-2 s of CPU for a
-# person on a small host), so the simulated camera falls behind real time by that much per update (its frames
-# keep their slots' stamps); sway moves < 1 mm in 1/5 s. `lsu_accuracy.sweep_sim.render_sweep` (no ROS) uses 15 Hz.
+# person on a small host), cast by a thread of its own while the slot before it renders; a camera whose frames
+# reach the next slot before it is ready waits for it (its frames keep their slots' stamps); sway moves < 1 mm in
+# 1/5 s. `lsu_accuracy.sweep_sim.render_sweep` (no ROS) uses 15 Hz.
 MOTION_HZ = 5.0
 
 
@@ -50,12 +52,17 @@ class SimSource(StereoSource):
         self._motion_t0: float | None = None
         self._motion_slot: int | None = None
         self._render_lock = threading.Lock()  # a pose holds for the whole render of a pair
+        # the next slot's pose, cast beside the renders of the current one: (slot, its future)
+        self._next_pose: tuple[int, Future] | None = None
+        self._caster: ThreadPoolExecutor | None = None
         if motion is not None:
             # the first slot's pose cast now (a pose costs a re-cast of the views, ~0.5 s of CPU): the scan's first
             # frames come on time instead of waiting for it
             pose = motion.pose(0.0)
             rig.set_subject_pose(pose.R, pose.translation)
             self._motion_slot = 0
+            self._caster = ThreadPoolExecutor(1, thread_name_prefix="lsu-sim-pose")
+            self._cast_ahead(1)
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -91,9 +98,24 @@ class SimSource(StereoSource):
             self._motion_t0 = t_s
         slot = math.floor((t_s - self._motion_t0 + 0.5 * self.exposure_s) * self.motion_hz)
         if slot != self._motion_slot:
-            pose = self.motion.pose(slot / self.motion_hz)
-            self.rig.set_subject_pose(pose.R, pose.translation)
+            ahead = self._next_pose
+            if ahead is not None and ahead[0] == slot:
+                prepared = ahead[1].result()  # cast meanwhile, or waited for: the frame is of its slot's pose
+            else:
+                if ahead is not None:
+                    ahead[1].cancel()
+                pose = self.motion.pose(slot / self.motion_hz)
+                prepared = self.rig.prepare_subject_pose(pose.R, pose.translation)
+            self.rig.apply_subject_pose(prepared)
             self._motion_slot = slot
+            self._cast_ahead(slot + 1)
+
+    def _cast_ahead(self, slot: int) -> None:
+        """The pose of ``slot`` cast by the caster thread (the rig's caches of the current pose are not touched)."""
+        if self._caster is None or self.motion is None:
+            return
+        pose = self.motion.pose(slot / self.motion_hz)
+        self._next_pose = (slot, self._caster.submit(self.rig.prepare_subject_pose, pose.R, pose.translation))
 
     def pair_at(self, stamp_ns: int, index: int) -> StereoPair:
         """The pair exposed from ``stamp_ns`` with the carriage as known then; its noise (and start jitter)
@@ -104,6 +126,13 @@ class SimSource(StereoSource):
         a single capture (`grab_pair`) keeps the rig's default for its latency.
         """
         return self._pair(stamp_ns, frame_seed(self.seed, index), parallel=False)
+
+    def close(self) -> None:
+        """The caster thread let go (a pose it is casting is not waited for)."""
+        if self._caster is not None:
+            self._caster.shutdown(wait=False, cancel_futures=True)
+            self._caster = None
+            self._next_pose = None
 
     def grab_pair(self, timeout_s: float = 2.0) -> StereoPair:
         started = time.monotonic()

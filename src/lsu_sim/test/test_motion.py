@@ -91,6 +91,22 @@ def test_rig_with_a_subject_pose_sees_the_moved_scene():
     assert np.array_equal(rig.render(200.0, seed=3).left, still.render(200.0, seed=3).left)
 
 
+def test_a_prepared_pose_leaves_the_render_as_it_is_until_applied():
+    geometry = load_rig()
+    objects = build_scene("head:3", geometry)
+    pose = SubjectMotion("standing", 7, objects[0].mesh.get_center()).pose(2.0)
+    rig = SimulatedRig(geometry, objects, seed=1)
+    before = rig.render(200.0, seed=3).left
+    prepared = rig.prepare_subject_pose(pose.R, pose.translation)
+    assert np.array_equal(rig.render(200.0, seed=3).left, before)
+    rig.apply_subject_pose(prepared)
+    moved = rig.render(200.0, seed=3).left
+    assert not np.array_equal(moved, before)
+    posed = SimulatedRig(geometry, objects, seed=1)
+    posed.set_subject_pose(pose.R, pose.translation)
+    assert np.array_equal(posed.render(200.0, seed=3).left, moved)
+
+
 def test_a_bad_pose_is_refused():
     geometry = load_rig()
     rig = SimulatedRig(geometry, build_scene("sphere", geometry))

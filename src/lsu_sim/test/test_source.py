@@ -111,3 +111,25 @@ def test_a_moving_subject_is_rendered_at_its_pose_from_the_first_frame_on():
     params["sim_motion"] = "dancing"
     with pytest.raises(CameraError, match="unknown subject motion 'dancing': use one of still, seated, standing, turn"):
         open_plugin_source("sim", context)
+
+
+def test_the_next_pose_is_cast_ahead_and_the_frames_are_those_of_a_cast_in_place():
+    """A moving subject's next slot is cast by the source's caster thread while the current one renders; the frames
+    are the ones a cast at the slot's first frame gives (the same pose, the same caches), bit for bit."""
+    params = {"sim_rig": "", "sim_scene": "sphere", "sim_seed": 3, "carriage_position_steps": 150.0, "laser_on": True,
+              "sim_motion": "standing", "sim_motion_seed": 4, "sim_motion_turn_at_s": 1.0, "sim_motion_hz": 5.0}
+    context = SourceContext(parameter=params.__getitem__, clock=lambda: 1000.0, truth_at=lambda t_ns: (None, []))
+    ahead, in_place = open_plugin_source("sim", context), open_plugin_source("sim", context)
+    assert isinstance(ahead, SimSource) and isinstance(in_place, SimSource)
+    in_place.close()  # no caster: every slot cast when its first frame comes
+    t0 = 1_000_000_000_000
+    try:
+        for index, after_s in ((0, 0.0), (1, 0.1), (2, 0.25), (3, 0.45), (4, 0.61)):
+            assert ahead._next_pose is not None and ahead._next_pose[0] == ahead._motion_slot + 1
+            stamp = t0 + stamps.seconds_to_ns(after_s)
+            a, b = ahead.pair_at(stamp, index), in_place.pair_at(stamp, index)
+            assert ahead._motion_slot == in_place._motion_slot
+            assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right), index
+        assert ahead._motion_slot == 3   # four slots of 0.2 s passed: three casts taken from the caster
+    finally:
+        ahead.close()

@@ -4,10 +4,11 @@ sim` on person:2 turning its head during a sweep of its face, so that the sweep 
 The simulator's ``turn`` (lsu_sim.motion) turns the head 15 deg at ``TURN_AT_S`` after the first frame rendered; the
 pose is updated every 1 / ``MOTION_HZ`` s, so the sweep's frames exposed in its first 2 s see the head unturned and
 those of its last 1.5 s turned, the reference frame (the middle measured one) among the first; the head stays turned
-for the second sweep. Each update re-casts the simulated views (~0.5 s of CPU, seconds on a busy host) while the
-camera renders no frame: a short sweep left a busy host's camera too few frames after the update to see the turn,
-and the camera's stall limit (``capture_timeout_s``, a real camera's deadline) is raised past such a pause: these
-tests are about the motion, not the camera's deadline.
+for the second sweep. Each update re-casts the simulated views (~0.5 s of CPU, seconds on a busy host), cast ahead
+by the simulator's own thread; a camera whose frames reach the update before that cast is done waits for it, so a
+short sweep left a busy host's camera too few frames after the update to see the turn, and the camera's stall limit
+(``capture_timeout_s``, a real camera's deadline) is raised past such a wait: these tests are about the motion, not
+the camera's deadline.
 """
 
 from __future__ import annotations
