@@ -23,7 +23,6 @@ from lsu_testing.motion import SWEEP_END, SWEEP_RATE, SWEEP_START, launch_args
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
-
 @pytest.fixture(scope="module")
 def graph(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("webmotion")
