@@ -443,9 +443,8 @@ def _model_weight(points: AnyArray, T: AnyArray, noise_m: float, params: FacePar
     from .identity import EXPRESSION_SIGMA, FIT_RADIUS_M, BasisError, IdentityFit, fit_signature, load_basis, model_map
     from .signature import Signature, SignatureError, cell_centres, make_signature
 
-    b = load_basis()
-
     def weight(fit: IdentityFit) -> float:
+        b = load_basis()   # read once per process
         return float(np.sqrt(np.sum(fit.identity ** 2) / len(b.identity) + np.sum(fit.expression ** 2)
                              / (len(b.expression) * EXPRESSION_SIGMA ** 2)))
 
