@@ -320,8 +320,7 @@ class SimulatedRig:
             self._scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
             self._tris.append(np.asarray(mesh.triangles))
             self._vnormals.append(np.asarray(mesh.vertex_normals))
-        for view in self._views:
-            self._cache_view(view)
+        self.apply_subject_pose(self.prepare_subject_pose(self._pose_R, self._pose_t))
 
     def set_subject_pose(self, R: AnyArray, t: AnyArray) -> None:
         """Move the whole scene rigidly to ``X_now = R X + t`` (X: the scene as built) and recompute the views.
@@ -329,13 +328,9 @@ class SimulatedRig:
         Rigid: hit distances, triangles and the surface's texture (evaluated in the scene's own frame, so it
         moves with the skin) are those of the scene as built; positions and normals turn with the pose.
         """
-        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
-        t = np.asarray(t, dtype=np.float64).reshape(3)
-        if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
-            raise ValueError("the subject pose needs a finite rotation matrix and translation")
         if np.array_equal(R, self._pose_R) and np.array_equal(t, self._pose_t):
             return
-        self.apply_subject_pose(self.prepare_subject_pose(R, t))
+        self.apply_subject_pose(self.prepare_subject_pose(R, t))  # refuses a pose that is not rigid
 
     def prepare_subject_pose(self, R: AnyArray, t: AnyArray) -> PreparedPose:
         """The views' caches for the subject at pose (``R``, ``t``), computed without changing what renders now: a
@@ -383,10 +378,6 @@ class SimulatedRig:
                             + uv[:, 1:] * vn[tri[:, 2]])
         norm = np.linalg.norm(normals, axis=1, keepdims=True)
         return normals / np.where(norm > 0, norm, 1.0)
-
-    def _cache_view(self, view: _View) -> None:
-        for name, value in self._view_cache(view, self._pose_R, self._pose_t).items():
-            setattr(view, name, value)
 
     def _view_cache(self, view: _View, pose_R: AnyArray, pose_t: AnyArray) -> dict[str, Any]:
         """What ``view`` sees of the scene with the subject at pose (``pose_R``, ``pose_t``): its cached fields by
