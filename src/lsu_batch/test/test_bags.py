@@ -59,10 +59,10 @@ def _fake_signature(seed: int):
     """A smooth synthetic depth map on the default grid (a paraboloid 'face' with a seeded bump)."""
     import numpy as np
 
-    from lsu_faces.signature import Signature, SignatureParams
+    from lsu_faces.signature import Signature, SignatureParams, cell_centres
 
     p = SignatureParams()
-    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    c = cell_centres(p)
     x, y = np.meshgrid(c, c)
     rng = np.random.default_rng(seed)
     a, bx, by = rng.uniform(2, 6), rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03)

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from lsu_faces.gallery import Gallery, GalleryCorruptError, GalleryError, GalleryLockedError, GalleryPermissionError
-from lsu_faces.signature import Signature, SignatureParams
+from lsu_faces.signature import Signature, SignatureParams, cell_centres
 
 
 def fake_signature(seed: int) -> Signature:
     """A smooth synthetic depth map (a paraboloid 'face' with a seeded bump) on the default grid."""
     p = SignatureParams()
-    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    c = cell_centres(p)
     x, y = np.meshgrid(c, c)
     rng = np.random.default_rng(seed)
     a, bx, by = rng.uniform(2, 6), rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03)

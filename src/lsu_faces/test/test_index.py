@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from lsu_faces.gallery import Gallery, _Index
-from lsu_faces.signature import Signature, SignatureParams, compact_vector
+from lsu_faces.signature import Signature, SignatureParams, cell_centres, compact_vector
 
 
 def face_like(seed: int, noise_m: float = 0.0) -> Signature:
     """A smooth synthetic depth map: a paraboloid 'face' with a seeded relief all over it, on the default grid."""
     p = SignatureParams()
-    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    c = cell_centres(p)
     x, y = np.meshgrid(c, c)
     rng = np.random.default_rng(seed)
     z = -rng.uniform(2, 6) * (x ** 2 + y ** 2)
@@ -152,7 +152,7 @@ def test_fine_stage_aligns_the_probe_onto_each_candidate_and_ranks_like_single_c
     from lsu_faces.signature import align_to_depthmaps, compare, compare_many
 
     p = SignatureParams()
-    c = (np.arange(p.grid) + 0.5) / p.grid * 2 * p.extent_m - p.extent_m
+    c = cell_centres(p)
     x, y = np.meshgrid(c, c)
     rng = np.random.default_rng(5)
     bumps = [(rng.uniform(-0.04, 0.04, 2), rng.normal(0.0, 0.004)) for _ in range(10)]
