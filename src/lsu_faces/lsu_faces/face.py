@@ -39,6 +39,7 @@ maps are `lsu_faces.frame`'s (the signatures need them too), re-exported here.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -306,6 +307,20 @@ def _symmetry_mm(local: AnyArray) -> float:
     return float(np.median(d) * 1000.0) if len(d) > 0.3 * len(near) else float("inf")
 
 
+# The layout confidence counts only the template points the scanner can see at the fitted pose (FaceParams.
+# max_view_angle_deg) when at least this share of the template's core faces it; with less (a profile, a back of a
+# head) the whole template counts, so a face turned away stays "no face".
+FACING_MIN_SHARE = 0.6
+
+
+def _facing(points: AnyArray, normals: AnyArray, T: AnyArray, max_angle_deg: float) -> AnyArray:
+    """Which template ``points`` (face frame, with their outward ``normals``), placed by ``T``, the scanner at the
+    origin sees within ``max_angle_deg`` of their normal: (n,) bool."""
+    x = points @ T[:3, :3].T + T[:3, 3]
+    n = normals @ T[:3, :3].T
+    return np.einsum("ij,ij->i", n, -x) > math.cos(math.radians(max_angle_deg)) * np.linalg.norm(x, axis=1)
+
+
 def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> NoseResult:
     """Nose tip verified by the whole face: shape candidates, then the generic face registered on each.
 
@@ -347,9 +362,13 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         out = reg.T[:3, 2]           # the fitted face must look at the scanner (its z axis towards the camera)
         if float(np.dot(out, -reg.T[:3, 3])) <= 0.0 or not np.isfinite(reg.rms_m):
             return -1.0, reg, {}
-        cover = {r: float(reg.inliers[tpl.region[idx] == k].mean()) for k, r in enumerate(REGIONS)
-                 if np.any(tpl.region[idx] == k)}
-        conf = float(reg.inliers[core[idx]].mean()) * float(np.exp(-(reg.rms_m / rms_scale) ** 2))
+        # what the scanner cannot see at this pose (the far cheek and eye of a turned head) cannot be covered
+        seen = _facing(tpl.points[idx], tpl.normals[idx], reg.T, params.max_view_angle_deg)
+        if np.count_nonzero(seen & core[idx]) < FACING_MIN_SHARE * np.count_nonzero(core[idx]):
+            seen = np.ones(len(idx), bool)
+        cover = {r: float(reg.inliers[seen & (tpl.region[idx] == k)].mean()) if np.any(seen & (tpl.region[idx] == k))
+                 else 0.0 for k, r in enumerate(REGIONS)}
+        conf = float(reg.inliers[core[idx] & seen].mean()) * float(np.exp(-(reg.rms_m / rms_scale) ** 2))
         if min(cover["nose"], max(cover["eyes"], cover["cheeks"])) < 0.35:
             conf = min(conf, 0.0)        # no nose, or nothing of the face beside it
         # the measured surface itself must hold a nose where the face has one: relief of the tip over the

@@ -118,10 +118,12 @@ def test_asymmetric_face_is_enrolled_with_a_warning(ict, tmp_path):
 
 
 def test_nose_on_a_cheek_is_not_taken_when_the_face_model_cannot_explain_it(ict):
-    """A head turned by 29 deg with a smile (a tuning person, ICT seed 1): the layout alone wins on the near
-    cheek, 53 mm from the nose; the face-model check (lsu_faces.identity) turns that place down: the true
-    nose (the model's landmark, not the finder) is taken, or the capture refused with the reason."""
-    from lsu_faces.face import FaceParams
+    """A head turned by 29 deg with a smile (a tuning person, ICT seed 1). A layout confidence that counts every
+    template point wins on the near cheek, 53 mm from the nose; the face-model check (lsu_faces.identity) turns that
+    place down: the true nose (the model's landmark, not the finder) is taken, or the capture refused with the
+    reason. The default layout counts only what the scanner can see (max_view_angle_deg: not the far cheek and eye)
+    and finds the nose itself."""
+    from lsu_faces.face import FaceParams, NotAFaceError
 
     occ = Occasion(expression="smile", strength=0.9488067529652029, jitter_seed=171007821, yaw_deg=29.29296922608465,
                    pitch_deg=-6.003165591742171, roll_deg=-1.1280252695588477, hair_m=0.011886330575264052)
@@ -129,18 +131,42 @@ def test_nose_on_a_cheek_is_not_taken_when_the_face_model_cannot_explain_it(ict)
     c = tof_scan(objs, np.eye(4), seed=48493725)
     pts = np.stack([c[k] for k in "xyz"], axis=1)
     truth = objs[0].extra["nose_tip_m"]
-    layout_only, frame0, _ = embed_face(pts, FaceParams(max_model_weight=1e9))
-    assert np.linalg.norm(frame0.origin - truth) > 0.03                       # the failure this check fixes
+    every_point = FaceParams(max_view_angle_deg=180.0)
+    layout_only, frame0, _ = embed_face(pts, FaceParams(max_view_angle_deg=180.0, max_model_weight=1e9))
+    assert np.linalg.norm(frame0.origin - truth) > 0.03                       # the failure both checks address
     assert layout_only.model_weight > FaceParams().max_model_weight
-    from lsu_faces.face import NotAFaceError
 
-    try:       # either the true nose is taken, or the capture is refused saying why: never the cheek
-        nose, frame, _ = embed_face(pts)
+    try:       # the model check alone: either the true nose is taken, or the capture refused saying why
+        nose, frame, _ = embed_face(pts, every_point)
     except NotAFaceError as exc:
         assert "implausible shape weights" in str(exc)
     else:
         assert np.linalg.norm(frame.origin - truth) < 0.012
         assert nose.model_weight <= FaceParams().max_model_weight and nose.confidence >= FaceParams().min_confidence
+    nose, frame, _ = embed_face(pts)                                          # the defaults: the nose, accepted
+    assert np.linalg.norm(frame.origin - truth) < 0.012
+    assert nose.model_weight <= FaceParams().max_model_weight and nose.confidence >= FaceParams().min_confidence
+
+
+def test_a_head_turned_29_deg_is_a_face_on_the_rig(ict):
+    """The same turned, smiling head (ICT seed 1) through the LSU rig at its speckle limit: its far cheek and eye are
+    out of the scanner's sight. A layout confidence that counts every template point refuses it (0.38, a face:
+    >= 0.40); the default counts what the scanner can see (max_view_angle_deg) and takes the nose (the model's
+    landmark) within 5 mm."""
+    from lsu_faces.face import FaceParams, NotAFaceError
+    from lsu_faces.synthetic import fast_scan
+
+    occ = Occasion(expression="smile", strength=0.9488067529652029, jitter_seed=171007821, yaw_deg=29.29296922608465,
+                   pitch_deg=-6.003165591742171, roll_deg=-1.1280252695588477, hair_m=0.011886330575264052)
+    rig = sim.load_rig()
+    objs = person_objects(ict_person(ict, 1, occ), rig.rig_center + (rig.subject_distance_m + 0.10) * rig.rig_axes[2])
+    cols = fast_scan(objs, rig, np.arange(0, 471, 5, dtype=np.float64), 1.0e-4, 0.1, seed=30328095).columns
+    pts = np.stack([cols[a] for a in "xyz"], axis=1).astype(np.float64)
+    with pytest.raises(NotAFaceError, match="confidence"):
+        embed_face(pts, FaceParams(max_view_angle_deg=180.0))
+    nose, frame, _ = embed_face(pts)
+    assert np.linalg.norm(frame.origin - objs[0].extra["nose_tip_m"]) < 0.005
+    assert nose.confidence >= FaceParams().min_confidence
 
 
 def test_real_head_meshes_pass_the_face_model_check():
