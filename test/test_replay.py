@@ -87,11 +87,27 @@ def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_
             return spy
         replay.matcher.prepare_scan_cloud = spied("prepare_scan_cloud", replay.matcher.prepare_scan_cloud)
         replay._replay = spied("_replay", replay._replay)
+        handed: list[int] = []  # stamps of the carriage positions the matcher was given
+        on_carriage = replay.matcher.on_carriage
+        def carriage_spy(msg):
+            handed.append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+            on_carriage(msg)
+        replay.matcher.on_carriage = carriage_spy
         stats = replay.run(BAG)
     finally:
         for node in nodes:
             node.destroy_node()
     assert order[:2] == ["prepare_scan_cloud", "_replay"]
+    # carriage positions serve sweeps only: the ones of the stop-snap scan (first SNAP to FINISHED) are not decoded,
+    # except the last, handed over once the scan has ended (where a next sweep may start from)
+    before, during, after, phase = [], [], [], 0
+    for msg in (deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/events", "/lsu/driver/carriage"])):
+        if hasattr(msg, "position_steps") and not hasattr(msg, "type"):
+            (before, during, after)[phase].append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        elif msg.type == 2 and phase == 0 or msg.type == 3:  # the first SNAP; FINISHED
+            phase += 1
+    assert len(before) > 10 and len(during) > 10
+    assert handed == before + during[-1:] + after
     assert (stats.snaps, stats.snap_events, stats.pairs, stats.frames_dropped, stats.lines_unpaired) == (6, 6, 7, 0, 0)
     replayed = points_by_stamp(published)
     assert sorted(replayed) == sorted(recorded)

@@ -463,6 +463,14 @@ class StereoMatcherNode(LsuNode):
             self.sweep.add_carriage(*sample)
             self._sweep_progress()
 
+    def sweep_inputs_wanted(self) -> bool:
+        """Whether carriage positions and exposures can serve a sweep now: not while a stop-snap scan runs (its first
+        SNAP seen, not ended; only stop-snap scans have SNAP events, and no sweep starts within one). A caller that
+        feeds the matcher itself (the direct replay) may then leave them undecoded, handing over the last carriage
+        position once this is True again (the stop a next sweep may start from)."""
+        scan = self.scan
+        return not (scan is not None and scan.end_type is None and self.sweep is None and self.snap_of_stamp)
+
     def on_exposure(self, msg: StereoExposure) -> None:
         """A pair's exposure (``stereo/exposure``): kept until its sweep frame is placed."""
         key = _stamp_key(msg.header.stamp)

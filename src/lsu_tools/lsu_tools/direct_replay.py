@@ -473,6 +473,7 @@ class DirectReplay:
         extractor, matcher = self.extractor, self.matcher
         publishers = extractor.publishers_
         next_spin = time.monotonic() + SPIN_EVERY_S
+        carriage_held: Any = None  # the newest carriage position not handed over (`sweep_inputs_wanted`)
         for m in itertools.chain([first] if first is not None else [], messages):
             side = images.get(m.topic)
             if side is not None:
@@ -503,10 +504,17 @@ class DirectReplay:
                     stats.sweep_frames += int(event.snaps_captured)
                 extractor.on_event(event)
                 matcher.on_event(event)
+                if carriage_held is not None and matcher.sweep_inputs_wanted():
+                    matcher.on_carriage(deserialize_message(bytes(carriage_held), CarriagePosition))
+                    carriage_held = None
             elif m.topic.endswith("stereo/exposure"):
-                matcher.on_exposure(deserialize_message(bytes(m.data), StereoExposure))
+                if matcher.sweep_inputs_wanted():  # a stop-snap scan's exposures serve no sweep: not decoded
+                    matcher.on_exposure(deserialize_message(bytes(m.data), StereoExposure))
             elif m.topic.endswith("driver/carriage"):
-                matcher.on_carriage(deserialize_message(bytes(m.data), CarriagePosition))
+                if matcher.sweep_inputs_wanted():
+                    matcher.on_carriage(deserialize_message(bytes(m.data), CarriagePosition))
+                else:  # during a stop-snap scan only the last position is handed over, once the scan has ended
+                    carriage_held = m.data
             elif m.topic.endswith("extrinsics"):
                 matcher.on_extrinsics(deserialize_message(bytes(m.data), StereoExtrinsics))
             elif (side := _side(m.topic, "camera_info")) is not None:
