@@ -51,12 +51,12 @@ class FaceParams:
     # rig captures 0.45 refused, every nose within 4.1 mm, and changed nothing on the time-of-flight captures;
     # 0.35 put a time-of-flight nose 208 mm off
     min_confidence: float = 0.40
-    # the layout confidence counts the template points the scanner sees within this angle of their normal (at
-    # least FACE's FACING_MIN_SHARE of its core): flatter ones come back as nothing (the matcher's scan cloud drops
-    # points seen beyond 75 deg, max_view_angle_deg; a time-of-flight camera returns holes near grazing). On the
-    # tuning people (ICT seeds 0-59, 360 captures per sensor, the far cheek and eye of heads turned 20-30 deg):
-    # rig refusals 16 -> 4, every nose still right; time-of-flight refusals 17 -> 15, wrong noses 4 -> 3. 180 counts
-    # every template point
+    # the layout confidence counts the template points the scanner sees within this angle of their normal (when
+    # they are at least lsu_faces.face.FACING_MIN_SHARE of its core): flatter ones come back as nothing (the
+    # matcher's scan cloud drops points seen beyond 75 deg, its max_view_angle_deg; a time-of-flight camera returns
+    # holes near grazing). On the tuning people (ICT seeds 0-59, 360 captures per sensor, the far cheek and eye of
+    # heads turned 20-30 deg): rig refusals 16 -> 4, every nose still right; time-of-flight refusals 17 -> 15, wrong
+    # noses 4 -> 3. 180 counts every template point
     max_view_angle_deg: float = 75.0
     max_symmetry_mm: float = 4.0       # mirror residual of the verified face above this: a warning, never a refusal
     max_model_weight: float = 2.3      # face model fit at a candidate: RMS prior-normalised weight above this is no nose
