@@ -84,6 +84,10 @@ IMAGES_KEPT = 8  # newest left frames kept for the texture: its TEXTURE event ma
 SWEEP_IMAGES_HELD = 32
 CARRIAGE_KEPT = 400  # newest carriage positions kept between sweeps (the stop before a sweep's start)
 EXPOSURES_KEPT = 64  # exposures kept before their sweep's SWEEP_START event (the stream starts first)
+# newest pairs that came outside a scan, kept for the next STARTED: DDS keeps no order across topics, so a scan's
+# first pairs can come before its STARTED event (a bag played on a loaded host); those stamped after the event's
+# stamp are the scan's
+EARLY_PAIRS_KEPT = 16
 # carriage reports a sweep is placed by: the device-stamped ones (a status reply is stamped at the middle
 # of its round trip and may come out of order with them)
 SWEEP_CARRIAGE_SOURCES = ("pos", "done")
@@ -234,6 +238,7 @@ class StereoMatcherNode(LsuNode):
         self.snap_of_stamp: dict[int, int] = {}
         # pairs whose SNAP (or SWEEP_START) event is not in yet: their lines, reconstructed once it is
         self.waiting: OrderedDict[int, tuple[_Line, _Line]] = OrderedDict()
+        self._outside_scan: deque[tuple[int, _Line, _Line]] = deque(maxlen=EARLY_PAIRS_KEPT)
         self.sweep: LiveSweep | None = None
         self.sweep_points: SweepPoints | None = None  # the running sweep's frames to points (with a calibration)
         self.sweep_stats: dict[str, int] = {}
@@ -432,6 +437,7 @@ class StereoMatcherNode(LsuNode):
                 return
             self._snap_of_pair(key, left, right, index)
             return
+        self._outside_scan.append((key, left, right))
         snap = self._reconstruct(key, left, right)
         if snap is not None:
             self._publish_points(snap, self.free_snap, left.header)
@@ -627,6 +633,11 @@ class StereoMatcherNode(LsuNode):
             self.scan = _Scan(msg.scan_id, int(msg.expected_snaps))
             self.snap_of_stamp.clear()
             self.waiting.clear()
+            begun = _stamp_key(msg.header.stamp)
+            for key, left, right in self._outside_scan:
+                if 0 < begun <= key:  # the scan's own pair, come before its (stamped) STARTED event
+                    self.waiting[key] = (left, right)
+            self._outside_scan.clear()
             self.sweep, self.sweep_points, self.sweep_stats = None, None, {}
             for held in self._held.values():
                 held.clear()

@@ -333,12 +333,45 @@ class _SystemClock:
         assert self.ros_node.spin_until(lambda: abs(node.get_clock().now().nanoseconds / 1e9 - self.now_s()) < 1.0, 10)
 
 
+def test_a_pair_that_comes_before_its_scans_started_event_counts_for_the_scan(ros_node, rig, tmp_path):
+    """DDS keeps no order across topics: a scan's first lines can reach the matcher before its STARTED event (a bag
+    played on a loaded host). A pair stamped after the event's stamp is the scan's: in its cloud, not lost."""
+    ns = "/lsu_rt_early"
+    node = start(ros_node, ns, calibration_source="file", calibration_dir=str(rig.write_calibration(tmp_path / "c")),
+                 scan_timeout_s=60.0)
+    pub = publishers(ros_node, ns)
+    clouds: list = []
+    ros_node.node.create_subscription(PointCloud2, f"{ns}/scan/cloud", clouds.append, LATCHED)
+    wait_matched(ros_node, pub)
+    stamps = [Time(sec=400), Time(sec=401)]
+    left, right = snap_lines(rig, -0.02)
+    pub["left"].publish(line_msg(left, stamps[0]))
+    pub["right"].publish(line_msg(right, stamps[0]))
+    assert ros_node.spin_until(lambda: node.pairs == 1, 10)      # the first pair came before any scan
+    ev = lambda **kw: ScanEvent(scan_id="e1", **kw)  # noqa: E731
+    started = ev(type=ScanEvent.STARTED, expected_snaps=2)
+    started.header.stamp = Time(sec=399)
+    pub["events"].publish(started)
+    assert ros_node.spin_until(lambda: node.scan is not None, 10)
+    for index, stamp in enumerate(stamps):
+        pub["events"].publish(ev(type=ScanEvent.SNAP, index=index, image_stamp=stamp))
+    left, right = snap_lines(rig, 0.03)
+    pub["left"].publish(line_msg(left, stamps[1]))
+    pub["right"].publish(line_msg(right, stamps[1]))
+    pub["events"].publish(ev(type=ScanEvent.FINISHED, expected_snaps=2, snaps_captured=2))
+    assert ros_node.spin_until(lambda: clouds, 30)  # complete: published at once (a partial one only after 60 s)
+    assert set(decode_msg(clouds[0])["snap"].tolist()) == {0, 1}
+
+
 @pytest.mark.fault("clock: ROS time jumps while a scan's last snap is on its way")
 @pytest.mark.parametrize("jump_s", [3600.0, -3600.0], ids=["forward", "backward"])
 def test_a_clock_jump_neither_cuts_the_scan_short_nor_holds_its_cloud(ros_node, rig, tmp_path, jump_s, fault_report):
     clock = _SystemClock(ros_node, 10_000.0)
     ns = f"/lsu_rt_clock_{'fwd' if jump_s > 0 else 'back'}"
-    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, ns, "c1", 2, scan_timeout_s=3.0, use_sim_time=True)
+    # forward: the last snap comes after the jump, which the test's own steps may delay by seconds on a loaded host,
+    # so the real wait (scan_timeout_s) is long; backward: it never comes, and the wait is what the test measures
+    node, pub, clouds, ev = started_scan(ros_node, rig, tmp_path, ns, "c1", 2, scan_timeout_s=30.0 if jump_s > 0 else 3.0,
+                                         use_sim_time=True)
     clock.step(node, 0.0)
     stamps = [Time(sec=400), Time(sec=401)]
     for index, stamp in enumerate(stamps):
