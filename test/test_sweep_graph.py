@@ -212,4 +212,7 @@ def test_sweep_scan_with_a_50ms_capture_offset_its_replays_and_a_cancel(tmp_path
         assert ros_node.spin_until(lambda: len(clouds) >= 1, 60.0), replay_graph.output[-3000:]
     finally:
         replay_graph.stop(timeout_s=15)
-    same_frames(clouds[0], recorded[0])
+    try:
+        same_frames(clouds[0], recorded[0])
+    except AssertionError as exc:  # the graph's own account of the frames (a DDS path under load)
+        raise AssertionError(f"{exc}\n{replay_graph.output[-4000:]}") from exc
