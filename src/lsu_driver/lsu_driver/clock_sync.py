@@ -97,12 +97,12 @@ class DeviceClock:
         best = half <= np.quantile(half, self._best_fraction)
         device, mid, half = device[best], mid[best], half[best]
         d0 = device[-1]  # regress around the newest sample: the mapping matters most near "now"
+        w = 1.0 / (half ** 2 + self._resolution_s ** 2 / 12.0)  # inverse variance (module doc)
         if len(device) < 2 or np.ptp(device) < 1e-3:
             scale = 1.0
-            offset = float(np.average(mid - device, weights=1.0 / (half ** 2 + self._resolution_s ** 2 / 12.0)))
+            offset = float(np.average(mid - device, weights=w))
             spread = 0.0
         else:
-            w = 1.0 / (half ** 2 + self._resolution_s ** 2 / 12.0)
             A = np.column_stack([np.ones_like(device), device - d0])
             coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], mid * np.sqrt(w), rcond=None)[0]
             scale = float(np.clip(coef[1], 1.0 - self._max_drift, 1.0 + self._max_drift))
