@@ -23,7 +23,6 @@ from lsu_testing.plugin import LSU
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
 
-
 def test_a_sudden_turn_is_flagged_and_scanned_again(tmp_path, launch):
     scans = tmp_path / "scans"
     graph = launch("launch", "sim", f"port:={tmp_path / 'gp32'}", *launch_args(), f"output_dir:={scans}")
