@@ -101,8 +101,9 @@ def test_direct_replay_gives_the_recorded_points_of_every_snap(ros_context, tmp_
     # carriage positions serve sweeps only: the ones of the stop-snap scan (first SNAP to FINISHED) are not decoded,
     # except the last, handed over once the scan has ended (where a next sweep may start from)
     before, during, after, phase = [], [], [], 0
-    for msg in (deserialize_ros(m) for m in read_messages(BAG, ["/lsu/scan/events", "/lsu/driver/carriage"])):
-        if hasattr(msg, "position_steps") and not hasattr(msg, "type"):
+    for m in read_messages(BAG, ["/lsu/scan/events", "/lsu/driver/carriage"]):
+        msg = deserialize_ros(m)
+        if m.topic == "/lsu/driver/carriage":
             (before, during, after)[phase].append(msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
         elif msg.type == 2 and phase == 0 or msg.type == 3:  # the first SNAP; FINISHED
             phase += 1
