@@ -40,7 +40,7 @@ EXIT_STARTUP_ERROR = 2  # the node could not start (bad parameter, busy port); t
 # how long a way out waits for the callbacks still running (a scan's end, a mesh being written) before the nodes
 # go: below `lsu launch`'s SIGINT grace (2.5 s), so that a node that ends in time is not SIGTERMed
 CALLBACK_GRACE_S = 2.0
-# how often a node run with deferred signals (`run_node`) looks whether one came
+# how often a spin (`spin_until_shutdown`) looks whether a signal came or the context was shut down
 SIGNAL_POLL_S = 0.1
 
 
@@ -139,11 +139,7 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
         if on_started is not None:
             on_started(node)
         executor.add_node(node)
-        if defer_signals:
-            while not stop.is_set() and rclpy.ok():
-                executor.spin_once(timeout_sec=SIGNAL_POLL_S)
-        else:
-            executor.spin()
+        spin_until_shutdown(executor, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -154,6 +150,21 @@ def run_node(make_node: Callable[[], Node], args: Sequence[str] | None = None, *
     finally:
         close_nodes(executor, [node] if node is not None else [])
     return EXIT_OK
+
+
+def spin_until_shutdown(executor: Executor, stop: threading.Event | None = None) -> None:
+    """Spin ``executor`` until its context is shut down (rclpy's SIGINT/SIGTERM handlers, an external shutdown)
+    or ``stop`` is set, looking every `SIGNAL_POLL_S`.
+
+    Not ``executor.spin()``: rclpy's signal handler wakes the executors (their signal guard condition) before
+    it shuts the contexts down. A wait woken in between finds the context still up, and the next wait, with no
+    timeout, is never woken: the process hangs after the signal (1 SIGTERM in 80 sent just after start).
+    """
+    try:
+        while (stop is None or not stop.is_set()) and executor.context.ok():
+            executor.spin_once(timeout_sec=SIGNAL_POLL_S)
+    except ExternalShutdownException:
+        pass  # the context went down during a wait: the end this waits for
 
 
 def stop_executor(executor: Executor, grace_s: float = CALLBACK_GRACE_S) -> bool:

@@ -120,6 +120,39 @@ def test_a_callback_still_running_ends_before_the_node_is_destroyed(mode, before
     assert "Traceback" not in err
 
 
+def test_a_spin_ends_when_the_context_goes_down_without_waking_it():
+    """What rclpy's signal handler does to a spin at times (`spin_until_shutdown`): the executor's wait is woken,
+    and the context is shut down only after it went back to waiting, with nothing to wake it again."""
+    import threading
+    import time
+
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from lsu_common.node import spin_until_shutdown
+
+    context = Context()
+    rclpy.init(context=context, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    executor = SingleThreadedExecutor(context=context)
+    node = rclpy.create_node("spin_probe", namespace="/lsu_node_test", context=context)
+    executor.add_node(node)
+    woken = threading.Event()
+    guard = node.create_guard_condition(woken.set)
+    spinning = threading.Thread(target=spin_until_shutdown, args=(executor,), daemon=True)
+    try:
+        spinning.start()
+        guard.trigger()
+        assert woken.wait(30), "the spin never ran the guard condition's callback"
+        time.sleep(0.5)  # the spin back in its wait (not yet there, this passes without testing the hang)
+        context.handle.shutdown()  # the middleware's context only: no Python shutdown callback wakes the executor
+        spinning.join(30)
+        assert not spinning.is_alive(), "the spin still waits in a context that was shut down"
+    finally:
+        node.destroy_node()
+        executor.shutdown()
+
+
 @pytest.mark.slow
 def test_start_up_errors_are_one_line_and_exit_2_other_errors_are_not_hidden():
     busy = _start("busy")

@@ -542,6 +542,7 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO | None = None, ex
     """
     out = sys.stdout if out is None else out
     from lsu_bags.bags import BagError
+    from lsu_common.node import spin_until_shutdown
 
     from .runner import spinning_nodes
 
@@ -572,6 +573,6 @@ def run_direct_replay(description: Any, bag: Path, out: TextIO | None = None, ex
         else:
             out.write("[lsu run] replay done; the nodes keep running (Ctrl-C stops)\n")
             out.flush()
-            spinner.spin()
+            spin_until_shutdown(spinner)
     out.write("[lsu run] stopped\n")
     return 0

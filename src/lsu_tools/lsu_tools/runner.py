@@ -88,10 +88,12 @@ def run_in_process(description: LaunchDescription, out: TextIO | None = None, ex
     pipeline of processing nodes runs faster; a callback that waits would deadlock it).
     """
     out = sys.stdout if out is None else out
+    from lsu_common.node import spin_until_shutdown
+
     with spinning_nodes(description, out, executor) as (nodes, spinner):
         out.write(f"[lsu run] spinning {len(nodes)} node(s) in one process ({executor}-threaded executor); "
                   "Ctrl-C stops\n")
         out.flush()
-        spinner.spin()
+        spin_until_shutdown(spinner)
     out.write("[lsu run] stopped\n")
     return 0
