@@ -106,7 +106,7 @@ SELF_CALIBRATION_PEOPLE = 50   # depth-map people from which the gallery calibra
 CALIBRATION_SEARCHES = 200     # leave-one-out searches of that calibration (every entry below that)
 # part of a stored calibration's key (module doc): raise it when what a search's distance is changes otherwise
 # than through the key's other parts (the comparison, the first stage), so that no stored calibration is read
-CALIBRATION_VERSION = 1
+CALIBRATION_VERSION = 2  # 2: the comparison's smoothing rounded (`signature.SMOOTH_STEP_CELLS`)
 
 
 class GalleryError(ValueError):

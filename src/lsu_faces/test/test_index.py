@@ -182,3 +182,9 @@ def test_fine_stage_aligns_the_probe_onto_each_candidate_and_ranks_like_single_c
     single = [compare(probe, r)[1] for r in refs]
     assert np.allclose(batch, single, rtol=1e-9, atol=0.0)
     assert int(np.argmin(batch)) in (1, 3) and min(batch[1], batch[3]) < 0.5 * min(batch[0], batch[2], batch[4])
+    # scans whose noise differs a little share one smoothing, so that they are aligned together
+    from lsu_faces.signature import SMOOTH_STEP_CELLS, smoothing_cells
+
+    cells = [smoothing_cells(probe, face_like(1, noise_m=n)) for n in (1.28e-3, 1.33e-3, 1.38e-3, 1.6e-3, 1.85e-3)]
+    assert cells[0] == cells[1] == cells[2] == 2.0 and cells[3] == 2.5 and cells[4] == 2.75
+    assert all(c / SMOOTH_STEP_CELLS == round(c / SMOOTH_STEP_CELLS) for c in cells)
