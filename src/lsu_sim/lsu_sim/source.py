@@ -210,7 +210,11 @@ def open_sim_source(context: SourceContext) -> SimSource:
     except MotionError as exc:
         raise CameraError(f"sim_motion: {exc}") from None
     # the shadow cache: a person at 60 fps on a small host (its few pixels at shadow edges: `SimulatedRig`)
-    return SimSource(SimulatedRig(geometry, scene, seed=seed, shadow_cache=True), carriage, clock=context.clock, seed=seed, motion=motion,
+    rig = SimulatedRig(geometry, scene, seed=seed, shadow_cache=True)
+    # before the camera offers its capture service: a camera respawned mid-session answers a scan's first snap
+    # within the coordinator's capture timeout on a loaded host too (the first render's caches took longer)
+    rig.prepare()
+    return SimSource(rig, carriage, clock=context.clock, seed=seed, motion=motion,
                      motion_hz=float(optional("sim_motion_hz", 5.0)))
 
 

@@ -133,3 +133,19 @@ def test_the_next_pose_is_cast_ahead_and_the_frames_are_those_of_a_cast_in_place
         assert ahead._motion_slot == 3   # four slots of 0.2 s passed: three casts taken from the caster
     finally:
         ahead.close()
+
+
+def test_the_cameras_sim_source_is_prepared_before_its_first_frame_with_the_same_pixels():
+    """The camera's sim source (`open_sim_source`) has the first render's caches built before the camera offers its
+    capture service (a respawned camera's first capture: a scan's first snap, on time on a loaded host); a rig that
+    builds them at its first render gives the same pixels (the preparation draws nothing from the rig's generator)."""
+    params = {"sim_rig": "", "sim_scene": "sphere", "sim_seed": 3, "carriage_position_steps": 200.0, "laser_on": True}
+    context = SourceContext(parameter=params.__getitem__, clock=lambda: 1000.0, truth_at=lambda t_ns: (None, []))
+    source = open_plugin_source("sim", context)
+    assert isinstance(source, SimSource)
+    assert all(view.sensor_key for view in source.rig._views)  # nothing left for the first frame to build
+    cold = SimulatedRig(source.rig.geometry, build_scene("sphere", source.rig.geometry), seed=3, shadow_cache=True)
+    assert not any(view.sensor_key for view in cold._views)
+    for position in (200.0, 260.0):
+        prepared, built_then = source.rig.render(CarriageState(position)), cold.render(CarriageState(position))
+        assert np.array_equal(prepared.left, built_then.left) and np.array_equal(prepared.right, built_then.right)
