@@ -366,8 +366,8 @@ def nose_tip_template(points: AnyArray, params: FaceParams = FaceParams()) -> No
         seen = _facing(tpl.points[idx], tpl.normals[idx], reg.T, params.max_view_angle_deg)
         if np.count_nonzero(seen & core[idx]) < FACING_MIN_SHARE * np.count_nonzero(core[idx]):
             seen = np.ones(len(idx), bool)
-        cover = {r: float(reg.inliers[seen & (tpl.region[idx] == k)].mean()) if np.any(seen & (tpl.region[idx] == k))
-                 else 0.0 for k, r in enumerate(REGIONS)}
+        in_sight = {r: seen & (tpl.region[idx] == k) for k, r in enumerate(REGIONS)}
+        cover = {r: float(reg.inliers[m].mean()) if m.any() else 0.0 for r, m in in_sight.items()}
         conf = float(reg.inliers[core[idx] & seen].mean()) * float(np.exp(-(reg.rms_m / rms_scale) ** 2))
         if min(cover["nose"], max(cover["eyes"], cover["cheeks"])) < 0.35:
             conf = min(conf, 0.0)        # no nose, or nothing of the face beside it
